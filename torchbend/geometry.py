@@ -1,0 +1,210 @@
+"""Pure per-hinge geometry kernels: the bend angle, its gradient and its Hessian.
+
+Everything here works on gathered stencils ``x4: (..., H, 4, 3)`` (the SPEC's order
+``(x0, x1, x2, x3)``: hinge edge ``x0 -> x1``, wing of triangle A, wing of triangle B, see
+:mod:`torchbend.topology`) and returns per-hinge quantities; scatter-adding them to vertices
+happens outside (:mod:`torchbend._assemble`).  No autograd is used or required: these are the
+closed forms of Tamstorf & Grinspun (2013), eqs. (4)-(6), and the tech report, eqs. (18)-(21)
+and the half-hinge blocks of sec. 6.
+
+The half-hinge
+--------------
+The tech report splits the Hessian of ``theta`` into one "half-hinge" per triangle.  With both
+triangles written with the same vertex order ``(a, b, c) = (x0, x1, wing)`` the two halves are
+the *same* function ``T`` of their three vertices, and
+
+    grad theta = T'(x0, x1, x2) - T'(x0, x1, x3),      Hess theta = T''(x0, x1, x2) - T''(x0, x1, x3)
+
+(``T`` is the azimuth of the half-plane through the edge and the wing; the minus sign is the
+orientation flip of triangle B, whose CCW order is ``(x1, x0, x3)``).  Per half-hinge, with
+``N = (b - a) x (c - a)`` (twice the area times the unit normal ``n``), the altitudes ``h_k``
+from vertex ``k`` to its opposite edge, the interior angles ``alpha_k`` and the outward unit
+in-plane edge normals ``m_k`` (edge opposite ``k``):
+
+    grad_k T = rho_k n,    rho = (cos(alpha_b)/h_a,  cos(alpha_a)/h_b,  -1/h_c)
+
+and the 3x3 blocks (tech report sec. 6, ``H_ij = d/dx_j (d T/dx_i)``)
+
+    H_aa = cos(alpha_b)/h_a^2 S(m_a n^T) - B        H_ab = (cos(alpha_b) m_b n^T + cos(alpha_a) n m_a^T)/(h_a h_b) + B
+    H_bb = cos(alpha_a)/h_b^2 S(m_b n^T) - B        H_ac = (cos(alpha_b) m_c n^T - n m_a^T)/(h_a h_c)
+    H_cc = -S(m_c n^T)/h_c^2                        H_bc = (cos(alpha_a) m_c n^T - n m_b^T)/(h_b h_c)
+
+with ``S(A) = A + A^T`` and ``B = n m_c^T / |e0|^2`` (the term that is transposed in the per-triangle
+assembly; summed over both halves it is symmetric).  Applied to a direction ``v`` these blocks
+collapse to dot products (no 12x12 matrix is formed):
+
+    (H v)_k = rho_k mu + n (m_k/h_k . nu) + [B terms],   mu = sum_k (m_k/h_k)(n . v_k),  nu = sum_k rho_k v_k
+
+where ``mu`` is the directional derivative of ``n``.
+
+Degenerate deformed geometry
+----------------------------
+A triangle of zero area (or a hinge edge of zero length) in the *deformed* state has no normal.
+Policy: its normal and in-plane normals are taken as zero (denominators are floored at the
+smallest normal number of the dtype), so the hinge's angle is ``atan2(0, 0) = 0`` and its angle
+derivatives are zero: finite, never NaN.  Rest shapes with such triangles are rejected upstream.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "hinge_angle",
+    "hinge_angle_and_gradient",
+    "hinge_angle_hvp",
+    "hinge_angle_hessian",
+]
+
+
+def _cross(u: Tensor, v: Tensor) -> Tensor:
+    # explicit components: faster than linalg.cross for small trailing dims and vmap-friendly
+    u0, u1, u2 = u.unbind(-1)
+    v0, v1, v2 = v.unbind(-1)
+    return torch.stack((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0), dim=-1)
+
+
+def _dot(u: Tensor, v: Tensor) -> Tensor:
+    return (u * v).sum(-1)
+
+
+def _floor(t: Tensor) -> Tensor:
+    """Clamp a non-negative magnitude away from zero (degenerate-geometry policy)."""
+    return t.clamp_min(torch.finfo(t.dtype).tiny)
+
+
+class _HalfHinge:
+    """Local quantities of one half-hinge ``(a, b, c)``; all fields ``(..., H[, 3])``."""
+
+    __slots__ = ("n", "rho", "mh", "mc_s", "area2", "elen")
+
+    def __init__(self, xa: Tensor, xb: Tensor, xc: Tensor):
+        e = xb - xa  # hinge edge
+        u = xc - xa  # edge opposite b
+        w = xc - xb  # edge opposite a
+        N = _cross(e, u)
+        area2 = torch.linalg.vector_norm(N, dim=-1)  # |N| = 2 * area
+        elen = torch.linalg.vector_norm(e, dim=-1)
+        inv_area2 = 1.0 / _floor(area2)
+        n = N * inv_area2[..., None]  # unit normal (zero for a collapsed triangle)
+        inv_elen = 1.0 / _floor(elen)
+        # gradient coefficients rho_k = cos(alpha_other)/h_k, written without angles:
+        #   cos(alpha_b)/h_a = -(e.w)/(|e||N|),  cos(alpha_a)/h_b = (e.u)/(|e||N|),  -1/h_c = -|e|/|N|
+        s = inv_elen * inv_area2
+        rho_a = -_dot(e, w) * s
+        rho_b = _dot(e, u) * s
+        rho_c = -elen * inv_area2
+        # outward in-plane edge normals divided by the altitude to the opposite vertex:
+        #   m_a/h_a = (w x n)/|N|,  m_b/h_b = -(u x n)/|N|,  m_c/h_c = (e x n)/|N|
+        en = _cross(e, n)
+        self.n = n
+        self.rho = (rho_a, rho_b, rho_c)
+        self.mh = (
+            _cross(w, n) * inv_area2[..., None],
+            -_cross(u, n) * inv_area2[..., None],
+            en * inv_area2[..., None],
+        )
+        # m_c / |e0|^2 = (e x n)/|e|^3  (the B term)
+        self.mc_s = en * (inv_elen * inv_elen * inv_elen)[..., None]
+        self.area2 = area2
+        self.elen = elen
+
+    def gradient(self) -> tuple[Tensor, Tensor, Tensor]:
+        return tuple(r[..., None] * self.n for r in self.rho)  # type: ignore[return-value]
+
+    def hvp(self, va: Tensor, vb: Tensor, vc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        n = self.n
+        ra, rb, rc = self.rho
+        mha, mhb, mhc = self.mh
+        wa, wb, wc = _dot(n, va), _dot(n, vb), _dot(n, vc)
+        mu = mha * wa[..., None] + mhb * wb[..., None] + mhc * wc[..., None]
+        nu = ra[..., None] * va + rb[..., None] * vb + rc[..., None] * vc
+        # B = n m_c^T/|e|^2 enters as [[-B, B], [B^T, -B]] on the (a, b) blocks
+        bd = _dot(self.mc_s, vb - va)
+        bb = _dot(self.mc_s, vb)
+        oa = ra[..., None] * mu + n * (_dot(mha, nu) + bd)[..., None]
+        ob = rb[..., None] * mu + n * (_dot(mhb, nu) - bb)[..., None] + self.mc_s * wa[..., None]
+        oc = rc[..., None] * mu + n * _dot(mhc, nu)[..., None]
+        return oa, ob, oc
+
+    def blocks(self) -> Tensor:
+        """Dense half-hinge Hessian ``(..., H, 3, 3, 3, 3)`` indexed ``[i, j, p, q]`` (vertex i, j)."""
+        n, rho, mh = self.n, self.rho, self.mh
+        rows = []
+        for i in range(3):
+            row = []
+            for j in range(3):
+                # H_ij = rho_i mh_j n^T + rho_j n mh_i^T  (read off the HVP above)
+                row.append(
+                    rho[i][..., None, None] * _outer(mh[j], n) + rho[j][..., None, None] * _outer(n, mh[i])
+                )
+            rows.append(row)
+        B = _outer(n, self.mc_s)
+        rows[0][0] = rows[0][0] - B
+        rows[0][1] = rows[0][1] + B
+        rows[1][0] = rows[1][0] + B.transpose(-1, -2)
+        rows[1][1] = rows[1][1] - B
+        return torch.stack([torch.stack(r, dim=-3) for r in rows], dim=-4)
+
+
+def _outer(u: Tensor, v: Tensor) -> Tensor:
+    """``u v^T`` over the last dimension: ``(..., 3, 3)``."""
+    return u[..., :, None] * v[..., None, :]
+
+
+def _angle(hA: _HalfHinge, hB: _HalfHinge, e: Tensor) -> Tensor:
+    # SPEC: theta = atan2(e0_hat . (nA x nB), nA . nB) with nA, nB the triangle normals.
+    # hB.n is the normal of (x0, x1, x3), i.e. -nB.
+    nA, nB = hA.n, -hB.n
+    e_hat = e / _floor(torch.linalg.vector_norm(e, dim=-1))[..., None]
+    return torch.atan2(_dot(e_hat, _cross(nA, nB)), _dot(nA, nB))
+
+
+def _halves(x4: Tensor) -> tuple[_HalfHinge, _HalfHinge]:
+    x0, x1, x2, x3 = x4.unbind(-2)
+    return _HalfHinge(x0, x1, x2), _HalfHinge(x0, x1, x3)
+
+
+def hinge_angle(x4: Tensor) -> Tensor:
+    """Signed bend angle ``theta: (..., H)`` in (-pi, pi] of stencils ``x4: (..., H, 4, 3)``."""
+    x0, x1, x2, x3 = x4.unbind(-2)
+    e = x1 - x0
+    nA = _cross(e, x2 - x0)
+    nB = _cross(x3 - x1, e)
+    e_hat = e / _floor(torch.linalg.vector_norm(e, dim=-1))[..., None]
+    return torch.atan2(_dot(e_hat, _cross(nA, nB)), _dot(nA, nB))
+
+
+def hinge_angle_and_gradient(x4: Tensor) -> tuple[Tensor, Tensor]:
+    """``theta: (..., H)`` and ``d theta / d x4: (..., H, 4, 3)`` (tech report eqs. 18-21)."""
+    hA, hB = _halves(x4)
+    theta = _angle(hA, hB, x4[..., 1, :] - x4[..., 0, :])
+    ga, gb, gc = hA.gradient()
+    ka, kb, kc = hB.gradient()
+    grad = torch.stack((ga - ka, gb - kb, gc, -kc), dim=-2)
+    return theta, grad
+
+
+def hinge_angle_hvp(x4: Tensor, v4: Tensor) -> Tensor:
+    """``Hess(theta) v`` per hinge, ``(..., H, 4, 3)``, from the closed-form blocks (no 12x12 matrix)."""
+    hA, hB = _halves(x4)
+    v0, v1, v2, v3 = v4.unbind(-2)
+    a0, a1, a2 = hA.hvp(v0, v1, v2)
+    b0, b1, b3 = hB.hvp(v0, v1, v3)
+    return torch.stack((a0 - b0, a1 - b1, a2, -b3), dim=-2)
+
+
+def hinge_angle_hessian(x4: Tensor) -> Tensor:
+    """Dense ``Hess(theta): (..., H, 12, 12)`` in stencil order, flat index ``3*k + j``."""
+    hA, hB = _halves(x4)
+    A = hA.blocks()  # (..., H, 3, 3, 3, 3) over (x0, x1, x2)
+    B = hB.blocks()  # over (x0, x1, x3)
+    shape = A.shape[:-4]
+    H = A.new_zeros(shape + (4, 4, 3, 3))
+    ia = [0, 1, 2]
+    ib = [0, 1, 3]
+    for i in range(3):
+        for j in range(3):
+            H[..., ia[i], ia[j], :, :] += A[..., i, j, :, :]
+            H[..., ib[i], ib[j], :, :] -= B[..., i, j, :, :]
+    return H.permute(*range(len(shape)), -4, -2, -3, -1).reshape(shape + (12, 12))
