@@ -54,6 +54,7 @@ __all__ = [
     "hinge_angle_and_gradient",
     "hinge_angle_hvp",
     "hinge_angle_hessian",
+    "hinge_angle_gradient_hvp",
 ]
 
 
@@ -177,21 +178,32 @@ def hinge_angle(x4: Tensor) -> Tensor:
 
 def hinge_angle_and_gradient(x4: Tensor) -> tuple[Tensor, Tensor]:
     """``theta: (..., H)`` and ``d theta / d x4: (..., H, 4, 3)`` (tech report eqs. 18-21)."""
+    theta, grad, _ = hinge_angle_gradient_hvp(x4, None)
+    return theta, grad
+
+
+def _hvp(hA: _HalfHinge, hB: _HalfHinge, v4: Tensor) -> Tensor:
+    v0, v1, v2, v3 = v4.unbind(-2)
+    a0, a1, a2 = hA.hvp(v0, v1, v2)
+    b0, b1, b3 = hB.hvp(v0, v1, v3)
+    return torch.stack((a0 - b0, a1 - b1, a2, -b3), dim=-2)
+
+
+def hinge_angle_hvp(x4: Tensor, v4: Tensor) -> Tensor:
+    """``Hess(theta) v`` per hinge, ``(..., H, 4, 3)``, from the closed-form blocks (no 12x12 matrix)."""
+    return _hvp(*_halves(x4), v4)
+
+
+def hinge_angle_gradient_hvp(x4: Tensor, v4: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """``(theta, grad theta, Hess(theta) v)`` sharing one evaluation of the half-hinge quantities.
+
+    ``v4`` may be ``None`` (then the HVP is ``None``)."""
     hA, hB = _halves(x4)
     theta = _angle(hA, hB, x4[..., 1, :] - x4[..., 0, :])
     ga, gb, gc = hA.gradient()
     ka, kb, kc = hB.gradient()
     grad = torch.stack((ga - ka, gb - kb, gc, -kc), dim=-2)
-    return theta, grad
-
-
-def hinge_angle_hvp(x4: Tensor, v4: Tensor) -> Tensor:
-    """``Hess(theta) v`` per hinge, ``(..., H, 4, 3)``, from the closed-form blocks (no 12x12 matrix)."""
-    hA, hB = _halves(x4)
-    v0, v1, v2, v3 = v4.unbind(-2)
-    a0, a1, a2 = hA.hvp(v0, v1, v2)
-    b0, b1, b3 = hB.hvp(v0, v1, v3)
-    return torch.stack((a0 - b0, a1 - b1, a2, -b3), dim=-2)
+    return theta, grad, (None if v4 is None else _hvp(hA, hB, v4))
 
 
 def hinge_angle_hessian(x4: Tensor) -> Tensor:
