@@ -1,0 +1,314 @@
+"""The bending energy as a twice analytically differentiable ``torch.autograd.Function``.
+
+Two private Functions per bending model (private; the public entry points are
+:class:`torchbend.BendingEnergy` and :func:`bending_energy`):
+
+* ``_Energy``: ``(x, hinges, a, k, rest[, c, prev]) -> E``, the energy per mesh ``(...,)`` (or per
+  segment ``(..., S)`` for packed meshes).  Its ``backward`` applies ``_Gradient``.
+* ``_Gradient``: ``(gE, x, hinges, a, k, rest[, c, prev]) -> (gE dE/dx, gE dE/dk, gE dE/drest[, ...])``,
+  the closed-form gradient (tech report eqs. 18-21).  Its ``backward`` is the closed-form
+  Hessian-vector product (paper eqs. 5-6 applied to a vector, :func:`torchbend.geometry.hinge_angle_gradient_hvp`),
+  so ``torch.autograd.grad(E, x, create_graph=True)`` followed by a second ``grad`` runs the analytic
+  HVP and never records an autograd graph of the gradient computation.
+
+Both define ``jvp`` (forward mode) and use ``generate_vmap_rule``, so ``torch.func.vmap``,
+``jacrev``, ``jacfwd`` and ``hessian`` compose with them.  Every argument is a tensor except the
+segment count of packed meshes.
+
+Notation (per hinge): ``psi(p)`` with ``p = (theta, k, rest, c, prev)`` (:mod:`torchbend.models`);
+``g = d theta/d x4`` and ``H_theta`` its Hessian.  For a cotangent ``gE`` and an input direction
+``(v, t_k, t_rest, ...)``::
+
+    d/dx   <grad, (v, t)> = gE (z_theta g + psi_theta H_theta v),     z = Hess_p(psi) (g.v, t_k, t_rest, ...)
+    d/dp_j <grad, (v, t)> = gE z_j,                                    d/dgE = sum_h grad_p(psi) . (g.v, t_k, ...)
+
+The rest weights ``a`` are constants (buffers computed from the rest shape); no gradient flows to them.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from . import geometry
+from ._assemble import gather, scatter
+from .models import REST, THETA, BendingModel, contract_hessian, psi_derivatives
+
+__all__ = ["energy_function", "bending_energy_raw"]
+
+_PARAM_SLOTS = (1, 2, 3, 4)  # K, REST, C, PREV in models' slot numbering
+
+
+def _is_traced(t: Tensor) -> bool:
+    """True under torch.func transforms (checks that need data-dependent control flow are skipped)."""
+    return torch._C._functorch.is_functorch_wrapped_tensor(t)
+
+
+def _check_fold(model: BendingModel, theta: Tensor) -> None:
+    """``tan`` energy is unbounded at |theta| = pi: a hinge folded flat onto itself is an error, not NaN/Inf."""
+    if model is not BendingModel.TAN or _is_traced(theta) or theta.numel() == 0:
+        return
+    limit = torch.tensor(torch.pi, dtype=theta.dtype)
+    folded = theta.detach().abs() >= limit.to(theta.device)
+    if bool(folded.any()):
+        idx = torch.nonzero(folded.reshape(-1, theta.shape[-1]).any(0)).reshape(-1)[:8].tolist()
+        raise ValueError(
+            f"hinges {idx} have folded through (|theta| = pi): the 'tan' bending energy is unbounded "
+            "there by design (it forbids interpenetration); use smaller steps or the 'quadratic'/'sin' model"
+        )
+
+
+def _hinge_weight(gE: Tensor, seg: Tensor | None) -> Tensor:
+    """Per-hinge cotangent ``(..., H)`` from the per-mesh (or per-segment) cotangent."""
+    return gE[..., None] if seg is None else gE[..., seg]
+
+
+def _reduce(psi: Tensor, seg: Tensor | None, seg_count: int) -> Tensor:
+    if seg is None:
+        return psi.sum(-1)
+    out = psi.new_zeros(psi.shape[:-1] + (seg_count,))
+    return out.index_add(-1, seg, psi)
+
+
+def _params(params: tuple) -> tuple:
+    """``(k, rest)`` or ``(k, rest, c, prev)`` -> the 4 psi slots (``None`` where absent)."""
+    return tuple(params) + (None,) * (4 - len(params))
+
+
+def _pvec(first: Tensor | None, tangents: tuple) -> list:
+    vec = [first]
+    vec += [t for t in tangents] + [None] * (4 - len(tangents))
+    return vec
+
+
+def _dot_p(grad: list, vec: list) -> Tensor | None:
+    out = None
+    for gi, vi in zip(grad, vec):
+        if gi is None or vi is None:
+            continue
+        out = gi * vi if out is None else out + gi * vi
+    return out
+
+
+def _make(model: BendingModel):
+    """The pair of Functions for one bending model."""
+
+    class _GradientImpl(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(gE, x, hinges, seg, a, *params):
+            x4 = gather(x, hinges)  # (..., H, 4, 3)
+            theta, g4, _ = geometry.hinge_angle_gradient_hvp(x4, None)
+            _, pg, _ = psi_derivatives(model, theta, *_params(params)[:2], a, *_params(params)[2:], hessian=False)
+            w = _hinge_weight(gE, seg)  # (..., H)
+            gx = scatter((w * pg[THETA])[..., None, None] * g4, hinges, x.shape[-2])
+            gp = tuple(w * pg[s] for s in _PARAM_SLOTS[: len(params)])
+            return (gx,) + gp
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            gE, x, hinges, seg, a, *params = inputs
+            ctx.save_for_backward(gE, x, hinges, seg, a, *params)
+            ctx.save_for_forward(gE, x, hinges, seg, a, *params)
+
+        @staticmethod
+        def _second(ctx, t_gE, t_x, t_params):
+            """The Hessian of ``<gE, E>`` in ``(gE, x, params)`` applied to one direction.
+
+            Shared by ``backward`` (cotangents of the outputs: ``t_gE`` is ``None``) and ``jvp``
+            (tangents of the inputs).  Returns ``(dx, [d params], d gE per hinge)``."""
+            gE, x, hinges, seg, a, *params = ctx.saved_tensors
+            p = _params(params)
+            x4 = gather(x, hinges)  # (..., H, 4, 3)
+            v4 = None if t_x is None else gather(t_x, hinges)
+            theta, g4, hv4 = geometry.hinge_angle_gradient_hvp(x4, v4)
+            _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=True)
+            w = _hinge_weight(gE, seg)  # (..., H)
+            u = None if v4 is None else (g4 * v4).sum((-1, -2))  # g . v  (..., H)
+            vec = _pvec(u, t_params)
+            z = contract_hessian(ph, vec)  # Hess_p(psi) vec
+            coef = None if z[THETA] is None else w * z[THETA]
+            tw = None if t_gE is None else _hinge_weight(t_gE, seg)
+            if tw is not None:
+                t = tw * pg[THETA]
+                coef = t if coef is None else coef + t
+            dx4 = None if coef is None else coef[..., None, None] * g4
+            if hv4 is not None:
+                term = (w * pg[THETA])[..., None, None] * hv4  # psi' H_theta v
+                dx4 = term if dx4 is None else dx4 + term
+            dx = None if dx4 is None else scatter(dx4, hinges, x.shape[-2])
+            dps = []
+            for s in _PARAM_SLOTS[: len(params)]:
+                d = None if z[s] is None else w * z[s]
+                if tw is not None:
+                    d = tw * pg[s] if d is None else d + tw * pg[s]
+                dps.append(d)
+            return dx, dps, _dot_p(pg, vec)
+
+        @staticmethod
+        def backward(ctx, ggx, *ggp):
+            gE, seg = ctx.saved_tensors[0], ctx.saved_tensors[3]
+            dx, dps, dg = _GradientImpl._second(ctx, None, ggx, tuple(ggp))
+            dgE = None
+            if ctx.needs_input_grad[0] and dg is not None:
+                dgE = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
+            dps = [d if ctx.needs_input_grad[5 + i] else None for i, d in enumerate(dps)]
+            return (dgE, dx, None, None, None, *dps)
+
+        @staticmethod
+        def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_a, *t_params):
+            x, params = ctx.saved_tensors[1], ctx.saved_tensors[5:]
+            dx, dps, _ = _GradientImpl._second(ctx, t_gE, t_x, tuple(t_params))
+            # tangents must match the (possibly expanded) output shapes exactly
+            dx = torch.zeros_like(x) if dx is None else dx
+            dps = [torch.zeros_like(params[i]) if d is None else d for i, d in enumerate(dps)]
+            return (dx, *dps)
+
+    class _EnergyImpl(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(x, hinges, seg, seg_count, a, *params):
+            p = _params(params)
+            theta = geometry.hinge_angle(gather(x, hinges))  # (..., H)
+            _check_fold(model, theta)
+            psi, _, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
+            return _reduce(psi, seg, seg_count)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            x, hinges, seg, seg_count, a, *params = inputs
+            ctx.save_for_backward(x, hinges, seg, a, *params)
+            ctx.save_for_forward(x, hinges, seg, a, *params)
+            ctx.seg_count = seg_count
+
+        @staticmethod
+        def backward(ctx, gE):
+            x, hinges, seg, a, *params = ctx.saved_tensors
+            out = _Gradient.apply(gE, x, hinges, seg, a, *params)
+            gx, gps = out[0], out[1:]
+            gx = gx if ctx.needs_input_grad[0] else None
+            gps = [g if ctx.needs_input_grad[5 + i] else None for i, g in enumerate(gps)]
+            return (gx, None, None, None, None, *gps)
+
+        @staticmethod
+        def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_a, *t_params):
+            x, hinges, seg, a, *params = ctx.saved_tensors
+            p = _params(params)
+            x4 = gather(x, hinges)
+            u = None
+            if t_x is not None:
+                theta, g4 = geometry.hinge_angle_and_gradient(x4)
+                u = (g4 * gather(t_x, hinges)).sum((-1, -2))
+            else:
+                theta = geometry.hinge_angle(x4)
+            _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
+            d = _dot_p(pg, _pvec(u, tuple(t_params)))
+            if d is None:
+                d = torch.zeros_like(theta)
+            return _reduce(d, seg, ctx.seg_count)
+
+    # named subclasses so that autograd nodes read e.g. "TanBendingGradientBackward"
+    name = model.value.capitalize()
+    _Gradient = type(f"{name}BendingGradient", (_GradientImpl,), {"__module__": __name__})
+    _Energy = type(f"{name}BendingEnergy", (_EnergyImpl,), {"__module__": __name__})
+    return _Energy, _Gradient
+
+
+_FUNCTIONS = {m: _make(m) for m in BendingModel}
+
+
+def energy_function(model: BendingModel) -> type[torch.autograd.Function]:
+    """The private energy Function of ``model`` (for tests and advanced use)."""
+    return _FUNCTIONS[BendingModel.parse(model)][0]
+
+
+def gradient_function(model: BendingModel) -> type[torch.autograd.Function]:
+    """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
+    return _FUNCTIONS[BendingModel.parse(model)][1]
+
+
+def bending_energy_raw(
+    x: Tensor,
+    hinges: Tensor,
+    a: Tensor,
+    k: Tensor,
+    rest: Tensor,
+    c: Tensor | None = None,
+    prev: Tensor | None = None,
+    *,
+    model: BendingModel = BendingModel.TAN,
+    seg: Tensor | None = None,
+    seg_count: int = 0,
+) -> Tensor:
+    """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
+
+    ``x: (..., V, 3)``; ``hinges: (H, 4)`` int64; ``a: (H,)``; ``k``, ``rest``, ``c``, ``prev``
+    broadcastable to ``(..., H)`` (``c``/``prev`` both given or both ``None``).  Differentiable
+    twice (analytic backward and double backward) in ``x``, ``k``, ``rest``, ``c``, ``prev``.
+    """
+    shape = x.shape[:-2] + a.shape
+    params = [k.expand(shape), rest.expand(shape)]
+    if c is not None:
+        params += [c.expand(shape), prev.expand(shape)]
+    fn = _FUNCTIONS[model][0]
+    return fn.apply(x, hinges, seg, seg_count, a, *params)
+
+
+def bending_gradient_raw(
+    x: Tensor,
+    hinges: Tensor,
+    a: Tensor,
+    k: Tensor,
+    rest: Tensor,
+    c: Tensor | None = None,
+    prev: Tensor | None = None,
+    *,
+    model: BendingModel = BendingModel.TAN,
+) -> Tensor:
+    """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
+    shape = x.shape[:-2] + a.shape
+    params = [k.expand(shape), rest.expand(shape)]
+    if c is not None:
+        params += [c.expand(shape), prev.expand(shape)]
+    ones = x.new_ones(x.shape[:-2])
+    return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
+
+
+def bending_hvp_raw(
+    x: Tensor,
+    v: Tensor,
+    hinges: Tensor,
+    a: Tensor,
+    k: Tensor,
+    rest: Tensor,
+    c: Tensor | None = None,
+    prev: Tensor | None = None,
+    *,
+    model: BendingModel = BendingModel.TAN,
+) -> Tensor:
+    """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
+
+    Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
+    x4 = gather(x, hinges)
+    v4 = gather(v, hinges)
+    theta, g4, hv4 = geometry.hinge_angle_gradient_hvp(x4, v4)
+    f1, f2 = _psi_theta_derivatives(model, theta, a, k, rest, c, prev)
+    u = (g4 * v4).sum((-1, -2))
+    out4 = (f2 * u)[..., None, None] * g4 + f1[..., None, None] * hv4
+    return scatter(out4, hinges, x.shape[-2])
+
+
+def _psi_theta_derivatives(model, theta, a, k, rest, c, prev):
+    """``(d psi/d theta, d^2 psi/d theta^2)`` only (the HVP in x needs nothing else)."""
+    from .models import phi
+
+    f, f1, f2 = phi(model, theta)
+    r = phi(model, rest, order=0)[0]
+    s = k * (f - r)
+    kc = k
+    if c is not None:
+        s = s + c * (f - phi(model, prev, order=0)[0])
+        kc = k + c
+    two_a = 2.0 * a
+    return two_a * s * f1, two_a * (kc * f1 * f1 + s * f2)

@@ -1,0 +1,46 @@
+"""Plain autograd reference energies (what a user would write without torchbend).
+
+Used by the tests, the demo and the benchmarks as the independent reference: the bend angle is
+the SPEC's ``atan2`` formula written with ordinary tensor operations, and every derivative of it
+comes from PyTorch's autograd (or ``torch.func``), never from torchbend's closed forms.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["plain_hinge_angles", "plain_bending_energy"]
+
+
+def plain_hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
+    """``theta: (..., H)`` of ``x: (..., V, 3)`` by the SPEC formula, autograd-differentiable."""
+    x0, x1, x2, x3 = (x[..., hinges[:, i], :] for i in range(4))
+    e = x1 - x0
+    nA = torch.linalg.cross(e, x2 - x0, dim=-1)
+    nB = torch.linalg.cross(x3 - x1, e, dim=-1)
+    e_hat = e / torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+    sin = (e_hat * torch.linalg.cross(nA, nB, dim=-1)).sum(-1)
+    cos = (nA * nB).sum(-1)
+    return torch.atan2(sin, cos)
+
+
+def _phi(model: str, t: Tensor) -> Tensor:
+    if model == "quadratic":
+        return t
+    if model == "tan":
+        return 2.0 * torch.tan(0.5 * t)
+    if model == "sin":
+        return 2.0 * torch.sin(0.5 * t)
+    raise ValueError(f"unknown bending model {model!r}")
+
+
+def plain_bending_energy(
+    x: Tensor, hinges: Tensor, a: Tensor, k, rest: Tensor, model: str = "tan", c=None, prev=None
+) -> Tensor:
+    """``E: (...,)`` = sum_h a [k (phi - phi_rest)^2 + c (phi - phi_prev)^2], plain autograd ops."""
+    model = getattr(model, "value", model)
+    f = _phi(model, plain_hinge_angles(x, hinges))
+    psi = a * k * (f - _phi(model, rest)) ** 2
+    if c is not None:
+        psi = psi + a * c * (f - _phi(model, prev)) ** 2
+    return psi.sum(-1)
