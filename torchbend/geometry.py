@@ -39,10 +39,12 @@ where ``mu`` is the directional derivative of ``n``.
 
 Degenerate deformed geometry
 ----------------------------
-A triangle of zero area (or a hinge edge of zero length) in the *deformed* state has no normal.
-Policy: its normal and in-plane normals are taken as zero (denominators are floored at the
-smallest normal number of the dtype), so the hinge's angle is ``atan2(0, 0) = 0`` and its angle
-derivatives are zero: finite, never NaN.  Rest shapes with such triangles are rejected upstream.
+A triangle of zero area (or a hinge edge of zero length) in the *deformed* state has no normal,
+and the closed forms divide by its area and edge length.  Policy: a half-hinge whose triangle is
+numerically collinear (``|N| <= eps * longest_edge^2``, which includes a collapsed hinge edge) has
+zero normal and zero angle derivatives, so the hinge's gradient and Hessian are those of its other
+half: finite, never NaN (an exactly collinear triangle also has ``theta = atan2(0, 0) = 0``).
+Rest shapes with such triangles are rejected upstream (:func:`torchbend.rest_hinge_weights`).
 """
 from __future__ import annotations
 
@@ -77,7 +79,7 @@ def _floor(t: Tensor) -> Tensor:
 class _HalfHinge:
     """Local quantities of one half-hinge ``(a, b, c)``; all fields ``(..., H[, 3])``."""
 
-    __slots__ = ("n", "rho", "mh", "mc_s", "area2", "elen")
+    __slots__ = ("N", "n", "rho", "mh", "mc_s", "area2", "elen")
 
     def __init__(self, xa: Tensor, xb: Tensor, xc: Tensor):
         e = xb - xa  # hinge edge
@@ -86,9 +88,14 @@ class _HalfHinge:
         N = _cross(e, u)
         area2 = torch.linalg.vector_norm(N, dim=-1)  # |N| = 2 * area
         elen = torch.linalg.vector_norm(e, dim=-1)
-        inv_area2 = 1.0 / _floor(area2)
-        n = N * inv_area2[..., None]  # unit normal (zero for a collapsed triangle)
-        inv_elen = 1.0 / _floor(elen)
+        # degenerate-geometry policy: a numerically collinear triangle (|N| <= eps * longest^2,
+        # which includes a collapsed hinge edge) gets zero normal and zero derivatives
+        longest2 = torch.maximum(torch.maximum(_dot(e, e), _dot(u, u)), _dot(w, w))
+        valid = area2 > torch.finfo(area2.dtype).eps * longest2
+        one = torch.ones_like(area2)
+        inv_area2 = torch.where(valid, 1.0 / torch.where(valid, area2, one), 0.0)
+        inv_elen = torch.where(valid, 1.0 / torch.where(valid, elen, one), 0.0)
+        n = N * inv_area2[..., None]  # unit normal (zero for a degenerate triangle)
         # gradient coefficients rho_k = cos(alpha_other)/h_k, written without angles:
         #   cos(alpha_b)/h_a = -(e.w)/(|e||N|),  cos(alpha_a)/h_b = (e.u)/(|e||N|),  -1/h_c = -|e|/|N|
         s = inv_elen * inv_area2
@@ -98,6 +105,7 @@ class _HalfHinge:
         # outward in-plane edge normals divided by the altitude to the opposite vertex:
         #   m_a/h_a = (w x n)/|N|,  m_b/h_b = -(u x n)/|N|,  m_c/h_c = (e x n)/|N|
         en = _cross(e, n)
+        self.N = N
         self.n = n
         self.rho = (rho_a, rho_b, rho_c)
         self.mh = (
@@ -153,12 +161,16 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
     return u[..., :, None] * v[..., None, :]
 
 
-def _angle(hA: _HalfHinge, hB: _HalfHinge, e: Tensor) -> Tensor:
-    # SPEC: theta = atan2(e0_hat . (nA x nB), nA . nB) with nA, nB the triangle normals.
-    # hB.n is the normal of (x0, x1, x3), i.e. -nB.
-    nA, nB = hA.n, -hB.n
+def _theta(e: Tensor, nA: Tensor, nB: Tensor) -> Tensor:
+    """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)``; the single formula used everywhere,
+    so that angles (and hence energies and gradients) at the rest state vanish bit for bit."""
     e_hat = e / _floor(torch.linalg.vector_norm(e, dim=-1))[..., None]
     return torch.atan2(_dot(e_hat, _cross(nA, nB)), _dot(nA, nB))
+
+
+def _angle(hA: _HalfHinge, hB: _HalfHinge, e: Tensor) -> Tensor:
+    # hB.N = e0 x (x3 - x0) = -nB
+    return _theta(e, hA.N, -hB.N)
 
 
 def _halves(x4: Tensor) -> tuple[_HalfHinge, _HalfHinge]:
@@ -170,10 +182,8 @@ def hinge_angle(x4: Tensor) -> Tensor:
     """Signed bend angle ``theta: (..., H)`` in (-pi, pi] of stencils ``x4: (..., H, 4, 3)``."""
     x0, x1, x2, x3 = x4.unbind(-2)
     e = x1 - x0
-    nA = _cross(e, x2 - x0)
-    nB = _cross(x3 - x1, e)
-    e_hat = e / _floor(torch.linalg.vector_norm(e, dim=-1))[..., None]
-    return torch.atan2(_dot(e_hat, _cross(nA, nB)), _dot(nA, nB))
+    # nA = e0 x (x2 - x0), nB = (x3 - x1) x e0 = (x3 - x0) x e0
+    return _theta(e, _cross(e, x2 - x0), _cross(x3 - x0, e))
 
 
 def hinge_angle_and_gradient(x4: Tensor) -> tuple[Tensor, Tensor]:

@@ -128,6 +128,7 @@ def cylinder(
     """
     n_around, n_along = _check_int("n_around", n_around, 3), _check_int("n_along", n_along, 2)
     radius, length = _check_positive("radius", radius), _check_positive("length", length)
+    dtype = dtype or torch.get_default_dtype()
     z, k = torch.meshgrid(
         torch.linspace(0, length, n_along, dtype=dtype, device=device),
         torch.arange(n_around, dtype=dtype, device=device),

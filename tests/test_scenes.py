@@ -1,0 +1,64 @@
+import math
+
+import pytest
+import torch
+
+import torchbend as tb
+
+
+@pytest.mark.parametrize(
+    "make, V, F",
+    [
+        (lambda: tb.scenes.grid(4, 3), 12, 12),
+        (lambda: tb.scenes.icosphere(2), 162, 320),
+        (lambda: tb.scenes.cylinder(8, 3), 24, 32),
+        (lambda: tb.scenes.random_curved_sheet(5, 5), 25, 32),
+        (lambda: tb.scenes.single_hinge(0.5), 4, 2),
+    ],
+)
+def test_scene_sizes_and_valid_topology(make, V, F):
+    verts, faces = make()
+    assert verts.shape == (V, 3) and faces.shape == (F, 3) and faces.dtype == torch.int64
+    topo = tb.HingeTopology.from_faces(faces, vertex_count=V)  # validates orientation/manifoldness
+    # outward / upward normals: positive projected or radial orientation
+    n = torch.linalg.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    assert (n.norm(dim=-1) > 0).all()
+    assert topo.hinge_count > 0
+
+
+def test_icosphere_radius_and_outward_normals():
+    verts, faces = tb.scenes.icosphere(2, radius=2.0, center=(1.0, 0.0, 0.0), dtype=torch.float64)
+    c = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose((verts - c).norm(dim=-1), torch.full((len(verts),), 2.0, dtype=torch.float64))
+    p = verts[faces]
+    n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert ((n * (p.mean(1) - c)).sum(-1) > 0).all()
+
+
+def test_single_hinge_angle_convention():
+    for theta in (-2.0, 0.0, 1.0):
+        x, f = tb.scenes.single_hinge(theta, dtype=torch.float64)
+        assert math.isclose(tb.hinge_angles(x, tb.HingeTopology.from_faces(f)).item(), theta, abs_tol=1e-14)
+
+
+def test_random_sheet_is_deterministic_and_dtype_follows():
+    a, _ = tb.scenes.random_curved_sheet(4, 4, seed=3, dtype=torch.float32)
+    b, _ = tb.scenes.random_curved_sheet(4, 4, seed=3, dtype=torch.float32)
+    assert a.dtype == torch.float32 and torch.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: tb.scenes.grid(1, 3),
+        lambda: tb.scenes.grid(3, 3, size=(0.0, 1.0)),
+        lambda: tb.scenes.icosphere(-1),
+        lambda: tb.scenes.icosphere(1, radius=-2.0),
+        lambda: tb.scenes.cylinder(2, 3),
+        lambda: tb.scenes.single_hinge(4.0),
+        lambda: tb.scenes.random_curved_sheet(3, 3, amplitude=float("nan")),
+    ],
+)
+def test_bad_scene_arguments(call):
+    with pytest.raises(ValueError):
+        call()
