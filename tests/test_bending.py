@@ -174,14 +174,14 @@ def test_double_backward_runs_the_analytic_hvp(sheet):
     inner = {fn for fn, _ in g.grad_fn.next_functions if fn is not None}
     assert all(type(fn).__name__ == "AccumulateGrad" for fn in inner)  # leaves only: y
     calls = []
-    orig = geometry.hinge_angle_gradient_hvp
+    orig = geometry.hinge_angle_gradient_hvp_soa
 
-    def counting(x4, v4):
-        calls.append(v4 is not None)
-        return orig(x4, v4)
+    def counting(xs, vs=None):
+        calls.append(vs is not None)
+        return orig(xs, vs)
 
     v = torch.randn_like(x)
-    with mock.patch.object(geometry, "hinge_angle_gradient_hvp", side_effect=counting):
+    with mock.patch.object(geometry, "hinge_angle_gradient_hvp_soa", side_effect=counting):
         (hv,) = torch.autograd.grad(g, y, v)
     assert calls == [True]  # one call of the closed-form HVP kernel, nothing else
     assert rel(hv, bend.hvp(x, v)) < 1e-14

@@ -30,12 +30,29 @@ import torch
 from torch import Tensor
 
 from . import geometry
-from ._assemble import gather, scatter
+from ._assemble import gather_soa, scatter_soa
 from .models import REST, THETA, BendingModel, contract_hessian, psi_derivatives
 
 __all__ = ["energy_function", "bending_energy_raw"]
 
 _PARAM_SLOTS = (1, 2, 3, 4)  # K, REST, C, PREV in models' slot numbering
+
+
+def _scale4(vs, s: Tensor):
+    return tuple(tuple(c * s for c in v) for v in vs)
+
+
+def _axpy4(s: Tensor, a, b):
+    """``s a + b`` over SoA stencils."""
+    return tuple(tuple(torch.addcmul(cb, ca, s) for ca, cb in zip(va, vb)) for va, vb in zip(a, b))
+
+
+def _dot4(a, b) -> Tensor:
+    out = None
+    for va, vb in zip(a, b):
+        for ca, cb in zip(va, vb):
+            out = ca * cb if out is None else torch.addcmul(out, ca, cb)
+    return out
 
 
 def _is_traced(t: Tensor) -> bool:
@@ -97,11 +114,11 @@ def _make(model: BendingModel):
 
         @staticmethod
         def forward(gE, x, hinges, seg, a, *params):
-            x4 = gather(x, hinges)  # (..., H, 4, 3)
-            theta, g4, _ = geometry.hinge_angle_gradient_hvp(x4, None)
-            _, pg, _ = psi_derivatives(model, theta, *_params(params)[:2], a, *_params(params)[2:], hessian=False)
+            p = _params(params)
+            theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges))
+            _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
             w = _hinge_weight(gE, seg)  # (..., H)
-            gx = scatter((w * pg[THETA])[..., None, None] * g4, hinges, x.shape[-2])
+            gx = scatter_soa(_scale4(g4, w * pg[THETA]), hinges, x.shape[-2])
             gp = tuple(w * pg[s] for s in _PARAM_SLOTS[: len(params)])
             return (gx,) + gp
 
@@ -119,12 +136,11 @@ def _make(model: BendingModel):
             (tangents of the inputs).  Returns ``(dx, [d params], d gE per hinge)``."""
             gE, x, hinges, seg, a, *params = ctx.saved_tensors
             p = _params(params)
-            x4 = gather(x, hinges)  # (..., H, 4, 3)
-            v4 = None if t_x is None else gather(t_x, hinges)
-            theta, g4, hv4 = geometry.hinge_angle_gradient_hvp(x4, v4)
+            v4 = None if t_x is None else gather_soa(t_x, hinges)
+            theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges), v4)
             _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=True)
             w = _hinge_weight(gE, seg)  # (..., H)
-            u = None if v4 is None else (g4 * v4).sum((-1, -2))  # g . v  (..., H)
+            u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., H)
             vec = _pvec(u, t_params)
             z = contract_hessian(ph, vec)  # Hess_p(psi) vec
             coef = None if z[THETA] is None else w * z[THETA]
@@ -132,11 +148,14 @@ def _make(model: BendingModel):
             if tw is not None:
                 t = tw * pg[THETA]
                 coef = t if coef is None else coef + t
-            dx4 = None if coef is None else coef[..., None, None] * g4
+            dx4 = None
             if hv4 is not None:
-                term = (w * pg[THETA])[..., None, None] * hv4  # psi' H_theta v
-                dx4 = term if dx4 is None else dx4 + term
-            dx = None if dx4 is None else scatter(dx4, hinges, x.shape[-2])
+                dx4 = _scale4(hv4, w * pg[THETA])  # psi' H_theta v
+                if coef is not None:
+                    dx4 = _axpy4(coef, g4, dx4)
+            elif coef is not None:
+                dx4 = _scale4(g4, coef)
+            dx = None if dx4 is None else scatter_soa(dx4, hinges, x.shape[-2])
             dps = []
             for s in _PARAM_SLOTS[: len(params)]:
                 d = None if z[s] is None else w * z[s]
@@ -170,7 +189,7 @@ def _make(model: BendingModel):
         @staticmethod
         def forward(x, hinges, seg, seg_count, a, *params):
             p = _params(params)
-            theta = geometry.hinge_angle(gather(x, hinges))  # (..., H)
+            theta = geometry.hinge_angle_soa(gather_soa(x, hinges))  # (..., H)
             _check_fold(model, theta)
             psi, _, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
             return _reduce(psi, seg, seg_count)
@@ -195,13 +214,13 @@ def _make(model: BendingModel):
         def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_a, *t_params):
             x, hinges, seg, a, *params = ctx.saved_tensors
             p = _params(params)
-            x4 = gather(x, hinges)
+            xs = gather_soa(x, hinges)
             u = None
             if t_x is not None:
-                theta, g4 = geometry.hinge_angle_and_gradient(x4)
-                u = (g4 * gather(t_x, hinges)).sum((-1, -2))
+                theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(xs)
+                u = _dot4(g4, gather_soa(t_x, hinges))
             else:
-                theta = geometry.hinge_angle(x4)
+                theta = geometry.hinge_angle_soa(xs)
             _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
             d = _dot_p(pg, _pvec(u, tuple(t_params)))
             if d is None:
@@ -290,13 +309,11 @@ def bending_hvp_raw(
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
-    x4 = gather(x, hinges)
-    v4 = gather(v, hinges)
-    theta, g4, hv4 = geometry.hinge_angle_gradient_hvp(x4, v4)
+    v4 = gather_soa(v, hinges)
+    theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges), v4)
     f1, f2 = _psi_theta_derivatives(model, theta, a, k, rest, c, prev)
-    u = (g4 * v4).sum((-1, -2))
-    out4 = (f2 * u)[..., None, None] * g4 + f1[..., None, None] * hv4
-    return scatter(out4, hinges, x.shape[-2])
+    out4 = _axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1))
+    return scatter_soa(out4, hinges, x.shape[-2])
 
 
 def _psi_theta_derivatives(model, theta, a, k, rest, c, prev):

@@ -37,6 +37,14 @@ collapse to dot products (no 12x12 matrix is formed):
 
 where ``mu`` is the directional derivative of ``n``.
 
+Layout
+------
+Internally every 3-vector is a triple of ``(..., H)`` tensors (structure of arrays): elementwise
+kernels over contiguous per-hinge arrays run several times faster in eager PyTorch than
+reductions over a trailing dimension of size 3.  The ``*_soa`` functions take and return that
+layout (``xs = (x0, x1, x2, x3)``, each ``(c_x, c_y, c_z)``); the public functions take
+``(..., H, 4, 3)`` stencils and convert.
+
 Degenerate deformed geometry
 ----------------------------
 A triangle of zero area (or a hinge edge of zero length) in the *deformed* state has no normal,
@@ -57,98 +65,133 @@ __all__ = [
     "hinge_angle_hvp",
     "hinge_angle_hessian",
     "hinge_angle_gradient_hvp",
+    "to_soa",
+    "from_soa",
+    "hinge_angle_soa",
+    "hinge_angle_gradient_hvp_soa",
 ]
 
-
-def _cross(u: Tensor, v: Tensor) -> Tensor:
-    # explicit components: faster than linalg.cross for small trailing dims and vmap-friendly
-    u0, u1, u2 = u.unbind(-1)
-    v0, v1, v2 = v.unbind(-1)
-    return torch.stack((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0), dim=-1)
+Vec = tuple  # (x, y, z) components, each (..., H)
 
 
-def _dot(u: Tensor, v: Tensor) -> Tensor:
-    return (u * v).sum(-1)
+def _sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def _floor(t: Tensor) -> Tensor:
-    """Clamp a non-negative magnitude away from zero (degenerate-geometry policy)."""
-    return t.clamp_min(torch.finfo(t.dtype).tiny)
+def _add(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def _neg(a: Vec) -> Vec:
+    return (-a[0], -a[1], -a[2])
+
+
+def _scale(a: Vec, s: Tensor) -> Vec:
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+def _axpy(s: Tensor, a: Vec, b: Vec) -> Vec:
+    """``s a + b``."""
+    return (torch.addcmul(b[0], a[0], s), torch.addcmul(b[1], a[1], s), torch.addcmul(b[2], a[2], s))
+
+
+def _cross(u: Vec, v: Vec) -> Vec:
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+def _dot(u: Vec, v: Vec) -> Tensor:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def to_soa(x4: Tensor) -> tuple:
+    """``(..., H, 4, 3)`` stencils -> 4 vertices x 3 components of ``(..., H)`` views."""
+    return tuple(tuple(c.unbind(-1)) for c in x4.unbind(-2))
+
+
+def from_soa(vs) -> Tensor:
+    """Inverse of :func:`to_soa`: 4 x 3 components ``(..., H)`` -> ``(..., H, 4, 3)``."""
+    flat = [c for v in vs for c in v]
+    return torch.stack(flat, -1).unflatten(-1, (4, 3))
 
 
 class _HalfHinge:
-    """Local quantities of one half-hinge ``(a, b, c)``; all fields ``(..., H[, 3])``."""
+    """Local quantities of one half-hinge ``(a, b, c)`` (components ``(..., H)``)."""
 
-    __slots__ = ("N", "n", "rho", "mh", "mc_s", "area2", "elen")
+    __slots__ = ("N", "n", "rho", "e", "u", "w", "inv_area2", "inv_elen", "_mh", "_mc_s")
 
-    def __init__(self, xa: Tensor, xb: Tensor, xc: Tensor):
-        e = xb - xa  # hinge edge
-        u = xc - xa  # edge opposite b
-        w = xc - xb  # edge opposite a
+    def __init__(self, xa: Vec, xb: Vec, xc: Vec, e: Vec | None = None):
+        e = _sub(xb, xa) if e is None else e  # hinge edge
+        u = _sub(xc, xa)  # edge opposite b
+        w = _sub(xc, xb)  # edge opposite a
         N = _cross(e, u)
-        area2 = torch.linalg.vector_norm(N, dim=-1)  # |N| = 2 * area
-        elen = torch.linalg.vector_norm(e, dim=-1)
+        ee, uu, ww = _dot(e, e), _dot(u, u), _dot(w, w)
+        area2 = _dot(N, N).sqrt()  # |N| = 2 * area
+        elen = ee.sqrt()
         # degenerate-geometry policy: a numerically collinear triangle (|N| <= eps * longest^2,
         # which includes a collapsed hinge edge) gets zero normal and zero derivatives
-        longest2 = torch.maximum(torch.maximum(_dot(e, e), _dot(u, u)), _dot(w, w))
-        valid = area2 > torch.finfo(area2.dtype).eps * longest2
+        valid = area2 > torch.finfo(area2.dtype).eps * torch.maximum(torch.maximum(ee, uu), ww)
         one = torch.ones_like(area2)
-        inv_area2 = torch.where(valid, 1.0 / torch.where(valid, area2, one), 0.0)
-        inv_elen = torch.where(valid, 1.0 / torch.where(valid, elen, one), 0.0)
-        n = N * inv_area2[..., None]  # unit normal (zero for a degenerate triangle)
+        inv_area2 = torch.where(valid, torch.where(valid, area2, one).reciprocal(), 0.0)
+        inv_elen = torch.where(valid, torch.where(valid, elen, one).reciprocal(), 0.0)
         # gradient coefficients rho_k = cos(alpha_other)/h_k, written without angles:
         #   cos(alpha_b)/h_a = -(e.w)/(|e||N|),  cos(alpha_a)/h_b = (e.u)/(|e||N|),  -1/h_c = -|e|/|N|
         s = inv_elen * inv_area2
-        rho_a = -_dot(e, w) * s
-        rho_b = _dot(e, u) * s
-        rho_c = -elen * inv_area2
-        # outward in-plane edge normals divided by the altitude to the opposite vertex:
-        #   m_a/h_a = (w x n)/|N|,  m_b/h_b = -(u x n)/|N|,  m_c/h_c = (e x n)/|N|
-        en = _cross(e, n)
+        self.rho = (-_dot(e, w) * s, _dot(e, u) * s, -elen * inv_area2)
         self.N = N
-        self.n = n
-        self.rho = (rho_a, rho_b, rho_c)
-        self.mh = (
-            _cross(w, n) * inv_area2[..., None],
-            -_cross(u, n) * inv_area2[..., None],
-            en * inv_area2[..., None],
-        )
-        # m_c / |e0|^2 = (e x n)/|e|^3  (the B term)
-        self.mc_s = en * (inv_elen * inv_elen * inv_elen)[..., None]
-        self.area2 = area2
-        self.elen = elen
+        self.n = _scale(N, inv_area2)  # unit normal (zero for a degenerate triangle)
+        self.e, self.u, self.w = e, u, w
+        self.inv_area2, self.inv_elen = inv_area2, inv_elen
+        self._mh = self._mc_s = None
 
-    def gradient(self) -> tuple[Tensor, Tensor, Tensor]:
-        return tuple(r[..., None] * self.n for r in self.rho)  # type: ignore[return-value]
+    @property
+    def mh(self) -> tuple[Vec, Vec, Vec]:
+        """Outward in-plane edge normals over the altitude to the opposite vertex (second order only):
+        ``m_a/h_a = (w x n)/|N|,  m_b/h_b = -(u x n)/|N|,  m_c/h_c = (e x n)/|N|``."""
+        if self._mh is None:
+            n, r = self.n, self.inv_area2
+            self._mh = (_scale(_cross(self.w, n), r), _scale(_cross(n, self.u), r), _scale(_cross(self.e, n), r))
+        return self._mh
 
-    def hvp(self, va: Tensor, vb: Tensor, vc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    @property
+    def mc_s(self) -> Vec:
+        """``m_c / |e0|^2 = (e x n)/|e|^3`` (the B term); equals ``mh_c |N| / |e|^3``."""
+        if self._mc_s is None:
+            ie = self.inv_elen
+            self._mc_s = _scale(_cross(self.e, self.n), ie * ie * ie)
+        return self._mc_s
+
+    def gradient(self) -> tuple[Vec, Vec, Vec]:
+        return tuple(_scale(self.n, r) for r in self.rho)  # type: ignore[return-value]
+
+    def hvp(self, va: Vec, vb: Vec, vc: Vec) -> tuple[Vec, Vec, Vec]:
         n = self.n
         ra, rb, rc = self.rho
         mha, mhb, mhc = self.mh
         wa, wb, wc = _dot(n, va), _dot(n, vb), _dot(n, vc)
-        mu = mha * wa[..., None] + mhb * wb[..., None] + mhc * wc[..., None]
-        nu = ra[..., None] * va + rb[..., None] * vb + rc[..., None] * vc
+        mu = _add(_add(_scale(mha, wa), _scale(mhb, wb)), _scale(mhc, wc))  # d n / d x [v]
+        nu = _add(_add(_scale(va, ra), _scale(vb, rb)), _scale(vc, rc))
         # B = n m_c^T/|e|^2 enters as [[-B, B], [B^T, -B]] on the (a, b) blocks
-        bd = _dot(self.mc_s, vb - va)
-        bb = _dot(self.mc_s, vb)
-        oa = ra[..., None] * mu + n * (_dot(mha, nu) + bd)[..., None]
-        ob = rb[..., None] * mu + n * (_dot(mhb, nu) - bb)[..., None] + self.mc_s * wa[..., None]
-        oc = rc[..., None] * mu + n * _dot(mhc, nu)[..., None]
+        mc_s = self.mc_s
+        bd = _dot(mc_s, _sub(vb, va))
+        bb = _dot(mc_s, vb)
+        oa = _axpy(_dot(mha, nu) + bd, n, _scale(mu, ra))
+        ob = _axpy(wa, mc_s, _axpy(_dot(mhb, nu) - bb, n, _scale(mu, rb)))
+        oc = _axpy(_dot(mhc, nu), n, _scale(mu, rc))
         return oa, ob, oc
 
     def blocks(self) -> Tensor:
         """Dense half-hinge Hessian ``(..., H, 3, 3, 3, 3)`` indexed ``[i, j, p, q]`` (vertex i, j)."""
-        n, rho, mh = self.n, self.rho, self.mh
+        n = torch.stack(self.n, -1)
+        mh = [torch.stack(m, -1) for m in self.mh]
+        rho = self.rho
         rows = []
         for i in range(3):
             row = []
             for j in range(3):
                 # H_ij = rho_i mh_j n^T + rho_j n mh_i^T  (read off the HVP above)
-                row.append(
-                    rho[i][..., None, None] * _outer(mh[j], n) + rho[j][..., None, None] * _outer(n, mh[i])
-                )
+                row.append(rho[i][..., None, None] * _outer(mh[j], n) + rho[j][..., None, None] * _outer(n, mh[i]))
             rows.append(row)
-        B = _outer(n, self.mc_s)
+        B = _outer(n, torch.stack(self.mc_s, -1))
         rows[0][0] = rows[0][0] - B
         rows[0][1] = rows[0][1] + B
         rows[1][0] = rows[1][0] + B.transpose(-1, -2)
@@ -161,64 +204,72 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
     return u[..., :, None] * v[..., None, :]
 
 
-def _theta(e: Tensor, nA: Tensor, nB: Tensor) -> Tensor:
+def _theta(e: Vec, nA: Vec, nB: Vec) -> Tensor:
     """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)``; the single formula used everywhere,
     so that angles (and hence energies and gradients) at the rest state vanish bit for bit."""
-    e_hat = e / _floor(torch.linalg.vector_norm(e, dim=-1))[..., None]
-    return torch.atan2(_dot(e_hat, _cross(nA, nB)), _dot(nA, nB))
+    elen = _dot(e, e).sqrt()
+    inv = torch.where(elen > 0, torch.where(elen > 0, elen, torch.ones_like(elen)).reciprocal(), 0.0)
+    return torch.atan2(_dot(e, _cross(nA, nB)) * inv, _dot(nA, nB))
 
 
-def _angle(hA: _HalfHinge, hB: _HalfHinge, e: Tensor) -> Tensor:
-    # hB.N = e0 x (x3 - x0) = -nB
-    return _theta(e, hA.N, -hB.N)
+def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec]:
+    x0, x1, x2, x3 = xs
+    e = _sub(x1, x0)
+    return _HalfHinge(x0, x1, x2, e), _HalfHinge(x0, x1, x3, e), e
 
 
-def _halves(x4: Tensor) -> tuple[_HalfHinge, _HalfHinge]:
-    x0, x1, x2, x3 = x4.unbind(-2)
-    return _HalfHinge(x0, x1, x2), _HalfHinge(x0, x1, x3)
+def hinge_angle_soa(xs) -> Tensor:
+    """``theta: (..., H)`` from SoA stencils (see :func:`to_soa`)."""
+    x0, x1, x2, x3 = xs
+    e = _sub(x1, x0)
+    # nA = e0 x (x2 - x0), nB = (x3 - x1) x e0 = (x3 - x0) x e0
+    return _theta(e, _cross(e, _sub(x2, x0)), _cross(_sub(x3, x0), e))
+
+
+def hinge_angle_gradient_hvp_soa(xs, vs=None):
+    """``(theta, grad theta, Hess(theta) v)`` on SoA stencils; ``vs=None`` skips the HVP.
+
+    ``grad`` and ``Hv`` are 4-tuples (per stencil vertex) of component triples ``(..., H)``."""
+    hA, hB, e = _halves(xs)
+    theta = _theta(e, hA.N, _neg(hB.N))  # hB.N = e0 x (x3 - x0) = -nB
+    ga, gb, gc = hA.gradient()
+    ka, kb, kc = hB.gradient()
+    grad = (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc))
+    if vs is None:
+        return theta, grad, None
+    v0, v1, v2, v3 = vs
+    a0, a1, a2 = hA.hvp(v0, v1, v2)
+    b0, b1, b3 = hB.hvp(v0, v1, v3)
+    return theta, grad, (_sub(a0, b0), _sub(a1, b1), a2, _neg(b3))
 
 
 def hinge_angle(x4: Tensor) -> Tensor:
     """Signed bend angle ``theta: (..., H)`` in (-pi, pi] of stencils ``x4: (..., H, 4, 3)``."""
-    x0, x1, x2, x3 = x4.unbind(-2)
-    e = x1 - x0
-    # nA = e0 x (x2 - x0), nB = (x3 - x1) x e0 = (x3 - x0) x e0
-    return _theta(e, _cross(e, x2 - x0), _cross(x3 - x0, e))
+    return hinge_angle_soa(to_soa(x4))
 
 
 def hinge_angle_and_gradient(x4: Tensor) -> tuple[Tensor, Tensor]:
     """``theta: (..., H)`` and ``d theta / d x4: (..., H, 4, 3)`` (tech report eqs. 18-21)."""
-    theta, grad, _ = hinge_angle_gradient_hvp(x4, None)
-    return theta, grad
-
-
-def _hvp(hA: _HalfHinge, hB: _HalfHinge, v4: Tensor) -> Tensor:
-    v0, v1, v2, v3 = v4.unbind(-2)
-    a0, a1, a2 = hA.hvp(v0, v1, v2)
-    b0, b1, b3 = hB.hvp(v0, v1, v3)
-    return torch.stack((a0 - b0, a1 - b1, a2, -b3), dim=-2)
+    theta, grad, _ = hinge_angle_gradient_hvp_soa(to_soa(x4))
+    return theta, from_soa(grad)
 
 
 def hinge_angle_hvp(x4: Tensor, v4: Tensor) -> Tensor:
     """``Hess(theta) v`` per hinge, ``(..., H, 4, 3)``, from the closed-form blocks (no 12x12 matrix)."""
-    return _hvp(*_halves(x4), v4)
+    return hinge_angle_gradient_hvp(x4, v4)[2]
 
 
 def hinge_angle_gradient_hvp(x4: Tensor, v4: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
     """``(theta, grad theta, Hess(theta) v)`` sharing one evaluation of the half-hinge quantities.
 
-    ``v4`` may be ``None`` (then the HVP is ``None``)."""
-    hA, hB = _halves(x4)
-    theta = _angle(hA, hB, x4[..., 1, :] - x4[..., 0, :])
-    ga, gb, gc = hA.gradient()
-    ka, kb, kc = hB.gradient()
-    grad = torch.stack((ga - ka, gb - kb, gc, -kc), dim=-2)
-    return theta, grad, (None if v4 is None else _hvp(hA, hB, v4))
+    ``x4, v4: (..., H, 4, 3)``; ``v4`` may be ``None`` (then the HVP is ``None``)."""
+    theta, grad, hv = hinge_angle_gradient_hvp_soa(to_soa(x4), None if v4 is None else to_soa(v4))
+    return theta, from_soa(grad), (None if hv is None else from_soa(hv))
 
 
 def hinge_angle_hessian(x4: Tensor) -> Tensor:
     """Dense ``Hess(theta): (..., H, 12, 12)`` in stencil order, flat index ``3*k + j``."""
-    hA, hB = _halves(x4)
+    hA, hB, _ = _halves(to_soa(x4))
     A = hA.blocks()  # (..., H, 3, 3, 3, 3) over (x0, x1, x2)
     B = hB.blocks()  # over (x0, x1, x3)
     shape = A.shape[:-4]
