@@ -75,18 +75,27 @@ def hinge_angles(x: Tensor, topo: HingeTopology) -> Tensor:
 def rest_hinge_weights(rest_positions: Tensor, topo: HingeTopology) -> Tensor:
     """``a_h = 3 |e0|^2 / (A_A + A_B)`` [dimensionless]: ``(H,)`` from rest positions ``(V, 3)`` [m].
 
-    Raises ``ValueError`` naming the faces with (numerically) zero area and the hinges with
-    zero-length edges: the weight is undefined there.
+    Raises ``ValueError`` naming the zero-length edges (with their hinge index) and the faces with
+    (numerically) zero area: the weight is undefined there.
     """
     X = rest_positions.detach().to(torch.float64)
-    F = topo.faces.to(X.device)
-    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
-    edges = torch.stack((p1 - p0, p2 - p1, p0 - p2), 1)  # (F, 3, 3)
-    longest = edges.norm(dim=-1).amax(-1)
-    area2 = torch.linalg.cross(p1 - p0, p2 - p0).norm(dim=-1)  # 2 * area
     tol = torch.finfo(rest_positions.dtype).eps
     scale = X.abs().amax().clamp_min(1.0) if X.numel() else X.new_tensor(1.0)
-    bad = torch.nonzero(~(area2 > tol * longest * longest) | ~(longest > tol * scale)).reshape(-1)
+    E = topo.edges.to(X.device)
+    elen = (X[E[:, 1]] - X[E[:, 0]]).norm(dim=-1)
+    bad = torch.nonzero(~(elen > tol * scale)).reshape(-1)
+    if bad.numel():
+        pairs = [tuple(p) for p in E[bad[:8]].tolist()]
+        hinge_ids = topo.edge_hinges.to(X.device)[bad[:8]].tolist()
+        raise ValueError(
+            f"rest shape has zero-length edges {pairs} (hinge index or -1 for boundary: {hinge_ids})"
+            + (f" ... ({bad.numel()} in all)" if bad.numel() > 8 else "")
+        )
+    F = topo.faces.to(X.device)
+    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
+    longest = torch.stack(((p1 - p0).norm(dim=-1), (p2 - p1).norm(dim=-1), (p0 - p2).norm(dim=-1)), 1).amax(-1)
+    area2 = torch.linalg.cross(p1 - p0, p2 - p0).norm(dim=-1)  # 2 * area
+    bad = torch.nonzero(~(area2 > tol * longest * longest)).reshape(-1)
     if bad.numel():
         raise ValueError(
             f"rest shape has zero-area (degenerate) triangles: faces {bad[:8].tolist()}"
@@ -94,11 +103,7 @@ def rest_hinge_weights(rest_positions: Tensor, topo: HingeTopology) -> Tensor:
             + "; the bending weights 3|e|^2/(A_A+A_B) are undefined there"
         )
     H = topo.hinges.to(X.device)
-    e = X[H[:, 1]] - X[H[:, 0]]
-    elen2 = (e * e).sum(-1)
-    bad = torch.nonzero(~(elen2.sqrt() > tol * scale)).reshape(-1)
-    if bad.numel():  # pragma: no cover - implied by the area test above
-        raise ValueError(f"rest shape has zero-length hinge edges at hinges {bad[:8].tolist()}")
+    elen2 = ((X[H[:, 1]] - X[H[:, 0]]) ** 2).sum(-1)
     hf = topo.hinge_faces.to(X.device)
     area = 0.5 * area2
     a = 3.0 * elen2 / (area[hf[:, 0]] + area[hf[:, 1]])
