@@ -4,6 +4,7 @@ The public API (SPEC sec. 2); everything else is private.
 """
 from . import scenes
 from .bending import BendingEnergy, PackedMeshes, hinge_angles, pack_meshes, rest_hinge_weights
+from .hessian import HessianProjection, to_scipy
 from .models import BendingModel, stiffness_from_material
 from .topology import HingeTopology
 
@@ -12,6 +13,7 @@ __version__ = "0.1.0"
 __all__ = [
     "BendingEnergy",
     "BendingModel",
+    "HessianProjection",
     "HingeTopology",
     "PackedMeshes",
     "hinge_angles",
@@ -19,4 +21,5 @@ __all__ = [
     "rest_hinge_weights",
     "scenes",
     "stiffness_from_material",
+    "to_scipy",
 ]

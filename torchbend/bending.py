@@ -33,8 +33,10 @@ import torch
 from torch import Tensor, nn
 
 from . import autograd as _ag
-from ._assemble import gather
+from . import hessian as _hs
+from ._assemble import gather, scatter
 from .geometry import hinge_angle
+from .geometry import hinge_angle_and_gradient as geometry_angle_and_gradient
 from .models import BendingModel
 from .topology import HingeTopology
 
@@ -264,18 +266,98 @@ class BendingEnergy(nn.Module):
         a, k, rest, c, prev = self._args(x, theta_prev, dt)
         return _ag.bending_gradient_raw(x, self.hinges, a, k, rest, c, prev, model=self.model)
 
-    def hvp(self, x: Tensor, v: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None) -> Tensor:
+    def hvp(
+        self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None
+    ) -> Tensor:
         """Hessian-vector product ``(d^2E/dx^2) v: (..., V, 3)`` [N/m * v], closed form.
 
-        ``v`` has the shape of ``x`` (or broadcasts to it).  Per hinge
-        ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix formed."""
+        ``v`` has the shape of ``x`` (or broadcasts to it).  With ``project=None`` this is, per hinge,
+        ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix formed.
+        ``project`` (see :class:`~torchbend.hessian.HessianProjection`) applies the same PSD
+        projection as :meth:`hessian`, matrix-free for ``"gauss_newton"`` (``max(psi'',0)(g.v) g``)
+        and through the projected 12x12 hinge blocks otherwise (for CG-type solvers)."""
+        projection = _hs.HessianProjection.parse(project)
         a, k, rest, c, prev = self._args(x, theta_prev, dt)
         v = torch.as_tensor(v, device=x.device)
         if v.shape[-2:] != x.shape[-2:]:
             raise ValueError(f"v must have shape (..., {self.vertex_count}, 3) like x, got {tuple(v.shape)}")
         if self.check_finite and not _is_traced(v) and not bool(torch.isfinite(v.detach()).all()):
             raise ValueError("v holds non-finite values")
-        return _ag.bending_hvp_raw(x, v.to(x.dtype), self.hinges, a, k, rest, c, prev, model=self.model)
+        v = v.to(x.dtype)
+        if projection is None:
+            return _ag.bending_hvp_raw(x, v, self.hinges, a, k, rest, c, prev, model=self.model)
+        x4 = gather(x, self.hinges)
+        v4 = gather(v, self.hinges).flatten(-2)  # (..., H, 12)
+        theta = hinge_angle(x4)
+        d1, d2 = _hs.psi_theta_derivatives(self.model, theta, a, k, rest, c, prev)
+        if projection is _hs.HessianProjection.GAUSS_NEWTON:
+            _, g4 = geometry_angle_and_gradient(x4)
+            g = g4.flatten(-2)
+            out = (d2.clamp_min(0) * (g * v4).sum(-1))[..., None] * g
+        else:
+            Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
+            out = (_hs.project_blocks(Hb, projection, g, d2) @ v4[..., None])[..., 0]
+        return scatter(out.unflatten(-1, (4, 3)), self.hinges, self.vertex_count)
+
+    def hinge_hessians(
+        self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None
+    ) -> Tensor:
+        """Per-hinge energy Hessians ``(..., H, 12, 12)`` [J/m^2] in stencil order (flat ``3*k + j``).
+
+        Closed form (paper eqs. 3, 5, 6): ``psi'' g g^T + psi' Hess(theta)``; optionally projected
+        to PSD per block (``project``: ``"clamp" | "abs" | "gauss_newton" | "reduced"``)."""
+        projection = _hs.HessianProjection.parse(project)
+        a, k, rest, c, prev = self._args(x, theta_prev, dt)
+        x4 = gather(x, self.hinges)
+        d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
+        Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
+        return Hb if projection is None else _hs.project_blocks(Hb, projection, g, d2)
+
+    def hessian(
+        self,
+        x: Tensor,
+        *,
+        project=None,
+        assembly: str = "triangle",
+        theta_prev: Tensor | None = None,
+        dt: float | None = None,
+    ) -> Tensor:
+        """Assembled Hessian as a torch sparse CSR tensor ``(3V, 3V)`` for one mesh ``x: (V, 3)``.
+
+        ``assembly="triangle"`` is the paper's per-triangle refactoring (eq. 7, conditional
+        transpose; ``psi'' g g^T`` added per hinge); ``"hinge"`` scatters the 12x12 hinge blocks.
+        Both give the same matrix.  The sparsity pattern is built once per topology and cached on
+        it.  ``project``: ``None`` or a :class:`~torchbend.hessian.HessianProjection`; the
+        eigenvalue projections (``clamp``, ``abs``, ``reduced``) act on whole hinge blocks, so they
+        are assembled per hinge whatever ``assembly`` says; ``gauss_newton`` has no ``Hess(theta)``
+        part.  Use :func:`torchbend.hessian.to_scipy` for a ``scipy.sparse.csr_matrix``.
+        """
+        projection = _hs.HessianProjection.parse(project)
+        how = _hs.Assembly.parse(assembly)
+        a, k, rest, c, prev = self._args(x, theta_prev, dt)
+        if x.ndim != 2:
+            raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
+        pat = _hs.pattern_of(self.topology)
+        x4 = gather(x, self.hinges)
+        d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
+        values = x.new_zeros(pat.nnz)
+        hinge_pos = pat.hinge_pos.to(x.device)
+        if how is _hs.Assembly.TRIANGLE and projection in (None, _hs.HessianProjection.GAUSS_NEWTON):
+            _, g4 = geometry_angle_and_gradient(x4)
+            g = g4.flatten(-2)
+            w = d2 if projection is None else d2.clamp_min(0)
+            gg = (w[:, None] * g)[:, :, None] * g[:, None, :]
+            values.index_add_(0, hinge_pos.reshape(-1), gg.reshape(-1))
+            if projection is None:
+                Hf = _hs.triangle_hessian_blocks(x, self.topology, d1)
+                keep = pat.face_has_hinge.to(x.device)
+                values.index_add_(0, pat.face_pos.to(x.device)[keep].reshape(-1), Hf[keep].reshape(-1))
+        else:
+            Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
+            if projection is not None:
+                Hb = _hs.project_blocks(Hb, projection, g, d2)
+            values.index_add_(0, hinge_pos.reshape(-1), Hb.reshape(-1))
+        return pat.csr(values)
 
     def angles(self, x: Tensor) -> Tensor:
         """Bend angles ``(..., H)`` [rad] of ``x`` (e.g. to pass as the next step's ``theta_prev``)."""

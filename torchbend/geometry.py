@@ -69,6 +69,7 @@ __all__ = [
     "from_soa",
     "hinge_angle_soa",
     "hinge_angle_gradient_hvp_soa",
+    "hinge_energy_hessian_soa",
 ]
 
 Vec = tuple  # (x, y, z) components, each (..., H)
@@ -179,25 +180,6 @@ class _HalfHinge:
         oc = _axpy(_dot(mhc, nu), n, _scale(mu, rc))
         return oa, ob, oc
 
-    def blocks(self) -> Tensor:
-        """Dense half-hinge Hessian ``(..., H, 3, 3, 3, 3)`` indexed ``[i, j, p, q]`` (vertex i, j)."""
-        n = torch.stack(self.n, -1)
-        mh = [torch.stack(m, -1) for m in self.mh]
-        rho = self.rho
-        rows = []
-        for i in range(3):
-            row = []
-            for j in range(3):
-                # H_ij = rho_i mh_j n^T + rho_j n mh_i^T  (read off the HVP above)
-                row.append(rho[i][..., None, None] * _outer(mh[j], n) + rho[j][..., None, None] * _outer(n, mh[i]))
-            rows.append(row)
-        B = _outer(n, torch.stack(self.mc_s, -1))
-        rows[0][0] = rows[0][0] - B
-        rows[0][1] = rows[0][1] + B
-        rows[1][0] = rows[1][0] + B.transpose(-1, -2)
-        rows[1][1] = rows[1][1] - B
-        return torch.stack([torch.stack(r, dim=-3) for r in rows], dim=-4)
-
 
 def _outer(u: Tensor, v: Tensor) -> Tensor:
     """``u v^T`` over the last dimension: ``(..., 3, 3)``."""
@@ -269,15 +251,54 @@ def hinge_angle_gradient_hvp(x4: Tensor, v4: Tensor | None) -> tuple[Tensor, Ten
 
 def hinge_angle_hessian(x4: Tensor) -> Tensor:
     """Dense ``Hess(theta): (..., H, 12, 12)`` in stencil order, flat index ``3*k + j``."""
-    hA, hB, _ = _halves(to_soa(x4))
-    A = hA.blocks()  # (..., H, 3, 3, 3, 3) over (x0, x1, x2)
-    B = hB.blocks()  # over (x0, x1, x3)
-    shape = A.shape[:-4]
-    H = A.new_zeros(shape + (4, 4, 3, 3))
-    ia = [0, 1, 2]
-    ib = [0, 1, 3]
-    for i in range(3):
-        for j in range(3):
-            H[..., ia[i], ia[j], :, :] += A[..., i, j, :, :]
-            H[..., ib[i], ib[j], :, :] -= B[..., i, j, :, :]
-    return H.permute(*range(len(shape)), -4, -2, -3, -1).reshape(shape + (12, 12))
+    return hinge_energy_hessian_soa(to_soa(x4), None, None)[0]
+
+
+def _stack_vec(vs, dim: int = -1) -> Tensor:
+    return torch.stack(vs, dim)
+
+
+def hinge_energy_hessian_soa(xs, d1: Tensor | None, d2: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``d1 Hess(theta) + d2 g g^T`` as dense ``(..., H, 12, 12)`` blocks, and ``g: (..., H, 12)``.
+
+    ``d1``/``d2`` are per-hinge scalars ``(..., H)`` (``psi'`` and ``psi''``); ``None`` means
+    ``d1 = 1`` and ``d2 = 0`` (the angle Hessian itself).  Built from the half-hinge factors with one
+    batched matrix product: with ``rho``, ``mh`` zero-padded to the 4 stencil vertices,
+
+        X[(i,p),(j,q)] = d1 sum_s sign_s rho_s[i] mh_s[j,p] n_s[q],     Y = X + d2/2 g g^T,
+        H = Y + Y^T + [[-Bs, Bs], [Bs^T, -Bs]] on the (x0, x1) blocks,   Bs = d1 (B_A - B_B)
+    """
+    hA, hB, _ = _halves(xs)
+    ga, gb, gc = hA.gradient()
+    ka, kb, kc = hB.gradient()
+    g = torch.stack([c for v in (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc)) for c in v], -1)  # (..., H, 12)
+    zero = torch.zeros_like(hA.rho[0])
+    one = None if d1 is None else d1
+    rhoA = torch.stack((hA.rho[0], hA.rho[1], hA.rho[2], zero), -1)  # (..., H, 4)
+    rhoB = -torch.stack((hB.rho[0], hB.rho[1], zero, hB.rho[2]), -1)  # minus: Hess = T''_A - T''_B
+    if one is not None:
+        rhoA = rhoA * one[..., None]
+        rhoB = rhoB * one[..., None]
+    z3 = torch.zeros_like(torch.stack(hA.n, -1))
+    mhA = torch.stack((_stack_vec(hA.mh[0]), _stack_vec(hA.mh[1]), _stack_vec(hA.mh[2]), z3), -2)  # (..., H, 4, 3)
+    mhB = torch.stack((_stack_vec(hB.mh[0]), _stack_vec(hB.mh[1]), z3, _stack_vec(hB.mh[2])), -2)
+    # T[i, p, j, s] = rho_s[i] mh_s[j, p]
+    T = torch.stack((rhoA[..., :, None, None] * mhA.transpose(-1, -2)[..., None, :, :],
+                     rhoB[..., :, None, None] * mhB.transpose(-1, -2)[..., None, :, :]), -1)  # (..., H, i, p, j, s)
+    batch = T.shape[:-4]
+    N = torch.stack((_stack_vec(hA.n), _stack_vec(hB.n)), -2)  # (..., H, 2, 3)
+    T = T.reshape((-1, 48, 2))
+    Y = torch.bmm(T, N.reshape(-1, 2, 3)).reshape((-1, 12, 12))  # rows (i, p), cols (j, q)
+    gf = g.reshape(-1, 12)
+    if d2 is not None:
+        Y.baddbmm_((0.5 * d2.reshape(-1, 1) * gf)[:, :, None], gf[:, None, :])
+    Hs = Y + Y.transpose(-1, -2)
+    Bs = _outer(_stack_vec(hA.n), _stack_vec(hA.mc_s)) - _outer(_stack_vec(hB.n), _stack_vec(hB.mc_s))
+    if one is not None:
+        Bs = Bs * one[..., None, None]
+    Bs = Bs.reshape(-1, 3, 3)
+    Hs[:, 0:3, 0:3] -= Bs
+    Hs[:, 0:3, 3:6] += Bs
+    Hs[:, 3:6, 0:3] += Bs.transpose(-1, -2)
+    Hs[:, 3:6, 3:6] -= Bs
+    return Hs.reshape(batch + (12, 12)), g

@@ -1,0 +1,174 @@
+"""Exact bending Hessians: per-hinge blocks, per-hinge vs per-triangle assembly, projections."""
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend import BendingEnergy
+from torchbend.hessian import HessianProjection, pattern_of, project_blocks, to_scipy
+from torchbend.reference import plain_bending_energy
+
+from .conftest import MODELS, rel
+
+F64 = torch.float64
+PROJECTIONS = ["clamp", "abs", "gauss_newton", "reduced"]
+
+
+def _bend(rest, faces, model, damped=False):
+    H = tb.HingeTopology.from_faces(faces).hinge_count
+    gen = torch.Generator().manual_seed(3)
+    k = 0.5 + torch.rand(H, generator=gen, dtype=F64)
+    return BendingEnergy(faces, rest, model=model, stiffness=k, damping=0.2 if damped else None)
+
+
+def _per_hinge_reference(bend, x, kw):
+    """torch.func.hessian of the plain per-hinge energy, vmapped over hinges."""
+    idx = torch.arange(4)[None]
+    c = None if not kw else (bend.damping / kw["dt"]).expand(bend.hinge_count)
+    prev = kw.get("theta_prev")
+
+    def e(y4, a, k, r, cc, pp):
+        return plain_bending_energy(y4, idx, a[None], k[None], r[None], bend.model,
+                                    None if cc is None else cc[None], None if pp is None else pp[None])
+
+    k = bend.stiffness.expand(bend.hinge_count)
+    dims = (0, 0, 0, 0, None if c is None else 0, None if prev is None else 0)
+    Hr = torch.func.vmap(torch.func.hessian(e), in_dims=dims)(x[bend.hinges], bend.weights, k, bend.rest_angles, c, prev)
+    return Hr.reshape(-1, 12, 12)
+
+
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("model", MODELS)
+def test_hinge_hessians_match_torch_func(sheet, model, damped):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, model, damped)
+    kw = {}
+    if damped:
+        kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, dtype=F64), "dt": 0.05}
+    Hb = bend.hinge_hessians(x, **kw)
+    assert Hb.shape == (bend.hinge_count, 12, 12)
+    Hr = _per_hinge_reference(bend, x, kw)
+    assert rel(Hb, Hr) <= 1e-12
+    per_block = (Hb - Hr).flatten(1).norm(dim=1) / Hr.flatten(1).norm(dim=1)
+    assert per_block.max() <= 1e-12
+    assert (Hb - Hb.transpose(-1, -2)).abs().max() <= 1e-14 * Hb.abs().max()
+    for j in range(3):  # translations are in the null space of every block
+        t = torch.zeros(12, dtype=F64)
+        t[j::3] = 1
+        assert (Hb @ t).norm() <= 1e-13 * Hb.norm()
+
+
+def test_hinge_hessians_batched(sheet):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, "tan")
+    xb = torch.stack([x, rest + 0.01])
+    Hb = bend.hinge_hessians(xb)
+    assert Hb.shape == (2, bend.hinge_count, 12, 12)
+    assert rel(Hb[1], bend.hinge_hessians(rest + 0.01)) < 1e-15
+
+
+def _meshes():
+    sheet, fs = tb.scenes.random_curved_sheet(5, 4, amplitude=0.3, seed=3, dtype=F64)
+    ico, fi = tb.scenes.icosphere(1, dtype=F64)
+    cyl, fc = tb.scenes.cylinder(7, 4, dtype=F64)
+    # a random vertex permutation mixes the global edge orientations relative to the faces
+    gen = torch.Generator().manual_seed(1)
+    perm = torch.randperm(sheet.shape[0], generator=gen)
+    inv = torch.argsort(perm)
+    return {"sheet": (sheet, fs), "icosphere": (ico, fi), "cylinder": (cyl, fc), "permuted": (sheet[perm], inv[fs])}
+
+
+@pytest.mark.parametrize("mesh", ["sheet", "icosphere", "cylinder", "permuted"])
+@pytest.mark.parametrize("model", MODELS)
+def test_assembly_paths_agree_and_match_dense_reference(mesh, model):
+    rest, faces = _meshes()[mesh]
+    gen = torch.Generator().manual_seed(2)
+    x = rest + 0.05 * torch.randn(rest.shape, generator=gen, dtype=F64)
+    bend = _bend(rest, faces, model)
+    signs = bend.topology.face_edge_signs[bend.topology.face_edge_hinges >= 0]
+    assert (signs > 0).any() and (signs < 0).any()  # both orientations occur
+    Ht = bend.hessian(x, assembly="triangle")
+    Hh = bend.hessian(x, assembly="hinge")
+    assert Ht.layout == torch.sparse_csr and Ht.shape == (3 * len(x), 3 * len(x))
+    Dt, Dh = Ht.to_dense(), Hh.to_dense()
+    assert rel(Dt, Dh) <= 1e-13
+    n = 3 * len(x)
+    ref = torch.func.hessian(
+        lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)
+    )(x).reshape(n, n)
+    assert rel(Dt, ref) <= 1e-13
+    v = torch.randn_like(x)
+    assert rel(Dt @ v.reshape(-1), bend.hvp(x, v).reshape(-1)) <= 1e-13
+    S = to_scipy(Ht)
+    assert S.shape == (n, n) and abs(S - S.T).max() <= 1e-14 * abs(S).max()
+    assert rel(torch.as_tensor(S @ v.reshape(-1).numpy()), bend.hvp(x, v).reshape(-1)) <= 1e-13
+
+
+def test_pattern_is_cached_per_topology(sheet):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, "tan")
+    p1 = pattern_of(bend.topology)
+    bend.hessian(x)
+    assert pattern_of(bend.topology) is p1
+    assert p1.nnz == bend.hessian(x).values().numel()
+
+
+@pytest.mark.parametrize("project", PROJECTIONS)
+@pytest.mark.parametrize("model", MODELS)
+def test_projections_are_psd_and_consistent(sheet, model, project):
+    rest, faces, x = sheet
+    x = x + 0.2 * torch.randn_like(x)  # strongly bent: indefinite blocks
+    bend = _bend(rest, faces, model)
+    P = bend.hinge_hessians(x, project=project)
+    L = torch.linalg.eigvalsh(P)
+    norms = P.flatten(-2).norm(dim=-1)
+    assert (L.min(-1).values >= -1e-12 * norms).all()
+    assert (P - P.transpose(-1, -2)).abs().max() <= 1e-13 * P.abs().max()
+    # the assembled projected Hessian and the matrix-free projected HVP agree
+    v = torch.randn_like(x)
+    Hp = bend.hessian(x, project=project)
+    assert rel(Hp.to_dense() @ v.reshape(-1), bend.hvp(x, v, project=project).reshape(-1)) <= 1e-13
+    for j in range(3):  # every projection keeps translations in the null space
+        t = torch.zeros(12, dtype=F64)
+        t[j::3] = 1
+        assert (P @ t).norm() <= 1e-12 * P.norm()
+
+
+def test_exact_blocks_are_indefinite_and_projections_leave_psd_blocks_unchanged(sheet):
+    rest, faces, x = sheet
+    x = x + 0.2 * torch.randn_like(x)
+    bend = _bend(rest, faces, "tan")
+    Hb = bend.hinge_hessians(x)
+    assert (torch.linalg.eigvalsh(Hb).min(-1).values < -1e-10).any()  # something to project
+    psd = project_blocks(Hb, HessianProjection.CLAMP)
+    for p in (HessianProjection.CLAMP, HessianProjection.ABS, HessianProjection.REDUCED):
+        assert rel(project_blocks(psd, p), psd) <= 1e-12
+    # abs flips negative eigenvalues, clamp zeroes them: abs - clamp = 2 * (negative part)
+    neg = project_blocks(Hb, HessianProjection.CLAMP) - Hb
+    assert rel(project_blocks(Hb, HessianProjection.ABS) - Hb, 2 * neg) <= 1e-11
+
+
+def test_gauss_newton_is_the_clamped_rank_one_term(sheet):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, "sin")
+    P = bend.hinge_hessians(x, project="gauss_newton")
+    x4 = x[bend.hinges]
+    _, g4 = tb.geometry.hinge_angle_and_gradient(x4)
+    g = g4.flatten(-2)
+    from torchbend.hessian import psi_theta_derivatives
+
+    _, d2 = psi_theta_derivatives(bend.model, tb.geometry.hinge_angle(x4), bend.weights, bend.stiffness, bend.rest_angles)
+    ref = d2.clamp_min(0)[:, None, None] * g[:, :, None] * g[:, None, :]
+    assert rel(P, ref) <= 1e-14
+
+
+def test_bad_hessian_arguments(sheet):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, "tan")
+    with pytest.raises(ValueError, match="unknown Hessian projection 'eig'"):
+        bend.hessian(x, project="eig")
+    with pytest.raises(ValueError, match="unknown assembly 'edge'"):
+        bend.hessian(x, assembly="edge")
+    with pytest.raises(ValueError, match="one mesh"):
+        bend.hessian(torch.stack([x, x]))
+    with pytest.raises(ValueError, match="unknown Hessian projection"):
+        bend.hvp(x, x, project="nearest")
