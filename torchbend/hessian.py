@@ -52,6 +52,7 @@ __all__ = [
     "project_blocks",
     "triangle_hessian_blocks",
     "HessianPattern",
+    "StencilPattern",
     "pattern_of",
     "psi_theta_derivatives",
     "to_scipy",
@@ -216,59 +217,47 @@ def triangle_hessian_blocks(x: Tensor, topo: HingeTopology, d1: Tensor) -> Tenso
 
 
 # ------------------------------------------------------------------------------ sparse pattern
-class HessianPattern:
-    """CSR pattern of a bending Hessian (built once per topology; see :func:`pattern_of`).
+class StencilPattern:
+    """CSR pattern of a Hessian assembled from element stencils (built once per topology).
 
-    The pattern holds every 3x3 vertex block ``(v_i, v_j)`` with ``v_i, v_j`` in a common hinge
-    stencil.  ``hinge_pos (H, 12, 12)`` and ``face_pos (F, 9, 9)`` map local block entries to
-    positions in the CSR value array; assembling is one ``index_add`` into it.
+    ``elements: (n, m)`` vertex indices; the pattern holds every 3x3 vertex block ``(v_i, v_j)``
+    with ``v_i, v_j`` in a common element.  ``element_pos (n, (3m)^2)`` maps the entries of each
+    element's local ``3m x 3m`` matrix (flat index ``3*k + j``) to positions in the CSR value array,
+    so that assembling is one ``index_add`` into it.  :meth:`positions` does the same for other
+    element lists whose vertex pairs the pattern covers.
     """
 
-    def __init__(self, topo: HingeTopology):
-        V = topo.vertex_count
-        hinges = topo.hinges.numpy()
-        faces = topo.faces.numpy()
-        H = hinges.shape[0]
-        # vertex pairs of every hinge stencil (covers every face pair of a face with a hinge)
-        hi = np.repeat(hinges, 4, axis=1).reshape(-1)
-        hj = np.tile(hinges, (1, 4)).reshape(-1)
-        keys = np.unique(hi.astype(np.int64) * V + hj)
+    def __init__(self, elements: np.ndarray, vertex_count: int):
+        V = int(vertex_count)
+        m = elements.shape[1]
+        ei = np.repeat(elements, m, axis=1).reshape(-1).astype(np.int64)
+        ej = np.tile(elements, (1, m)).reshape(-1).astype(np.int64)
+        keys = np.unique(ei * V + ej)
         bi, bj = keys // V, keys % V
-        nb = keys.shape[0]
         deg = np.bincount(bi, minlength=V)  # blocks per block row
-        first = np.concatenate([[0], np.cumsum(deg)])  # first block of each block row
-        rank = np.arange(nb) - first[bi]  # position of the block within its block row
-        row_nnz = np.repeat(3 * deg, 3)  # scalar entries per scalar row
-        crow = np.concatenate([[0], np.cumsum(row_nnz)])
-        # scalar position of (block b, p, q): crow[3 bi + p] + 3 rank + q
+        first = np.concatenate([[0], np.cumsum(deg)])
+        rank = np.arange(keys.shape[0]) - first[bi]  # position of each block within its block row
+        crow = np.concatenate([[0], np.cumsum(np.repeat(3 * deg, 3))])
         p = np.arange(3)
-        base = crow[3 * bi[:, None] + p[None, :]] + 3 * rank[:, None]  # (nb, 3)
+        base = crow[3 * bi[:, None] + p[None, :]] + 3 * rank[:, None]  # (nb, 3): scalar row starts
         pos = base[:, :, None] + p[None, None, :]  # (nb, 3, 3)
-        cols = (3 * bj[:, None, None] + p[None, None, :]).repeat(3, axis=1)  # (nb, 3, 3)
         col = np.empty(int(crow[-1]), dtype=np.int64)
-        col[pos.reshape(-1)] = cols.reshape(-1)
-
-        def block_index(rows: np.ndarray, cols_: np.ndarray) -> np.ndarray:
-            return np.searchsorted(keys, rows.astype(np.int64) * V + cols_)
-
-        def local_pos(verts: np.ndarray) -> np.ndarray:  # (n, m) -> (n, 3m, 3m)
-            n, m = verts.shape
-            b = block_index(np.repeat(verts, m, axis=1), np.tile(verts, (1, m))).reshape(n, m, m)
-            P = pos[b]  # (n, m, m, 3, 3) [a, b, p, q]
-            return P.transpose(0, 1, 3, 2, 4).reshape(n, 3 * m, 3 * m)
-
+        col[pos.reshape(-1)] = np.broadcast_to(3 * bj[:, None, None] + p[None, None, :], pos.shape).reshape(-1)
+        self._keys, self._pos, self._V = keys, pos, V
         self.size = 3 * V
         self.nnz = int(crow[-1])
         self.crow_indices = torch.as_tensor(crow, dtype=torch.int64)
         self.col_indices = torch.as_tensor(col, dtype=torch.int64)
-        self.hinge_pos = torch.as_tensor(local_pos(hinges).reshape(H, -1), dtype=torch.int64)
-        # faces without any hinge contribute nothing; give them valid positions only if covered
-        has_hinge = (topo.face_edge_hinges.numpy() >= 0).any(1)
-        fpos = np.zeros((faces.shape[0], 81), dtype=np.int64)
-        if has_hinge.any():
-            fpos[has_hinge] = local_pos(faces[has_hinge]).reshape(-1, 81)
-        self.face_has_hinge = torch.as_tensor(has_hinge)
-        self.face_pos = torch.as_tensor(fpos)
+        self.element_pos = self.positions(elements)
+
+    def positions(self, elements: np.ndarray) -> Tensor:
+        """``(n, (3m)^2)`` value positions of the local matrices of ``elements: (n, m)``."""
+        n, m = elements.shape
+        rows = np.repeat(elements, m, axis=1).astype(np.int64)
+        cols = np.tile(elements, (1, m)).astype(np.int64)
+        b = np.searchsorted(self._keys, rows * self._V + cols).reshape(n, m, m)
+        P = self._pos[b]  # (n, m, m, 3, 3) [a, b, p, q]
+        return torch.as_tensor(P.transpose(0, 1, 3, 2, 4).reshape(n, -1), dtype=torch.int64)
 
     def csr(self, values: Tensor) -> Tensor:
         dev = values.device
@@ -281,6 +270,23 @@ class HessianPattern:
                 size=(self.size, self.size),
                 check_invariants=False,
             )
+
+
+class HessianPattern(StencilPattern):
+    """The bending Hessian's pattern: blocks of vertices sharing a hinge stencil.
+
+    ``hinge_pos (H, 144)`` and ``face_pos (F, 81)`` (faces with at least one hinge; the others
+    contribute nothing) map local entries to CSR value positions."""
+
+    def __init__(self, topo: HingeTopology):
+        super().__init__(topo.hinges.numpy(), topo.vertex_count)
+        self.hinge_pos = self.element_pos
+        has_hinge = (topo.face_edge_hinges.numpy() >= 0).any(1)
+        fpos = torch.zeros((topo.face_count, 81), dtype=torch.int64)
+        if has_hinge.any():
+            fpos[torch.as_tensor(has_hinge)] = self.positions(topo.faces.numpy()[has_hinge])
+        self.face_has_hinge = torch.as_tensor(has_hinge)
+        self.face_pos = fpos
 
 
 def pattern_of(topo: HingeTopology) -> HessianPattern:
