@@ -1,0 +1,200 @@
+"""Membrane energies: derivatives, closed-form eigensystems, projections, invariance, bad input."""
+import math
+
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend.membrane import MembraneEnergy, deformation_gradient, eigensystem, MembraneModel
+
+from .conftest import rel
+
+F64 = torch.float64
+MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
+
+
+def plain_psi(model, F, mu, lam):
+    """Energy density of F (..., 3, 2) written with plain autograd ops (C = F^T F)."""
+    C = F.transpose(-1, -2) @ F
+    if model == "stvk":
+        G = 0.5 * (C - torch.eye(2, dtype=F.dtype))
+        return mu * (G * G).sum((-1, -2)) + 0.5 * lam * G.diagonal(dim1=-2, dim2=-1).sum(-1) ** 2
+    tr = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+    det = C[..., 0, 0] * C[..., 1, 1] - C[..., 0, 1] * C[..., 1, 0]
+    J = det.sqrt()  # s1 s2
+    I1 = torch.sqrt(tr + 2 * J)  # s1 + s2
+    if model == "arap":
+        return mu * (tr - 2 * I1 + 2)
+    if model == "symmetric_dirichlet":
+        return mu * (tr + tr / det - 4)
+    return 0.5 * mu * (tr - 2) - mu * torch.log(J) + 0.5 * lam * torch.log(J) ** 2
+
+
+def plain_energy(mem, x):
+    F = deformation_gradient(x, mem.faces, mem.shape_matrices)
+    return (mem.rest_areas * mem.thickness * plain_psi(mem.model.value, F, mem.mu, mem.lam)).sum(-1)
+
+
+@pytest.fixture
+def cloth():
+    rest, faces = tb.scenes.random_curved_sheet(4, 4, amplitude=0.3, seed=3, dtype=F64)
+    gen = torch.Generator().manual_seed(4)
+    x = rest + 0.08 * torch.randn(rest.shape, generator=gen, dtype=F64)
+    return rest, faces, x
+
+
+def _mem(rest, faces, model):
+    return MembraneEnergy(faces, rest, model=model, young=1e4, poisson=0.3, thickness=1e-3)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_energy_gradient_hvp_match_autograd_and_fd(cloth, model):
+    rest, faces, x = cloth
+    mem = _mem(rest, faces, model)
+    y = x.clone().requires_grad_()
+    yr = x.clone().requires_grad_()
+    E, Er = mem(y), plain_energy(mem, yr)
+    assert abs(E.item() - Er.item()) <= 1e-13 * abs(Er.item())
+    (g,) = torch.autograd.grad(E, y, create_graph=True)
+    (gr,) = torch.autograd.grad(Er, yr, create_graph=True)
+    assert rel(g, gr) < 1e-12 and rel(mem.gradient(x), gr) < 1e-12
+    v = torch.randn_like(x)
+    (hv,) = torch.autograd.grad(g, y, v)
+    (hvr,) = torch.autograd.grad(gr, yr, v)
+    assert rel(hv, hvr) < 1e-12 and rel(mem.hvp(x, v), hvr) < 1e-12
+    assert g.grad_fn.name().endswith("MembraneGradientBackward")
+    # central differences over an epsilon sweep
+    dE = (mem.gradient(x) * v).sum().item()
+    errs_g, errs_h = [], []
+    for eps in (1e-3, 1e-4, 1e-5, 1e-6):
+        errs_g.append(abs((mem(x + eps * v) - mem(x - eps * v)).item() / (2 * eps) - dE) / abs(dE))
+        fd = (mem.gradient(x + eps * v) - mem.gradient(x - eps * v)) / (2 * eps)
+        errs_h.append(rel(fd, mem.hvp(x, v)))
+    assert min(errs_g) < 1e-8 and min(errs_h) < 1e-8, (errs_g, errs_h)
+    assert errs_g[1] < errs_g[0] / 50 and errs_h[1] < errs_h[0] / 50
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_gradcheck_gradgradcheck(model):
+    rest, faces = tb.scenes.random_curved_sheet(3, 3, amplitude=0.3, seed=1, dtype=F64)
+    mem = _mem(rest, faces, model)
+    x = (rest + 0.05 * torch.randn_like(rest)).requires_grad_()
+    assert torch.autograd.gradcheck(mem, (x,))
+    assert torch.autograd.gradgradcheck(mem, (x,))
+    assert torch.autograd.gradcheck(mem, (x,), check_forward_ad=True, check_backward_ad=False,
+                                    check_batched_grad=False, check_undefined_grad=False)
+    n = x.numel()
+    Hf = torch.func.hessian(mem)(x.detach()).reshape(n, n)
+    Hr = torch.func.hessian(lambda y: plain_energy(mem, y))(x.detach()).reshape(n, n)
+    assert rel(Hf, Hr) < 1e-12
+
+
+def _deformation_cases():
+    gen = torch.Generator().manual_seed(0)
+    r = lambda *s: torch.randn(*s, generator=gen, dtype=F64)  # noqa: E731
+    base = r(40, 3, 2)
+    Q, _ = torch.linalg.qr(r(40, 3, 3))
+    planar = Q[..., :2]  # orthonormal columns: a rigid embedding
+    return {
+        "random": base,
+        "nearly_degenerate": planar @ torch.diag(torch.tensor([1.0, 1e-3], dtype=F64)),
+        "stretched": planar @ torch.diag(torch.tensor([3.0, 2.5], dtype=F64)),
+        "compressed": planar @ torch.diag(torch.tensor([0.3, 0.5], dtype=F64)),
+        "inverted": planar @ torch.tensor([[1.2, 0.1], [0.0, -0.8]], dtype=F64),
+        "equal_stretch": planar * 1.3,
+    }
+
+
+@pytest.mark.parametrize("case", list(_deformation_cases()))
+@pytest.mark.parametrize("model", MODELS)
+def test_closed_form_eigensystem_reproduces_f_hessian(model, case):
+    F = _deformation_cases()[case]
+    mu, lam = torch.tensor(2.0, dtype=F64), torch.tensor(1.5, dtype=F64)
+    l, Q, _, P = eigensystem(MembraneModel(model), F, mu, lam)
+    I6 = torch.eye(6, dtype=F64)
+    assert (Q.transpose(-1, -2) @ Q - I6).abs().max() < 1e-12
+    M = (Q * l[..., None, :]) @ Q.transpose(-1, -2)
+
+    def psi_f(f):
+        return plain_psi(model, f.reshape(3, 2), mu, lam)
+
+    Href = torch.func.vmap(torch.func.hessian(psi_f))(F.reshape(-1, 6))
+    Pref = torch.func.vmap(torch.func.grad(psi_f))(F.reshape(-1, 6))
+    per = (M - Href).flatten(1).norm(dim=1) / Href.flatten(1).norm(dim=1)
+    assert per.max() <= 1e-10, per.max()
+    assert rel(P.flatten(-2), Pref) <= 1e-12
+    # the closed-form clamp equals a numerical eigh clamp of the same block
+    Lr, Qr = torch.linalg.eigh(Href)
+    clamp_ref = (Qr * Lr.clamp_min(0)[..., None, :]) @ Qr.transpose(-1, -2)
+    clamp = (Q * l.clamp_min(0)[..., None, :]) @ Q.transpose(-1, -2)
+    assert (clamp - clamp_ref).norm() <= 1e-10 * Href.norm()
+
+
+@pytest.mark.parametrize("project", ["clamp", "abs"])
+@pytest.mark.parametrize("model", MODELS)
+def test_projected_element_hessians_are_psd(cloth, model, project):
+    rest, faces, x = cloth
+    x = x + 0.3 * torch.randn_like(x)
+    mem = _mem(rest, faces, model)
+    He = mem.element_hessians(x)
+    n = x.numel()
+    Hr = torch.func.hessian(lambda y: plain_energy(mem, y))(x).reshape(n, n)
+    assert rel(mem.hessian(x).to_dense(), Hr) < 1e-12
+    P = mem.element_hessians(x, project=project)
+    L = torch.linalg.eigvalsh(P)
+    assert (L.min(-1).values >= -1e-12 * P.flatten(-2).norm(dim=-1)).all()
+    v = torch.randn_like(x)
+    Hp = mem.hessian(x, project=project).to_dense()
+    assert torch.linalg.eigvalsh(Hp).min() >= -1e-10 * Hp.norm()
+    assert rel(Hp @ v.reshape(-1), mem.hvp(x, v, project=project).reshape(-1)) < 1e-12
+    assert (torch.linalg.eigvalsh(He).min(-1).values < 0).any() or model == "arap"
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_rigid_invariance_and_rest(cloth, model):
+    rest, faces, x = cloth
+    mem = _mem(rest, faces, model)
+    assert abs(mem(rest).item()) <= 1e-14 * mem(x).item()
+    assert mem.gradient(rest).abs().max() <= 1e-10 * mem.gradient(x).abs().max()
+    Q, _ = torch.linalg.qr(torch.randn(3, 3, dtype=F64))
+    Q = Q * torch.det(Q)
+    E = mem(x).item()
+    assert abs(mem(x @ Q.T + torch.tensor([1.0, -2.0, 3.0], dtype=F64)).item() - E) <= 1e-12 * E
+    g = mem.gradient(x)
+    assert g.sum(0).norm() <= 1e-12 * g.norm()
+
+
+def test_bad_membrane_input(cloth):
+    rest, faces, x = cloth
+    bad = rest.clone()
+    bad[faces[2, 2]] = 0.5 * (bad[faces[2, 0]] + bad[faces[2, 1]])
+    with pytest.raises(ValueError, match=r"zero-area.*faces \[.*2"):
+        MembraneEnergy(faces, bad, young=1.0, poisson=0.3, thickness=1.0)
+    with pytest.raises(ValueError, match="thickness must be positive"):
+        MembraneEnergy(faces, rest, young=1.0, poisson=0.3, thickness=0.0)
+    for nu in (0.5, -1.0, 0.7):
+        with pytest.raises(ValueError, match="poisson"):
+            MembraneEnergy(faces, rest, young=1.0, poisson=nu, thickness=1.0)
+    with pytest.raises(ValueError, match="young"):
+        MembraneEnergy(faces, rest, young=-1.0, poisson=0.3, thickness=1.0)
+    with pytest.raises(ValueError, match="unknown membrane model"):
+        MembraneEnergy(faces, rest, model="hooke", young=1.0, poisson=0.3, thickness=1.0)
+    mem = _mem(rest, faces, "stvk")
+    with pytest.raises(ValueError, match="non-finite"):
+        mem(torch.full_like(rest, math.nan))
+    with pytest.raises(ValueError, match="unknown membrane projection"):
+        mem.hvp(x, x, project="gauss_newton")
+
+
+def test_membrane_batched_and_float32(cloth):
+    rest, faces, x = cloth
+    mem = _mem(rest, faces, "stvk")
+    xb = torch.stack([x, rest, 1.1 * x])
+    E = mem(xb)
+    assert E.shape == (3,) and abs(E[2].item() - mem(1.1 * x).item()) <= 1e-12 * E[2].item()
+    assert mem.gradient(xb).shape == xb.shape
+    assert torch.func.vmap(mem)(xb).shape == (3,)
+    e32 = mem(x.float())
+    assert e32.dtype == torch.float32
+    print("membrane float32 vs float64 energy error:", abs(e32.item() - mem(x).item()) / mem(x).item())
+    assert abs(e32.item() - mem(x).item()) <= 1e-4 * mem(x).item()
