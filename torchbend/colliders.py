@@ -1,0 +1,169 @@
+r"""Rigid colliders with a smooth one-sided penalty (analytic gradient and Hessian).
+
+Each collider has a signed distance ``s(x)`` (positive outside) and penalises every vertex closer
+than ``margin``::
+
+    E = sum_i  k/2 * max(0, margin - s(x_i))^2          [J],  k = stiffness [N/m]
+
+    grad_i = -k d_i grad s,          Hess_i = k grad s grad s^T  -  k d_i Hess s        (d_i = margin - s > 0)
+
+``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
+term ``-k d Hess s`` is negative semi-definite; PSD-projected Newton variants drop it
+(``project=True``).  Units: positions [m].
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+__all__ = ["Sphere", "Plane", "Capsule"]
+
+
+def _vec3(value, name: str) -> tuple[float, float, float]:
+    try:
+        t = tuple(float(v) for v in value)
+    except TypeError:
+        raise ValueError(f"{name} must be a 3-vector, got {value!r}") from None
+    if len(t) != 3 or not all(math.isfinite(v) for v in t):
+        raise ValueError(f"{name} must be a finite 3-vector, got {value!r}")
+    return t  # type: ignore[return-value]
+
+
+def _positive(value, name: str) -> float:
+    v = float(value)
+    if not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"{name} must be positive and finite, got {value!r}")
+    return v
+
+
+class _Collider:
+    stiffness: float
+    margin: float
+
+    def _sd(self, x: Tensor):  # pragma: no cover - abstract
+        """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
+        raise NotImplementedError
+
+    def depth(self, x: Tensor) -> Tensor:
+        """Penetration depth ``margin - s(x)`` ``(V,)`` [m] (positive = inside the margin)."""
+        return self.margin - self._sd(x)[0]
+
+    def energy(self, x: Tensor) -> Tensor:
+        d = (self.margin - self._sd(x)[0]).clamp_min(0)
+        return 0.5 * self.stiffness * (d * d).sum()
+
+    def gradient(self, x: Tensor) -> Tensor:
+        s, n, _ = self._sd(x)
+        d = (self.margin - s).clamp_min(0)
+        return -self.stiffness * d[:, None] * n
+
+    def hessian_blocks(self, x: Tensor, project: bool = False) -> Tensor:
+        """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; ``project`` drops the curvature term."""
+        s, n, curv = self._sd(x)
+        d = (self.margin - s).clamp_min(0)
+        active = (d > 0).to(x.dtype)
+        H = self.stiffness * active[:, None, None] * n[:, :, None] * n[:, None, :]
+        if curv is not None and not project:
+            H = H - self.stiffness * d[:, None, None] * curv
+        return H
+
+
+def _radial(p: Tensor, radius: float):
+    """Distance to a point (``p`` relative to it) minus ``radius``: ``(s, n, Hess s)``."""
+    r = p.norm(dim=-1)
+    safe = torch.where(r > 0, r, torch.ones_like(r))
+    n = torch.where((r > 0)[:, None], p / safe[:, None], torch.zeros_like(p))
+    eye = torch.eye(3, dtype=p.dtype, device=p.device)
+    curv = (eye - n[:, :, None] * n[:, None, :]) / safe[:, None, None]
+    return r - radius, n, curv
+
+
+@dataclass(frozen=True)
+class Sphere(_Collider):
+    """Solid sphere ``|x - center| <= radius`` [m]."""
+
+    center: tuple = (0.0, 0.0, 0.0)
+    radius: float = 1.0
+    stiffness: float = 1e4
+    margin: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "center", _vec3(self.center, "Sphere.center"))
+        object.__setattr__(self, "radius", _positive(self.radius, "Sphere.radius"))
+        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Sphere.stiffness"))
+        if not (self.margin >= 0 and math.isfinite(self.margin)):
+            raise ValueError(f"Sphere.margin must be >= 0, got {self.margin}")
+
+    def _sd(self, x: Tensor):
+        return _radial(x - x.new_tensor(self.center), self.radius)
+
+
+@dataclass(frozen=True)
+class Plane(_Collider):
+    """Half-space below the plane through ``point`` with outward ``normal`` (normalised)."""
+
+    point: tuple = (0.0, 0.0, 0.0)
+    normal: tuple = (0.0, 0.0, 1.0)
+    stiffness: float = 1e4
+    margin: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "point", _vec3(self.point, "Plane.point"))
+        n = _vec3(self.normal, "Plane.normal")
+        norm = math.sqrt(sum(v * v for v in n))
+        if norm == 0:
+            raise ValueError("Plane.normal must be non-zero")
+        object.__setattr__(self, "normal", tuple(v / norm for v in n))
+        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Plane.stiffness"))
+        if not (self.margin >= 0 and math.isfinite(self.margin)):
+            raise ValueError(f"Plane.margin must be >= 0, got {self.margin}")
+
+    def _sd(self, x: Tensor):
+        n = x.new_tensor(self.normal)
+        s = (x - x.new_tensor(self.point)) @ n
+        return s, n.expand_as(x), None
+
+
+@dataclass(frozen=True)
+class Capsule(_Collider):
+    """Solid capsule: points within ``radius`` [m] of the segment ``a -> b`` [m]."""
+
+    a: tuple = (0.0, 0.0, 0.0)
+    b: tuple = (1.0, 0.0, 0.0)
+    radius: float = 0.1
+    stiffness: float = 1e4
+    margin: float = 0.0
+    _axis: tuple = field(default=(1.0, 0.0, 0.0), repr=False)
+
+    def __post_init__(self):
+        a, b = _vec3(self.a, "Capsule.a"), _vec3(self.b, "Capsule.b")
+        object.__setattr__(self, "a", a)
+        object.__setattr__(self, "b", b)
+        length = math.dist(a, b)
+        if length == 0:
+            raise ValueError("Capsule.a and Capsule.b must differ (use a Sphere for a point)")
+        object.__setattr__(self, "_axis", tuple((bi - ai) / length for ai, bi in zip(a, b)))
+        object.__setattr__(self, "radius", _positive(self.radius, "Capsule.radius"))
+        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Capsule.stiffness"))
+        if not (self.margin >= 0 and math.isfinite(self.margin)):
+            raise ValueError(f"Capsule.margin must be >= 0, got {self.margin}")
+
+    def transformed(self, a, b) -> "Capsule":
+        """The same capsule with new end points (e.g. attached to a moving link)."""
+        return Capsule(a=a, b=b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
+
+    def _sd(self, x: Tensor):
+        a = x.new_tensor(self.a)
+        t_hat = x.new_tensor(self._axis)
+        length = math.dist(self.a, self.b)
+        tau = ((x - a) @ t_hat).clamp(0.0, length)
+        s, n, curv = _radial(x - (a + tau[:, None] * t_hat), self.radius)
+        interior = ((tau > 0) & (tau < length)).to(x.dtype)
+        # along the segment's interior the distance is constant in the axis direction
+        tt = t_hat[:, None] * t_hat[None, :]
+        r = (s + self.radius).clamp_min(torch.finfo(x.dtype).tiny)
+        curv = curv - interior[:, None, None] * tt / r[:, None, None]
+        return s, n, curv
