@@ -445,10 +445,15 @@ def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
 
 
 def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str = "direct",
-                 tol: float = 1e-9, max_iters: int = 50) -> tuple[Tensor, SolveInfo]:
+                 tol: float = 1e-9, max_iters: int = 50, continuation: bool = False,
+                 max_relax_steps: int = 200) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
 
     ``tol`` is relative to the resultant gravity force (stop when ``|g_free| <= tol |sum_i m_i g|``).
+    With ``continuation=True``, a Newton solve that fails from ``x0`` (large rotations of soft
+    shells) is globalised by pseudo-transient continuation: implicit-Euler steps from rest (the
+    velocity is reset every step, so each step is a proximal step on the potential) with a growing
+    step size, retrying Newton every few steps.  ``info.iterations`` counts all Newton iterations.
     Returns ``(x, info)``; on failure ``x`` is ``x0`` unchanged and ``info.converged`` is False."""
     x0 = _prepare_x(model, x0)
     option, linear = HessianOption.parse(hessian), LinearSolver.parse(linear_solver)
@@ -456,7 +461,31 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
         raise ValueError(f"tol must be positive, got {tol}")
     x, info = _newton(model, x0, option=option, linear=linear, tol=tol, max_iters=int(max_iters),
                       inertia=None, bend_kw={})
-    return (x, info) if info.converged else (x0, info)
+    if info.converged or not continuation:
+        return (x, info) if info.converged else (x0, info)
+    t0 = time.perf_counter()
+    total = info.iterations
+    xk, dt = x0, 1e-2
+    for k in range(max_relax_steps):
+        state, step_info = implicit_euler_step(model, ClothState(xk, torch.zeros_like(xk)), dt,
+                                               hessian=hessian, linear_solver=linear, tol=1e-6, max_iters=30)
+        total += step_info.iterations
+        if not step_info.converged:
+            dt *= 0.25
+            continue
+        xk, dt = state.x, dt * 1.5
+        if k % 5 == 4:
+            x, info = _newton(model, xk, option=option, linear=linear, tol=tol, max_iters=int(max_iters),
+                              inertia=None, bend_kw={})
+            total += info.iterations
+            if info.converged:
+                break
+    info.iterations = total
+    info.seconds = time.perf_counter() - t0
+    if info.converged:
+        info.message = "converged (after pseudo-transient continuation)"
+        return x, info
+    return x0, info
 
 
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hessian: str = "exact",

@@ -1,0 +1,193 @@
+"""Cloth model and Newton solvers: cantilever acceptance, drape, failure reporting, bad input, CLI."""
+import json
+import math
+import os
+
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend.colliders import Capsule, Plane, Sphere
+from torchbend.run import build_scene, load_config, run_config
+from torchbend.solver import ClothModel, ClothState, implicit_euler_step, solve_static
+
+F64 = torch.float64
+CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
+
+
+def cantilever(nx, ny, *, L=0.2, W=0.05, young=5e7, nu=0.3, t=1e-2, rho=1000.0):
+    rest, faces = tb.scenes.grid(nx, ny, (L, W), dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(young, t, nu))
+    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=young, poisson=nu, thickness=t)
+    columns = rest[:, 0].unique()
+    pinned = rest[:, 0] <= columns[1] + 1e-12
+    model = ClothModel(faces, rest, bending=bend, membrane=mem, density=rho * t, gravity=(0, 0, -9.81), pinned=pinned)
+    kirchhoff = rho * t * 9.81 * (L - columns[1].item()) ** 4 / (8 * young * t**3 / (12 * (1 - nu**2)))
+    return model, rest, kirchhoff
+
+
+def tip(x, rest):
+    return float(-(x[:, 2] - rest[:, 2])[rest[:, 0] >= rest[:, 0].max() - 1e-12].mean())
+
+
+def test_static_cantilever_converges_and_solvers_agree():
+    tips = []
+    for nx, ny in [(11, 3), (21, 6), (41, 11)]:
+        model, rest, kirchhoff = cantilever(nx, ny)
+        x, info = solve_static(model, rest, linear_solver="direct", tol=1e-9)
+        weight = float(model.external_force().sum(0).norm())
+        assert info.converged and info.iterations <= 30, info.message
+        assert info.residual <= 1e-9 * weight
+        assert torch.equal(x[model.pinned], rest[model.pinned])  # pinned DOFs eliminated
+        assert all(b <= a + 1e-12 * abs(a) for a, b in zip(info.energy_history, info.energy_history[1:]))
+        tips.append(tip(x, rest))
+        print(f"cantilever {nx}x{ny}: tip {tips[-1]:.6e} m, Kirchhoff {kirchhoff:.6e} m, ratio {tips[-1] / kirchhoff:.4f}, "
+              f"{info.iterations} Newton iterations")
+        if nx <= 21:
+            x_cg, info_cg = solve_static(model, rest, linear_solver="cg", tol=1e-9)
+            assert info_cg.converged and info_cg.iterations <= 30
+            assert float((x_cg - x).norm() / (x - rest).norm()) <= 1e-8
+    # the tip deflection converges under refinement: successive differences shrink
+    assert abs(tips[2] - tips[1]) < abs(tips[1] - tips[0])
+
+
+def test_failure_is_reported_and_leaves_input_untouched():
+    model, rest, _ = cantilever(11, 3)
+    x0 = rest.clone()
+    x, info = solve_static(model, x0, max_iters=1)
+    assert not info.converged and "no convergence" in info.message
+    assert x is x0 and torch.equal(x0, rest)
+    state = ClothState(rest.clone(), torch.zeros_like(rest))
+    new, info = implicit_euler_step(model, state, 0.05, max_iters=0)
+    assert not info.converged and new is state
+    assert torch.isfinite(torch.tensor(info.residual))
+
+
+@pytest.mark.parametrize("hessian", ["exact", "clamp", "gauss_newton"])
+def test_drape_no_penetration_energy_monotone(hessian):
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    model, x0, faces = build_scene(cfg, resolution=(11, 11))
+    state = ClothState(x0, torch.zeros_like(x0))
+    sphere = model.colliders[0]
+    edge = 1.0 / 10
+    its = []
+    for _ in range(40):
+        state, info = implicit_euler_step(model, state, 0.01, hessian=hessian)
+        assert info.converged, info.message
+        hist = info.energy_history
+        assert all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(hist, hist[1:]))
+        its.append(info.iterations)
+        assert float(sphere.depth(state.x).max()) <= 0.01 * edge
+    assert torch.isfinite(state.x).all()
+    # the cloth has reached the sphere and rests on it
+    assert float(sphere.depth(state.x).max()) > -0.01
+    print(f"drape 11x11 {hessian}: mean Newton iterations per step {sum(its) / len(its):.2f}")
+
+
+def test_viscous_bending_damping_enters_the_step():
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    model, x0, _ = build_scene(cfg, resolution=(7, 7))
+    state = ClothState(x0 + 0.01 * torch.randn_like(x0), torch.zeros_like(x0))
+    s1, _ = implicit_euler_step(model, state, 0.01)
+    model.bending.damping = model.bending.damping * 1e6  # much more viscous: less bending motion
+    s2, _ = implicit_euler_step(model, state, 0.01)
+    d1 = (model.bending.angles(s1.x) - model.bending.angles(state.x)).abs().sum()
+    d2 = (model.bending.angles(s2.x) - model.bending.angles(state.x)).abs().sum()
+    assert d2 < d1
+
+
+def test_colliders_derivatives_match_autograd():
+    x = torch.randn(50, 3, dtype=F64) * 0.5
+    for c in (Sphere((0.1, 0.0, 0.0), 0.4, stiffness=100.0, margin=0.05), Plane((0, 0, 0.1), (0, 1, 1), stiffness=50.0),
+              Capsule((-0.3, 0, 0), (0.3, 0.1, 0), 0.3, stiffness=70.0)):
+        y = x.clone().requires_grad_()
+        (g,) = torch.autograd.grad(c.energy(y), y)
+        assert float((c.gradient(x) - g).norm()) <= 1e-12 * max(float(g.norm()), 1.0)
+        H = torch.func.hessian(lambda z: c.energy(z))(x).reshape(150, 150)
+        blocks = torch.block_diag(*c.hessian_blocks(x))
+        assert float((blocks - H).norm()) <= 1e-10 * max(float(H.norm()), 1.0)
+        assert (torch.linalg.eigvalsh(c.hessian_blocks(x, project=True)) >= -1e-12).all()
+
+
+def test_bad_solver_input():
+    model, rest, _ = cantilever(5, 3)
+    faces = model.topology.faces
+    with pytest.raises(ValueError, match=r"x0 must have shape \(15, 3\)"):
+        solve_static(model, rest[:-1])
+    with pytest.raises(ValueError, match="pinned indices must lie in"):
+        ClothModel(faces, rest, pinned=[0, 99])
+    with pytest.raises(ValueError, match=r"pinned must have shape \(15,\)"):
+        ClothModel(faces, rest, pinned=torch.zeros(4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="density must be positive"):
+        ClothModel(faces, rest, density=0.0)
+    with pytest.raises(ValueError, match="dt must be positive"):
+        implicit_euler_step(model, ClothState(rest, torch.zeros_like(rest)), 0.0)
+    with pytest.raises(ValueError, match="Sphere.radius must be positive"):
+        Sphere((0, 0, 0), -1.0)
+    with pytest.raises(ValueError, match="Capsule.radius must be positive"):
+        Capsule((0, 0, 0), (1, 0, 0), 0.0)
+    with pytest.raises(ValueError, match="hessian must be one of"):
+        solve_static(model, rest, hessian="newton")
+    with pytest.raises(ValueError, match="linear_solver must be"):
+        solve_static(model, rest, linear_solver="lu")
+    with pytest.raises(ValueError, match="state.v must have shape"):
+        implicit_euler_step(model, ClothState(rest, torch.zeros(3, 3)), 0.1)
+
+
+def test_cli_dynamic_and_static_scenes(tmp_path):
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    stats = run_config(cfg, str(tmp_path / "sphere"), steps=3, resolution=(7, 7), progress=False)
+    assert len(stats["steps"]) == 3 and all(s["converged"] for s in stats["steps"])
+    assert (tmp_path / "sphere" / "snapshot.png").stat().st_size > 1000
+    assert (tmp_path / "sphere" / "frames" / "frame_0003.obj").exists()
+    saved = json.loads((tmp_path / "sphere" / "stats.json").read_text())
+    assert saved["steps"][0]["iterations"] >= 1 and "membrane" in saved["steps"][0]["energies"]
+    beams = load_config(os.path.join(CONFIGS, "beams.yaml"))
+    beams["material"]["thicknesses"] = [1e-2]
+    stats = run_config(beams, str(tmp_path / "beams"), resolution=(21, 4), progress=False)
+    s = stats["steps"][0]
+    assert s["converged"] and 0.1 < s["ratio"] < 2.0 and math.isfinite(s["tip_deflection"])
+
+
+@pytest.mark.parametrize(
+    "patch, match",
+    [
+        ({"bending": {"model": "cubic", "stiffness": 1.0}}, "bending.*unknown bending model"),
+        ({"bending": {"model": "tan", "stiffness": -1.0}}, "'bending.stiffness' must be non-negative"),
+        ({"membrane": {"model": "hooke"}}, "membrane.*unknown membrane model"),
+        ({"colliders": [{"type": "cone"}]}, r"'colliders\[0\].type'"),
+        ({"colliders": [{"type": "sphere", "radius": -1}]}, r"colliders\[0\].*radius must be positive"),
+        ({"material": {"density": -2}}, "'material.density' must be positive"),
+    ],
+)
+def test_bad_config_values_name_the_key(patch, match):
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    cfg.update(patch)
+    with pytest.raises(ValueError, match=match):
+        build_scene(cfg, resolution=(5, 5))
+
+
+def test_missing_config_and_unknown_key(tmp_path):
+    with pytest.raises(ValueError, match="config file not found"):
+        load_config(str(tmp_path / "nope.yaml"))
+    p = tmp_path / "bad.yaml"
+    p.write_text("mesh: {nx: 5}\nsolvr: {dt: 0.1}\n")
+    with pytest.raises(ValueError, match=r"unknown keys \['solvr'\]"):
+        load_config(str(p))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n", [41, 81])
+def test_drape_full_resolutions(n, tmp_path):
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    stats = run_config(cfg, str(tmp_path), resolution=(n, n), progress=False)
+    assert all(s["converged"] for s in stats["steps"])
+    assert stats["max_penetration"] <= 0.01 * (1.0 / (n - 1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("resolution", [(61, 6), (131, 6), (196, 7)])
+def test_beams_paper_resolutions(resolution, tmp_path):
+    cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
+    stats = run_config(cfg, str(tmp_path), resolution=resolution, progress=False)
+    assert all(s["converged"] for s in stats["steps"])
