@@ -1,0 +1,198 @@
+"""Shared machinery of the training scripts: configs, the cloth physics, logging, checkpoints, DDP.
+
+Scripts import torchbend; torchbend never imports this folder.
+"""
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+import torchbend as tb
+
+ENERGY_TERMS = {"membrane", "bending", "gravity", "sphere", "ground"}
+
+
+# ------------------------------------------------------------------------------ config
+def load_config(path: str, defaults: dict) -> dict:
+    """YAML config merged over ``defaults``; ``ValueError`` naming the key for unknown or bad values."""
+    import yaml
+
+    if not os.path.isfile(path):
+        raise ValueError(f"config file not found: {path}")
+    with open(path) as f:
+        try:
+            cfg = yaml.safe_load(f) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"config {path}: invalid YAML ({e})") from None
+    if not isinstance(cfg, dict):
+        raise ValueError(f"config {path}: expected a mapping at the top level")
+    out = {}
+    for section, values in defaults.items():
+        given = cfg.pop(section, {}) or {}
+        if not isinstance(given, dict):
+            raise ValueError(f"config key '{section}' must be a mapping")
+        unknown = set(given) - set(values)
+        if unknown:
+            raise ValueError(f"unknown config keys {[f'{section}.{k}' for k in sorted(unknown)]}")
+        out[section] = {**values, **given}
+    if cfg:
+        raise ValueError(f"unknown config keys {sorted(cfg)}; allowed sections: {sorted(defaults)}")
+    return out
+
+
+def check_positive(cfg: dict, key: str, allow_zero: bool = False) -> float:
+    section, name = key.split(".")
+    value = cfg[section][name]
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"config key '{key}' must be a number, got {value!r}") from None
+    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        raise ValueError(f"config key '{key}' must be {'non-negative' if allow_zero else 'positive'}, got {value!r}")
+    return value
+
+
+# ------------------------------------------------------------------------------ physics
+class ClothPhysics:
+    """Potential energy of batched cloth states ``x (B, V, 3)`` with per-sample sphere colliders.
+
+    Terms (each optional, selected by ``energies`` in the config): ``membrane`` (StVK), ``bending``
+    (torchbend hinge energy, analytic first and second derivatives), ``gravity``, ``sphere``
+    (one-sided quadratic penalty, per-sample centre/radius) and ``ground`` (plane z = ground_z)."""
+
+    def __init__(self, cfg: dict, dtype=torch.float64, device="cpu"):
+        c = cfg["cloth"]
+        terms = set(c["energies"])
+        unknown = terms - ENERGY_TERMS
+        if unknown:
+            raise ValueError(f"config key 'cloth.energies' has unknown energy names {sorted(unknown)}; "
+                             f"allowed: {sorted(ENERGY_TERMS)}")
+        n = int(c["resolution"])
+        if n < 3:
+            raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
+        size = check_positive(cfg, "cloth.size")
+        rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
+        rest = rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device)
+        self.rest, self.faces, self.terms = rest, faces, terms
+        self.bend = None
+        if "bending" in terms:
+            k = check_positive(cfg, "cloth.bending_stiffness")
+            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=k).to(device)
+        self.mem = None
+        if "membrane" in terms:
+            self.mem = tb.MembraneEnergy(faces, rest, model="stvk", young=check_positive(cfg, "cloth.young"),
+                                         poisson=float(c["poisson"]), thickness=check_positive(cfg, "cloth.thickness")).to(device)
+        density = check_positive(cfg, "cloth.density")
+        p = rest[faces]
+        area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+        self.mass = torch.zeros(len(rest), dtype=dtype, device=device).index_add_(
+            0, faces.reshape(-1), (density * area / 3).repeat_interleave(3))
+        self.g = torch.tensor([0.0, 0.0, -9.81], dtype=dtype, device=device)
+        self.k_contact = check_positive(cfg, "cloth.contact_stiffness")
+        self.ground_z = float(c["ground_z"])
+
+    def energies(self, x: torch.Tensor, center: torch.Tensor, radius: torch.Tensor) -> dict:
+        """Per-sample energy terms ``{name: (B,)}`` [J]."""
+        out = {}
+        if self.mem is not None:
+            out["membrane"] = self.mem(x)
+        if self.bend is not None:
+            out["bending"] = self.bend(x)
+        if "gravity" in self.terms:
+            out["gravity"] = -(self.mass[:, None] * self.g * x).sum((-1, -2))
+        if "sphere" in self.terms:
+            d = (radius[:, None] - (x - center[:, None, :]).norm(dim=-1)).clamp_min(0)
+            out["sphere"] = 0.5 * self.k_contact * (d * d).sum(-1)
+        if "ground" in self.terms:
+            d = (self.ground_z - x[..., 2]).clamp_min(0)
+            out["ground"] = 0.5 * self.k_contact * (d * d).sum(-1)
+        return out
+
+    def gradient(self, x: torch.Tensor, center: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+        """``dE/dx (B, V, 3)``, differentiable: bending and membrane through their analytic
+        gradient Functions (whose backward is the analytic HVP), the rest through autograd."""
+        g = torch.zeros_like(x)
+        if self.mem is not None:
+            g = g + self.mem.gradient(x)
+        if self.bend is not None:
+            g = g + self.bend.gradient(x)
+        if "gravity" in self.terms:
+            g = g - self.mass[:, None] * self.g
+        rest_terms = {k: v for k, v in self.energies(x, center, radius).items() if k in ("sphere", "ground")}
+        if rest_terms:
+            (gc,) = torch.autograd.grad(sum(v.sum() for v in rest_terms.values()), x, create_graph=True)
+            g = g + gc
+        return g
+
+    def residual(self, x, center, radius) -> torch.Tensor:
+        """Mass-weighted squared equilibrium residual per sample ``sum_i |g_i|^2 / m_i`` ``(B,)``."""
+        g = self.gradient(x, center, radius)
+        return (g * g / self.mass[:, None]).sum((-1, -2))
+
+    def mean_angle_deviation(self, x) -> float:
+        if self.bend is None:
+            return float("nan")
+        return float((self.bend.angles(x.detach()) - self.bend.rest_angles).abs().mean())
+
+
+# ------------------------------------------------------------------------------ runtime
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def distributed() -> tuple[int, int]:
+    """``(rank, world_size)``; initialises a gloo process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+
+
+def save_checkpoint(path: str, **state) -> None:
+    tmp = path + ".tmp"
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str) -> dict:
+    if not os.path.isfile(path):
+        raise ValueError(f"--resume: no checkpoint at {path}")
+    return torch.load(path, weights_only=False)
+
+
+class Timer:
+    def __init__(self):
+        self.t = time.perf_counter()
+
+    def lap(self) -> float:
+        now = time.perf_counter()
+        dt, self.t = now - self.t, now
+        return dt
+
+
+def save_drape_png(path: str, meshes, titles=None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(4 * len(meshes), 4))
+    for i, (x, faces) in enumerate(meshes):
+        ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
+        p = x.detach().cpu().numpy()
+        ax.plot_trisurf(p[:, 0], p[:, 1], p[:, 2], triangles=faces.cpu().numpy(), color="tab:blue",
+                        edgecolor="k", linewidth=0.1)
+        if titles:
+            ax.set_title(titles[i], fontsize=8)
+        ax.set_box_aspect((1, 1, 0.6))
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
