@@ -31,7 +31,7 @@ from torch import Tensor
 
 from . import geometry
 from ._assemble import gather_soa, scatter_soa
-from .models import REST, THETA, BendingModel, contract_hessian, psi_derivatives
+from .models import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 
 __all__ = ["energy_function", "bending_energy_raw"]
 
@@ -247,6 +247,15 @@ def gradient_function(model: BendingModel) -> type[torch.autograd.Function]:
     return _FUNCTIONS[BendingModel.parse(model)][1]
 
 
+def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> list:
+    """Per-hinge scalars as ``(..., H)`` views (the Functions return gradients of that shape)."""
+    shape = x.shape[:-2] + a.shape
+    params = [k.expand(shape), rest.expand(shape)]
+    if c is not None:
+        params += [c.expand(shape), prev.expand(shape)]
+    return params
+
+
 def bending_energy_raw(
     x: Tensor,
     hinges: Tensor,
@@ -266,12 +275,8 @@ def bending_energy_raw(
     broadcastable to ``(..., H)`` (``c``/``prev`` both given or both ``None``).  Differentiable
     twice (analytic backward and double backward) in ``x``, ``k``, ``rest``, ``c``, ``prev``.
     """
-    shape = x.shape[:-2] + a.shape
-    params = [k.expand(shape), rest.expand(shape)]
-    if c is not None:
-        params += [c.expand(shape), prev.expand(shape)]
-    fn = _FUNCTIONS[model][0]
-    return fn.apply(x, hinges, seg, seg_count, a, *params)
+    params = _expand_params(x, a, k, rest, c, prev)
+    return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
 
 
 def bending_gradient_raw(
@@ -286,10 +291,7 @@ def bending_gradient_raw(
     model: BendingModel = BendingModel.TAN,
 ) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
-    shape = x.shape[:-2] + a.shape
-    params = [k.expand(shape), rest.expand(shape)]
-    if c is not None:
-        params += [c.expand(shape), prev.expand(shape)]
+    params = _expand_params(x, a, k, rest, c, prev)
     ones = x.new_ones(x.shape[:-2])
     return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
 
@@ -311,21 +313,6 @@ def bending_hvp_raw(
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
     v4 = gather_soa(v, hinges)
     theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges), v4)
-    f1, f2 = _psi_theta_derivatives(model, theta, a, k, rest, c, prev)
+    f1, f2 = psi_theta_derivatives(model, theta, a, k, rest, c, prev)
     out4 = _axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1))
     return scatter_soa(out4, hinges, x.shape[-2])
-
-
-def _psi_theta_derivatives(model, theta, a, k, rest, c, prev):
-    """``(d psi/d theta, d^2 psi/d theta^2)`` only (the HVP in x needs nothing else)."""
-    from .models import phi
-
-    f, f1, f2 = phi(model, theta)
-    r = phi(model, rest, order=0)[0]
-    s = k * (f - r)
-    kc = k
-    if c is not None:
-        s = s + c * (f - phi(model, prev, order=0)[0])
-        kc = k + c
-    two_a = 2.0 * a
-    return two_a * s * f1, two_a * (kc * f1 * f1 + s * f2)

@@ -38,28 +38,10 @@ from ._assemble import gather, scatter
 from .geometry import hinge_angle
 from .geometry import hinge_angle_and_gradient as geometry_angle_and_gradient
 from .models import BendingModel
+from ._validate import _check_positions, _is_traced, mesh_and_rest
 from .topology import HingeTopology
 
 __all__ = ["BendingEnergy", "hinge_angles", "rest_hinge_weights", "PackedMeshes", "pack_meshes"]
-
-
-def _is_traced(t: Tensor) -> bool:
-    return torch._C._functorch.is_functorch_wrapped_tensor(t)
-
-
-def _check_positions(x, vertex_count: int, name: str = "x", check_finite: bool = True) -> Tensor:
-    if not isinstance(x, Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape (..., {vertex_count}, 3), got {type(x).__name__}")
-    if not x.is_floating_point():
-        raise ValueError(f"{name} must be a floating point tensor, got dtype {x.dtype}")
-    if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != vertex_count:
-        raise ValueError(f"{name} must have shape (..., {vertex_count}, 3) (V = {vertex_count}), got {tuple(x.shape)}")
-    if check_finite and not _is_traced(x):
-        bad = ~torch.isfinite(x.detach())
-        if bool(bad.any()):
-            verts = torch.nonzero(bad.reshape(-1, vertex_count, 3).any(-1).any(0)).reshape(-1)[:8].tolist()
-            raise ValueError(f"{name} holds non-finite (NaN or Inf) coordinates at vertices {verts}")
-    return x
 
 
 def hinge_angles(x: Tensor, topo: HingeTopology) -> Tensor:
@@ -160,13 +142,7 @@ class BendingEnergy(nn.Module):
         check_finite: bool = True,
     ):
         super().__init__()
-        topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
-        rest_positions = torch.as_tensor(rest_positions)
-        if not rest_positions.is_floating_point():
-            rest_positions = rest_positions.to(torch.get_default_dtype())
-        _check_positions(rest_positions, topo.vertex_count, "rest_positions")
-        if rest_positions.ndim != 2:
-            raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest_positions.shape)}")
+        topo, rest_positions = mesh_and_rest(faces, rest_positions)
         self.model = BendingModel.parse(model)
         self.topology = topo
         self.check_finite = bool(check_finite)

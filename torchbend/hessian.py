@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from . import geometry
-from .models import BendingModel, phi
+from .models import psi_theta_derivatives  # noqa: F401  (re-exported)
 from .topology import HingeTopology
 
 __all__ = [
@@ -88,19 +88,6 @@ class Assembly(str, enum.Enum):
             return cls(value)
         except ValueError:
             raise ValueError(f"unknown assembly {value!r}; expected 'hinge' or 'triangle'") from None
-
-
-# ------------------------------------------------------------------------------ scalars
-def psi_theta_derivatives(model: BendingModel, theta, a, k, rest, c=None, prev=None) -> tuple[Tensor, Tensor]:
-    """``(psi', psi'')`` in ``theta`` (shared by every Hessian path)."""
-    f, f1, f2 = phi(model, theta)
-    s = k * (f - phi(model, rest, order=0)[0])
-    kc = k
-    if c is not None:
-        s = s + c * (f - phi(model, prev, order=0)[0])
-        kc = k + c
-    two_a = 2.0 * a
-    return two_a * s * f1, two_a * (kc * f1 * f1 + s * f2)
 
 
 # ------------------------------------------------------------------------------ per-hinge blocks

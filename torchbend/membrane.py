@@ -50,7 +50,8 @@ import math
 import torch
 from torch import Tensor, nn
 
-from .hessian import StencilPattern, _eig_project
+from ._validate import _check_positions, mesh_and_rest
+from .hessian import StencilPattern
 from .topology import HingeTopology
 
 __all__ = [
@@ -410,16 +411,7 @@ class MembraneEnergy(nn.Module):
     def __init__(self, faces, rest_positions: Tensor, *, model="stvk", young: float, poisson: float,
                  thickness: float, check_finite: bool = True):
         super().__init__()
-        from .bending import _check_positions
-
-        self._check_positions = _check_positions
-        topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
-        rest_positions = torch.as_tensor(rest_positions)
-        if not rest_positions.is_floating_point():
-            rest_positions = rest_positions.to(torch.get_default_dtype())
-        _check_positions(rest_positions, topo.vertex_count, "rest_positions")
-        if rest_positions.ndim != 2:
-            raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest_positions.shape)}")
+        topo, rest_positions = mesh_and_rest(faces, rest_positions)
         thickness = float(thickness)
         if not (thickness > 0 and math.isfinite(thickness)):
             raise ValueError(f"thickness must be positive and finite, got {thickness}")
@@ -446,7 +438,7 @@ class MembraneEnergy(nn.Module):
         return int(self.faces.shape[0])
 
     def _args(self, x: Tensor):
-        self._check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        _check_positions(x, self.vertex_count, check_finite=self.check_finite)
         if x.device != self.faces.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.faces.device}; move one with .to()")
         dt = x.dtype

@@ -137,3 +137,15 @@ def contract_hessian(hess: dict, vec: list) -> list:
             term = h * vec[b]
             z[a] = term if z[a] is None else z[a] + term
     return z
+
+
+def psi_theta_derivatives(model: BendingModel, theta, a, k, rest, c=None, prev=None) -> tuple[Tensor, Tensor]:
+    """``(psi', psi'')`` in ``theta`` (shared by every Hessian path)."""
+    f, f1, f2 = phi(model, theta)
+    s = k * (f - phi(model, rest, order=0)[0])
+    kc = k
+    if c is not None:
+        s = s + c * (f - phi(model, prev, order=0)[0])
+        kc = k + c
+    two_a = 2.0 * a
+    return two_a * s * f1, two_a * (kc * f1 * f1 + s * f2)

@@ -37,11 +37,11 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
-from .bending import BendingEnergy, _check_positions
+from ._validate import mesh_and_rest
+from .bending import BendingEnergy
 from .colliders import Capsule, Plane, Sphere
 from .hessian import to_scipy
 from .membrane import MembraneEnergy
-from .topology import HingeTopology
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "HessianOption", "solve_static", "implicit_euler_step"]
 
@@ -125,13 +125,7 @@ class ClothModel:
     def __init__(self, faces, rest_positions, *, bending: BendingEnergy | None = None,
                  membrane: MembraneEnergy | None = None, density: float = 0.1,
                  gravity=(0.0, 0.0, -9.81), pinned=None, colliders=()):
-        topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
-        rest = torch.as_tensor(rest_positions)
-        if not rest.is_floating_point():
-            rest = rest.to(torch.get_default_dtype())
-        _check_positions(rest, topo.vertex_count, "rest_positions")
-        if rest.ndim != 2:
-            raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest.shape)}")
+        topo, rest = mesh_and_rest(faces, rest_positions)
         V = topo.vertex_count
         density = float(density)
         if not (density > 0 and math.isfinite(density)):
