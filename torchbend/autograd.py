@@ -38,6 +38,35 @@ __all__ = ["energy_function", "bending_energy_raw"]
 _PARAM_SLOTS = (1, 2, 3, 4)  # K, REST, C, PREV in models' slot numbering
 
 
+CHUNK = 1 << 16
+"""Hinges per pass of the per-hinge kernels.  The kernels are sequences of elementwise passes; in
+chunks of this size their intermediates stay in the CPU caches, which keeps the cost per hinge
+flat as meshes grow (a single pass over 10^6 hinges spills every intermediate to memory)."""
+
+
+def _chunks(H: int):
+    if H <= CHUNK:
+        yield slice(None)
+        return
+    for s in range(0, H, CHUNK):
+        yield slice(s, min(s + CHUNK, H))
+
+
+def _sl(t, sl):
+    return None if t is None else t[..., sl]
+
+
+def _cat(parts: list):
+    if any(p is None for p in parts):
+        return None
+    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+
+
+def _chunk_weight(gE: Tensor, seg: Tensor | None, sl) -> Tensor:
+    """Per-hinge cotangent of one chunk (``(..., 1)`` broadcasts when there are no segments)."""
+    return gE[..., None] if seg is None else gE[..., seg[sl]]
+
+
 def _scale4(vs, s: Tensor):
     return tuple(tuple(c * s for c in v) for v in vs)
 
@@ -72,11 +101,6 @@ def _check_fold(model: BendingModel, theta: Tensor) -> None:
             f"hinges {idx} have folded through (|theta| = pi): the 'tan' bending energy is unbounded "
             "there by design (it forbids interpenetration); use smaller steps or the 'quadratic'/'sin' model"
         )
-
-
-def _hinge_weight(gE: Tensor, seg: Tensor | None) -> Tensor:
-    """Per-hinge cotangent ``(..., H)`` from the per-mesh (or per-segment) cotangent."""
-    return gE[..., None] if seg is None else gE[..., seg]
 
 
 def _reduce(psi: Tensor, seg: Tensor | None, seg_count: int) -> Tensor:
@@ -114,13 +138,19 @@ def _make(model: BendingModel):
 
         @staticmethod
         def forward(gE, x, hinges, seg, a, *params):
-            p = _params(params)
-            theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges))
-            _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
-            w = _hinge_weight(gE, seg)  # (..., H)
-            gx = scatter_soa(_scale4(g4, w * pg[THETA]), hinges, x.shape[-2])
-            gp = tuple(w * pg[s] for s in _PARAM_SLOTS[: len(params)])
-            return (gx,) + gp
+            V = x.shape[-2]
+            gx, gps = None, [[] for _ in params]
+            for sl in _chunks(hinges.shape[0]):
+                h = hinges[sl]
+                p = [_sl(t, sl) for t in _params(params)]
+                theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h))
+                _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)
+                w = _chunk_weight(gE, seg, sl)  # (..., h) or (..., 1)
+                part = scatter_soa(_scale4(g4, w * pg[THETA]), h, V)
+                gx = part if gx is None else gx + part
+                for i, slot in enumerate(_PARAM_SLOTS[: len(params)]):
+                    gps[i].append(w * pg[slot])
+            return (gx,) + tuple(_cat(g) for g in gps)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -135,34 +165,43 @@ def _make(model: BendingModel):
             Shared by ``backward`` (cotangents of the outputs: ``t_gE`` is ``None``) and ``jvp``
             (tangents of the inputs).  Returns ``(dx, [d params], d gE per hinge)``."""
             gE, x, hinges, seg, a, *params = ctx.saved_tensors
-            p = _params(params)
-            v4 = None if t_x is None else gather_soa(t_x, hinges)
-            theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges), v4)
-            _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=True)
-            w = _hinge_weight(gE, seg)  # (..., H)
-            u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., H)
-            vec = _pvec(u, t_params)
-            z = contract_hessian(ph, vec)  # Hess_p(psi) vec
-            coef = None if z[THETA] is None else w * z[THETA]
-            tw = None if t_gE is None else _hinge_weight(t_gE, seg)
-            if tw is not None:
-                t = tw * pg[THETA]
-                coef = t if coef is None else coef + t
-            dx4 = None
-            if hv4 is not None:
-                dx4 = _scale4(hv4, w * pg[THETA])  # psi' H_theta v
-                if coef is not None:
-                    dx4 = _axpy4(coef, g4, dx4)
-            elif coef is not None:
-                dx4 = _scale4(g4, coef)
-            dx = None if dx4 is None else scatter_soa(dx4, hinges, x.shape[-2])
-            dps = []
-            for s in _PARAM_SLOTS[: len(params)]:
-                d = None if z[s] is None else w * z[s]
+            V = x.shape[-2]
+            n = len(params)
+            dx, dps, dgs = None, [[] for _ in range(n)], []
+            for sl in _chunks(hinges.shape[0]):
+                h = hinges[sl]
+                p = [_sl(t, sl) for t in _params(params)]
+                v4 = None if t_x is None else gather_soa(t_x, h)
+                theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
+                _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=True)
+                w = _chunk_weight(gE, seg, sl)
+                u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., h)
+                vec = _pvec(u, tuple(_sl(t, sl) for t in t_params))
+                z = contract_hessian(ph, vec)  # Hess_p(psi) vec
+                coef = None if z[THETA] is None else w * z[THETA]
+                tw = None if t_gE is None else _chunk_weight(t_gE, seg, sl)
                 if tw is not None:
-                    d = tw * pg[s] if d is None else d + tw * pg[s]
-                dps.append(d)
-            return dx, dps, _dot_p(pg, vec)
+                    t = tw * pg[THETA]
+                    coef = t if coef is None else coef + t
+                dx4 = None
+                if hv4 is not None:
+                    dx4 = _scale4(hv4, w * pg[THETA])  # psi' H_theta v
+                    if coef is not None:
+                        dx4 = _axpy4(coef, g4, dx4)
+                elif coef is not None:
+                    dx4 = _scale4(g4, coef)
+                if dx4 is not None:
+                    part = scatter_soa(dx4, h, V)
+                    dx = part if dx is None else dx + part
+                for i, slot in enumerate(_PARAM_SLOTS[:n]):
+                    d = None if z[slot] is None else w * z[slot]
+                    if tw is not None:
+                        d = tw * pg[slot] if d is None else d + tw * pg[slot]
+                    if d is not None and d.shape[-1] != theta.shape[-1]:
+                        d = d.expand_as(theta)
+                    dps[i].append(d)
+                dgs.append(_dot_p(pg, vec))
+            return dx, [_cat(d) for d in dps], _cat(dgs)
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
@@ -188,11 +227,13 @@ def _make(model: BendingModel):
 
         @staticmethod
         def forward(x, hinges, seg, seg_count, a, *params):
-            p = _params(params)
-            theta = geometry.hinge_angle_soa(gather_soa(x, hinges))  # (..., H)
-            _check_fold(model, theta)
-            psi, _, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
-            return _reduce(psi, seg, seg_count)
+            psis = []
+            for sl in _chunks(hinges.shape[0]):
+                p = [_sl(t, sl) for t in _params(params)]
+                theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
+                _check_fold(model, theta)
+                psis.append(psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)[0])
+            return _reduce(_cat(psis), seg, seg_count)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -311,8 +352,13 @@ def bending_hvp_raw(
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
-    v4 = gather_soa(v, hinges)
-    theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, hinges), v4)
-    f1, f2 = psi_theta_derivatives(model, theta, a, k, rest, c, prev)
-    out4 = _axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1))
-    return scatter_soa(out4, hinges, x.shape[-2])
+    out = None
+    for sl in _chunks(hinges.shape[0]):
+        h = hinges[sl]
+        v4 = gather_soa(v, h)
+        theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
+        f1, f2 = psi_theta_derivatives(model, theta, a[sl], _sl(k, sl) if k.ndim else k, _sl(rest, sl),
+                                       None if c is None else (_sl(c, sl) if c.ndim else c), _sl(prev, sl))
+        part = scatter_soa(_axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1)), h, x.shape[-2])
+        out = part if out is None else out + part
+    return out

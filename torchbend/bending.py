@@ -329,10 +329,11 @@ class BendingEnergy(nn.Module):
                 keep = pat.face_has_hinge.to(x.device)
                 values.index_add_(0, pat.face_pos.to(x.device)[keep].reshape(-1), Hf[keep].reshape(-1))
         else:
-            Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
-            if projection is not None:
-                Hb = _hs.project_blocks(Hb, projection, g, d2)
-            values.index_add_(0, hinge_pos.reshape(-1), Hb.reshape(-1))
+            for sl in _ag._chunks(self.hinge_count):  # chunks: the blocks of one chunk stay in cache
+                Hb, g = _hs.hinge_hessian_blocks(x4[sl], d1[sl], d2[sl])
+                if projection is not None:
+                    Hb = _hs.project_blocks(Hb, projection, g, d2[sl])
+                values.index_add_(0, hinge_pos[sl].reshape(-1), Hb.reshape(-1))
         return pat.csr(values)
 
     def angles(self, x: Tensor) -> Tensor:

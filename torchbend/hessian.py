@@ -95,7 +95,16 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Te
     """Per-hinge energy Hessians ``(..., H, 12, 12)`` and angle gradients ``(..., H, 12)``.
 
     ``x4: (..., H, 4, 3)`` stencils, ``d1 = psi'``, ``d2 = psi''``: ``(..., H)``."""
-    return geometry.hinge_energy_hessian_soa(geometry.to_soa(x4), d1, d2)
+    from .autograd import _chunks
+
+    blocks, grads = [], []
+    for sl in _chunks(x4.shape[-3]):
+        Hb, g = geometry.hinge_energy_hessian_soa(geometry.to_soa(x4[..., sl, :, :]), d1[..., sl], d2[..., sl])
+        blocks.append(Hb)
+        grads.append(g)
+    if len(blocks) == 1:
+        return blocks[0], grads[0]
+    return torch.cat(blocks, -3), torch.cat(grads, -2)
 
 
 def _reduce_translation(Hb: Tensor) -> Tensor:
