@@ -152,9 +152,42 @@ def main(argv=None) -> None:
     p.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--no-jax", action="store_true")
+    p.add_argument("--json", help="also write the rows to this JSON file")
     a = p.parse_args(argv)
     print("machine:", machine())
-    run(a.sizes, a.dtypes, a.repeat, with_jax=not a.no_jax)
+    rows = run(a.sizes, a.dtypes, a.repeat, with_jax=not a.no_jax)
+    if a.json:
+        import json
+
+        with open(a.json, "w") as f:
+            json.dump([[m, op, d, h, v] for (m, op, d, h), v in rows.items()], f)
+
+
+def run_isolated(sizes, dtypes, repeat: int, with_jax: bool = True, log=print) -> dict:
+    """:func:`run` with every (size, dtype) in a fresh process, so that one method's memory
+    (allocator state, JAX buffers) does not slow the next size down."""
+    import json
+    import subprocess
+    import tempfile
+
+    rows = {}
+    for dt in dtypes:
+        for size in sizes:
+            with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as f:
+                path = f.name
+            cmd = [sys.executable, os.path.abspath(__file__), "--sizes", str(size), "--dtypes", dt,
+                   "--repeat", str(repeat), "--json", path] + ([] if with_jax else ["--no-jax"])
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                log(f"  {dt} {size}: failed: {proc.stderr[-500:]}")
+                continue
+            for line in proc.stdout.splitlines()[1:]:
+                log(line)
+            with open(path) as f:
+                for m, op, d, h, v in json.load(f):
+                    rows[(m, op, d, h)] = v
+            os.unlink(path)
+    return rows
 
 
 if __name__ == "__main__":

@@ -134,8 +134,8 @@ def main(argv=None) -> None:
     sizes = [1000, 10000, 100000] if a.quick else [1000, 10000, 100000, 1000000]
     dtypes = ["float64", "float32"]
     print("machine:", machine(), flush=True)
-    rows = bm_throughput.run(sizes, dtypes, repeat=3, with_jax=not a.no_jax,
-                             log=lambda s: print(s, flush=True))
+    rows = bm_throughput.run_isolated(sizes, dtypes, repeat=3, with_jax=not a.no_jax,
+                                      log=lambda s: print(s, flush=True))
     scal, fits = scaling_table(rows)
     for dt in dtypes:
         plot_throughput(rows, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
