@@ -26,6 +26,7 @@ from common import machine  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLOTS = os.path.join(ROOT, "benchmarks", "plots")
 METHODS = ["torchbend", "autograd", "torch.func", "jax"]
+COLORS = {"torchbend": "tab:blue", "autograd": "tab:orange", "torch.func": "tab:green", "jax": "tab:red"}
 
 
 def fit(ns, ts):
@@ -77,12 +78,13 @@ def plot_throughput(rows, dtype, path):
         for m in METHODS:
             pts = sorted((h, v) for (mm, o, d, h), v in rows.items() if mm == m and o == op and d == dtype)
             if pts:
-                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m)
+                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m, color=COLORS[m])
         ax.set_title(f"{op} ({dtype})")
         ax.set_xlabel("hinges")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("ns per hinge")
-    axes[0].legend(fontsize=8)
+    handles = [plt.Line2D([], [], color=COLORS[m], marker="o", label=m) for m in METHODS]
+    axes[-1].legend(handles=handles, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -160,8 +162,17 @@ def main(argv=None) -> None:
     p.add_argument("--out", default=os.path.join(ROOT, "BENCHMARKS.md"))
     p.add_argument("--raw", default=os.path.join(ROOT, "benchmarks", "results", "throughput_raw.json"),
                    help="where the measured throughput rows are saved")
+    p.add_argument("--replot", action="store_true", help="only redraw the throughput plots from --raw")
     a = p.parse_args(argv)
     os.makedirs(PLOTS, exist_ok=True)
+    if a.replot:
+        import json
+
+        with open(a.raw) as f:
+            rows = {(m, op, d, h): v for m, op, d, h, v in json.load(f)}
+        for dt in sorted({d for (_, _, d, _) in rows}):
+            plot_throughput(rows, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
+        return
     sizes = [1000, 10000, 100000] if a.quick else [1000, 10000, 100000, 1000000]
     dtypes = ["float64", "float32"]
     print("machine:", machine(), flush=True)
