@@ -106,6 +106,7 @@ class SolveInfo:
     residual_history: list = field(default_factory=list)
     regularized_steps: int = 0
     cg_iterations: int = 0
+    substeps: int = 1
 
 
 class ClothModel:
@@ -483,27 +484,53 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
 
 
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hessian: str = "exact",
-                        linear_solver: str = "direct", tol: float = 1e-6, max_iters: int = 30
-                        ) -> tuple[ClothState, SolveInfo]:
+                        linear_solver: str = "direct", tol: float = 1e-6, max_iters: int = 30,
+                        max_substep_depth: int = 3) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s]: Newton on the incremental potential.
 
     Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous term
-    uses the angles of ``state.x`` as ``theta_prev``.  On failure the input state is returned."""
+    uses the angles of ``state.x`` as ``theta_prev``.  A step whose Newton solve fails is retried as
+    two half steps (recursively, at most ``max_substep_depth`` halvings; ``info.substeps`` counts the
+    solves).  If that fails too, the input state is returned unchanged with ``info.converged = False``."""
     dt = float(dt)
     if not (dt > 0 and math.isfinite(dt)):
         raise ValueError(f"dt must be positive and finite [s], got {dt}")
     if not isinstance(state, ClothState):
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
-    x_n = _prepare_x(model, state.x, "state.x")
-    v_n = _prepare_x(model, state.v, "state.v")
+    _prepare_x(model, state.x, "state.x")
+    _prepare_x(model, state.v, "state.v")
     option, linear = HessianOption.parse(hessian), LinearSolver.parse(linear_solver)
+    new, info = _euler_solve(model, state, dt, option, linear, tol, int(max_iters))
+    if info.converged or max_substep_depth <= 0:
+        info.substeps = 1
+        return new, info
+    t0 = time.perf_counter()
+    mid, info1 = implicit_euler_step(model, state, dt / 2, hessian=hessian, linear_solver=linear_solver, tol=tol,
+                                     max_iters=max_iters, max_substep_depth=max_substep_depth - 1)
+    if not info1.converged:
+        info1.seconds += info.seconds
+        return state, info1
+    end, info2 = implicit_euler_step(model, mid, dt / 2, hessian=hessian, linear_solver=linear_solver, tol=tol,
+                                     max_iters=max_iters, max_substep_depth=max_substep_depth - 1)
+    info2.iterations += info1.iterations + info.iterations
+    info2.substeps = info1.substeps + info2.substeps
+    info2.seconds = info.seconds + (time.perf_counter() - t0)
+    info2.energy_history = info1.energy_history + info2.energy_history
+    if not info2.converged:
+        return state, info2
+    info2.message = f"converged in {info2.substeps} substeps"
+    return end, info2
+
+
+def _euler_solve(model, state, dt, option, linear, tol, max_iters):
+    x_n, v_n = state.x, state.v
     pinned = model.pinned[:, None]
     v_n = torch.where(pinned, torch.zeros_like(v_n), v_n)
     x_hat = x_n + dt * v_n
     bend_kw = {}
     if model.bending is not None and model.bending.damping is not None:
         bend_kw = {"theta_prev": model.bending.angles(x_n).detach(), "dt": dt}
-    x, info = _newton(model, x_hat.clone(), option=option, linear=linear, tol=tol, max_iters=int(max_iters),
+    x, info = _newton(model, x_hat.clone(), option=option, linear=linear, tol=tol, max_iters=max_iters,
                       inertia=(x_hat, dt), bend_kw=bend_kw)
     if not info.converged:
         return state, info
