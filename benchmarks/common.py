@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import os
 import platform
-import statistics
-import time
 
 import torch
+
+from torchbend.demo import median_time
+
+timeit = median_time  # one timing helper for the demo and the benchmarks
 
 
 def machine() -> str:
@@ -23,18 +25,6 @@ def machine() -> str:
         f"{cpu} | {os.cpu_count()} cores | torch {torch.__version__} | threads {torch.get_num_threads()} | "
         f"python {platform.python_version()}"
     )
-
-
-def timeit(fn, repeat: int = 3, warmup: int = 1) -> float:
-    """Median wall-clock seconds of ``fn()``."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def sheet_for_hinges(hinges: int) -> int:

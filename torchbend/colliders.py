@@ -39,6 +39,13 @@ def _positive(value, name: str) -> float:
     return v
 
 
+def _nonnegative(value, name: str) -> float:
+    v = float(value)
+    if not (v >= 0 and math.isfinite(v)):
+        raise ValueError(f"{name} must be >= 0 and finite, got {value!r}")
+    return v
+
+
 class _Collider:
     stiffness: float
     margin: float
@@ -94,8 +101,7 @@ class Sphere(_Collider):
         object.__setattr__(self, "center", _vec3(self.center, "Sphere.center"))
         object.__setattr__(self, "radius", _positive(self.radius, "Sphere.radius"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "Sphere.stiffness"))
-        if not (self.margin >= 0 and math.isfinite(self.margin)):
-            raise ValueError(f"Sphere.margin must be >= 0, got {self.margin}")
+        object.__setattr__(self, "margin", _nonnegative(self.margin, "Sphere.margin"))
 
     def _sd(self, x: Tensor):
         return _radial(x - x.new_tensor(self.center), self.radius)
@@ -118,8 +124,7 @@ class Plane(_Collider):
             raise ValueError("Plane.normal must be non-zero")
         object.__setattr__(self, "normal", tuple(v / norm for v in n))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "Plane.stiffness"))
-        if not (self.margin >= 0 and math.isfinite(self.margin)):
-            raise ValueError(f"Plane.margin must be >= 0, got {self.margin}")
+        object.__setattr__(self, "margin", _nonnegative(self.margin, "Plane.margin"))
 
     def _sd(self, x: Tensor):
         n = x.new_tensor(self.normal)
@@ -148,8 +153,7 @@ class Capsule(_Collider):
         object.__setattr__(self, "_axis", tuple((bi - ai) / length for ai, bi in zip(a, b)))
         object.__setattr__(self, "radius", _positive(self.radius, "Capsule.radius"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "Capsule.stiffness"))
-        if not (self.margin >= 0 and math.isfinite(self.margin)):
-            raise ValueError(f"Capsule.margin must be >= 0, got {self.margin}")
+        object.__setattr__(self, "margin", _nonnegative(self.margin, "Capsule.margin"))
 
     def transformed(self, a, b) -> "Capsule":
         """The same capsule with new end points (e.g. attached to a moving link)."""

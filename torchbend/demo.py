@@ -22,8 +22,10 @@ from .bending import BendingEnergy
 from .reference import plain_bending_energy
 
 
-def _time(fn, repeat: int) -> float:
-    fn()  # warm-up
+def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
+    """Median wall-clock seconds of ``fn()`` over ``repeat`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
@@ -82,14 +84,14 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
         "double_backward": _rel(tb_double_backward().double(), h_ref),
     }
     with torch.no_grad():
-        t_energy = _time(lambda: bend(x), repeat)
-        t_energy_ag = _time(lambda: plain(x), repeat)
+        t_energy = median_time(lambda: bend(x), repeat)
+        t_energy_ag = median_time(lambda: plain(x), repeat)
     timings = {
         "energy": (t_energy, t_energy_ag),
-        "gradient": (_time(lambda: bend.gradient(x), repeat), _time(ag_grad, repeat)),
-        "energy+backward": (_time(tb_grad_backward, repeat), _time(ag_grad, repeat)),
-        "hvp": (_time(lambda: bend.hvp(x, v), repeat), _time(ag_hvp, repeat)),
-        "double backward": (_time(tb_double_backward, repeat), _time(ag_hvp, repeat)),
+        "gradient": (median_time(lambda: bend.gradient(x), repeat), median_time(ag_grad, repeat)),
+        "energy+backward": (median_time(tb_grad_backward, repeat), median_time(ag_grad, repeat)),
+        "hvp": (median_time(lambda: bend.hvp(x, v), repeat), median_time(ag_hvp, repeat)),
+        "double backward": (median_time(tb_double_backward, repeat), median_time(ag_hvp, repeat)),
     }
     print(
         f"torchbend demo: {n}x{n} sheet, {bend.vertex_count} vertices, {H} hinges, model={model}, {dtype}\n"
