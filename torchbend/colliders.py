@@ -14,7 +14,7 @@ term ``-k d Hess s`` is negative semi-definite; PSD-projected Newton variants dr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -141,7 +141,6 @@ class Capsule(_Collider):
     radius: float = 0.1
     stiffness: float = 1e4
     margin: float = 0.0
-    _axis: tuple = field(default=(1.0, 0.0, 0.0), repr=False)
 
     def __post_init__(self):
         a, b = _vec3(self.a, "Capsule.a"), _vec3(self.b, "Capsule.b")
@@ -150,24 +149,49 @@ class Capsule(_Collider):
         length = math.dist(a, b)
         if length == 0:
             raise ValueError("Capsule.a and Capsule.b must differ (use a Sphere for a point)")
-        object.__setattr__(self, "_axis", tuple((bi - ai) / length for ai, bi in zip(a, b)))
         object.__setattr__(self, "radius", _positive(self.radius, "Capsule.radius"))
         object.__setattr__(self, "stiffness", _positive(self.stiffness, "Capsule.stiffness"))
         object.__setattr__(self, "margin", _nonnegative(self.margin, "Capsule.margin"))
 
     def transformed(self, a, b) -> "Capsule":
-        """The same capsule with new end points (e.g. attached to a moving link)."""
+        """The same capsule with new end points ``a``, ``b`` [m] (e.g. attached to a moving link).
+
+        Tensor end points are kept as tensors: the collider's energy and gradient are then
+        differentiable with respect to them (used to differentiate through contacts with robot links)."""
+        if isinstance(a, Tensor) or isinstance(b, Tensor):
+            return _TensorCapsule(a, b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
         return Capsule(a=a, b=b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
 
+    def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        return x.new_tensor(self.a), x.new_tensor(self.b)
+
     def _sd(self, x: Tensor):
-        a = x.new_tensor(self.a)
-        t_hat = x.new_tensor(self._axis)
-        length = math.dist(self.a, self.b)
-        tau = ((x - a) @ t_hat).clamp(0.0, length)
-        s, n, curv = _radial(x - (a + tau[:, None] * t_hat), self.radius)
-        interior = ((tau > 0) & (tau < length)).to(x.dtype)
-        # along the segment's interior the distance is constant in the axis direction
-        tt = t_hat[:, None] * t_hat[None, :]
-        r = (s + self.radius).clamp_min(torch.finfo(x.dtype).tiny)
-        curv = curv - interior[:, None, None] * tt / r[:, None, None]
-        return s, n, curv
+        a, b = self._ends(x)
+        return _capsule_sd(x, a, b, self.radius)
+
+
+class _TensorCapsule(Capsule):
+    """A :class:`Capsule` whose end points are tensors ``(3,)`` (possibly requiring grad)."""
+
+    def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float):
+        a, b = torch.as_tensor(a), torch.as_tensor(b)
+        super().__init__(a=a.detach().tolist(), b=b.detach().tolist(), radius=radius, stiffness=stiffness, margin=margin)
+        object.__setattr__(self, "ends", (a, b))
+
+    def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        a, b = self.ends
+        return a.to(dtype=x.dtype, device=x.device), b.to(dtype=x.dtype, device=x.device)
+
+
+def _capsule_sd(x: Tensor, a: Tensor, b: Tensor, radius: float):
+    """Signed distance of ``x (V, 3)`` to the capsule ``a -> b`` (tensors ``(3,)``): ``(s, n, Hess s)``."""
+    length = (b - a).norm()
+    t_hat = (b - a) / length
+    tau = torch.minimum(((x - a) @ t_hat).clamp_min(0.0), length)
+    s, n, curv = _radial(x - (a + tau[:, None] * t_hat), radius)
+    interior = ((tau > 0) & (tau < length)).to(x.dtype)
+    # along the segment's interior the distance is constant in the axis direction
+    tt = t_hat[:, None] * t_hat[None, :]
+    r = (s + radius).clamp_min(torch.finfo(x.dtype).tiny)
+    curv = curv - interior[:, None, None] * tt / r[:, None, None]
+    return s, n, curv

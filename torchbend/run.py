@@ -2,9 +2,12 @@
 
 Writes into the output directory (``--out``, default ``runs/<config name>``):
 ``frames/frame_XXXX.obj`` (meshio), ``snapshot.png`` (matplotlib) and ``stats.json`` (per step:
-Newton iterations, residual, energy per term, seconds).  Two scene kinds:
+Newton iterations, residual, energy per term, seconds).  Three scene kinds:
 
 * ``dynamic`` (e.g. ``cloth_sphere``): implicit Euler steps of a cloth falling onto colliders;
+* ``robot`` (e.g. ``robot_fold``): implicit Euler steps of a cloth held by a URDF robot following
+  joint keyframes (``robot`` section, see :func:`torchbend.robot.parse_config`); ``stats.json``
+  records the joints and the distance of the held vertices from their forward kinematics per step;
 * ``static`` (e.g. ``beams``): one static solve per listed thickness (cantilevers).
 
 Config keys (every section optional except ``mesh``): ``scene.kind``; ``mesh`` (``type: grid``,
@@ -14,7 +17,8 @@ Config keys (every section optional except ``mesh``): ``scene.kind``; ``mesh`` (
 ``stiffness`` [N m] or ``from_material: true``, ``damping``); ``membrane`` (``model``);
 ``colliders`` (list of ``{type: sphere|plane|capsule, ...}``); ``gravity``; ``solver`` (``dt``,
 ``steps``, ``hessian``, ``linear_solver``, ``tol``, ``max_iters``, ``load_steps`` for static
-scenes: gravity ramped in that many equal increments); ``output`` (``every``).
+scenes: gravity ramped in that many equal increments); ``output`` (``every``); ``robot`` (``urdf``,
+``pins``, ``capsules``, ``trajectory``).
 Unknown or invalid values raise ``ValueError`` naming the key.
 """
 from __future__ import annotations
@@ -36,7 +40,7 @@ from .solver import ClothModel, ClothState, implicit_euler_step, solve_static
 
 __all__ = ["load_config", "build_scene", "run_config", "main"]
 
-_SECTIONS = {"scene", "mesh", "material", "bending", "membrane", "colliders", "gravity", "solver", "output"}
+_SECTIONS = {"scene", "mesh", "material", "bending", "membrane", "colliders", "gravity", "solver", "output", "robot"}
 
 
 def load_config(path: str) -> dict:
@@ -91,7 +95,27 @@ def _collider(spec: dict, i: int):
 
 
 def build_scene(cfg: dict, *, thickness: float | None = None, resolution: tuple | None = None):
-    """``(model, x0, faces)`` of a config (``thickness``/``resolution`` override the mesh/material)."""
+    """``(model, x0, faces)`` of a config (``thickness``/``resolution`` override the mesh/material).
+
+    With a ``robot`` section the vertices it binds to links are pinned in the model."""
+    return _build(cfg, thickness, resolution)[:3]
+
+
+def build_robot_scene(cfg: dict, *, resolution: tuple | None = None):
+    """``(scene, x0, faces, keyframes)`` of a config with a ``robot`` section: a
+    :class:`~torchbend.robot.RobotScene` whose pins are bound at the first keyframe's joints."""
+    from .robot import LinkPins, RobotScene
+
+    if not cfg.get("robot"):
+        raise ValueError("config has no 'robot' section")
+    model, x0, faces, rc = _build(cfg, None, resolution)
+    pins = LinkPins(rc.robot, rc.vertices, rc.links, x0[rc.vertices], rc.keyframes[0][1])
+    scene = RobotScene(model, rc.robot, pins, rc.capsules)
+    # the cloth starts with the held vertices exactly at their forward kinematics
+    return scene, scene.place(x0, rc.keyframes[0][1]), faces, rc.keyframes
+
+
+def _build(cfg: dict, thickness, resolution):
     dtype = torch.float64
     mesh = cfg.get("mesh") or {}
     if mesh.get("type", "grid") != "grid":
@@ -148,11 +172,20 @@ def build_scene(cfg: dict, *, thickness: float | None = None, resolution: tuple 
             pinned[[0, nx - 1]] = True
         else:
             raise ValueError(f"config key 'mesh.pin' must be 'first_two_columns' or 'corners', got {pin!r}")
+    rc = None
+    if cfg.get("robot") is not None:
+        from .robot import parse_config
+
+        rc = parse_config(cfg["robot"], rest)
+        if pinned is None:
+            pinned = torch.zeros(len(rest), dtype=torch.bool)
+        pinned = pinned.clone()
+        pinned[rc.vertices] = True
     colliders = [_collider(c, i) for i, c in enumerate(cfg.get("colliders") or [])]
     gravity = cfg.get("gravity", [0.0, 0.0, -9.81])
     model = ClothModel(faces, rest, bending=bend, membrane=mem, density=density,
                        gravity=gravity, pinned=pinned, colliders=colliders)
-    return model, rest.clone(), faces
+    return model, rest.clone(), faces, rc
 
 
 def _write_obj(path: str, x: torch.Tensor, faces: torch.Tensor) -> None:
@@ -180,6 +213,9 @@ def _snapshot(path: str, meshes, colliders=()) -> None:
             u, v = np.mgrid[0 : 2 * np.pi : 30j, 0 : np.pi : 15j]
             ax.plot_wireframe(c.center[0] + c.radius * np.cos(u) * np.sin(v), c.center[1] + c.radius * np.sin(u) * np.sin(v),
                               c.center[2] + c.radius * np.cos(v), color="tab:red", linewidth=0.3)
+        if isinstance(c, Capsule):
+            seg = torch.tensor([c.a, c.b]).numpy()
+            ax.plot(seg[:, 0], seg[:, 1], seg[:, 2], color="tab:gray", linewidth=4, solid_capstyle="round")
     ax.set_box_aspect((1, 1, 1))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -198,22 +234,41 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
     linear = sol.get("linear_solver", "direct")
     every = _get(cfg.get("output") or {}, "every", "output", 1, kind=int, positive=True)
     stats = {"config": cfg, "kind": kind, "steps": []}
-    if kind == "dynamic":
-        model, x0, faces = build_scene(cfg, resolution=resolution)
+    if kind in ("dynamic", "robot"):
+        from .robot import trajectory
+
+        if kind == "robot":
+            scene, x0, faces, keyframes = build_robot_scene(cfg, resolution=resolution)
+            model = scene.model
+            stats["pin_error"] = []
+        else:
+            model, x0, faces = build_scene(cfg, resolution=resolution)
         dt = _get(sol, "dt", "solver", 1 / 60, positive=True)
         n_steps = steps if steps is not None else _get(sol, "steps", "solver", 60, kind=int, positive=True)
+        kw = dict(hessian=hessian, linear_solver=linear, tol=_get(sol, "tol", "solver", 1e-6),
+                  max_iters=_get(sol, "max_iters", "solver", 30, kind=int))
         state = ClothState(x0, torch.zeros_like(x0))
         _write_obj(os.path.join(out_dir, "frames", "frame_0000.obj"), state.x, faces)
+        colliders = model.colliders
         for i in tqdm(range(1, n_steps + 1), desc="steps", disable=not progress):
-            state, info = implicit_euler_step(model, state, dt, hessian=hessian, linear_solver=linear,
-                                              tol=_get(sol, "tol", "solver", 1e-6), max_iters=_get(sol, "max_iters", "solver", 30, kind=int))
-            stats["steps"].append(_info_dict(info, step=i))
+            if kind == "robot":
+                q = trajectory(keyframes, i * dt)
+                state, info = scene.step(state, q, dt, **kw)
+                colliders = scene.colliders(q)
+                err = float((state.x[scene.pins.vertices] - scene.pins.positions(q)).norm(dim=-1).max())
+                stats["pin_error"].append(err)
+                extra = {"q": q.tolist(), "pin_error": err}
+            else:
+                state, info = implicit_euler_step(model, state, dt, **kw)
+                extra = {}
+            stats["steps"].append(_info_dict(info, step=i, **extra))
             if i % every == 0 or i == n_steps:
                 _write_obj(os.path.join(out_dir, "frames", f"frame_{i:04d}.obj"), state.x, faces)
-        depth = max((float((c.depth(state.x) - c.margin).max()) for c in model.colliders), default=0.0)
+        free = ~model.pinned
+        depth = max((float((c.depth(state.x[free]) - c.margin).max()) for c in colliders), default=0.0)
         stats["max_penetration"] = depth
         stats["edge_length"] = float(_mean_edge(x0, faces))
-        _snapshot(os.path.join(out_dir, "snapshot.png"), [(state.x, faces)], model.colliders)
+        _snapshot(os.path.join(out_dir, "snapshot.png"), [(state.x, faces)], colliders)
     elif kind == "static":
         mat = cfg.get("material") or {}
         thicknesses = mat.get("thicknesses") or [mat.get("thickness", 1e-3)]
@@ -245,7 +300,7 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
             shown.append((x, faces))
         _snapshot(os.path.join(out_dir, "snapshot.png"), shown)
     else:
-        raise ValueError(f"config key 'scene.kind' must be 'dynamic' or 'static', got {kind!r}")
+        raise ValueError(f"config key 'scene.kind' must be 'dynamic', 'robot' or 'static', got {kind!r}")
     with open(os.path.join(out_dir, "stats.json"), "w") as f:
         json.dump(stats, f, indent=1, default=str)
     return stats
@@ -286,6 +341,8 @@ def main(argv=None) -> None:
     its = [s["iterations"] for s in stats["steps"]]
     print(f"{len(its)} solves, Newton iterations mean {sum(its) / max(len(its), 1):.1f} max {max(its, default=0)}, "
           f"all converged: {all(s['converged'] for s in stats['steps'])}, {time.perf_counter() - t0:.1f} s -> {out}")
+    if "pin_error" in stats:
+        print(f"robot-held vertices vs forward kinematics: max error {max(stats['pin_error'], default=0.0):.2e} m")
     if "max_penetration" in stats:
         print(f"max penetration {stats['max_penetration']:.2e} m (mean edge {stats['edge_length']:.3e} m)")
     for s in stats["steps"]:
