@@ -145,3 +145,34 @@ def test_ddp_two_processes_keep_parameters_identical(tiny, tmp_path):
     init = drape_net.DrapeNet(25, 16, 2).double()
     assert not torch.equal(p0, torch.cat([p.detach().reshape(-1) for p in init.parameters()]))
     assert json.load(open(os.path.join(out, "history.json")))["steps"] == 3
+
+
+def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
+    import robot_drape
+
+    cfg = {"cloth": {"resolution": 5}, "model": {"hidden": 16, "layers": 2},
+           "train": {"steps": 20, "batch": 4, "lr": 3e-3, "log_every": 5, "checkpoint_every": 10}}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = str(tmp_path / "run")
+    r = robot_drape.main(["--config", str(path), "--out", out, "--steps", "10", "--no-progress"])
+    r2 = robot_drape.main(["--config", str(path), "--out", out, "--resume", "--no-progress"])
+    assert r["start"] == 0 and r2["start"] == 10 and len(r2["losses"]) == 10
+    for name in ("checkpoint.pt", "drapes.png", "history.json"):
+        assert os.path.isfile(os.path.join(out, name))
+    # predictions hold the corners exactly at the finger tips; Newton from them converges
+    assert all(e["pin_error"] <= 1e-12 and e["converged"] for e in r2["eval"])
+    # the trained network lowers the potential on a fixed batch of unseen joint vectors
+    towel = robot_drape.HeldTowel(load_config(str(path), robot_drape.DEFAULTS))
+    untrained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
+    trained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
+    trained.load_state_dict(torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["model"])
+    q = towel.sample(8, torch.Generator().manual_seed(99)).requires_grad_()
+    energy = {k: float(sum(towel.physics.energies(towel.drape(n, q), None, None).values()).mean().detach())
+              for k, n in (("untrained", untrained), ("trained", trained))}
+    assert energy["trained"] < energy["untrained"]
+    # the prediction is a batch function of q, differentiable in q through the forward kinematics
+    x = towel.drape(trained, q)
+    assert x.shape == (8, 25, 3)
+    (gq,) = torch.autograd.grad(x[:, towel.pins.vertices].sum(), q)
+    assert float(gq[:, :4].abs().min()) > 0

@@ -66,19 +66,23 @@ class ClothPhysics:
     (torchbend hinge energy, analytic first and second derivatives), ``gravity``, ``sphere``
     (one-sided quadratic penalty, per-sample centre/radius) and ``ground`` (plane z = ground_z)."""
 
-    def __init__(self, cfg: dict, dtype=torch.float64, device="cpu"):
+    def __init__(self, cfg: dict, dtype=torch.float64, device="cpu", mesh=None):
+        """``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's square grid."""
         c = cfg["cloth"]
         terms = set(c["energies"])
         unknown = terms - ENERGY_TERMS
         if unknown:
             raise ValueError(f"config key 'cloth.energies' has unknown energy names {sorted(unknown)}; "
                              f"allowed: {sorted(ENERGY_TERMS)}")
-        n = int(c["resolution"])
-        if n < 3:
-            raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
-        size = check_positive(cfg, "cloth.size")
-        rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
-        rest = rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device)
+        if mesh is None:
+            n = int(c["resolution"])
+            if n < 3:
+                raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
+            size = check_positive(cfg, "cloth.size")
+            rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
+            rest = rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device)
+        else:
+            rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
         self.rest, self.faces, self.terms = rest, faces, terms
         self.bend = None
         if "bending" in terms:

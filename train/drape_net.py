@@ -38,11 +38,12 @@ DEFAULTS = {
 
 
 class DrapeNet(nn.Module):
-    """MLP: condition ``(cx, cy, r)`` -> vertex displacements ``(V, 3)`` added to the rest cloth."""
+    """MLP: condition (``inputs`` numbers, e.g. ``(cx, cy, r)``) -> vertex displacements ``(V, 3)``
+    added to a base cloth."""
 
-    def __init__(self, vertex_count: int, hidden: int, layers: int):
+    def __init__(self, vertex_count: int, hidden: int, layers: int, inputs: int = 3):
         super().__init__()
-        dims = [3] + [hidden] * layers
+        dims = [inputs] + [hidden] * layers
         mods = []
         for a, b in zip(dims[:-1], dims[1:]):
             mods += [nn.Linear(a, b), nn.Tanh()]
