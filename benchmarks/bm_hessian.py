@@ -2,6 +2,7 @@
 
     python benchmarks/bm_hessian.py                 # 1e3, 1e4, 1e5 hinges, float64
     python benchmarks/bm_hessian.py --sizes 1000 10000 --dtype float32
+    python benchmarks/bm_hessian.py --native        # also the fused C++ kernel (torchbend.native)
 
 Prints, per size: torchbend ``hinge_hessians`` vs ``torch.func.vmap(torch.func.hessian)`` of the
 plain per-hinge energy; sparse CSR assembly per hinge vs per triangle vs autodiff blocks + the same
@@ -35,7 +36,7 @@ def autodiff_blocks(bend, x):
     return H.reshape(-1, 12, 12)
 
 
-def run_size(hinges: int, dtype, repeat: int) -> None:
+def run_size(hinges: int, dtype, repeat: int, native: bool = False) -> None:
     n = sheet_for_hinges(hinges)
     rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=dtype)
     bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-3)
@@ -51,6 +52,14 @@ def run_size(hinges: int, dtype, repeat: int) -> None:
 
     t_tb = timeit(lambda: bend.hinge_hessians(x), repeat)
     t_func = timeit(lambda: autodiff_blocks(bend, x), repeat)
+    if native:
+        import torchbend.native as nat
+
+        nat.enable()
+        t_nat = timeit(lambda: bend.hinge_hessians(x), repeat)
+        err_nat = float((bend.hinge_hessians(x) - autodiff_blocks(bend, x)).norm() / autodiff_blocks(bend, x).norm())
+        t_nat_hinge = timeit(lambda: bend.hessian(x, assembly="hinge"), repeat)
+        nat.disable()
     t_hinge = timeit(lambda: bend.hessian(x, assembly="hinge"), repeat)
     t_tri = timeit(lambda: bend.hessian(x, assembly="triangle"), repeat)
     t_ad = timeit(lambda: autodiff_sparse(), repeat)
@@ -58,9 +67,16 @@ def run_size(hinges: int, dtype, repeat: int) -> None:
     print(f"\n{H} hinges ({n}x{n} sheet), {pat.nnz} nonzeros, {str(dtype).split('.')[-1]}")
     print(f"  per-hinge blocks   torchbend {t_tb * 1e3:9.2f} ms   torch.func {t_func * 1e3:9.2f} ms   "
           f"ratio {t_func / t_tb:6.1f}x   ({t_tb / H * 1e9:7.0f} ns/hinge, rel. diff {err:.1e})")
+    if native:
+        print(f"  per-hinge blocks   native    {t_nat * 1e3:9.2f} ms   torch.func {t_func * 1e3:9.2f} ms   "
+              f"ratio {t_func / t_nat:6.1f}x   ({t_nat / H * 1e9:7.0f} ns/hinge, rel. diff {err_nat:.1e}; "
+              f"{t_tb / t_nat:4.1f}x over eager)")
     print(f"  sparse assembly    per hinge {t_hinge * 1e3:9.2f} ms   per triangle {t_tri * 1e3:9.2f} ms   "
           f"autodiff+scatter {t_ad * 1e3:9.2f} ms   (hinge/triangle {t_hinge / t_tri:4.2f}x, "
           f"autodiff/triangle {t_ad / t_tri:5.1f}x)")
+    if native:
+        print(f"  sparse assembly    per hinge with native blocks {t_nat_hinge * 1e3:9.2f} ms "
+              f"({t_tri / t_nat_hinge:4.2f}x faster than the eager per-triangle path)")
     line = "  projections (blocks, incl. evaluation)"
     for p in ("clamp", "abs", "gauss_newton", "reduced"):
         t = timeit(lambda: bend.hinge_hessians(x, project=p), max(1, repeat // 2))
@@ -96,10 +112,11 @@ def main(argv=None) -> None:
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--no-drape", action="store_true")
+    p.add_argument("--native", action="store_true", help="also time the fused C++ kernel (built on first use)")
     a = p.parse_args(argv)
     print("machine:", machine())
     for h in a.sizes:
-        run_size(h, getattr(torch, a.dtype), a.repeat)
+        run_size(h, getattr(torch, a.dtype), a.repeat, a.native)
     if not a.no_drape:
         drape_report()
 

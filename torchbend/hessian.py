@@ -94,8 +94,14 @@ class Assembly(str, enum.Enum):
 def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor]:
     """Per-hinge energy Hessians ``(..., H, 12, 12)`` and angle gradients ``(..., H, 12)``.
 
-    ``x4: (..., H, 4, 3)`` stencils, ``d1 = psi'``, ``d2 = psi''``: ``(..., H)``."""
+    ``x4: (..., H, 4, 3)`` stencils, ``d1 = psi'``, ``d2 = psi''``: ``(..., H)``.  Uses the fused
+    C++ kernel of :mod:`torchbend.native` when it is enabled and applies."""
+    from . import native
     from .autograd import _chunks
+
+    fused = native.hinge_hessian_blocks(x4, d1, d2)
+    if fused is not None:
+        return fused
 
     blocks, grads = [], []
     for sl in _chunks(x4.shape[-3]):

@@ -1,0 +1,72 @@
+"""The optional fused C++ kernel (torchbend.native): same blocks as the closed form in eager PyTorch
+and as torch.func; falls back where it does not apply.  Skipped only where no C++ toolchain exists."""
+import pytest
+import torch
+
+import torchbend as tb
+import torchbend.native as native
+
+from .conftest import MODELS, rel
+from .test_hessian import _bend, _per_hinge_reference
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def kernel():
+    was = native.enabled()
+    if not native.enable():
+        native.disable()
+        pytest.skip(f"C++ kernel could not be built here: {native._state['failed']}")
+    yield
+    if not was:
+        native.disable()
+
+
+def _both(fn):
+    native.enable(build=False)
+    a = fn()
+    native.disable()
+    b = fn()
+    native.enable(build=False)
+    return a, b
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_native_blocks_match_eager_and_torch_func(kernel, sheet, model):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, model, damped=True)
+    kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, dtype=F64), "dt": 0.05}
+    fused, eager = _both(lambda: bend.hinge_hessians(x, **kw))
+    assert rel(fused, eager) <= 1e-15
+    assert rel(fused, _per_hinge_reference(bend, x, kw)) <= 1e-12
+    # everything built on the blocks follows: hinge assembly, projections
+    for project in (None, "clamp", "reduced"):
+        a, b = _both(lambda: bend.hessian(x, assembly="hinge", project=project).to_dense())
+        assert rel(a, b) <= 1e-14
+
+
+def test_native_float32_batched_and_degenerate(kernel):
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=1, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2)
+    gen = torch.Generator().manual_seed(0)
+    xb = rest + 0.02 * torch.randn((3,) + rest.shape, generator=gen, dtype=F64)
+    xb[1, faces[0, 1]] = xb[1, faces[0, 0]]  # a collapsed edge in one sample: finite, same policy
+    fused, eager = _both(lambda: bend.hinge_hessians(xb))
+    assert fused.shape == (3, bend.hinge_count, 12, 12)
+    assert bool(torch.isfinite(fused).all())
+    assert rel(fused, eager) <= 1e-15
+    b32 = tb.BendingEnergy(faces, rest.float(), model="tan", stiffness=1e-2)
+    f32, e32 = _both(lambda: b32.hinge_hessians(xb.float()))
+    assert f32.dtype == torch.float32 and rel(f32, e32) <= 1e-6
+    assert rel(f32.double(), eager) <= 1e-5
+
+
+def test_native_falls_back_when_a_graph_is_recorded(kernel, sheet):
+    rest, faces, x = sheet
+    bend = _bend(rest, faces, "tan")
+    xg = x.clone().requires_grad_()
+    Hb = bend.hinge_hessians(xg)  # differentiable: the eager path runs
+    assert Hb.requires_grad
+    (g,) = torch.autograd.grad(Hb.sum(), xg)
+    assert bool(torch.isfinite(g).all())
