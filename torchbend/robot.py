@@ -58,6 +58,19 @@ def _read_urdf(urdf: str) -> tuple[str, str]:
         return f.read(), path
 
 
+def _names(elements, kind: str, where: str) -> list:
+    """The ``name`` attributes of URDF elements (``ValueError`` for a missing or repeated one)."""
+    names: list = []
+    for i, el in enumerate(elements):
+        name = el.get("name")
+        if not name:
+            raise ValueError(f"malformed URDF ({where}): <{kind}> number {i} has no name")
+        if name in names:
+            raise ValueError(f"malformed URDF ({where}): {kind} {name!r} is declared twice")
+        names.append(name)
+    return names
+
+
 def _validate_urdf(text: str, where: str) -> None:
     """Structural checks with messages naming the bad element (pytorch-kinematics fails obscurely)."""
     try:
@@ -66,26 +79,12 @@ def _validate_urdf(text: str, where: str) -> None:
         raise ValueError(f"malformed URDF ({where}): XML syntax error: {e}") from None
     if root.tag != "robot":
         raise ValueError(f"malformed URDF ({where}): the root element must be <robot>, got <{root.tag}>")
-    links = []
-    for i, link in enumerate(root.findall("link")):
-        name = link.get("name")
-        if not name:
-            raise ValueError(f"malformed URDF ({where}): <link> number {i} has no name")
-        if name in links:
-            raise ValueError(f"malformed URDF ({where}): link {name!r} is declared twice")
-        links.append(name)
+    links = _names(root.findall("link"), "link", where)
     joints = root.findall("joint")
     if not joints:
         raise ValueError(f"malformed URDF ({where}): no <joint> elements (a robot needs at least one)")
     children: dict[str, str] = {}
-    names = set()
-    for i, joint in enumerate(joints):
-        name = joint.get("name")
-        if not name:
-            raise ValueError(f"malformed URDF ({where}): <joint> number {i} has no name")
-        if name in names:
-            raise ValueError(f"malformed URDF ({where}): joint {name!r} is declared twice")
-        names.add(name)
+    for name, joint in zip(_names(joints, "joint", where), joints):
         jtype = joint.get("type")
         if jtype not in _JOINT_TYPES:
             raise ValueError(f"malformed URDF ({where}): joint {name!r} has type {jtype!r}; supported: "
