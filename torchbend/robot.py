@@ -360,12 +360,10 @@ class RobotScene:
             raise ValueError(f"solve_static takes one joint vector ({self.robot.joint_count},), got {tuple(q.shape)}")
         model = self.model_at(q)
         x0 = torch.as_tensor(x0)
-        n_pinned = int(self.model.pinned.sum())
         pin_pos = x0[self.model.pinned].to(x0.dtype)
         robot_pos = self.pins.positions(q).to(x0.dtype)
         index = self._slot.to(x0.device)[:, None].expand(-1, 3)
         pin_pos = pin_pos.scatter(0, index, robot_pos)  # differentiable in q
-        assert pin_pos.shape == (n_pinned, 3)
         ends = [t for c in model.colliders[len(self.model.colliders):] for t in c.ends]
         return solve_static_adjoint(model, x0, list(params) + ends, pin_positions=pin_pos, **solve_kw)
 

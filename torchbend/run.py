@@ -266,7 +266,7 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
                 _write_obj(os.path.join(out_dir, "frames", f"frame_{i:04d}.obj"), state.x, faces)
         free = ~model.pinned
         depth = max((float((c.depth(state.x[free]) - c.margin).max()) for c in colliders), default=0.0)
-        stats["max_penetration"] = depth
+        stats["max_penetration"] = max(depth, 0.0)  # [m] below a collider surface (0: none)
         stats["edge_length"] = float(_mean_edge(x0, faces))
         _snapshot(os.path.join(out_dir, "snapshot.png"), [(state.x, faces)], colliders)
     elif kind == "static":
