@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .colliders import Capsule
+from .colliders import Capsule, _TensorCapsule
 from .implicit import solve_static_adjoint
 from .solver import ClothModel, ClothState, SolveInfo, implicit_euler_step
 
@@ -296,8 +296,7 @@ class LinkCapsule:
         ends = self.endpoints(robot, q)
         if ends.ndim != 2:
             raise ValueError("LinkCapsule.collider takes one joint vector (J,), not a batch")
-        return Capsule(radius=self.radius, stiffness=self.stiffness, margin=self.margin,
-                       b=(1.0, 0.0, 0.0)).transformed(ends[0], ends[1])
+        return _TensorCapsule(ends[0], ends[1], radius=self.radius, stiffness=self.stiffness, margin=self.margin)
 
 
 class RobotScene:

@@ -249,12 +249,10 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
                   max_iters=_get(sol, "max_iters", "solver", 30, kind=int))
         state = ClothState(x0, torch.zeros_like(x0))
         _write_obj(os.path.join(out_dir, "frames", "frame_0000.obj"), state.x, faces)
-        colliders = model.colliders
         for i in tqdm(range(1, n_steps + 1), desc="steps", disable=not progress):
             if kind == "robot":
                 q = trajectory(keyframes, i * dt)
                 state, info = scene.step(state, q, dt, **kw)
-                colliders = scene.colliders(q)
                 err = float((state.x[scene.pins.vertices] - scene.pins.positions(q)).norm(dim=-1).max())
                 stats["pin_error"].append(err)
                 extra = {"q": q.tolist(), "pin_error": err}
@@ -264,6 +262,7 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
             stats["steps"].append(_info_dict(info, step=i, **extra))
             if i % every == 0 or i == n_steps:
                 _write_obj(os.path.join(out_dir, "frames", f"frame_{i:04d}.obj"), state.x, faces)
+        colliders = scene.colliders(trajectory(keyframes, n_steps * dt)) if kind == "robot" else model.colliders
         free = ~model.pinned
         depth = max((float((c.depth(state.x[free]) - c.margin).max()) for c in colliders), default=0.0)
         stats["max_penetration"] = max(depth, 0.0)  # [m] below a collider surface (0: none)
