@@ -70,3 +70,48 @@ def test_native_falls_back_when_a_graph_is_recorded(kernel, sheet):
     assert Hb.requires_grad
     (g,) = torch.autograd.grad(Hb.sum(), xg)
     assert bool(torch.isfinite(g).all())
+
+
+def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
+    """Per-sample damping angles go through the fused pass; NaN positions raise the usual ValueError."""
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=2, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="sin", stiffness=1e-2, damping=1e-3)
+    gen = torch.Generator().manual_seed(1)
+    xb = rest + 0.05 * torch.randn((2,) + rest.shape, generator=gen, dtype=F64)
+    prev = bend.angles(xb) + 0.05 * torch.randn((2, bend.hinge_count), generator=gen, dtype=F64)
+    fused, eager = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01))
+    assert fused.shape == (2, bend.hinge_count, 12, 12) and rel(fused, eager) <= 1e-15
+    for project in ("gauss_newton", "reduced"):
+        a, b = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, project=project))
+        assert rel(a, b) <= 1e-14
+    bad = xb.clone()
+    bad[1, 4, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"non-finite .* vertices \[4\]"):
+        bend.hinge_hessians(bad, theta_prev=prev, dt=0.01)
+
+
+def test_native_reused_output_buffers_never_alias_live_results(kernel):
+    """Large outputs come from a cache of freed buffers: a result still held is never handed out
+    again, and a dropped one is reused (no fresh page faults in Newton loops)."""
+    rest, faces = tb.scenes.random_curved_sheet(16, 16, amplitude=0.2, seed=0, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-3)
+    assert bend.hinge_count * 144 * 8 > 256 << 10  # large enough for the cache
+    gen = torch.Generator().manual_seed(0)
+    xs = [rest + 0.01 * torch.randn(rest.shape, generator=gen, dtype=F64) for _ in range(3)]
+    native.empty_cache()
+    held = [bend.hinge_hessians(x) for x in xs]  # all alive at once: three distinct buffers
+    assert len({h.data_ptr() for h in held}) == 3
+    native.disable()
+    ref = [bend.hinge_hessians(x) for x in xs]
+    native.enable(build=False)
+    for h, r in zip(held, ref):
+        assert rel(h, r) <= 1e-15
+    ptrs = {h.data_ptr() for h in held}
+    del h, held
+    cached = native.cached_bytes()
+    assert cached >= 3 * bend.hinge_count * 144 * 8
+    again = bend.hinge_hessians(xs[0])
+    assert again.data_ptr() in ptrs and native.cached_bytes() < cached  # a dropped buffer was reused
+    assert rel(again, ref[0]) <= 1e-15
+    native.empty_cache()
+    assert native.cached_bytes() == 0

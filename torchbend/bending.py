@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from . import autograd as _ag
 from . import hessian as _hs
+from . import native as _native
 from ._assemble import gather, scatter
 from .geometry import hinge_angle
 from .geometry import hinge_angle_and_gradient as geometry_angle_and_gradient
@@ -195,8 +196,8 @@ class BendingEnergy(nn.Module):
         return self.topology.vertex_count
 
     # ------------------------------------------------------------------ evaluation
-    def _args(self, x: Tensor, theta_prev, dt):
-        _check_positions(x, self.vertex_count, check_finite=self.check_finite)
+    def _args(self, x: Tensor, theta_prev, dt, check_finite: bool = True):
+        _check_positions(x, self.vertex_count, check_finite=self.check_finite and check_finite)
         if x.device != self.hinges.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
         dt_ = x.dtype
@@ -222,6 +223,22 @@ class BendingEnergy(nn.Module):
             prev = prev.to(dt_)
             c = self.damping.to(dt_) / dt
         return a, k, rest, c, prev
+
+    def _native_blocks(self, x: Tensor, theta_prev, dt):
+        """``(Hb, g, psi'')`` from the fused kernel of :mod:`torchbend.native`, or ``None`` when it
+        is off or does not apply.  The kernel reports non-finite positions; they raise as usual."""
+        if not (_native.enabled() and isinstance(x, Tensor)):
+            return None
+        a, k, rest, c, prev = self._args(x, theta_prev, dt, check_finite=False)
+        out = _native.bending_hessians(x, self.hinges, a, k, rest, c, prev, self.model)
+        if out is None:
+            if self.check_finite:
+                _check_positions(x, self.vertex_count)
+            return None
+        Hb, g, d2, finite = out
+        if self.check_finite and not finite:
+            _check_positions(x, self.vertex_count)  # raises, naming the vertices
+        return Hb, g, d2
 
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed).
@@ -283,10 +300,14 @@ class BendingEnergy(nn.Module):
         Closed form (paper eqs. 3, 5, 6): ``psi'' g g^T + psi' Hess(theta)``; optionally projected
         to PSD per block (``project``: ``"clamp" | "abs" | "gauss_newton" | "reduced"``)."""
         projection = _hs.HessianProjection.parse(project)
-        a, k, rest, c, prev = self._args(x, theta_prev, dt)
-        x4 = gather(x, self.hinges)
-        d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
-        Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
+        fused = self._native_blocks(x, theta_prev, dt)
+        if fused is not None:  # torchbend.native enabled: one C++ pass (same formulas)
+            Hb, g, d2 = fused
+        else:
+            a, k, rest, c, prev = self._args(x, theta_prev, dt)
+            x4 = gather(x, self.hinges)
+            d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
+            Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
         return Hb if projection is None else _hs.project_blocks(Hb, projection, g, d2)
 
     def hessian(
@@ -314,11 +335,19 @@ class BendingEnergy(nn.Module):
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
         pat = _hs.pattern_of(self.topology)
-        x4 = gather(x, self.hinges)
-        d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
         values = x.new_zeros(pat.nnz)
         hinge_pos = pat.hinge_pos.to(x.device)
-        if how is _hs.Assembly.TRIANGLE and projection in (None, _hs.HessianProjection.GAUSS_NEWTON):
+        per_triangle = how is _hs.Assembly.TRIANGLE and projection in (None, _hs.HessianProjection.GAUSS_NEWTON)
+        fused = None if per_triangle else self._native_blocks(x, theta_prev, dt)
+        if fused is not None:  # torchbend.native: all blocks in one C++ pass
+            Hb, g, d2 = fused
+            if projection is not None:
+                Hb = _hs.project_blocks(Hb, projection, g, d2)
+            values.index_add_(0, hinge_pos.reshape(-1), Hb.reshape(-1))
+            return pat.csr(values)
+        x4 = gather(x, self.hinges)
+        d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
+        if per_triangle:
             _, g4 = geometry_angle_and_gradient(x4)
             g = g4.flatten(-2)
             w = d2 if projection is None else d2.clamp_min(0)

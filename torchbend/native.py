@@ -29,7 +29,8 @@ import warnings
 import torch
 from torch import Tensor
 
-__all__ = ["enable", "disable", "enabled", "available", "hinge_hessian_blocks"]
+__all__ = ["enable", "disable", "enabled", "available", "applies", "hinge_hessian_blocks", "bending_hessians",
+           "empty_cache", "cached_bytes"]
 
 _SOURCE = r"""
 #include <torch/extension.h>
@@ -39,23 +40,59 @@ _SOURCE = r"""
 #include <algorithm>
 #include <cstdlib>
 #include <sys/mman.h>
-// Output blocks are large (1152 bytes per hinge in float64) and written once: a fresh glibc
-// allocation above its mmap threshold page-faults on every 4 KiB page.  Large outputs are
-// therefore allocated 2 MiB-aligned and advised as transparent huge pages (where the kernel
-// allows it, 'madvise' mode), which removes most of that cost.
+#include <mutex>
+#include <deque>
+#include <cstring>
+#include <cstdint>
+#ifdef __AVX__
+#include <immintrin.h>
+#endif
+// Output blocks are large (1152 bytes per hinge in float64) and written once.  A fresh allocation
+// page-faults on every page it touches (about 1 us per 4 KiB page on a virtual machine: more than
+// the kernel's arithmetic), so large outputs come from a small cache of buffers freed by earlier
+// outputs of the same size (as PyTorch's CUDA caching allocator does): a Newton loop that drops the
+// previous Hessian before asking for the next one reuses its memory.  At most kPoolMax bytes are
+// kept; empty_cache() releases them.  New buffers are 2 MiB aligned and advised as transparent
+// huge pages where the OS allows it ('madvise' mode).
+static std::mutex pool_mu;
+static std::deque<std::pair<size_t, void*>> pool;
+static size_t pool_bytes = 0;
+static const size_t kPoolMax = size_t(1) << 30;
+
+static void pool_release(void* p, size_t bytes) {
+  std::lock_guard<std::mutex> lock(pool_mu);
+  if (bytes > kPoolMax) { std::free(p); return; }
+  while (pool_bytes + bytes > kPoolMax && !pool.empty()) {
+    std::free(pool.front().second); pool_bytes -= pool.front().first; pool.pop_front();
+  }
+  pool.emplace_back(bytes, p); pool_bytes += bytes;
+}
+
+void empty_cache() {
+  std::lock_guard<std::mutex> lock(pool_mu);
+  for (auto& e : pool) std::free(e.second);
+  pool.clear(); pool_bytes = 0;
+}
+
+int64_t cached_bytes() { std::lock_guard<std::mutex> lock(pool_mu); return int64_t(pool_bytes); }
+
 static torch::Tensor big_empty(std::vector<int64_t> sizes, const torch::TensorOptions& opt) {
   int64_t n = 1;
   for (auto s : sizes) n *= s;
   size_t bytes = size_t(n) * opt.dtype().itemsize();
+  if (bytes < (size_t(256) << 10)) return torch::empty(sizes, opt);
   const size_t huge = size_t(2) << 20;
-  if (bytes < 4 * huge) return torch::empty(sizes, opt);
   size_t rounded = (bytes + huge - 1) / huge * huge;
   void* p = nullptr;
-  if (posix_memalign(&p, huge, rounded) != 0) return torch::empty(sizes, opt);
-#ifdef MADV_HUGEPAGE
-  madvise(p, rounded, MADV_HUGEPAGE);
-#endif
-  return torch::from_blob(p, sizes, [](void* q) { std::free(q); }, opt);
+  {
+    std::lock_guard<std::mutex> lock(pool_mu);
+    for (auto it = pool.rbegin(); it != pool.rend(); ++it)
+      if (it->first == rounded) { p = it->second; pool_bytes -= rounded; pool.erase(std::next(it).base()); break; }
+  }
+  if (p == nullptr) {
+    if (posix_memalign(&p, huge, rounded) != 0) return torch::empty(sizes, opt);
+  }
+  return torch::from_blob(p, sizes, [rounded](void* q) { pool_release(q, rounded); }, opt);
 }
 
 template <typename T> static inline void cross(const T* u, const T* v, T* o) {
@@ -63,74 +100,211 @@ template <typename T> static inline void cross(const T* u, const T* v, T* o) {
 }
 template <typename T> static inline T dot(const T* u, const T* v) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
 
-// one half-hinge (a, b, c) = (x0, x1, wing): rho (3), unit normal n, mh[k] = m_k / h_k, mcs = m_c / |e|^2
+// Hinges are processed in tiles of W, every quantity stored as [component][lane] so that the
+// compiler vectorizes each formula across the hinges of a tile (about 2x over one hinge at a time).
+constexpr int W = 8;
+#define LANES _Pragma("omp simd") for (int l = 0; l < W; ++l)
+
+// one half-hinge (a, b, c) = (x0, x1, wing) of W hinges: rho_k, unit normal n, mh[k] = m_k / h_k,
+// mc = m_c / (h_c |e|^2); degenerate (collinear) triangles give zeros (torchbend.geometry's policy)
+template <typename T> struct Half { T rho[3][W], n[3][W], mh[3][3][W], mc[3][W]; };
+
 template <typename T>
-static inline void half(const T* a, const T* b, const T* c, const T* e, T* rho, T* n, T mh[3][3], T* mcs) {
-  T u[3] = {c[0] - a[0], c[1] - a[1], c[2] - a[2]};
-  T w[3] = {c[0] - b[0], c[1] - b[1], c[2] - b[2]};
-  T N[3]; cross(e, u, N);
-  T ee = dot(e, e), uu = dot(u, u), ww = dot(w, w);
-  T area2 = std::sqrt(dot(N, N)), elen = std::sqrt(ee);
-  bool valid = area2 > std::numeric_limits<T>::epsilon() * std::max(std::max(ee, uu), ww);
-  T ia = valid ? T(1) / area2 : T(0), ie = valid ? T(1) / elen : T(0);
-  T s = ie * ia;
-  rho[0] = -dot(e, w) * s; rho[1] = dot(e, u) * s; rho[2] = -elen * ia;
-  for (int p = 0; p < 3; ++p) n[p] = N[p] * ia;
-  T t[3];
-  cross(w, n, t); for (int p = 0; p < 3; ++p) mh[0][p] = t[p] * ia;
-  cross(n, u, t); for (int p = 0; p < 3; ++p) mh[1][p] = t[p] * ia;
-  cross(e, n, t); for (int p = 0; p < 3; ++p) { mh[2][p] = t[p] * ia; mcs[p] = t[p] * ie * ie * ie; }
+static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], Half<T>& o) {
+  const T eps = std::numeric_limits<T>::epsilon();
+  LANES {
+    T e0 = E[0][l], e1 = E[1][l], e2 = E[2][l];
+    T u0 = C[0][l] - A[0][l], u1 = C[1][l] - A[1][l], u2 = C[2][l] - A[2][l];
+    T w0 = C[0][l] - Bv[0][l], w1 = C[1][l] - Bv[1][l], w2 = C[2][l] - Bv[2][l];
+    T N0 = e1 * u2 - e2 * u1, N1 = e2 * u0 - e0 * u2, N2 = e0 * u1 - e1 * u0;
+    T ee = e0 * e0 + e1 * e1 + e2 * e2, uu = u0 * u0 + u1 * u1 + u2 * u2, ww = w0 * w0 + w1 * w1 + w2 * w2;
+    T area2 = std::sqrt(N0 * N0 + N1 * N1 + N2 * N2), elen = std::sqrt(ee);
+    bool valid = area2 > eps * std::max(std::max(ee, uu), ww);
+    T ia = (valid ? T(1) : T(0)) / (valid ? area2 : T(1));
+    T ie = (valid ? T(1) : T(0)) / (valid ? elen : T(1));
+    T s = ie * ia;
+    o.rho[0][l] = -(e0 * w0 + e1 * w1 + e2 * w2) * s;
+    o.rho[1][l] = (e0 * u0 + e1 * u1 + e2 * u2) * s;
+    o.rho[2][l] = -elen * ia;
+    T n0 = N0 * ia, n1 = N1 * ia, n2 = N2 * ia;
+    o.n[0][l] = n0; o.n[1][l] = n1; o.n[2][l] = n2;
+    o.mh[0][0][l] = (w1 * n2 - w2 * n1) * ia; o.mh[0][1][l] = (w2 * n0 - w0 * n2) * ia; o.mh[0][2][l] = (w0 * n1 - w1 * n0) * ia;
+    o.mh[1][0][l] = (n1 * u2 - n2 * u1) * ia; o.mh[1][1][l] = (n2 * u0 - n0 * u2) * ia; o.mh[1][2][l] = (n0 * u1 - n1 * u0) * ia;
+    T t0 = e1 * n2 - e2 * n1, t1 = e2 * n0 - e0 * n2, t2 = e0 * n1 - e1 * n0, ie3 = ie * ie * ie;
+    o.mh[2][0][l] = t0 * ia; o.mh[2][1][l] = t1 * ia; o.mh[2][2][l] = t2 * ia;
+    o.mc[0][l] = t0 * ie3; o.mc[1][l] = t1 * ie3; o.mc[2][l] = t2 * ie3;
+  }
+}
+
+// Each block is written once and not read again here: streaming (non-temporal) stores skip the
+// read-for-ownership of every output cache line, which otherwise doubles the memory traffic of this
+// memory-bound kernel.  Callers issue a fence (sfence) after the loop.
+template <typename T> static inline void store_block(T* dst, const T* src) {
+#ifdef __AVX__
+  if ((reinterpret_cast<uintptr_t>(dst) & 31) == 0) {
+    constexpr int n = int(144 * sizeof(T) / 32);
+    for (int v = 0; v < n; ++v)
+      _mm256_stream_si256(reinterpret_cast<__m256i*>(dst) + v, _mm256_load_si256(reinterpret_cast<const __m256i*>(src) + v));
+    return;
+  }
+#endif
+  std::memcpy(dst, src, 144 * sizeof(T));
+}
+
+static inline void store_fence() {
+#ifdef __AVX__
+  _mm_sfence();
+#endif
+}
+
+// The 12x12 blocks of W hinges from their stencils X[3 * vertex + axis][lane] and psi' (d1), psi''
+// (d2); written for the first nl lanes to out[l] (144 values) and the angle gradients to gout[l].
+template <typename T>
+static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, int nl, T* const* out, T* const* gout) {
+  T E[3][W];
+  for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
+  Half<T> hA, hB;
+  half_tile(X, X + 3, X + 6, E, hA);
+  half_tile(X, X + 3, X + 9, E, hB);
+  // coefficients per stencil vertex: rho (times psi'), mh; vertex 3 is not in triangle A, 2 not in B
+  T RA[4][W], RB[4][W], MA[4][3][W], MB[4][3][W], G[12][W];
+  const int ia_[4] = {0, 1, 2, -1}, ib_[4] = {0, 1, -1, 2};
+  for (int i = 0; i < 4; ++i) {
+    int sa = ia_[i], sb = ib_[i];
+    LANES {
+      RA[i][l] = sa < 0 ? T(0) : d1[l] * hA.rho[sa][l];
+      RB[i][l] = sb < 0 ? T(0) : d1[l] * hB.rho[sb][l];
+    }
+    for (int p = 0; p < 3; ++p) LANES {
+      MA[i][p][l] = sa < 0 ? T(0) : hA.mh[sa][p][l];
+      MB[i][p][l] = sb < 0 ? T(0) : hB.mh[sb][p][l];
+      G[3 * i + p][l] = (sa < 0 ? T(0) : hA.rho[sa][l] * hA.n[p][l]) - (sb < 0 ? T(0) : hB.rho[sb][l] * hB.n[p][l]);
+    }
+  }
+  // H[(i,p),(j,q)] = psi' (rhoA_i mhA_j[p] nA_q + rhoA_j mhA_i[q] nA_p - (same for B)) + psi'' g g^T
+  // (upper triangle, r <= c, mirrored on output), plus the B terms on the (x0, x1) blocks
+  // [[-B, B], [B^T, -B]]
+  T O[144][W];
+  for (int r = 0; r < 12; ++r) {
+    int i = r / 3, p = r % 3;
+    for (int c = r; c < 12; ++c) {
+      int j = c / 3, q = c % 3;
+      LANES O[12 * r + c][l] = RA[i][l] * MA[j][p][l] * hA.n[q][l] + RA[j][l] * MA[i][q][l] * hA.n[p][l]
+                             - RB[i][l] * MB[j][p][l] * hB.n[q][l] - RB[j][l] * MB[i][q][l] * hB.n[p][l]
+                             + d2[l] * G[r][l] * G[c][l];
+    }
+  }
+  // B = psi' (nA mcA^T - nB mcB^T); symmetric only when both halves are valid, so it is applied as
+  // is (as torchbend.geometry does) rather than mirrored
+  T Bm[3][3][W];
+  for (int p = 0; p < 3; ++p)
+    for (int q = 0; q < 3; ++q) LANES Bm[p][q][l] = d1[l] * (hA.n[p][l] * hA.mc[q][l] - hB.n[p][l] * hB.mc[q][l]);
+  for (int l = 0; l < nl; ++l) {
+    alignas(64) T o[144];
+    for (int r = 0; r < 12; ++r) {
+      for (int c = 0; c < r; ++c) o[12 * r + c] = O[12 * c + r][l];
+      for (int c = r; c < 12; ++c) o[12 * r + c] = O[12 * r + c][l];
+    }
+    for (int p = 0; p < 3; ++p)
+      for (int q = 0; q < 3; ++q) {
+        T B = Bm[p][q][l];
+        o[12 * p + q] -= B;
+        o[12 * p + 3 + q] += B;
+        o[12 * (3 + q) + p] += B;
+        o[12 * (3 + p) + 3 + q] -= B;
+      }
+    store_block(out[l], o);
+    for (int k = 0; k < 12; ++k) gout[l][k] = G[k][l];
+  }
 }
 
 template <typename T>
 static void kernel(const T* x, const T* d1, const T* d2, T* out, T* gout, int64_t H) {
-  at::parallel_for(0, H, 256, [&](int64_t begin, int64_t end) {
-    for (int64_t h = begin; h < end; ++h) {
-      const T* s = x + 12 * h;
-      const T *x0 = s, *x1 = s + 3, *x2 = s + 6, *x3 = s + 9;
-      T e[3] = {x1[0] - x0[0], x1[1] - x0[1], x1[2] - x0[2]};
-      T rA[3], nA[3], mA[3][3], cA[3], rB[3], nB[3], mB[3][3], cB[3];
-      half(x0, x1, x2, e, rA, nA, mA, cA);
-      half(x0, x1, x3, e, rB, nB, mB, cB);
-      T a = d1[h], b = d2[h];
-      // per stencil vertex i: coefficient of n_A and n_B in the gradient, and m_s/h_s rows
-      T rhoA[4] = {rA[0], rA[1], rA[2], T(0)}, rhoB[4] = {rB[0], rB[1], T(0), rB[2]};
-      T g[12];
-      for (int i = 0; i < 4; ++i)
-        for (int p = 0; p < 3; ++p) g[3 * i + p] = rhoA[i] * nA[p] - rhoB[i] * nB[p];
-      const T zero3[3] = {T(0), T(0), T(0)};
-      const T* mhA[4] = {mA[0], mA[1], mA[2], zero3};
-      const T* mhB[4] = {mB[0], mB[1], zero3, mB[2]};
-      T* o = out + 144 * h;
-      // Y[(i,p),(j,q)] = d1 (rhoA_i mhA_j[p] nA_q - rhoB_i mhB_j[p] nB_q) + d2/2 g_(i,p) g_(j,q);  H = Y + Y^T
-      T Y[144];
-      for (int i = 0; i < 4; ++i) {
-        T ai = a * rhoA[i], bi = a * rhoB[i];
-        for (int p = 0; p < 3; ++p) {
-          T hg = T(0.5) * b * g[3 * i + p];
-          for (int j = 0; j < 4; ++j) {
-            T ca = ai * mhA[j][p], cb = bi * mhB[j][p];
-            T* row = Y + 12 * (3 * i + p) + 3 * j;
-            for (int q = 0; q < 3; ++q) row[q] = ca * nA[q] - cb * nB[q] + hg * g[3 * j + q];
-          }
-        }
+  int64_t tiles = (H + W - 1) / W;
+  at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
+    T X[12][W], a[W], b[W];
+    T* op[W]; T* gp[W];
+    for (int64_t t = begin; t < end; ++t) {
+      int64_t h0 = t * W;
+      int nl = int(std::min<int64_t>(W, H - h0));
+      for (int l = 0; l < W; ++l) {
+        bool live = l < nl;
+        for (int k = 0; k < 12; ++k) X[k][l] = live ? x[12 * (h0 + l) + k] : T(0);
+        a[l] = live ? d1[h0 + l] : T(0); b[l] = live ? d2[h0 + l] : T(0);
+        op[l] = out + 144 * (h0 + l); gp[l] = gout + 12 * (h0 + l);
       }
-      for (int r = 0; r < 12; ++r)
-        for (int c = 0; c < 12; ++c) o[12 * r + c] = Y[12 * r + c] + Y[12 * c + r];
-      // B terms on the (x0, x1) blocks: Bs = d1 (nA mcA^T - nB mcB^T);  [[-Bs, Bs], [Bs^T, -Bs]]
-      for (int p = 0; p < 3; ++p)
-        for (int q = 0; q < 3; ++q) {
-          T B = a * (nA[p] * cA[q] - nB[p] * cB[q]);
-          T Bt = a * (nA[q] * cA[p] - nB[q] * cB[p]);
-          o[12 * p + q] -= B;
-          o[12 * p + 3 + q] += B;
-          o[12 * (3 + p) + q] += Bt;
-          o[12 * (3 + p) + 3 + q] -= B;
-        }
-      for (int k = 0; k < 12; ++k) gout[12 * h + k] = g[k];
+      block_tile<T>(X, a, b, nl, op, gp);
     }
+    store_fence();
   });
+}
 
+// phi(theta) and its first two derivatives (torchbend.models.phi): 0 quadratic, 1 tan, 2 sin
+template <typename T> static inline void phi(int model, T t, T& f, T& f1, T& f2) {
+  if (model == 0) { f = t; f1 = T(1); f2 = T(0); }
+  else if (model == 1) { T u = std::tan(T(0.5) * t), s2 = T(1) + u * u; f = T(2) * u; f1 = s2; f2 = s2 * u; }
+  else { T sn = std::sin(T(0.5) * t), cs = std::cos(T(0.5) * t); f = T(2) * sn; f1 = cs; f2 = T(-0.5) * sn; }
+}
+template <typename T> static inline T phi0(int model, T t) {
+  if (model == 0) return t;
+  if (model == 1) return T(2) * std::tan(T(0.5) * t);
+  return T(2) * std::sin(T(0.5) * t);
+}
+
+// a per-hinge parameter given as a scalar (n == 1), one per hinge (n == H) or one per sample and hinge
+template <typename T> struct Param {
+  const T* p; int64_t n, H;
+  inline T operator()(int64_t b, int64_t h) const { return n == 1 ? p[0] : (n == H ? p[h] : p[b * H + h]); }
+};
+
+// Everything in one pass: gather the stencil from x, theta (SPEC formula, as torchbend.geometry),
+// psi' and psi'' (torchbend.models.psi_theta_derivatives), the block and the angle gradient.
+template <typename T>
+static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, Param<T> a, Param<T> k,
+                  Param<T> rest, Param<T> c, Param<T> prev, bool damped, int model, T* out, T* gout, T* d2out) {
+  int64_t tiles = (B * H + W - 1) / W;
+  at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
+    T X[12][W], D1[W], D2[W];
+    T* op[W]; T* gp[W];
+    for (int64_t t = begin; t < end; ++t) {
+      int64_t bh0 = t * W;
+      int nl = int(std::min<int64_t>(W, B * H - bh0));
+      for (int l = 0; l < W; ++l) {
+        if (l >= nl) {
+          for (int m = 0; m < 12; ++m) X[m][l] = T(0);
+          D1[l] = D2[l] = T(0);
+          continue;
+        }
+        int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
+        const T* xb = x + 3 * V * b;
+        const int64_t* st = hinges + 4 * h;
+        for (int v = 0; v < 4; ++v)
+          for (int m = 0; m < 3; ++m) X[3 * v + m][l] = xb[3 * st[v] + m];
+        // theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e
+        T e[3], u[3], w[3];
+        for (int m = 0; m < 3; ++m) {
+          e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
+        }
+        T NA[3], NB[3], NN[3];
+        cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
+        T elen = std::sqrt(dot(e, e));
+        T inv = elen > T(0) ? T(1) / elen : T(0);
+        T theta = std::atan2(dot(e, NN) * inv, dot(NA, NB));
+        T f, f1, f2;
+        phi(model, theta, f, f1, f2);
+        T kk = k(b, h);
+        T s = kk * (f - phi0(model, rest(b, h))), kc = kk;
+        if (damped) { T cc = c(b, h); s += cc * (f - phi0(model, prev(b, h))); kc += cc; }
+        T two_a = T(2) * a(b, h);
+        D1[l] = two_a * s * f1;
+        D2[l] = two_a * (kc * f1 * f1 + s * f2);
+        d2out[bh] = D2[l];
+        op[l] = out + 144 * bh; gp[l] = gout + 12 * bh;
+      }
+      block_tile<T>(X, D1, D2, nl, op, gp);
+    }
+    store_fence();
+  });
 }
 
 std::vector<torch::Tensor> hinge_hessians(torch::Tensor x4, torch::Tensor d1, torch::Tensor d2) {
@@ -146,6 +320,52 @@ std::vector<torch::Tensor> hinge_hessians(torch::Tensor x4, torch::Tensor d1, to
   });
   return {out, g};
 }
+
+template <typename T> static Param<T> param(const torch::Tensor& t, int64_t H) {
+  return Param<T>{t.data_ptr<T>(), t.numel(), H};
+}
+
+// Positions x (..., V, 3); per-hinge parameters given as scalars, (H,) or (..., H) like x's batch;
+// c and prev None without damping.  Returns (blocks (..., H, 12, 12), angle gradients (..., H, 12),
+// psi'' (..., H), whether every coordinate of x is finite).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, bool> bending_hessians(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model) {
+  TORCH_CHECK(x.device().is_cpu() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CPU (..., V, 3) tensor");
+  TORCH_CHECK(hinges.dim() == 2 && hinges.size(1) == 4 && hinges.scalar_type() == torch::kLong,
+              "hinges must be an int64 (H, 4) tensor");
+  x = x.contiguous();
+  hinges = hinges.contiguous();
+  std::vector<int64_t> batch(x.sizes().begin(), x.sizes().end() - 2);
+  int64_t V = x.size(-2), H = hinges.size(0), B = 1;
+  for (auto s : batch) B *= s;
+  bool damped = c_.has_value();
+  auto prep = [&](torch::Tensor t) {
+    t = t.to(x.scalar_type()).contiguous();
+    int64_t n = t.numel();
+    TORCH_CHECK(n == 1 || n == H || n == B * H, "a per-hinge parameter has ", n, " values; expected 1, H or B*H");
+    return t;
+  };
+  a = prep(a); k = prep(k); rest = prep(rest);
+  torch::Tensor c, prev;
+  if (damped) { c = prep(*c_); prev = prep(*prev_); }
+  std::vector<int64_t> sb = batch, sg = batch, sd = batch;
+  sb.insert(sb.end(), {H, 12, 12}); sg.insert(sg.end(), {H, 12}); sd.push_back(H);
+  auto out = big_empty(sb, x.options());
+  auto g = big_empty(sg, x.options());
+  auto d2 = torch::empty(sd, x.options());
+  bool finite = true;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "bending_hessians", [&] {
+    const scalar_t* xp = x.data_ptr<scalar_t>();
+    for (int64_t i = 0, n = x.numel(); i < n; ++i) finite = finite && std::isfinite(xp[i]);
+    Param<scalar_t> none{nullptr, 0, H};
+    fused<scalar_t>(xp, hinges.data_ptr<int64_t>(), B, V, H, param<scalar_t>(a, H),
+                    param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
+                    damped ? param<scalar_t>(prev, H) : none, damped, int(model), out.data_ptr<scalar_t>(),
+                    g.data_ptr<scalar_t>(), d2.data_ptr<scalar_t>());
+  });
+  return {out, g, d2, finite};
+}
 """
 
 _state = {"enabled": os.environ.get("TORCHBEND_NATIVE", "0") == "1", "module": None, "failed": None}
@@ -157,7 +377,7 @@ def _module():
             from torch.utils.cpp_extension import load_inline
 
             _state["module"] = load_inline(
-                name="torchbend_native_v2", cpp_sources=[_SOURCE], functions=["hinge_hessians"],
+                name="torchbend_native_v7", cpp_sources=[_SOURCE], functions=["hinge_hessians", "bending_hessians", "empty_cache", "cached_bytes"],
                 extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
         except Exception as e:  # no compiler, no ninja, ...
             _state["failed"] = f"{type(e).__name__}: {e}"
@@ -186,6 +406,17 @@ def available() -> bool:
     return _module() is not None
 
 
+def empty_cache() -> None:
+    """Free the output buffers the kernel keeps for reuse (at most 1 GiB; see the module docstring)."""
+    if _state["module"] is not None:
+        _state["module"].empty_cache()
+
+
+def cached_bytes() -> int:
+    """Bytes of freed output buffers currently kept for reuse."""
+    return 0 if _state["module"] is None else int(_state["module"].cached_bytes())
+
+
 def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor):
     """Fused ``(Hb (..., H, 12, 12), g (..., H, 12))``, or ``None`` where it does not apply
     (disabled, not built, non-CPU, other dtypes, or an autograd graph is being recorded)."""
@@ -201,3 +432,30 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor):
     d2 = d2.to(x4.dtype).expand(batch).contiguous().reshape(-1)
     Hb, g = mod.hinge_hessians(x4.detach().contiguous().reshape(-1, 4, 3), d1, d2)
     return Hb.reshape(batch + (12, 12)), g.reshape(batch + (12,))
+
+
+_MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
+
+
+def applies(x: Tensor, *params) -> bool:
+    """Whether the fused kernel would run for positions ``x`` and these per-hinge parameters."""
+    if not _state["enabled"] or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+        return False
+    if torch.is_grad_enabled() and (x.requires_grad or any(t is not None and t.requires_grad for t in params)):
+        return False
+    return _module() is not None
+
+
+def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model):
+    """Fused gather + angle + ``psi'``/``psi''`` + blocks for positions ``x: (..., V, 3)``:
+    ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H), x_is_finite)``, or ``None`` where the
+    kernel does not apply (see :func:`applies`; also a ``prev`` whose batch shape differs from x's).
+    Parameters: scalars or ``(H,)`` (``prev`` also ``(..., H)``); ``c``, ``prev`` ``None`` without
+    damping.  ``x`` is not checked for NaN/Inf beforehand: the caller raises if the flag is false."""
+    if not applies(x, a, k, rest, c, prev):
+        return None
+    if prev is not None and prev.ndim > 1 and tuple(prev.shape[:-1]) != tuple(x.shape[:-2]):
+        return None  # broadcasting batch shapes: the eager path handles them
+    return _state["module"].bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(),
+                                             None if c is None else c.detach(), None if prev is None else prev.detach(),
+                                             _MODEL_CODE[getattr(model, "value", model)])
