@@ -84,6 +84,10 @@ def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
     for project in ("gauss_newton", "reduced"):
         a, b = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, project=project))
         assert rel(a, b) <= 1e-14
+    v = torch.randn(xb.shape, generator=gen, dtype=F64)
+    for project in ("clamp", "gauss_newton"):
+        a, b = _both(lambda: bend.hvp(xb, v, theta_prev=prev, dt=0.01, project=project))
+        assert rel(a, b) <= 1e-14
     bad = xb.clone()
     bad[1, 4, 2] = float("nan")
     with pytest.raises(ValueError, match=r"non-finite .* vertices \[4\]"):

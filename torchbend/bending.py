@@ -279,8 +279,13 @@ class BendingEnergy(nn.Module):
         v = v.to(x.dtype)
         if projection is None:
             return _ag.bending_hvp_raw(x, v, self.hinges, a, k, rest, c, prev, model=self.model)
-        x4 = gather(x, self.hinges)
         v4 = gather(v, self.hinges).flatten(-2)  # (..., H, 12)
+        fused = None if projection is _hs.HessianProjection.GAUSS_NEWTON else self._native_blocks(x, theta_prev, dt)
+        if fused is not None:  # torchbend.native: blocks in one C++ pass
+            Hb, g, d2 = fused
+            out = (_hs.project_blocks(Hb, projection, g, d2) @ v4[..., None])[..., 0]
+            return scatter(out.unflatten(-1, (4, 3)), self.hinges, self.vertex_count)
+        x4 = gather(x, self.hinges)
         theta = hinge_angle(x4)
         d1, d2 = _hs.psi_theta_derivatives(self.model, theta, a, k, rest, c, prev)
         if projection is _hs.HessianProjection.GAUSS_NEWTON:

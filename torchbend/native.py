@@ -1,25 +1,31 @@
 r"""Optional fused CPU kernel for the per-hinge 12x12 bending Hessians (C++, built on first use).
 
 The eager-PyTorch path (:func:`torchbend.geometry.hinge_energy_hessian_soa`) is a chain of some
-hundred elementwise passes over per-hinge arrays; it is memory bound.  This module compiles the same
-closed form (the half-hinge factors of the tech report, sec. 6, and ``H = Y + Y^T`` with the B
-terms, see :mod:`torchbend.geometry`) into one loop over hinges that keeps every intermediate in
-registers and writes each 12x12 block once, parallel over hinges (``at::parallel_for``).
+hundred elementwise passes over per-hinge arrays; it is memory bound.  This module compiles the whole
+computation into one pass over hinges: gather the stencil from the positions, the bend angle (the
+SPEC's ``atan2`` formula), ``psi'`` and ``psi''`` of the three models with the optional viscous term
+(:func:`torchbend.models.psi_theta_derivatives`), and the closed-form block (the half-hinge factors of
+the tech report, sec. 6, and ``H = Y + Y^T`` with the B terms, see :mod:`torchbend.geometry`).
+Hinges are processed in tiles of 8 with every quantity stored per lane, so the compiler vectorizes
+the formulas across hinges; tiles run in parallel (``at::parallel_for``), blocks are written with
+streaming stores.
 
 It is opt-in because the first call compiles C++ (``torch.utils.cpp_extension.load_inline``; about
-a minute, cached afterwards in ``TORCH_EXTENSIONS_DIR``):
+half a minute, cached afterwards in ``TORCH_EXTENSIONS_DIR``):
 
     import torchbend.native
     torchbend.native.enable()          # or TORCHBEND_NATIVE=1 in the environment
 
-Once enabled, :meth:`BendingEnergy.hinge_hessians` (and everything built on the blocks: hinge
-assembly, projections, the solver's preconditioner) uses it for CPU float32/float64 inputs when no
-autograd graph is needed; otherwise, or if the build fails (a warning says why), the eager path
-runs.  Both give the same blocks to round-off (tests compare them).
+Once enabled, :meth:`BendingEnergy.hinge_hessians`, :meth:`BendingEnergy.hessian` (hinge assembly and
+the eigenvalue projections) and :meth:`BendingEnergy.hvp` with a projection use it for CPU
+float32/float64 inputs when no autograd graph is needed; otherwise, or if the build fails (a warning
+says why), the eager path runs.  Both give the same blocks to round-off (tests compare them).
 
-Large outputs are allocated as transparent huge pages (``madvise``): on the project's 2-core machine
-the kernel then takes ~160-180 ns per hinge (float64) instead of ~550 with 4 KiB page faults, but a
-call occasionally stalls (up to ~900 ns per hinge) while the OS compacts memory for huge pages.
+Memory: a block is 1152 bytes (float64) and a fresh allocation page-faults on every 4 KiB page it
+touches, which on a virtual machine costs more than the arithmetic.  Outputs of 256 KiB and more are
+therefore taken from a cache of buffers released by earlier outputs of the same size (as PyTorch's
+CUDA caching allocator does): a Newton loop that drops the previous Hessian before computing the next
+reuses its memory.  At most 1 GiB is kept; :func:`empty_cache` frees it, :func:`cached_bytes` reports it.
 """
 from __future__ import annotations
 
