@@ -340,6 +340,11 @@ class BendingEnergy(nn.Module):
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
         pat = _hs.pattern_of(self.topology)
+        if projection is None and _native.enabled():  # torchbend.native: either assembly in C++
+            values = _native.assemble(x, self.hinges, a, k, rest, c, prev, self.model, pat, self.topology,
+                                      how is _hs.Assembly.TRIANGLE)
+            if values is not None:
+                return pat.csr(values)
         values = x.new_zeros(pat.nnz)
         hinge_pos = pat.hinge_pos.to(x.device)
         per_triangle = how is _hs.Assembly.TRIANGLE and projection in (None, _hs.HessianProjection.GAUSS_NEWTON)

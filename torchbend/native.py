@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["enable", "disable", "enabled", "available", "applies", "hinge_hessian_blocks", "bending_hessians",
-           "empty_cache", "cached_bytes"]
+           "empty_cache", "cached_bytes", "assemble"]
 
 _SOURCE = r"""
 #include <torch/extension.h>
@@ -165,7 +165,7 @@ static inline void store_fence() {
 
 // The 12x12 blocks of W hinges from their stencils X[3 * vertex + axis][lane] and psi' (d1), psi''
 // (d2); written for the first nl lanes to out[l] (144 values) and the angle gradients to gout[l].
-template <typename T>
+template <typename T, bool stream = true>
 static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, int nl, T* const* out, T* const* gout) {
   T E[3][W];
   for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
@@ -219,7 +219,7 @@ static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, int nl,
         o[12 * (3 + q) + p] += B;
         o[12 * (3 + p) + 3 + q] -= B;
       }
-    store_block(out[l], o);
+    if (stream) store_block(out[l], o); else std::memcpy(out[l], o, sizeof(o));
     for (int k = 0; k < 12; ++k) gout[l][k] = G[k][l];
   }
 }
@@ -263,6 +263,34 @@ template <typename T> struct Param {
   inline T operator()(int64_t b, int64_t h) const { return n == 1 ? p[0] : (n == H ? p[h] : p[b * H + h]); }
 };
 
+// Stencil of one hinge into lane l of X; then psi' and psi'' of that lane at its bend angle
+// theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e (SPEC formula, as
+// torchbend.geometry; psi as torchbend.models.psi_theta_derivatives)
+template <typename T> static inline void load_hinge(const T* xb, const int64_t* st, T (*X)[W], int l) {
+  for (int v = 0; v < 4; ++v)
+    for (int m = 0; m < 3; ++m) X[3 * v + m][l] = xb[3 * st[v] + m];
+}
+
+template <typename T>
+static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, T rest, bool damped, T c, T prev, T& d1, T& d2) {
+  T e[3], u[3], w[3];
+  for (int m = 0; m < 3; ++m) {
+    e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
+  }
+  T NA[3], NB[3], NN[3];
+  cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
+  T elen = std::sqrt(dot(e, e));
+  T inv = elen > T(0) ? T(1) / elen : T(0);
+  T theta = std::atan2(dot(e, NN) * inv, dot(NA, NB));
+  T f, f1, f2;
+  phi(model, theta, f, f1, f2);
+  T s = k * (f - phi0(model, rest)), kc = k;
+  if (damped) { s += c * (f - phi0(model, prev)); kc += c; }
+  T two_a = T(2) * a;
+  d1 = two_a * s * f1;
+  d2 = two_a * (kc * f1 * f1 + s * f2);
+}
+
 // Everything in one pass: gather the stencil from x, theta (SPEC formula, as torchbend.geometry),
 // psi' and psi'' (torchbend.models.psi_theta_derivatives), the block and the angle gradient.
 template <typename T>
@@ -282,28 +310,9 @@ static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64
           continue;
         }
         int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
-        const T* xb = x + 3 * V * b;
-        const int64_t* st = hinges + 4 * h;
-        for (int v = 0; v < 4; ++v)
-          for (int m = 0; m < 3; ++m) X[3 * v + m][l] = xb[3 * st[v] + m];
-        // theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e
-        T e[3], u[3], w[3];
-        for (int m = 0; m < 3; ++m) {
-          e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
-        }
-        T NA[3], NB[3], NN[3];
-        cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
-        T elen = std::sqrt(dot(e, e));
-        T inv = elen > T(0) ? T(1) / elen : T(0);
-        T theta = std::atan2(dot(e, NN) * inv, dot(NA, NB));
-        T f, f1, f2;
-        phi(model, theta, f, f1, f2);
-        T kk = k(b, h);
-        T s = kk * (f - phi0(model, rest(b, h))), kc = kk;
-        if (damped) { T cc = c(b, h); s += cc * (f - phi0(model, prev(b, h))); kc += cc; }
-        T two_a = T(2) * a(b, h);
-        D1[l] = two_a * s * f1;
-        D2[l] = two_a * (kc * f1 * f1 + s * f2);
+        load_hinge(x + 3 * V * b, hinges + 4 * h, X, l);
+        T c0 = damped ? c(b, h) : T(0), p0 = damped ? prev(b, h) : T(0);
+        hinge_psi(X, l, model, a(b, h), k(b, h), rest(b, h), damped, c0, p0, D1[l], D2[l]);
         d2out[bh] = D2[l];
         op[l] = out + 144 * bh; gp[l] = gout + 12 * bh;
       }
@@ -372,6 +381,160 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, bool> bending_hessians(
   });
   return {out, g, d2, finite};
 }
+// ----------------------------------------------------------------------------------------------
+// Sparse assembly of the Hessian of one mesh into CSR values, both ways of torchbend.hessian:
+// per hinge (scatter of the 12x12 blocks) and per triangle (paper sec. 4.1-4.2: psi'' g g^T per
+// hinge, plus sum_h psi'_h Hess(theta_h) as one 9x9 block per triangle, eq. 7 with the conditional
+// transpose; formulas in torchbend.hessian's docstring).  Serial: the scatter targets overlap.
+
+// angle gradients of W hinges (G[3 * vertex + axis][lane])
+template <typename T> static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
+  T E[3][W];
+  for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
+  Half<T> hA, hB;
+  half_tile(X, X + 3, X + 6, E, hA);
+  half_tile(X, X + 3, X + 9, E, hB);
+  for (int p = 0; p < 3; ++p) LANES {
+    G[p][l] = hA.rho[0][l] * hA.n[p][l] - hB.rho[0][l] * hB.n[p][l];
+    G[3 + p][l] = hA.rho[1][l] * hA.n[p][l] - hB.rho[1][l] * hB.n[p][l];
+    G[6 + p][l] = hA.rho[2][l] * hA.n[p][l];
+    G[9 + p][l] = -hB.rho[2][l] * hB.n[p][l];
+  }
+}
+
+// 9x9 block (flat (3 i + p) * 9 + 3 j + q) of sum_h psi'_h Hess(theta_h) over the hinges of one
+// triangle p0 p1 p2; c[k] = psi' of the hinge on edge k (opposite p_k; 0 on the boundary), sg[k] > 0
+// where the triangle runs edge k in its global direction
+template <typename T> static inline void face_block(const T* P0, const T* P1, const T* P2, const T* c, const int64_t* sg, T* o) {
+  const T* P[3] = {P0, P1, P2};
+  T e[3][3];
+  for (int k = 0; k < 3; ++k)
+    for (int m = 0; m < 3; ++m) e[k][m] = P[(k + 2) % 3][m] - P[(k + 1) % 3][m];
+  T u[3] = {-e[1][0], -e[1][1], -e[1][2]}, N[3];
+  cross(e[2], u, N);
+  T ee[3] = {dot(e[0], e[0]), dot(e[1], e[1]), dot(e[2], e[2])};
+  T area2 = std::sqrt(dot(N, N));
+  bool valid = area2 > std::numeric_limits<T>::epsilon() * std::max(std::max(ee[0], ee[1]), ee[2]);
+  if (!valid) { for (int m = 0; m < 81; ++m) o[m] = T(0); return; }
+  T ia = T(1) / area2, n[3] = {N[0] * ia, N[1] * ia, N[2] * ia};
+  T elen[3], ie[3], en[3][3], mh[3][3];
+  for (int k = 0; k < 3; ++k) {
+    elen[k] = std::sqrt(ee[k]); ie[k] = T(1) / elen[k];
+    cross(e[k], n, en[k]);
+    for (int m = 0; m < 3; ++m) mh[k][m] = en[k][m] * ia;
+  }
+  T cs[3], d[3];
+  for (int k = 0; k < 3; ++k) cs[k] = -dot(e[(k + 1) % 3], e[(k + 2) % 3]) * ie[(k + 1) % 3] * ie[(k + 2) % 3];
+  for (int k = 0; k < 3; ++k)
+    d[k] = (c[(k + 1) % 3] * cs[(k + 2) % 3] + c[(k + 2) % 3] * cs[(k + 1) % 3] - c[k]) * (elen[k] * ia);
+  T R[3][3][3];  // R_k = c_k n (e_k x n)^T / |e_k|^3
+  for (int k = 0; k < 3; ++k) {
+    T s = c[k] * ie[k] * ie[k] * ie[k];
+    for (int p = 0; p < 3; ++p)
+      for (int q = 0; q < 3; ++q) R[k][p][q] = s * n[p] * en[k][q];
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      for (int p = 0; p < 3; ++p)
+        for (int q = 0; q < 3; ++q) {
+          T v = d[i] * mh[j][p] * n[q] + d[j] * n[p] * mh[i][q];
+          if (i == j) {
+            v -= R[(i + 1) % 3][p][q] + R[(i + 2) % 3][p][q];
+          } else if (j == (i + 1) % 3) {  // edge k = i + 2 runs p_i -> p_{i+1}: R, or R^T if reversed
+            int k = (i + 2) % 3;
+            v += sg[k] > 0 ? R[k][p][q] : R[k][q][p];
+          } else {  // j = i - 1: the transpose of block (j, i) of edge k = i + 1
+            int k = (i + 1) % 3;
+            v += sg[k] > 0 ? R[k][q][p] : R[k][p][q];
+          }
+          o[(3 * i + p) * 9 + 3 * j + q] = v;
+        }
+}
+
+template <typename T>
+static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
+                          Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hpos,
+                          const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fpos,
+                          int64_t F, bool per_triangle, T* values) {
+  std::vector<T> d1s(per_triangle ? H : 0);
+  alignas(64) T buf[W][144];
+  T gbuf[W][12];
+  T X[12][W], D1[W], D2[W], G[12][W];
+  T* op[W]; T* gp[W];
+  for (int l = 0; l < W; ++l) { op[l] = buf[l]; gp[l] = gbuf[l]; }
+  for (int64_t h0 = 0; h0 < H; h0 += W) {
+    int nl = int(std::min<int64_t>(W, H - h0));
+    for (int l = 0; l < W; ++l) {
+      if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); D1[l] = D2[l] = T(0); continue; }
+      int64_t h = h0 + l;
+      load_hinge(x, hinges + 4 * h, X, l);
+      hinge_psi(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
+                damped ? prev(0, h) : T(0), D1[l], D2[l]);
+    }
+    if (!per_triangle) {
+      block_tile<T, false>(X, D1, D2, nl, op, gp);
+      for (int l = 0; l < nl; ++l) {
+        const int64_t* pos = hpos + 144 * (h0 + l);
+        for (int m = 0; m < 144; ++m) values[pos[m]] += buf[l][m];
+      }
+    } else {
+      grad_tile(X, G);
+      for (int l = 0; l < nl; ++l) {
+        d1s[h0 + l] = D1[l];
+        const int64_t* pos = hpos + 144 * (h0 + l);
+        for (int r = 0; r < 12; ++r) {
+          T gr = D2[l] * G[r][l];
+          for (int cc = 0; cc < 12; ++cc) values[pos[12 * r + cc]] += gr * G[cc][l];
+        }
+      }
+    }
+  }
+  if (!per_triangle) return;
+  T blk[81];
+  for (int64_t f = 0; f < F; ++f) {
+    const int64_t* fh = feh + 3 * f;
+    if (fh[0] < 0 && fh[1] < 0 && fh[2] < 0) continue;
+    T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
+    const int64_t* fv = faces + 3 * f;
+    face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
+    const int64_t* pos = fpos + 81 * f;
+    for (int m = 0; m < 81; ++m) values[pos[m]] += blk[m];
+  }
+}
+
+// CSR values (nnz,) of the Hessian of one mesh x (V, 3); parameters as in bending_hessians
+torch::Tensor assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                       c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
+                       torch::Tensor hinge_pos, torch::Tensor faces, torch::Tensor face_edge_hinges,
+                       torch::Tensor face_edge_signs, torch::Tensor face_pos, int64_t nnz, bool per_triangle) {
+  TORCH_CHECK(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, "x must be a CPU (V, 3) tensor");
+  x = x.contiguous();
+  int64_t H = hinges.size(0), F = faces.size(0);
+  auto prep = [&](torch::Tensor t) {
+    t = t.to(x.scalar_type()).contiguous();
+    TORCH_CHECK(t.numel() == 1 || t.numel() == H, "a per-hinge parameter has ", t.numel(), " values; expected 1 or H");
+    return t;
+  };
+  auto idx = [](torch::Tensor t) { TORCH_CHECK(t.scalar_type() == torch::kLong, "index tensors must be int64"); return t.contiguous(); };
+  a = prep(a); k = prep(k); rest = prep(rest);
+  bool damped = c_.has_value();
+  torch::Tensor c, prev;
+  if (damped) { c = prep(*c_); prev = prep(*prev_); }
+  hinges = idx(hinges); hinge_pos = idx(hinge_pos); faces = idx(faces);
+  face_edge_hinges = idx(face_edge_hinges); face_edge_signs = idx(face_edge_signs); face_pos = idx(face_pos);
+  TORCH_CHECK(hinge_pos.numel() == 144 * H && face_pos.numel() == 81 * F, "pattern does not match the mesh");
+  auto values = torch::zeros({nnz}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
+    Param<scalar_t> none{nullptr, 0, H};
+    assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),
+                            param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
+                            damped ? param<scalar_t>(prev, H) : none, damped, int(model),
+                            hinge_pos.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
+                            face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
+                            face_pos.data_ptr<int64_t>(), F, per_triangle, values.data_ptr<scalar_t>());
+  });
+  return values;
+}
 """
 
 _state = {"enabled": os.environ.get("TORCHBEND_NATIVE", "0") == "1", "module": None, "failed": None}
@@ -383,7 +546,8 @@ def _module():
             from torch.utils.cpp_extension import load_inline
 
             _state["module"] = load_inline(
-                name="torchbend_native_v7", cpp_sources=[_SOURCE], functions=["hinge_hessians", "bending_hessians", "empty_cache", "cached_bytes"],
+                name="torchbend_native_v8", cpp_sources=[_SOURCE],
+                functions=["hinge_hessians", "bending_hessians", "assemble", "empty_cache", "cached_bytes"],
                 extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
         except Exception as e:  # no compiler, no ninja, ...
             _state["failed"] = f"{type(e).__name__}: {e}"
@@ -465,3 +629,14 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     return _state["module"].bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(),
                                              None if c is None else c.detach(), None if prev is None else prev.detach(),
                                              _MODEL_CODE[getattr(model, "value", model)])
+
+
+def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, topo, per_triangle: bool):
+    """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
+    hinge or per triangle in C++ (serial), or ``None`` where the kernel does not apply."""
+    if not applies(x, a, k, rest, c, prev) or x.ndim != 2 or (prev is not None and prev.ndim > 1):
+        return None
+    return _state["module"].assemble(
+        x.detach(), hinges, a.detach(), k.detach(), rest.detach(), None if c is None else c.detach(),
+        None if prev is None else prev.detach(), _MODEL_CODE[getattr(model, "value", model)], pattern.hinge_pos,
+        topo.faces, topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle)
