@@ -28,6 +28,11 @@ where ``R^dagger`` is ``R`` when the triangle traverses edge ``i+2`` in its glob
 transpose.  The rank-one term ``psi'' g g^T`` couples both triangles of a hinge and is added per
 hinge (sec. 4.2).
 
+With :mod:`torchbend.native` enabled, both assemblies (unprojected) run as one C++ pass each: the
+per-triangle one is then about 1.1x faster than the per-hinge one (both are bound by scattering
+~200 resp. 144 values per hinge into the CSR array, not by arithmetic; see
+``benchmarks/results/hessian_native_cpu_2core.txt``).
+
 Projections (:class:`HessianProjection`)
 ----------------------------------------
 ``clamp``/``abs`` replace the eigenvalues of each 12x12 hinge block by ``max(l, 0)``/``|l|``;
