@@ -303,13 +303,15 @@ static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64
     for (int64_t t = begin; t < end; ++t) {
       int64_t bh0 = t * W;
       int nl = int(std::min<int64_t>(W, B * H - bh0));
+      int64_t b = bh0 / H, h = bh0 - b * H - 1;  // sample and hinge of lane 0 (one division per tile)
       for (int l = 0; l < W; ++l) {
         if (l >= nl) {
           for (int m = 0; m < 12; ++m) X[m][l] = T(0);
           D1[l] = D2[l] = T(0);
           continue;
         }
-        int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
+        if (++h == H) { h = 0; ++b; }
+        int64_t bh = bh0 + l;
         load_hinge(x + 3 * V * b, hinges + 4 * h, X, l);
         T c0 = damped ? c(b, h) : T(0), p0 = damped ? prev(b, h) : T(0);
         hinge_psi(X, l, model, a(b, h), k(b, h), rest(b, h), damped, c0, p0, D1[l], D2[l]);
@@ -546,7 +548,7 @@ def _module():
             from torch.utils.cpp_extension import load_inline
 
             _state["module"] = load_inline(
-                name="torchbend_native_v8", cpp_sources=[_SOURCE],
+                name="torchbend_native_v9", cpp_sources=[_SOURCE],
                 functions=["hinge_hessians", "bending_hessians", "assemble", "empty_cache", "cached_bytes"],
                 extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
         except Exception as e:  # no compiler, no ninja, ...
