@@ -16,8 +16,9 @@ half a minute, cached afterwards in ``TORCH_EXTENSIONS_DIR``):
     import torchbend.native
     torchbend.native.enable()          # or TORCHBEND_NATIVE=1 in the environment
 
-Once enabled, :meth:`BendingEnergy.hinge_hessians`, :meth:`BendingEnergy.hessian` (hinge assembly and
-the eigenvalue projections) and :meth:`BendingEnergy.hvp` with a projection use it for CPU
+Once enabled, :meth:`BendingEnergy.hinge_hessians`, :meth:`BendingEnergy.hessian` (both assemblies,
+written straight into the CSR values by :func:`assemble`, and the eigenvalue projections) and
+:meth:`BendingEnergy.hvp` with a projection use it for CPU
 float32/float64 inputs when no autograd graph is needed; otherwise, or if the build fails (a warning
 says why), the eager path runs.  Both give the same blocks to round-off (tests compare them).
 
