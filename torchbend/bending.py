@@ -224,21 +224,17 @@ class BendingEnergy(nn.Module):
             c = self.damping.to(dt_) / dt
         return a, k, rest, c, prev
 
-    def _native_blocks(self, x: Tensor, theta_prev, dt):
-        """``(Hb, g, psi'')`` from the fused kernel of :mod:`torchbend.native`, or ``None`` when it
-        is off or does not apply.  The kernel reports non-finite positions; they raise as usual."""
-        if not (_native.enabled() and isinstance(x, Tensor)):
-            return None
-        a, k, rest, c, prev = self._args(x, theta_prev, dt, check_finite=False)
-        out = _native.bending_hessians(x, self.hinges, a, k, rest, c, prev, self.model)
-        if out is None:
-            if self.check_finite:
-                _check_positions(x, self.vertex_count)
-            return None
-        Hb, g, d2, finite = out
-        if self.check_finite and not finite:
-            _check_positions(x, self.vertex_count)  # raises, naming the vertices
-        return Hb, g, d2
+    def _native_blocks(self, x: Tensor, args: tuple, x_checked: bool):
+        """``(Hb, g, psi'')`` from the fused kernel of :mod:`torchbend.native` for ``args = _args(...)``,
+        or ``None`` when it is off or does not apply.  With ``x_checked=False`` the NaN/Inf check of
+        ``x`` is left to the kernel's flag (or done here before a fallback); it raises as usual."""
+        out = _native.bending_hessians(x, self.hinges, *args, self.model)
+        if out is None or not out[3]:
+            if self.check_finite and not x_checked:
+                _check_positions(x, self.vertex_count)  # raises, naming the vertices, if x is not finite
+            if out is None:
+                return None
+        return out[:3]
 
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed).
@@ -280,7 +276,8 @@ class BendingEnergy(nn.Module):
         if projection is None:
             return _ag.bending_hvp_raw(x, v, self.hinges, a, k, rest, c, prev, model=self.model)
         v4 = gather(v, self.hinges).flatten(-2)  # (..., H, 12)
-        fused = None if projection is _hs.HessianProjection.GAUSS_NEWTON else self._native_blocks(x, theta_prev, dt)
+        gn = projection is _hs.HessianProjection.GAUSS_NEWTON
+        fused = None if gn else self._native_blocks(x, (a, k, rest, c, prev), x_checked=True)
         if fused is not None:  # torchbend.native: blocks in one C++ pass
             Hb, g, d2 = fused
             out = (_hs.project_blocks(Hb, projection, g, d2) @ v4[..., None])[..., 0]
@@ -305,11 +302,13 @@ class BendingEnergy(nn.Module):
         Closed form (paper eqs. 3, 5, 6): ``psi'' g g^T + psi' Hess(theta)``; optionally projected
         to PSD per block (``project``: ``"clamp" | "abs" | "gauss_newton" | "reduced"``)."""
         projection = _hs.HessianProjection.parse(project)
-        fused = self._native_blocks(x, theta_prev, dt)
-        if fused is not None:  # torchbend.native enabled: one C++ pass (same formulas)
+        native = _native.enabled()  # the kernel checks x for NaN/Inf in its pass
+        args = self._args(x, theta_prev, dt, check_finite=not native)
+        fused = self._native_blocks(x, args, x_checked=False) if native else None
+        if fused is not None:  # one C++ pass (same formulas)
             Hb, g, d2 = fused
         else:
-            a, k, rest, c, prev = self._args(x, theta_prev, dt)
+            a, k, rest, c, prev = args
             x4 = gather(x, self.hinges)
             d1, d2 = _hs.psi_theta_derivatives(self.model, hinge_angle(x4), a, k, rest, c, prev)
             Hb, g = _hs.hinge_hessian_blocks(x4, d1, d2)
@@ -348,7 +347,7 @@ class BendingEnergy(nn.Module):
         values = x.new_zeros(pat.nnz)
         hinge_pos = pat.hinge_pos.to(x.device)
         per_triangle = how is _hs.Assembly.TRIANGLE and projection in (None, _hs.HessianProjection.GAUSS_NEWTON)
-        fused = None if per_triangle else self._native_blocks(x, theta_prev, dt)
+        fused = None if per_triangle else self._native_blocks(x, (a, k, rest, c, prev), x_checked=True)
         if fused is not None:  # torchbend.native: all blocks in one C++ pass
             Hb, g, d2 = fused
             if projection is not None:
