@@ -59,8 +59,7 @@ _SOURCE = r"""
 // the kernel's arithmetic), so large outputs come from a small cache of buffers freed by earlier
 // outputs of the same size (as PyTorch's CUDA caching allocator does): a Newton loop that drops the
 // previous Hessian before asking for the next one reuses its memory.  At most kPoolMax bytes are
-// kept; empty_cache() releases them.  New buffers are 2 MiB aligned and advised as transparent
-// huge pages where the OS allows it ('madvise' mode).
+// kept; empty_cache() releases them.  Sizes are rounded up to 2 MiB (the cache's size classes).
 static std::mutex pool_mu;
 static std::deque<std::pair<size_t, void*>> pool;
 static size_t pool_bytes = 0;
@@ -88,17 +87,15 @@ static torch::Tensor big_empty(std::vector<int64_t> sizes, const torch::TensorOp
   for (auto s : sizes) n *= s;
   size_t bytes = size_t(n) * opt.dtype().itemsize();
   if (bytes < (size_t(256) << 10)) return torch::empty(sizes, opt);
-  const size_t huge = size_t(2) << 20;
-  size_t rounded = (bytes + huge - 1) / huge * huge;
+  const size_t step = size_t(2) << 20;
+  size_t rounded = (bytes + step - 1) / step * step;
   void* p = nullptr;
   {
     std::lock_guard<std::mutex> lock(pool_mu);
     for (auto it = pool.rbegin(); it != pool.rend(); ++it)
       if (it->first == rounded) { p = it->second; pool_bytes -= rounded; pool.erase(std::next(it).base()); break; }
   }
-  if (p == nullptr) {
-    if (posix_memalign(&p, huge, rounded) != 0) return torch::empty(sizes, opt);
-  }
+  if (p == nullptr && posix_memalign(&p, 64, rounded) != 0) return torch::empty(sizes, opt);
   return torch::from_blob(p, sizes, [rounded](void* q) { pool_release(q, rounded); }, opt);
 }
 
@@ -108,7 +105,7 @@ template <typename T> static inline void cross(const T* u, const T* v, T* o) {
 template <typename T> static inline T dot(const T* u, const T* v) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
 
 // Hinges are processed in tiles of W, every quantity stored as [component][lane] so that the
-// compiler vectorizes each formula across the hinges of a tile (about 2x over one hinge at a time).
+// compiler vectorizes each formula across the hinges of a tile (about 1.5x over one hinge at a time).
 constexpr int W = 8;
 #define LANES _Pragma("omp simd") for (int l = 0; l < W; ++l)
 
@@ -164,15 +161,20 @@ static inline void store_fence() {
 #endif
 }
 
+// both half-hinges (triangles A = x0 x1 x2, B = x0 x1 x3) of W stencils X[3 * vertex + axis][lane]
+template <typename T> static inline void halves_tile(const T (*X)[W], Half<T>& hA, Half<T>& hB) {
+  T E[3][W];
+  for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
+  half_tile(X, X + 3, X + 6, E, hA);
+  half_tile(X, X + 3, X + 9, E, hB);
+}
+
 // The 12x12 blocks of W hinges from their stencils X[3 * vertex + axis][lane] and psi' (d1), psi''
 // (d2); written for the first nl lanes to out[l] (144 values) and the angle gradients to gout[l].
 template <typename T, bool stream = true>
 static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, int nl, T* const* out, T* const* gout) {
-  T E[3][W];
-  for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
   Half<T> hA, hB;
-  half_tile(X, X + 3, X + 6, E, hA);
-  half_tile(X, X + 3, X + 9, E, hB);
+  halves_tile(X, hA, hB);
   // coefficients per stencil vertex: rho (times psi'), mh; vertex 3 is not in triangle A, 2 not in B
   T RA[4][W], RB[4][W], MA[4][3][W], MB[4][3][W], G[12][W];
   const int ia_[4] = {0, 1, 2, -1}, ib_[4] = {0, 1, -1, 2};
@@ -392,11 +394,8 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, bool> bending_hessians(
 
 // angle gradients of W hinges (G[3 * vertex + axis][lane])
 template <typename T> static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
-  T E[3][W];
-  for (int p = 0; p < 3; ++p) LANES E[p][l] = X[3 + p][l] - X[p][l];
   Half<T> hA, hB;
-  half_tile(X, X + 3, X + 6, E, hA);
-  half_tile(X, X + 3, X + 9, E, hB);
+  halves_tile(X, hA, hB);
   for (int p = 0; p < 3; ++p) LANES {
     G[p][l] = hA.rho[0][l] * hA.n[p][l] - hB.rho[0][l] * hB.n[p][l];
     G[3 + p][l] = hA.rho[1][l] * hA.n[p][l] - hB.rho[1][l] * hB.n[p][l];
