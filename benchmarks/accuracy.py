@@ -24,7 +24,7 @@ except ImportError:  # pragma: no cover
 
 sys.path.insert(0, os.path.dirname(__file__))
 import torchbend as tb  # noqa: E402
-from torchbend.reference import plain_bending_energy  # noqa: E402
+from torchbend.testing import plain_bending_energy  # noqa: E402
 
 N = 12
 

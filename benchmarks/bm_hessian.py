@@ -21,8 +21,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 from common import machine, sheet_for_hinges, timeit  # noqa: E402
 
 import torchbend as tb  # noqa: E402
-from torchbend.hessian import pattern_of  # noqa: E402
-from torchbend.reference import plain_bending_energy  # noqa: E402
+from torchbend.energies.sparse import HessianPattern  # noqa: E402
+from torchbend.testing import plain_bending_energy  # noqa: E402
 
 
 def autodiff_blocks(bend, x):
@@ -43,7 +43,7 @@ def run_size(hinges: int, dtype, repeat: int, native: bool = False) -> None:
     gen = torch.Generator().manual_seed(0)
     x = rest + (0.2 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
     H = bend.hinge_count
-    pat = pattern_of(bend.topology)  # built once per topology (not timed below)
+    pat = HessianPattern(bend.topology)  # built once per topology (not timed below)
 
     def autodiff_sparse():
         Hb = autodiff_blocks(bend, x)

@@ -21,7 +21,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 from common import machine, timeit  # noqa: E402
 
 import torchbend as tb  # noqa: E402
-from torchbend.membrane import MembraneEnergy, deformation_gradient, eigensystem  # noqa: E402
+from torchbend import MembraneEnergy
+from torchbend.ops.membrane import deformation_gradient, eigensystem  # noqa: E402
 
 
 def numerical_f_projection(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:

@@ -20,8 +20,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 from common import machine, sheet_for_hinges, timeit  # noqa: E402
 
 import torchbend as tb  # noqa: E402
-from torchbend.hessian import pattern_of  # noqa: E402
-from torchbend.reference import plain_bending_energy  # noqa: E402
+from torchbend.energies.sparse import HessianPattern  # noqa: E402
+from torchbend.testing import plain_bending_energy  # noqa: E402
 
 OPS = ["energy", "gradient", "hvp", "hinge_hessians", "assembly"]
 
@@ -56,7 +56,7 @@ def _jax_methods(bend, x, v, dtype):
     grad = jax.jit(jax.grad(energy))
     hvp = jax.jit(lambda y, w: jax.jvp(jax.grad(energy), (y,), (w,))[1])
     blocks = jax.jit(lambda y: jax.vmap(jax.hessian(hinge_energy))(y[hinges], a, rest))
-    pat = pattern_of(bend.topology)
+    pat = HessianPattern(bend.topology)
     pos = jnp.asarray(pat.hinge_pos.numpy().reshape(-1)).block_until_ready()
     assemble = jax.jit(lambda y: jnp.zeros(pat.nnz, jd).at[pos].add(blocks(y).reshape(-1)))
     ejit = jax.jit(energy)
@@ -91,7 +91,7 @@ def methods(bend, x, v):
         return plain_bending_energy(y4, idx, a_h[None], k, r_h[None], "tan")
 
     func_blocks = torch.func.vmap(torch.func.hessian(hinge_e))
-    pat = pattern_of(bend.topology)
+    pat = HessianPattern(bend.topology)
 
     def func_assembly():
         Hb = func_blocks(x[hinges], a, rest).reshape(-1, 144)
@@ -130,7 +130,7 @@ def run(sizes, dtypes, repeat: int, with_jax: bool = True, log=print):
             x = rest + (0.1 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
             v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
             H = bend.hinge_count
-            pattern_of(bend.topology)
+            HessianPattern(bend.topology)
             ms = methods(bend, x, v)
             r = repeat if H <= 200_000 else 1
             for method in list(ms) + (["jax"] if with_jax else []):

@@ -6,7 +6,7 @@ import platform
 
 import torch
 
-from torchbend.demo import median_time
+from torchbend.testing import median_time
 
 timeit = median_time  # one timing helper for the demo and the benchmarks
 

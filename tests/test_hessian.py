@@ -4,8 +4,12 @@ import torch
 
 import torchbend as tb
 from torchbend import BendingEnergy
-from torchbend.hessian import HessianProjection, pattern_of, project_blocks, to_scipy
-from torchbend.reference import plain_bending_energy
+from torchbend import to_scipy
+from torchbend.energies.sparse import HessianPattern
+from torchbend.ops import hinge as geometry
+from torchbend.ops.projection import project_blocks
+from torchbend.options import Projection as HessianProjection
+from torchbend.testing import plain_bending_energy
 
 from .conftest import MODELS, rel
 
@@ -103,13 +107,15 @@ def test_assembly_paths_agree_and_match_dense_reference(mesh, model):
     assert rel(torch.as_tensor(S @ v.reshape(-1).numpy()), bend.hvp(x, v).reshape(-1)) <= 1e-13
 
 
-def test_pattern_is_cached_per_topology(sheet):
+def test_pattern_is_cached_per_module(sheet):
     rest, faces, x = sheet
     bend = _bend(rest, faces, "tan")
-    p1 = pattern_of(bend.topology)
     bend.hessian(x)
-    assert pattern_of(bend.topology) is p1
+    p1 = bend._pattern
+    bend.hessian(x)
+    assert bend._pattern is p1 and isinstance(p1, HessianPattern)
     assert p1.nnz == bend.hessian(x).values().numel()
+    assert p1.nnz == HessianPattern(bend.topology).nnz
 
 
 @pytest.mark.parametrize("project", PROJECTIONS)
@@ -152,11 +158,11 @@ def test_gauss_newton_is_the_clamped_rank_one_term(sheet):
     bend = _bend(rest, faces, "sin")
     P = bend.hinge_hessians(x, project="gauss_newton")
     x4 = x[bend.hinges]
-    _, g4 = tb.geometry.hinge_angle_and_gradient(x4)
+    _, g4 = geometry.hinge_angle_and_gradient(x4)
     g = g4.flatten(-2)
-    from torchbend.hessian import psi_theta_derivatives
+    from torchbend.ops.psi import psi_theta_derivatives
 
-    _, d2 = psi_theta_derivatives(bend.model, tb.geometry.hinge_angle(x4), bend.weights, bend.stiffness, bend.rest_angles)
+    _, d2 = psi_theta_derivatives(bend.model, geometry.hinge_angle(x4), bend.weights, bend.stiffness, bend.rest_angles)
     ref = d2.clamp_min(0)[:, None, None] * g[:, :, None] * g[:, None, :]
     assert rel(P, ref) <= 1e-14
 

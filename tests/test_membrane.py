@@ -5,7 +5,8 @@ import pytest
 import torch
 
 import torchbend as tb
-from torchbend.membrane import MembraneEnergy, deformation_gradient, eigensystem, MembraneModel
+from torchbend import MembraneEnergy, MembraneModel
+from torchbend.ops.membrane import deformation_gradient, eigensystem
 
 from .conftest import rel
 

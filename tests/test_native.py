@@ -1,10 +1,12 @@
-"""The optional fused C++ kernel (torchbend.native): same blocks as the closed form in eager PyTorch
-and as torch.func; falls back where it does not apply.  Skipped only where no C++ toolchain exists."""
+"""The compiled C++ kernels (torchbend.backends.native): same blocks as the closed form in eager
+PyTorch and as torch.func; the eager path runs where they do not apply.  Skipped only where no C++
+toolchain exists."""
 import pytest
 import torch
 
 import torchbend as tb
-import torchbend.native as native
+from torchbend.backends import native
+from torchbend.testing import plain_bending_energy
 
 from .conftest import MODELS, rel
 from .test_hessian import _bend, _meshes, _per_hinge_reference
@@ -14,21 +16,16 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def kernel():
-    was = native.enabled()
-    if not native.enable():
-        native.disable()
-        pytest.skip(f"C++ kernel could not be built here: {native._state['failed']}")
-    yield
-    if not was:
-        native.disable()
+    if native.load() is None:
+        pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
 
 
 def _both(fn):
-    native.enable(build=False)
-    a = fn()
-    native.disable()
-    b = fn()
-    native.enable(build=False)
+    """``fn()`` with ``backend="auto"`` meaning native, then meaning eager."""
+    with tb.use_backend("native"):
+        a = fn()
+    with tb.use_backend("eager"):
+        b = fn()
     return a, b
 
 
@@ -94,31 +91,16 @@ def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
         bend.hinge_hessians(bad, theta_prev=prev, dt=0.01)
 
 
-def test_native_reused_output_buffers_never_alias_live_results(kernel):
-    """Large outputs come from a cache of freed buffers: a result still held is never handed out
-    again, and a dropped one is reused (no fresh page faults in Newton loops)."""
-    rest, faces = tb.scenes.random_curved_sheet(16, 16, amplitude=0.2, seed=0, dtype=F64)
-    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-3)
-    assert bend.hinge_count * 144 * 8 > 256 << 10  # large enough for the cache
-    gen = torch.Generator().manual_seed(0)
-    xs = [rest + 0.01 * torch.randn(rest.shape, generator=gen, dtype=F64) for _ in range(3)]
-    native.empty_cache()
-    held = [bend.hinge_hessians(x) for x in xs]  # all alive at once: three distinct buffers
-    assert len({h.data_ptr() for h in held}) == 3
-    native.disable()
-    ref = [bend.hinge_hessians(x) for x in xs]
-    native.enable(build=False)
-    for h, r in zip(held, ref):
-        assert rel(h, r) <= 1e-15
-    ptrs = {h.data_ptr() for h in held}
-    del h, held
-    cached = native.cached_bytes()
-    assert cached >= 3 * bend.hinge_count * 144 * 8
-    again = bend.hinge_hessians(xs[0])
-    assert again.data_ptr() in ptrs and native.cached_bytes() < cached  # a dropped buffer was reused
-    assert rel(again, ref[0]) <= 1e-15
-    native.empty_cache()
-    assert native.cached_bytes() == 0
+def test_native_backend_option_per_module_and_call(kernel, sheet):
+    """backend="native" runs the kernel or says why it cannot; "eager" never runs it."""
+    rest, faces, x = sheet
+    bend = tb.BendingEnergy(faces, rest, model="tan", backend="native")
+    with pytest.raises(ValueError, match="autograd graph"):
+        bend.hinge_hessians(x.clone().requires_grad_())
+    assert rel(bend.hinge_hessians(x), bend.hinge_hessians(x, backend="eager")) <= 1e-15
+    assert bend(x).shape == ()  # no compiled energy yet: eager, whatever is asked
+    with pytest.raises(ValueError, match="unknown backend"):
+        tb.BendingEnergy(faces, rest, backend="cuda")
 
 
 @pytest.mark.parametrize("mesh", ["sheet", "icosphere", "cylinder", "permuted"])
@@ -138,6 +120,6 @@ def test_native_assembly_both_paths_match_eager(kernel, mesh, model):
     assert rel(Dt, Dh) <= 1e-13
     n = 3 * len(x)
     ref = torch.func.hessian(
-        lambda y: tb.reference.plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)
+        lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)
     )(x).reshape(n, n)
     assert rel(Dt, ref) <= 1e-13

@@ -24,7 +24,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from common import Timer, check_positive, load_checkpoint, load_config, save_checkpoint, seed_everything  # noqa: E402
 
 import torchbend as tb  # noqa: E402
-from torchbend.implicit import solve_static_adjoint  # noqa: E402
+from torchbend import solve_static_adjoint  # noqa: E402
 
 DEFAULTS = {
     "beam": {"nx": 21, "ny": 4, "length": 0.2, "width": 0.03, "young": 5e6, "poisson": 0.3, "thickness": 2e-3,

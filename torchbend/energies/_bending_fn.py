@@ -1,13 +1,13 @@
 """The bending energy as a twice analytically differentiable ``torch.autograd.Function``.
 
-Two private Functions per bending model (private; the public entry points are
-:class:`torchbend.BendingEnergy` and :func:`bending_energy`):
+Two private Functions per bending model (the public entry point is :class:`torchbend.BendingEnergy`;
+the unvalidated functional entries ``bending_*_raw`` below serve tests and benchmarks):
 
 * ``_Energy``: ``(x, hinges, a, k, rest[, c, prev]) -> E``, the energy per mesh ``(...,)`` (or per
   segment ``(..., S)`` for packed meshes).  Its ``backward`` applies ``_Gradient``.
 * ``_Gradient``: ``(gE, x, hinges, a, k, rest[, c, prev]) -> (gE dE/dx, gE dE/dk, gE dE/drest[, ...])``,
   the closed-form gradient (tech report eqs. 18-21).  Its ``backward`` is the closed-form
-  Hessian-vector product (paper eqs. 5-6 applied to a vector, :func:`torchbend.geometry.hinge_angle_gradient_hvp`),
+  Hessian-vector product (paper eqs. 5-6 applied to a vector, :func:`torchbend.ops.hinge.hinge_angle_gradient_hvp`),
   so ``torch.autograd.grad(E, x, create_graph=True)`` followed by a second ``grad`` runs the analytic
   HVP and never records an autograd graph of the gradient computation.
 
@@ -15,7 +15,7 @@ Both define ``jvp`` (forward mode) and use ``generate_vmap_rule``, so ``torch.fu
 ``jacrev``, ``jacfwd`` and ``hessian`` compose with them.  Every argument is a tensor except the
 segment count of packed meshes.
 
-Notation (per hinge): ``psi(p)`` with ``p = (theta, k, rest, c, prev)`` (:mod:`torchbend.models`);
+Notation (per hinge): ``psi(p)`` with ``p = (theta, k, rest, c, prev)`` (:mod:`torchbend.ops.psi`);
 ``g = d theta/d x4`` and ``H_theta`` its Hessian.  For a cotangent ``gE`` and an input direction
 ``(v, t_k, t_rest, ...)``::
 
@@ -29,37 +29,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from . import geometry
-from ._assemble import gather_soa, scatter_soa
-from .models import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
+from .._checks import is_traced
+from ..ops import hinge as geometry
+from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
+from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
+from .params import HingeParams
 
-__all__ = ["energy_function", "bending_energy_raw"]
+__all__ = ["energy_function", "gradient_function", "bending_energy_raw", "bending_gradient_raw", "bending_hvp_raw"]
 
 _PARAM_SLOTS = (1, 2, 3, 4)  # K, REST, C, PREV in models' slot numbering
-
-
-CHUNK = 1 << 16
-"""Hinges per pass of the per-hinge kernels.  The kernels are sequences of elementwise passes; in
-chunks of this size their intermediates stay in the CPU caches, which keeps the cost per hinge
-flat as meshes grow (a single pass over 10^6 hinges spills every intermediate to memory)."""
-
-
-def _chunks(H: int):
-    if H <= CHUNK:
-        yield slice(None)
-        return
-    for s in range(0, H, CHUNK):
-        yield slice(s, min(s + CHUNK, H))
-
-
-def _sl(t, sl):
-    return None if t is None else t[..., sl]
-
-
-def _cat(parts: list):
-    if any(p is None for p in parts):
-        return None
-    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
 
 
 def _chunk_weight(gE: Tensor, seg: Tensor | None, sl) -> Tensor:
@@ -84,14 +62,9 @@ def _dot4(a, b) -> Tensor:
     return out
 
 
-def _is_traced(t: Tensor) -> bool:
-    """True under torch.func transforms (checks that need data-dependent control flow are skipped)."""
-    return torch._C._functorch.is_functorch_wrapped_tensor(t)
-
-
 def _check_fold(model: BendingModel, theta: Tensor) -> None:
     """``tan`` energy is unbounded at |theta| = pi: a hinge folded flat onto itself is an error, not NaN/Inf."""
-    if model is not BendingModel.TAN or _is_traced(theta) or theta.numel() == 0:
+    if model is not BendingModel.TAN or is_traced(theta) or theta.numel() == 0:
         return
     limit = torch.tensor(torch.pi, dtype=theta.dtype)
     folded = theta.detach().abs() >= limit.to(theta.device)
@@ -140,9 +113,9 @@ def _make(model: BendingModel):
         def forward(gE, x, hinges, seg, a, *params):
             V = x.shape[-2]
             gx, gps = None, [[] for _ in params]
-            for sl in _chunks(hinges.shape[0]):
+            for sl in chunks(hinges.shape[0]):
                 h = hinges[sl]
-                p = [_sl(t, sl) for t in _params(params)]
+                p = [sliced(t, sl) for t in _params(params)]
                 theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h))
                 _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)
                 w = _chunk_weight(gE, seg, sl)  # (..., h) or (..., 1)
@@ -150,7 +123,7 @@ def _make(model: BendingModel):
                 gx = part if gx is None else gx + part
                 for i, slot in enumerate(_PARAM_SLOTS[: len(params)]):
                     gps[i].append(w * pg[slot])
-            return (gx,) + tuple(_cat(g) for g in gps)
+            return (gx,) + tuple(cat_or_none(g) for g in gps)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -168,15 +141,15 @@ def _make(model: BendingModel):
             V = x.shape[-2]
             n = len(params)
             dx, dps, dgs = None, [[] for _ in range(n)], []
-            for sl in _chunks(hinges.shape[0]):
+            for sl in chunks(hinges.shape[0]):
                 h = hinges[sl]
-                p = [_sl(t, sl) for t in _params(params)]
+                p = [sliced(t, sl) for t in _params(params)]
                 v4 = None if t_x is None else gather_soa(t_x, h)
                 theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
                 _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=True)
                 w = _chunk_weight(gE, seg, sl)
                 u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., h)
-                vec = _pvec(u, tuple(_sl(t, sl) for t in t_params))
+                vec = _pvec(u, tuple(sliced(t, sl) for t in t_params))
                 z = contract_hessian(ph, vec)  # Hess_p(psi) vec
                 coef = None if z[THETA] is None else w * z[THETA]
                 tw = None if t_gE is None else _chunk_weight(t_gE, seg, sl)
@@ -201,7 +174,7 @@ def _make(model: BendingModel):
                         d = d.expand_as(theta)
                     dps[i].append(d)
                 dgs.append(_dot_p(pg, vec))
-            return dx, [_cat(d) for d in dps], _cat(dgs)
+            return dx, [cat_or_none(d) for d in dps], cat_or_none(dgs)
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
@@ -228,12 +201,12 @@ def _make(model: BendingModel):
         @staticmethod
         def forward(x, hinges, seg, seg_count, a, *params):
             psis = []
-            for sl in _chunks(hinges.shape[0]):
-                p = [_sl(t, sl) for t in _params(params)]
+            for sl in chunks(hinges.shape[0]):
+                p = [sliced(t, sl) for t in _params(params)]
                 theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
                 _check_fold(model, theta)
                 psis.append(psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)[0])
-            return _reduce(_cat(psis), seg, seg_count)
+            return _reduce(cat_or_none(psis), seg, seg_count)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -290,11 +263,7 @@ def gradient_function(model: BendingModel) -> type[torch.autograd.Function]:
 
 def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> list:
     """Per-hinge scalars as ``(..., H)`` views (the Functions return gradients of that shape)."""
-    shape = x.shape[:-2] + a.shape
-    params = [k.expand(shape), rest.expand(shape)]
-    if c is not None:
-        params += [c.expand(shape), prev.expand(shape)]
-    return params
+    return HingeParams(a, k, rest, c, prev).expanded(x.shape[:-2])
 
 
 def bending_energy_raw(
@@ -353,12 +322,12 @@ def bending_hvp_raw(
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
     out = None
-    for sl in _chunks(hinges.shape[0]):
+    for sl in chunks(hinges.shape[0]):
         h = hinges[sl]
         v4 = gather_soa(v, h)
         theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
-        f1, f2 = psi_theta_derivatives(model, theta, a[sl], _sl(k, sl) if k.ndim else k, _sl(rest, sl),
-                                       None if c is None else (_sl(c, sl) if c.ndim else c), _sl(prev, sl))
+        f1, f2 = psi_theta_derivatives(model, theta, a[sl], sliced(k, sl), sliced(rest, sl), sliced(c, sl),
+                                       sliced(prev, sl))
         part = scatter_soa(_axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1)), h, x.shape[-2])
         out = part if out is None else out + part
     return out

@@ -16,29 +16,23 @@ stiffness and rest angles.
 """
 from __future__ import annotations
 
-import enum
-import math
-
 import torch
 from torch import Tensor
 
-__all__ = ["BendingModel", "phi", "stiffness_from_material"]
+from ..options import Option
+
+__all__ = ["BendingModel", "phi", "psi_derivatives", "psi_theta_derivatives", "contract_hessian",
+           "THETA", "K", "REST", "C", "PREV"]
 
 
-class BendingModel(str, enum.Enum):
+class BendingModel(Option):
     """The curvature measure ``phi(theta)`` (SPEC sec. 1)."""
+
+    __label__ = "bending model"
 
     QUADRATIC = "quadratic"  # phi = theta                (Discrete Shells, Grinspun et al. 2003)
     TAN = "tan"  # phi = 2 tan(theta/2)     (Tamstorf-Grinspun 2013 sec. 5; unbounded at +-pi)
     SIN = "sin"  # phi = 2 sin(theta/2)     (Bergou/Wardetzky-style)
-
-    @classmethod
-    def parse(cls, model) -> "BendingModel":
-        try:
-            return cls(model)
-        except ValueError:
-            names = ", ".join(repr(m.value) for m in cls)
-            raise ValueError(f"unknown bending model {model!r}; expected one of {names}") from None
 
 
 def phi(model: BendingModel, theta: Tensor, order: int = 2) -> tuple[Tensor, ...]:
@@ -57,70 +51,62 @@ def phi(model: BendingModel, theta: Tensor, order: int = 2) -> tuple[Tensor, ...
     return out[: order + 1]
 
 
-def stiffness_from_material(young: float, thickness: float, poisson: float = 0.3) -> float:
-    """Bending stiffness ``k = Y t^3 / (24 (1 - nu^2))`` [N m] (= D/2, tech report sec. 2).
-
-    Args:
-        young: Young's modulus ``Y`` [Pa] (> 0).
-        thickness: shell thickness ``t`` [m] (> 0).
-        poisson: Poisson ratio ``nu`` in (-1, 0.5].
-    """
-    if not (young > 0 and math.isfinite(young)):
-        raise ValueError(f"young must be positive and finite, got {young}")
-    if not (thickness > 0 and math.isfinite(thickness)):
-        raise ValueError(f"thickness must be positive and finite, got {thickness}")
-    if not (-1.0 < poisson <= 0.5):
-        raise ValueError(f"poisson must lie in (-1, 0.5], got {poisson}")
-    return young * thickness**3 / (24.0 * (1.0 - poisson**2))
-
-
 # parameter slots of psi
 THETA, K, REST, C, PREV = range(5)
 
 
-def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *, hessian: bool):
+def _phi_at_reference(model: BendingModel, t, derivatives: bool) -> tuple:
+    """``(phi, phi', phi'')`` at a reference angle; the derivatives (``None`` without ``derivatives``)
+    are needed only for the parameter derivatives."""
+    if derivatives:
+        return phi(model, t)
+    return phi(model, t, order=0)[0], None, None
+
+
+def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *, hessian: bool,
+                    params: bool = True):
     """Value, gradient and (optionally) Hessian of ``psi`` in ``p = (theta, k, rest, c, prev)``.
 
-    Returns ``(psi, grad, hess)``: ``grad`` a list of 5 tensors (``None`` for absent slots),
-    ``hess`` a dict ``{(i, j): tensor}`` of the nonzero entries with ``i <= j`` (or ``None``).
-    """
+    The one implementation of ``psi`` and its derivatives (every eager path uses it; the compiled
+    kernels transcribe it).  Returns ``(psi, grad, hess)``: ``grad`` a list of 5 tensors (``None``
+    for absent slots), ``hess`` a dict ``{(i, j): tensor}`` of the nonzero entries with ``i <= j``
+    (or ``None``).  With ``params=False`` only the ``theta`` entries are formed (``psi'``, ``psi''``:
+    what the position Hessians need)."""
     f, f1, f2 = phi(model, theta)
-    r, r1, r2 = phi(model, rest)
+    r, r1, r2 = _phi_at_reference(model, rest, params)
     d1 = f - r
     kd = k * d1
     psi = a * kd * d1
-    grad = [None] * 5
-    grad[K] = a * d1 * d1
-    grad[REST] = -2.0 * a * kd * r1
+    grad: list = [None] * 5
     damped = c is not None
+    s, kc = kd, k
     if damped:
-        p, p1, p2 = phi(model, prev)
+        p, p1, p2 = _phi_at_reference(model, prev, params)
         d2 = f - p
         cd = c * d2
         psi = psi + a * cd * d2
-        grad[C] = a * d2 * d2
-        grad[PREV] = -2.0 * a * cd * p1
-        s = kd + cd
-        kc = k + c
-    else:
-        s = kd
-        kc = k
-    grad[THETA] = 2.0 * a * s * f1
+        s, kc = kd + cd, k + c
+        if params:
+            grad[C] = a * d2 * d2
+            grad[PREV] = -2.0 * a * cd * p1
+    if params:
+        grad[K] = a * d1 * d1
+        grad[REST] = -2.0 * a * kd * r1
+    two_a = 2.0 * a
+    grad[THETA] = two_a * s * f1
     if not hessian:
         return psi, grad, None
-    two_a = 2.0 * a
-    hess = {
-        (THETA, THETA): two_a * (kc * f1 * f1 + s * f2),
-        (THETA, K): two_a * d1 * f1,
-        (THETA, REST): -two_a * k * f1 * r1,
-        (K, REST): -two_a * d1 * r1,
-        (REST, REST): two_a * k * (r1 * r1 - d1 * r2),
-    }
-    if damped:
-        hess[(THETA, C)] = two_a * d2 * f1
-        hess[(THETA, PREV)] = -two_a * c * f1 * p1
-        hess[(C, PREV)] = -two_a * d2 * p1
-        hess[(PREV, PREV)] = two_a * c * (p1 * p1 - d2 * p2)
+    hess = {(THETA, THETA): two_a * (kc * f1 * f1 + s * f2)}
+    if params:
+        hess[(THETA, K)] = two_a * d1 * f1
+        hess[(THETA, REST)] = -two_a * k * f1 * r1
+        hess[(K, REST)] = -two_a * d1 * r1
+        hess[(REST, REST)] = two_a * k * (r1 * r1 - d1 * r2)
+        if damped:
+            hess[(THETA, C)] = two_a * d2 * f1
+            hess[(THETA, PREV)] = -two_a * c * f1 * p1
+            hess[(C, PREV)] = -two_a * d2 * p1
+            hess[(PREV, PREV)] = two_a * c * (p1 * p1 - d2 * p2)
     return psi, grad, hess
 
 
@@ -140,12 +126,6 @@ def contract_hessian(hess: dict, vec: list) -> list:
 
 
 def psi_theta_derivatives(model: BendingModel, theta, a, k, rest, c=None, prev=None) -> tuple[Tensor, Tensor]:
-    """``(psi', psi'')`` in ``theta`` (shared by every Hessian path)."""
-    f, f1, f2 = phi(model, theta)
-    s = k * (f - phi(model, rest, order=0)[0])
-    kc = k
-    if c is not None:
-        s = s + c * (f - phi(model, prev, order=0)[0])
-        kc = k + c
-    two_a = 2.0 * a
-    return two_a * s * f1, two_a * (kc * f1 * f1 + s * f2)
+    """``(psi', psi'')`` in ``theta`` (the scalars of every position Hessian; see :func:`psi_derivatives`)."""
+    _, grad, hess = psi_derivatives(model, theta, k, rest, a, c, prev, hessian=True, params=False)
+    return grad[THETA], hess[(THETA, THETA)]

@@ -1,6 +1,6 @@
 r"""Differentiating through a static equilibrium with the implicit-function adjoint.
 
-At an equilibrium ``x*(p)`` of a :class:`~torchbend.solver.ClothModel` whose energy terms depend
+At an equilibrium ``x*(p)`` of a :class:`~torchbend.sim.ClothModel` whose energy terms depend
 on parameters ``p`` (for example a learnable bending stiffness, or the end points of a collider
 attached to a robot link), the free coordinates satisfy ``g_f(x*, p) = 0`` with ``g`` the gradient
 of the potential.  Differentiating, ``H_ff dx_f/dp = -dg_f/dp``, so for a loss ``L(x*)``
@@ -22,7 +22,8 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
-from .solver import ClothModel, HessianOption, SolveInfo, solve_static
+from ..options import Projection
+from .newton import ClothModel, SolveInfo, solve_static
 
 __all__ = ["solve_static_adjoint"]
 
@@ -47,7 +48,7 @@ class _Equilibrium(torch.autograd.Function):
         model: ClothModel = ctx.model
         pinned = model.pinned.repeat_interleave(3).cpu().numpy()
         free = ~pinned
-        H = model.hessian(x, HessianOption.EXACT).tocsr()
+        H = model.hessian(x, Projection.NONE).tocsr()
         rhs = gx.reshape(-1).detach().cpu().double().numpy()
         lam = spla.splu(H[free][:, free].tocsc()).solve(rhs[free])
         lam_full = np.zeros(free.shape[0])
@@ -74,7 +75,7 @@ def solve_static_adjoint(model: ClothModel, x0: Tensor, params=(), *, pin_positi
 
     ``pin_positions``: ``(P, 3)`` [m] positions of the pinned vertices (``model.pinned``, in
     increasing vertex order) replacing those of ``x0``; ``None`` keeps ``x0``'s.
-    ``solve_kw`` go to :func:`~torchbend.solver.solve_static`.  The backward pass solves one sparse
+    ``solve_kw`` go to :func:`~torchbend.sim.solve_static`.  The backward pass solves one sparse
     linear system with the exact Hessian at ``x*`` (pinned DOFs eliminated).  Check
     ``info.converged``: the adjoint is the derivative of an equilibrium only if one was found."""
     params = list(params)

@@ -8,8 +8,8 @@ than ``margin``::
     grad_i = -k d_i grad s,          Hess_i = k grad s grad s^T  -  k d_i Hess s        (d_i = margin - s > 0)
 
 ``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
-term ``-k d Hess s`` is negative semi-definite; PSD-projected Newton variants drop it
-(``project=True``).  Units: positions [m].
+term ``-k d Hess s`` is negative semi-definite; every projection but ``none``
+(:class:`~torchbend.options.Projection`) drops it.  Units: positions [m].
 """
 from __future__ import annotations
 
@@ -19,34 +19,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Sphere", "Plane", "Capsule"]
+from .._checks import nonnegative, positive, vec3
+from ..options import Projection
+
+__all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 
 
-def _vec3(value, name: str) -> tuple[float, float, float]:
-    try:
-        t = tuple(float(v) for v in value)
-    except TypeError:
-        raise ValueError(f"{name} must be a 3-vector, got {value!r}") from None
-    if len(t) != 3 or not all(math.isfinite(v) for v in t):
-        raise ValueError(f"{name} must be a finite 3-vector, got {value!r}")
-    return t  # type: ignore[return-value]
+class Collider:
+    """Base of the rigid colliders: a signed distance and the one-sided penalty on it."""
 
-
-def _positive(value, name: str) -> float:
-    v = float(value)
-    if not (v > 0 and math.isfinite(v)):
-        raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    return v
-
-
-def _nonnegative(value, name: str) -> float:
-    v = float(value)
-    if not (v >= 0 and math.isfinite(v)):
-        raise ValueError(f"{name} must be >= 0 and finite, got {value!r}")
-    return v
-
-
-class _Collider:
     stiffness: float
     margin: float
 
@@ -67,13 +48,15 @@ class _Collider:
         d = (self.margin - s).clamp_min(0)
         return -self.stiffness * d[:, None] * n
 
-    def hessian_blocks(self, x: Tensor, project: bool = False) -> Tensor:
-        """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; ``project`` drops the curvature term."""
+    def hessian_blocks(self, x: Tensor, project=None) -> Tensor:
+        """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; any ``project`` but ``None``/``"none"``
+        drops the curvature term (PSD for convex colliders)."""
+        exact = Projection.parse(project, what="collider projection") is Projection.NONE
         s, n, curv = self._sd(x)
         d = (self.margin - s).clamp_min(0)
         active = (d > 0).to(x.dtype)
         H = self.stiffness * active[:, None, None] * n[:, :, None] * n[:, None, :]
-        if curv is not None and not project:
+        if curv is not None and exact:
             H = H - self.stiffness * d[:, None, None] * curv
         return H
 
@@ -89,7 +72,7 @@ def _radial(p: Tensor, radius: float):
 
 
 @dataclass(frozen=True)
-class Sphere(_Collider):
+class Sphere(Collider):
     """Solid sphere ``|x - center| <= radius`` [m]."""
 
     center: tuple = (0.0, 0.0, 0.0)
@@ -98,17 +81,17 @@ class Sphere(_Collider):
     margin: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "center", _vec3(self.center, "Sphere.center"))
-        object.__setattr__(self, "radius", _positive(self.radius, "Sphere.radius"))
-        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Sphere.stiffness"))
-        object.__setattr__(self, "margin", _nonnegative(self.margin, "Sphere.margin"))
+        object.__setattr__(self, "center", vec3(self.center, "Sphere.center"))
+        object.__setattr__(self, "radius", positive(self.radius, "Sphere.radius"))
+        object.__setattr__(self, "stiffness", positive(self.stiffness, "Sphere.stiffness"))
+        object.__setattr__(self, "margin", nonnegative(self.margin, "Sphere.margin"))
 
     def _sd(self, x: Tensor):
         return _radial(x - x.new_tensor(self.center), self.radius)
 
 
 @dataclass(frozen=True)
-class Plane(_Collider):
+class Plane(Collider):
     """Half-space below the plane through ``point`` with outward ``normal`` (normalised)."""
 
     point: tuple = (0.0, 0.0, 0.0)
@@ -117,14 +100,14 @@ class Plane(_Collider):
     margin: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "point", _vec3(self.point, "Plane.point"))
-        n = _vec3(self.normal, "Plane.normal")
+        object.__setattr__(self, "point", vec3(self.point, "Plane.point"))
+        n = vec3(self.normal, "Plane.normal")
         norm = math.sqrt(sum(v * v for v in n))
         if norm == 0:
             raise ValueError("Plane.normal must be non-zero")
         object.__setattr__(self, "normal", tuple(v / norm for v in n))
-        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Plane.stiffness"))
-        object.__setattr__(self, "margin", _nonnegative(self.margin, "Plane.margin"))
+        object.__setattr__(self, "stiffness", positive(self.stiffness, "Plane.stiffness"))
+        object.__setattr__(self, "margin", nonnegative(self.margin, "Plane.margin"))
 
     def _sd(self, x: Tensor):
         n = x.new_tensor(self.normal)
@@ -133,7 +116,7 @@ class Plane(_Collider):
 
 
 @dataclass(frozen=True)
-class Capsule(_Collider):
+class Capsule(Collider):
     """Solid capsule: points within ``radius`` [m] of the segment ``a -> b`` [m]."""
 
     a: tuple = (0.0, 0.0, 0.0)
@@ -143,15 +126,15 @@ class Capsule(_Collider):
     margin: float = 0.0
 
     def __post_init__(self):
-        a, b = _vec3(self.a, "Capsule.a"), _vec3(self.b, "Capsule.b")
+        a, b = vec3(self.a, "Capsule.a"), vec3(self.b, "Capsule.b")
         object.__setattr__(self, "a", a)
         object.__setattr__(self, "b", b)
         length = math.dist(a, b)
         if length == 0:
             raise ValueError("Capsule.a and Capsule.b must differ (use a Sphere for a point)")
-        object.__setattr__(self, "radius", _positive(self.radius, "Capsule.radius"))
-        object.__setattr__(self, "stiffness", _positive(self.stiffness, "Capsule.stiffness"))
-        object.__setattr__(self, "margin", _nonnegative(self.margin, "Capsule.margin"))
+        object.__setattr__(self, "radius", positive(self.radius, "Capsule.radius"))
+        object.__setattr__(self, "stiffness", positive(self.stiffness, "Capsule.stiffness"))
+        object.__setattr__(self, "margin", nonnegative(self.margin, "Capsule.margin"))
 
     def transformed(self, a, b) -> "Capsule":
         """The same capsule with new end points ``a``, ``b`` [m] (e.g. attached to a moving link).

@@ -3,7 +3,7 @@
 Everything here works on gathered stencils ``x4: (..., H, 4, 3)`` (the SPEC's order
 ``(x0, x1, x2, x3)``: hinge edge ``x0 -> x1``, wing of triangle A, wing of triangle B, see
 :mod:`torchbend.topology`) and returns per-hinge quantities; scatter-adding them to vertices
-happens outside (:mod:`torchbend._assemble`).  No autograd is used or required: these are the
+happens outside (:mod:`torchbend.ops.stencil`).  No autograd is used or required: these are the
 closed forms of Tamstorf & Grinspun (2013), eqs. (4)-(6), and the tech report, eqs. (18)-(21)
 and the half-hinge blocks of sec. 6.
 
@@ -58,6 +58,8 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from .stencil import nondegenerate
 
 __all__ = [
     "hinge_angle",
@@ -130,7 +132,7 @@ class _HalfHinge:
         elen = ee.sqrt()
         # degenerate-geometry policy: a numerically collinear triangle (|N| <= eps * longest^2,
         # which includes a collapsed hinge edge) gets zero normal and zero derivatives
-        valid = area2 > torch.finfo(area2.dtype).eps * torch.maximum(torch.maximum(ee, uu), ww)
+        valid = nondegenerate(area2, torch.maximum(torch.maximum(ee, uu), ww))
         one = torch.ones_like(area2)
         inv_area2 = torch.where(valid, torch.where(valid, area2, one).reciprocal(), 0.0)
         inv_elen = torch.where(valid, torch.where(valid, elen, one).reciprocal(), 0.0)

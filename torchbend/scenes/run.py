@@ -1,4 +1,4 @@
-"""Run a cloth scene from a YAML config: ``python -m torchbend.run configs/cloth_sphere.yaml``.
+"""Run a cloth scene from a YAML config: ``python -m torchbend.scenes configs/cloth_sphere.yaml``.
 
 Writes into the output directory (``--out``, default ``runs/<config name>``):
 ``frames/frame_XXXX.obj`` (meshio), ``snapshot.png`` (matplotlib) and ``stats.json`` (per step:
@@ -6,7 +6,7 @@ Newton iterations, residual, energy per term, seconds).  Three scene kinds:
 
 * ``dynamic`` (e.g. ``cloth_sphere``): implicit Euler steps of a cloth falling onto colliders;
 * ``robot`` (e.g. ``robot_fold``): implicit Euler steps of a cloth held by a URDF robot following
-  joint keyframes (``robot`` section, see :func:`torchbend.robot.parse_config`); ``stats.json``
+  joint keyframes (``robot`` section, see :func:`torchbend.scenes.config.parse_robot`); ``stats.json``
   records the joints and the distance of the held vertices from their forward kinematics per step;
 * ``static`` (e.g. ``beams``): one static solve per listed thickness (cantilevers).
 
@@ -31,161 +31,12 @@ import time
 
 import torch
 
-from . import scenes
-from .bending import BendingEnergy
-from .colliders import Capsule, Plane, Sphere
-from .membrane import MembraneEnergy
-from .models import stiffness_from_material
-from .solver import ClothModel, ClothState, implicit_euler_step, solve_static
+from ..energies import Capsule, Sphere
+from ..robot import trajectory
+from ..sim import ClothState, implicit_euler_step, solve_static
+from .config import build_robot_scene, build_scene, get_key, load_config
 
-__all__ = ["load_config", "build_scene", "run_config", "main"]
-
-_SECTIONS = {"scene", "mesh", "material", "bending", "membrane", "colliders", "gravity", "solver", "output", "robot"}
-
-
-def load_config(path: str) -> dict:
-    """Read a YAML scene config (``ValueError`` for a missing file or a malformed document)."""
-    import yaml
-
-    if not os.path.isfile(path):
-        raise ValueError(f"config file not found: {path}")
-    with open(path) as f:
-        try:
-            cfg = yaml.safe_load(f)
-        except yaml.YAMLError as e:
-            raise ValueError(f"config {path}: invalid YAML ({e})") from None
-    if not isinstance(cfg, dict):
-        raise ValueError(f"config {path}: expected a mapping at the top level")
-    unknown = set(cfg) - _SECTIONS
-    if unknown:
-        raise ValueError(f"config {path}: unknown keys {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
-    return cfg
-
-
-def _get(section: dict, key: str, where: str, default=None, *, kind=float, positive=False, required=False):
-    if key not in section:
-        if required:
-            raise ValueError(f"missing config key '{where}.{key}'")
-        return default
-    value = section[key]
-    try:
-        value = kind(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"config key '{where}.{key}' must be a {kind.__name__}, got {value!r}") from None
-    if positive and not (value > 0 and (kind is not float or math.isfinite(value))):
-        raise ValueError(f"config key '{where}.{key}' must be positive, got {value!r}")
-    return value
-
-
-def _collider(spec: dict, i: int):
-    where = f"colliders[{i}]"
-    if not isinstance(spec, dict) or "type" not in spec:
-        raise ValueError(f"config key '{where}' must be a mapping with a 'type'")
-    kinds = {"sphere": Sphere, "plane": Plane, "capsule": Capsule}
-    t = spec["type"]
-    if t not in kinds:
-        raise ValueError(f"config key '{where}.type' must be one of {sorted(kinds)}, got {t!r}")
-    kwargs = {k: v for k, v in spec.items() if k != "type"}
-    try:
-        return kinds[t](**kwargs)
-    except TypeError as e:
-        raise ValueError(f"config key '{where}': {e}") from None
-    except ValueError as e:
-        raise ValueError(f"config key '{where}': {e}") from None
-
-
-def build_scene(cfg: dict, *, thickness: float | None = None, resolution: tuple | None = None):
-    """``(model, x0, faces)`` of a config (``thickness``/``resolution`` override the mesh/material).
-
-    With a ``robot`` section the vertices it binds to links are pinned in the model."""
-    return _build(cfg, thickness, resolution)[:3]
-
-
-def build_robot_scene(cfg: dict, *, resolution: tuple | None = None):
-    """``(scene, x0, faces, keyframes)`` of a config with a ``robot`` section: a
-    :class:`~torchbend.robot.RobotScene` whose pins are bound at the first keyframe's joints."""
-    from .robot import LinkPins, RobotScene
-
-    if not cfg.get("robot"):
-        raise ValueError("config has no 'robot' section")
-    model, x0, faces, rc = _build(cfg, None, resolution)
-    pins = LinkPins(rc.robot, rc.vertices, rc.links, x0[rc.vertices], rc.keyframes[0][1])
-    scene = RobotScene(model, rc.robot, pins, rc.capsules)
-    # the cloth starts with the held vertices exactly at their forward kinematics
-    return scene, scene.place(x0, rc.keyframes[0][1]), faces, rc.keyframes
-
-
-def _build(cfg: dict, thickness, resolution):
-    dtype = torch.float64
-    mesh = cfg.get("mesh") or {}
-    if mesh.get("type", "grid") != "grid":
-        raise ValueError(f"config key 'mesh.type' must be 'grid', got {mesh.get('type')!r}")
-    nx = _get(mesh, "nx", "mesh", 11, kind=int, positive=True)
-    ny = _get(mesh, "ny", "mesh", nx, kind=int, positive=True)
-    if resolution is not None:
-        nx, ny = resolution
-    size = mesh.get("size", [1.0, 1.0])
-    rest, faces = scenes.grid(nx, ny, tuple(size), dtype=dtype)
-    offset = torch.tensor(mesh.get("offset", [0.0, 0.0, 0.0]), dtype=dtype)
-    rest = rest + offset
-    mat = cfg.get("material") or {}
-    young = _get(mat, "young", "material", 1e5, positive=True)
-    poisson = _get(mat, "poisson", "material", 0.3)
-    t = thickness if thickness is not None else _get(mat, "thickness", "material", 1e-3, positive=True)
-    if "volumetric_density" in mat:  # [kg/m^3] -> areal density of this thickness
-        density = _get(mat, "volumetric_density", "material", positive=True) * t
-    else:
-        density = _get(mat, "density", "material", 0.2, positive=True)
-    bend = None
-    if cfg.get("bending") is not None:
-        b = cfg["bending"]
-        if b.get("from_material"):
-            k = stiffness_from_material(young, t, poisson)
-        else:
-            k = _get(b, "stiffness", "bending", required=True)
-            if k < 0:
-                raise ValueError(f"config key 'bending.stiffness' must be non-negative, got {k}")
-        damping = b.get("damping")
-        if damping is not None:
-            damping = _get(b, "damping", "bending")
-            if damping < 0:
-                raise ValueError(f"config key 'bending.damping' must be non-negative, got {damping}")
-        try:
-            bend = BendingEnergy(faces, rest, model=b.get("model", "tan"), stiffness=k, damping=damping or None)
-        except ValueError as e:
-            raise ValueError(f"config key 'bending': {e}") from None
-    mem = None
-    if cfg.get("membrane") is not None:
-        m = cfg["membrane"]
-        try:
-            mem = MembraneEnergy(faces, rest, model=m.get("model", "stvk"), young=young, poisson=poisson, thickness=t)
-        except ValueError as e:
-            raise ValueError(f"config key 'membrane': {e}") from None
-    pinned = None
-    pin = mesh.get("pin")
-    if pin is not None:
-        if pin == "first_two_columns":
-            xs = rest[:, 0].unique()
-            pinned = rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
-        elif pin == "corners":
-            pinned = torch.zeros(len(rest), dtype=torch.bool)
-            pinned[[0, nx - 1]] = True
-        else:
-            raise ValueError(f"config key 'mesh.pin' must be 'first_two_columns' or 'corners', got {pin!r}")
-    rc = None
-    if cfg.get("robot") is not None:
-        from .robot import parse_config
-
-        rc = parse_config(cfg["robot"], rest)
-        if pinned is None:
-            pinned = torch.zeros(len(rest), dtype=torch.bool)
-        pinned = pinned.clone()
-        pinned[rc.vertices] = True
-    colliders = [_collider(c, i) for i, c in enumerate(cfg.get("colliders") or [])]
-    gravity = cfg.get("gravity", [0.0, 0.0, -9.81])
-    model = ClothModel(faces, rest, bending=bend, membrane=mem, density=density,
-                       gravity=gravity, pinned=pinned, colliders=colliders)
-    return model, rest.clone(), faces, rc
+__all__ = ["run_config", "main"]
 
 
 def _write_obj(path: str, x: torch.Tensor, faces: torch.Tensor) -> None:
@@ -232,10 +83,9 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
     sol = cfg.get("solver") or {}
     hessian = sol.get("hessian", "exact")
     linear = sol.get("linear_solver", "direct")
-    every = _get(cfg.get("output") or {}, "every", "output", 1, kind=int, positive=True)
+    every = get_key(cfg.get("output") or {}, "every", "output", 1, kind=int, positive=True)
     stats = {"config": cfg, "kind": kind, "steps": []}
     if kind in ("dynamic", "robot"):
-        from .robot import trajectory
 
         if kind == "robot":
             scene, x0, faces, keyframes = build_robot_scene(cfg, resolution=resolution)
@@ -243,10 +93,10 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
             stats["pin_error"] = []
         else:
             model, x0, faces = build_scene(cfg, resolution=resolution)
-        dt = _get(sol, "dt", "solver", 1 / 60, positive=True)
-        n_steps = steps if steps is not None else _get(sol, "steps", "solver", 60, kind=int, positive=True)
-        kw = dict(hessian=hessian, linear_solver=linear, tol=_get(sol, "tol", "solver", 1e-6),
-                  max_iters=_get(sol, "max_iters", "solver", 30, kind=int))
+        dt = get_key(sol, "dt", "solver", 1 / 60, positive=True)
+        n_steps = steps if steps is not None else get_key(sol, "steps", "solver", 60, kind=int, positive=True)
+        kw = dict(hessian=hessian, linear_solver=linear, tol=get_key(sol, "tol", "solver", 1e-6),
+                  max_iters=get_key(sol, "max_iters", "solver", 30, kind=int))
         state = ClothState(x0, torch.zeros_like(x0))
         _write_obj(os.path.join(out_dir, "frames", "frame_0000.obj"), state.x, faces)
         for i in tqdm(range(1, n_steps + 1), desc="steps", disable=not progress):
@@ -276,21 +126,21 @@ def run_config(cfg: dict, out_dir: str, *, steps: int | None = None, resolution:
             model, x0, faces = build_scene(cfg, thickness=float(t), resolution=resolution)
             # load stepping (continuation in gravity) for large deflections: each static solve
             # starts from the previous equilibrium
-            n_load = _get(sol, "load_steps", "solver", 1, kind=int, positive=True)
+            n_load = get_key(sol, "load_steps", "solver", 1, kind=int, positive=True)
             g_full = model.gravity.clone()
             x, t_solve, total_its = x0, 0.0, 0
             for k in range(1, n_load + 1):
                 model.gravity = g_full * (k / n_load)
                 final = k == n_load
                 x, info = solve_static(model, x, hessian=hessian, linear_solver=linear,
-                                       tol=_get(sol, "tol", "solver", 1e-9) if final else 1e-6,
-                                       max_iters=_get(sol, "max_iters", "solver", 50, kind=int), continuation=True)
+                                       tol=get_key(sol, "tol", "solver", 1e-9) if final else 1e-6,
+                                       max_iters=get_key(sol, "max_iters", "solver", 50, kind=int), continuation=True)
                 t_solve += info.seconds
                 total_its += info.iterations
             info.seconds, info.iterations = t_solve, total_its
             tip = float(-(x[:, 2] - x0[:, 2])[x0[:, 0] >= x0[:, 0].max() - 1e-12].mean())
-            d = _get(mat, "young", "material", 1e5) * float(t) ** 3 / (12 * (1 - _get(mat, "poisson", "material", 0.3) ** 2))
-            q = model.mass.sum().item() * 9.81 / _area(x0, faces)
+            d = get_key(mat, "young", "material", 1e5) * float(t) ** 3 / (12 * (1 - get_key(mat, "poisson", "material", 0.3) ** 2))
+            q = model.mass.sum().item() * float(model.gravity.norm()) / _area(x0, faces)  # load per area [Pa]
             length = float(x0[:, 0].max() - x0[:, 0].min() - (x0[:, 0].unique()[1] - x0[:, 0].unique()[0]))
             kirchhoff = q * length**4 / (8 * d)
             stats["steps"].append(_info_dict(info, thickness=float(t), tip_deflection=tip,

@@ -26,7 +26,6 @@ and NaN positions are never returned.
 """
 from __future__ import annotations
 
-import enum
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,48 +36,29 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
-from ._validate import mesh_and_rest
-from .bending import BendingEnergy
-from .colliders import Capsule, Plane, Sphere
-from .hessian import to_scipy
-from .membrane import MembraneEnergy
+from ..energies.bending import BendingEnergy
+from ..energies.colliders import Capsule, Plane, Sphere
+from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
+from ..energies.sparse import to_scipy
+from ..mesh.topology import mesh_and_rest
+from ..options import Option, Projection
 
-__all__ = ["ClothModel", "ClothState", "SolveInfo", "HessianOption", "solve_static", "implicit_euler_step"]
-
-
-class HessianOption(str, enum.Enum):
-    EXACT = "exact"
-    CLAMP = "clamp"
-    ABS = "abs"
-    GAUSS_NEWTON = "gauss_newton"
-
-    @classmethod
-    def parse(cls, value) -> "HessianOption":
-        try:
-            return cls(value)
-        except ValueError:
-            names = ", ".join(repr(m.value) for m in cls)
-            raise ValueError(f"hessian must be one of {names}, got {value!r}") from None
-
-    @property
-    def bending(self):
-        return None if self is HessianOption.EXACT else self.value
-
-    @property
-    def membrane(self):
-        return {HessianOption.EXACT: None, HessianOption.ABS: "abs"}.get(self, "clamp")
+__all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
 
 
-class LinearSolver(str, enum.Enum):
+class LinearSolver(Option):
+    """How Newton directions are solved: sparse direct factorisation or matrix-free CG."""
+
+    __label__ = "linear_solver"
+
     DIRECT = "direct"
     CG = "cg"
 
-    @classmethod
-    def parse(cls, value) -> "LinearSolver":
-        try:
-            return cls(value)
-        except ValueError:
-            raise ValueError(f"linear_solver must be 'direct' or 'cg', got {value!r}") from None
+
+SOLVER_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.ABS, Projection.GAUSS_NEWTON,
+                                Projection.REDUCED})
+"""``hessian=`` options of the solvers (``"exact"`` is ``none``): the bending projection; membranes get
+the nearest one they support (:meth:`Projection.restricted`), colliders drop their curvature term."""
 
 
 @dataclass
@@ -211,44 +191,44 @@ class ClothModel:
             g = g + c.gradient(x)
         return g
 
-    def hessian(self, x: Tensor, option: HessianOption, bend_kw: dict | None = None):
+    def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None):
         """``scipy.sparse`` Hessian ``(3V, 3V)`` of the potential (without inertia)."""
         n = 3 * self.vertex_count
         H = sp.csr_matrix((n, n))
         if self.membrane is not None:
-            H = H + to_scipy(self.membrane.hessian(x, project=option.membrane))
+            H = H + to_scipy(self.membrane.hessian(x, project=option.restricted(MEMBRANE_PROJECTIONS)))
         if self.bending is not None:
-            H = H + to_scipy(self.bending.hessian(x, project=option.bending, **(bend_kw or {})))
+            H = H + to_scipy(self.bending.hessian(x, project=option, **(bend_kw or {})))
         if self.colliders:
-            blocks = sum(c.hessian_blocks(x, project=option is not HessianOption.EXACT) for c in self.colliders)
+            blocks = sum(c.hessian_blocks(x, project=option) for c in self.colliders)
             H = H + sp.block_diag(list(blocks.detach().cpu().numpy()), format="csr")
         return H.tocsr()
 
-    def hvp(self, x: Tensor, v: Tensor, option: HessianOption, bend_kw: dict | None = None) -> Tensor:
+    def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
         out = torch.zeros_like(x)
         if self.membrane is not None:
-            out = out + self.membrane.hvp(x, v, project=option.membrane)
+            out = out + self.membrane.hvp(x, v, project=option.restricted(MEMBRANE_PROJECTIONS))
         if self.bending is not None:
-            out = out + self.bending.hvp(x, v, project=option.bending, **(bend_kw or {}))
+            out = out + self.bending.hvp(x, v, project=option, **(bend_kw or {}))
         for c in self.colliders:
-            out = out + (c.hessian_blocks(x, project=option is not HessianOption.EXACT) @ v[..., None])[..., 0]
+            out = out + (c.hessian_blocks(x, project=option) @ v[..., None])[..., 0]
         return out
 
-    def block_diagonal(self, x: Tensor, option: HessianOption, bend_kw: dict | None = None) -> Tensor:
+    def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
         """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` (block-Jacobi preconditioner)."""
         V = self.vertex_count
         out = x.new_zeros(V, 3, 3)
         if self.membrane is not None:
-            He = self.membrane.element_hessians(x, project=option.membrane).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
+            He = self.membrane.element_hessians(x, project=option.restricted(MEMBRANE_PROJECTIONS)).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
             diag = torch.stack([He[:, k, :, k, :] for k in range(3)], 1)  # (T, 3, 3, 3)
             out = out.index_add(0, self.membrane.faces.reshape(-1), diag.reshape(-1, 3, 3))
         if self.bending is not None:
-            Hb = self.bending.hinge_hessians(x, project=option.bending, **(bend_kw or {}))
+            Hb = self.bending.hinge_hessians(x, project=option, **(bend_kw or {}))
             Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
             diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
             out = out.index_add(0, self.bending.hinges.reshape(-1), diag.reshape(-1, 3, 3))
         for c in self.colliders:
-            out = out + c.hessian_blocks(x, project=option is not HessianOption.EXACT)
+            out = out + c.hessian_blocks(x, project=option)
         return out
 
 
@@ -278,7 +258,7 @@ def _pcg(apply, b: np.ndarray, precond, tol: float, maxiter: int):
     return x, maxiter
 
 
-def _newton(model: ClothModel, x0: Tensor, *, option: HessianOption, linear: LinearSolver, tol: float,
+def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
             max_iters: int, inertia: tuple | None, bend_kw: dict, max_line_search: int = 30):
     """Minimise the (incremental) potential from ``x0`` (not modified).  Returns ``(x, info)``."""
     t0 = time.perf_counter()
@@ -451,7 +431,7 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     step size, retrying Newton every few steps.  ``info.iterations`` counts all Newton iterations.
     Returns ``(x, info)``; on failure ``x`` is ``x0`` unchanged and ``info.converged`` is False."""
     x0 = _prepare_x(model, x0)
-    option, linear = HessianOption.parse(hessian), LinearSolver.parse(linear_solver)
+    option, linear = Projection.parse(hessian, what="hessian", supported=SOLVER_PROJECTIONS), LinearSolver.parse(linear_solver)
     if not (tol > 0):
         raise ValueError(f"tol must be positive, got {tol}")
     x, info = _newton(model, x0, option=option, linear=linear, tol=tol, max_iters=int(max_iters),
@@ -499,7 +479,7 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hess
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
     _prepare_x(model, state.x, "state.x")
     _prepare_x(model, state.v, "state.v")
-    option, linear = HessianOption.parse(hessian), LinearSolver.parse(linear_solver)
+    option, linear = Projection.parse(hessian, what="hessian", supported=SOLVER_PROJECTIONS), LinearSolver.parse(linear_solver)
     new, info = _euler_solve(model, state, dt, option, linear, tol, int(max_iters))
     if info.converged or max_substep_depth <= 0:
         info.substeps = 1

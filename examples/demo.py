@@ -17,21 +17,8 @@ import time
 
 import torch
 
-from . import scenes
-from .bending import BendingEnergy
-from .reference import plain_bending_energy
-
-
-def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
-    """Median wall-clock seconds of ``fn()`` over ``repeat`` calls after ``warmup`` calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+import torchbend as tb
+from torchbend.testing import median_time, plain_bending_energy
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -42,8 +29,8 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
     """Run the comparison on an ``n x n`` sheet; returns the measured numbers."""
     dt = getattr(torch, dtype)
     gen = torch.Generator().manual_seed(seed)
-    rest, faces = scenes.random_curved_sheet(n, n, amplitude=0.2, seed=seed, dtype=dt)
-    bend = BendingEnergy(faces, rest, model=model, stiffness=1e-3)
+    rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=seed, dtype=dt)
+    bend = tb.BendingEnergy(faces, rest, model=model, stiffness=1e-3)
     # a smooth bending wave plus a little noise (a fraction of the grid spacing)
     wave = 0.05 * torch.sin(2 * torch.pi * rest[:, 0]) * torch.cos(3 * torch.pi * rest[:, 1])
     noise = (0.05 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dt)
@@ -72,7 +59,7 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
 
     # accuracy: against autograd in float64 (independent of the working dtype)
     x64, v64 = x.double(), v.double()
-    bend64 = BendingEnergy(faces, rest.double(), model=model, stiffness=1e-3)
+    bend64 = tb.BendingEnergy(faces, rest.double(), model=model, stiffness=1e-3)
     y = x64.clone().requires_grad_()
     E_ref = plain_bending_energy(y, bend64.hinges, bend64.weights, bend64.stiffness, bend64.rest_angles, model)
     (g_ref,) = torch.autograd.grad(E_ref, y, create_graph=True)

@@ -1,4 +1,5 @@
-"""Plain autograd reference energies (what a user would write without torchbend).
+"""Test and benchmark helpers: plain autograd reference energies (what a user would write without
+torchbend) and a timing helper.
 
 Used by the tests, the demo and the benchmarks as the independent reference: the bend angle is
 the SPEC's ``atan2`` formula written with ordinary tensor operations, and every derivative of it
@@ -6,10 +7,13 @@ comes from PyTorch's autograd (or ``torch.func``), never from torchbend's closed
 """
 from __future__ import annotations
 
+import statistics
+import time
+
 import torch
 from torch import Tensor
 
-__all__ = ["plain_hinge_angles", "plain_bending_energy"]
+__all__ = ["plain_hinge_angles", "plain_bending_energy", "median_time"]
 
 
 def plain_hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
@@ -44,3 +48,15 @@ def plain_bending_energy(
     if c is not None:
         psi = psi + a * c * (f - _phi(model, prev)) ** 2
     return psi.sum(-1)
+
+
+def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
+    """Median wall-clock seconds of ``fn()`` over ``repeat`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)

@@ -25,13 +25,16 @@ edges[e, 1]``; for a hinge this face is triangle A) and ``-1`` otherwise.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["HingeTopology"]
+from .._checks import check_positions
+
+__all__ = ["HingeTopology", "mesh_and_rest"]
 
 
 def _as_faces_array(faces) -> np.ndarray:
@@ -186,7 +189,25 @@ class HingeTopology:
             vertex_count=vertex_count,
         )
 
-    def to(self, device) -> "HingeTopology":
-        """A copy with every index tensor on ``device``."""
-        fields = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in self.__dict__.items()}
+    def to(self, *args, **kwargs) -> HingeTopology:
+        """A copy with every index tensor on the device named by the arguments (as ``Tensor.to``).
+
+        A dtype in the arguments is ignored: index tensors stay ``int64`` (as ``nn.Module.to`` casts
+        only floating point tensors), so ``topo.to(torch.float32)`` is a copy."""
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if device is not None:
+            fields = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in fields.items()}
         return HingeTopology(**fields)
+
+
+def mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
+    """Validated ``(topology, rest positions (V, 3) float)`` from faces (or a topology) and positions."""
+    topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
+    rest = torch.as_tensor(rest_positions)
+    if not rest.is_floating_point():
+        rest = rest.to(torch.get_default_dtype())
+    check_positions(rest, topo.vertex_count, "rest_positions")
+    if rest.ndim != 2:
+        raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest.shape)}")
+    return topo, rest

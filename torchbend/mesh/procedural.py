@@ -9,26 +9,13 @@ Pure torch; random scenes draw from a CPU ``torch.Generator`` so they do not dep
 from __future__ import annotations
 
 import math
-import operator
 
 import torch
 from torch import Tensor
 
+from .._checks import integer, positive
+
 __all__ = ["grid", "icosphere", "cylinder", "random_curved_sheet", "single_hinge"]
-
-
-def _check_int(name: str, value: int, minimum: int) -> int:
-    value = operator.index(value)
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return value
-
-
-def _check_positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (value > 0 and math.isfinite(value)):
-        raise ValueError(f"{name} must be positive and finite, got {value}")
-    return value
 
 
 def _quad_faces(nu: int, nv: int, wrap: bool, device) -> Tensor:
@@ -60,8 +47,8 @@ def grid(
     ``2 (nx - 1)(ny - 1)`` faces with alternating diagonals, normals ``+z``.
     Returns ``vertices (nx*ny, 3)`` [m] and ``faces (2(nx-1)(ny-1), 3)`` int64.
     """
-    nx, ny = _check_int("nx", nx, 2), _check_int("ny", ny, 2)
-    sx, sy = _check_positive("size[0]", size[0]), _check_positive("size[1]", size[1])
+    nx, ny = integer(nx, "nx", 2), integer(ny, "ny", 2)
+    sx, sy = positive(size[0], "size[0]"), positive(size[1], "size[1]")
     y, x = torch.meshgrid(
         torch.linspace(0, sy, ny, dtype=dtype, device=device),
         torch.linspace(0, sx, nx, dtype=dtype, device=device),
@@ -89,8 +76,8 @@ def icosphere(
     ``F = 20 * 4**s`` faces, ``E = 3F/2`` edges, ``V = F/2 + 2`` vertices.
     Returns ``vertices (V, 3)`` [m] and ``faces (F, 3)`` int64.
     """
-    subdivisions = _check_int("subdivisions", subdivisions, 0)
-    radius = _check_positive("radius", radius)
+    subdivisions = integer(subdivisions, "subdivisions", 0)
+    radius = positive(radius, "radius")
     t = (1 + math.sqrt(5)) / 2
     vertices = torch.tensor(
         [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0],
@@ -126,8 +113,8 @@ def cylinder(
     at index ``k + n_around * j``; alternating diagonals, outward normals.
     Returns ``vertices (n_around*n_along, 3)`` [m] and ``faces (2 n_around (n_along-1), 3)`` int64.
     """
-    n_around, n_along = _check_int("n_around", n_around, 3), _check_int("n_along", n_along, 2)
-    radius, length = _check_positive("radius", radius), _check_positive("length", length)
+    n_around, n_along = integer(n_around, "n_around", 3), integer(n_along, "n_along", 2)
+    radius, length = positive(radius, "radius"), positive(length, "length")
     dtype = dtype or torch.get_default_dtype()
     z, k = torch.meshgrid(
         torch.linspace(0, length, n_along, dtype=dtype, device=device),

@@ -1,104 +1,17 @@
-r"""Optional fused CPU kernel for the per-hinge 12x12 bending Hessians (C++, built on first use).
-
-The eager-PyTorch path (:func:`torchbend.geometry.hinge_energy_hessian_soa`) is a chain of some
-hundred elementwise passes over per-hinge arrays; it is memory bound.  This module compiles the whole
-computation into one pass over hinges: gather the stencil from the positions, the bend angle (the
-SPEC's ``atan2`` formula), ``psi'`` and ``psi''`` of the three models with the optional viscous term
-(:func:`torchbend.models.psi_theta_derivatives`), and the closed-form block (the half-hinge factors of
-the tech report, sec. 6, and ``H = Y + Y^T`` with the B terms, see :mod:`torchbend.geometry`).
-Hinges are processed in tiles of 8 with every quantity stored per lane, so the compiler vectorizes
-the formulas across hinges; tiles run in parallel (``at::parallel_for``), blocks are written with
-streaming stores.
-
-It is opt-in because the first call compiles C++ (``torch.utils.cpp_extension.load_inline``; about
-half a minute, cached afterwards in ``TORCH_EXTENSIONS_DIR``):
-
-    import torchbend.native
-    torchbend.native.enable()          # or TORCHBEND_NATIVE=1 in the environment
-
-Once enabled, :meth:`BendingEnergy.hinge_hessians`, :meth:`BendingEnergy.hessian` (both assemblies,
-written straight into the CSR values by :func:`assemble`, and the eigenvalue projections) and
-:meth:`BendingEnergy.hvp` with a projection use it for CPU
-float32/float64 inputs when no autograd graph is needed; otherwise, or if the build fails (a warning
-says why), the eager path runs.  Both give the same blocks to round-off (tests compare them).
-
-Memory: a block is 1152 bytes (float64) and a fresh allocation page-faults on every 4 KiB page it
-touches, which on a virtual machine costs more than the arithmetic.  Outputs of 256 KiB and more are
-therefore taken from a cache of buffers released by earlier outputs of the same size (as PyTorch's
-CUDA caching allocator does): a Newton loop that drops the previous Hessian before computing the next
-reuses its memory.  At most 1 GiB is kept; :func:`empty_cache` frees it, :func:`cached_bytes` reports it.
-"""
-from __future__ import annotations
-
-import os
-import warnings
-
-import torch
-from torch import Tensor
-
-__all__ = ["enable", "disable", "enabled", "available", "applies", "hinge_hessian_blocks", "bending_hessians",
-           "empty_cache", "cached_bytes", "assemble"]
-
-_SOURCE = r"""
+// Compiled CPU kernels of torchbend's bending Hessians (built by torchbend/backends/native.py).
+// The per-hinge mathematics mirrors the eager reference in torchbend/ops (hinge.py, psi.py,
+// triangle.py), which the tests compare against.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <cmath>
 #include <limits>
 #include <algorithm>
 #include <cstdlib>
-#include <sys/mman.h>
-#include <mutex>
-#include <deque>
 #include <cstring>
 #include <cstdint>
 #ifdef __AVX__
 #include <immintrin.h>
 #endif
-// Output blocks are large (1152 bytes per hinge in float64) and written once.  A fresh allocation
-// page-faults on every page it touches (about 1 us per 4 KiB page on a virtual machine: more than
-// the kernel's arithmetic), so large outputs come from a small cache of buffers freed by earlier
-// outputs of the same size (as PyTorch's CUDA caching allocator does): a Newton loop that drops the
-// previous Hessian before asking for the next one reuses its memory.  At most kPoolMax bytes are
-// kept; empty_cache() releases them.  Sizes are rounded up to 2 MiB (the cache's size classes).
-static std::mutex pool_mu;
-static std::deque<std::pair<size_t, void*>> pool;
-static size_t pool_bytes = 0;
-static const size_t kPoolMax = size_t(1) << 30;
-
-static void pool_release(void* p, size_t bytes) {
-  std::lock_guard<std::mutex> lock(pool_mu);
-  if (bytes > kPoolMax) { std::free(p); return; }
-  while (pool_bytes + bytes > kPoolMax && !pool.empty()) {
-    std::free(pool.front().second); pool_bytes -= pool.front().first; pool.pop_front();
-  }
-  pool.emplace_back(bytes, p); pool_bytes += bytes;
-}
-
-void empty_cache() {
-  std::lock_guard<std::mutex> lock(pool_mu);
-  for (auto& e : pool) std::free(e.second);
-  pool.clear(); pool_bytes = 0;
-}
-
-int64_t cached_bytes() { std::lock_guard<std::mutex> lock(pool_mu); return int64_t(pool_bytes); }
-
-static torch::Tensor big_empty(std::vector<int64_t> sizes, const torch::TensorOptions& opt) {
-  int64_t n = 1;
-  for (auto s : sizes) n *= s;
-  size_t bytes = size_t(n) * opt.dtype().itemsize();
-  if (bytes < (size_t(256) << 10)) return torch::empty(sizes, opt);
-  const size_t step = size_t(2) << 20;
-  size_t rounded = (bytes + step - 1) / step * step;
-  void* p = nullptr;
-  {
-    std::lock_guard<std::mutex> lock(pool_mu);
-    for (auto it = pool.rbegin(); it != pool.rend(); ++it)
-      if (it->first == rounded) { p = it->second; pool_bytes -= rounded; pool.erase(std::next(it).base()); break; }
-  }
-  if (p == nullptr && posix_memalign(&p, 64, rounded) != 0) return torch::empty(sizes, opt);
-  return torch::from_blob(p, sizes, [rounded](void* q) { pool_release(q, rounded); }, opt);
-}
-
 template <typename T> static inline void cross(const T* u, const T* v, T* o) {
   o[0] = u[1] * v[2] - u[2] * v[1]; o[1] = u[2] * v[0] - u[0] * v[2]; o[2] = u[0] * v[1] - u[1] * v[0];
 }
@@ -332,7 +245,7 @@ std::vector<torch::Tensor> hinge_hessians(torch::Tensor x4, torch::Tensor d1, to
               "x4 must be a contiguous CPU (H, 4, 3) tensor");
   int64_t H = x4.size(0);
   TORCH_CHECK(d1.is_contiguous() && d2.is_contiguous() && d1.numel() == H && d2.numel() == H, "d1, d2 must be (H,)");
-  auto out = big_empty({H, 12, 12}, x4.options());
+  auto out = torch::empty({H, 12, 12}, x4.options());
   auto g = torch::empty({H, 12}, x4.options());
   AT_DISPATCH_FLOATING_TYPES(x4.scalar_type(), "hinge_hessians", [&] {
     kernel<scalar_t>(x4.data_ptr<scalar_t>(), d1.data_ptr<scalar_t>(), d2.data_ptr<scalar_t>(),
@@ -371,8 +284,8 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, bool> bending_hessians(
   if (damped) { c = prep(*c_); prev = prep(*prev_); }
   std::vector<int64_t> sb = batch, sg = batch, sd = batch;
   sb.insert(sb.end(), {H, 12, 12}); sg.insert(sg.end(), {H, 12}); sd.push_back(H);
-  auto out = big_empty(sb, x.options());
-  auto g = big_empty(sg, x.options());
+  auto out = torch::empty(sb, x.options());
+  auto g = torch::empty(sg, x.options());
   auto d2 = torch::empty(sd, x.options());
   bool finite = true;
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "bending_hessians", [&] {
@@ -537,108 +450,9 @@ torch::Tensor assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, t
   });
   return values;
 }
-"""
 
-_state = {"enabled": os.environ.get("TORCHBEND_NATIVE", "0") == "1", "module": None, "failed": None}
-
-
-def _module():
-    if _state["module"] is None and _state["failed"] is None:
-        try:
-            from torch.utils.cpp_extension import load_inline
-
-            _state["module"] = load_inline(
-                name="torchbend_native_v9", cpp_sources=[_SOURCE],
-                functions=["hinge_hessians", "bending_hessians", "assemble", "empty_cache", "cached_bytes"],
-                extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
-        except Exception as e:  # no compiler, no ninja, ...
-            _state["failed"] = f"{type(e).__name__}: {e}"
-            warnings.warn(f"torchbend.native: could not build the C++ kernel ({_state['failed'][:300]}); "
-                          "using the eager path", RuntimeWarning, stacklevel=3)
-    return _state["module"]
-
-
-def enable(build: bool = True) -> bool:
-    """Use the fused kernel from now on; with ``build`` compile it now.  Returns whether it is usable."""
-    _state["enabled"] = True
-    return _module() is not None if build else True
-
-
-def disable() -> None:
-    """Back to the eager path."""
-    _state["enabled"] = False
-
-
-def enabled() -> bool:
-    return bool(_state["enabled"])
-
-
-def available() -> bool:
-    """Whether the kernel is built (or can be built now)."""
-    return _module() is not None
-
-
-def empty_cache() -> None:
-    """Free the output buffers the kernel keeps for reuse (at most 1 GiB; see the module docstring)."""
-    if _state["module"] is not None:
-        _state["module"].empty_cache()
-
-
-def cached_bytes() -> int:
-    """Bytes of freed output buffers currently kept for reuse."""
-    return 0 if _state["module"] is None else int(_state["module"].cached_bytes())
-
-
-def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor):
-    """Fused ``(Hb (..., H, 12, 12), g (..., H, 12))``, or ``None`` where it does not apply
-    (disabled, not built, non-CPU, other dtypes, or an autograd graph is being recorded)."""
-    if not _state["enabled"] or x4.device.type != "cpu" or x4.dtype not in (torch.float32, torch.float64):
-        return None
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (x4, d1, d2)):
-        return None
-    mod = _module()
-    if mod is None:
-        return None
-    batch = x4.shape[:-2]
-    d1 = d1.to(x4.dtype).expand(batch).contiguous().reshape(-1)
-    d2 = d2.to(x4.dtype).expand(batch).contiguous().reshape(-1)
-    Hb, g = mod.hinge_hessians(x4.detach().contiguous().reshape(-1, 4, 3), d1, d2)
-    return Hb.reshape(batch + (12, 12)), g.reshape(batch + (12,))
-
-
-_MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
-
-
-def applies(x: Tensor, *params) -> bool:
-    """Whether the fused kernel would run for positions ``x`` and these per-hinge parameters."""
-    if not _state["enabled"] or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
-        return False
-    if torch.is_grad_enabled() and (x.requires_grad or any(t is not None and t.requires_grad for t in params)):
-        return False
-    return _module() is not None
-
-
-def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model):
-    """Fused gather + angle + ``psi'``/``psi''`` + blocks for positions ``x: (..., V, 3)``:
-    ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H), x_is_finite)``, or ``None`` where the
-    kernel does not apply (see :func:`applies`; also a ``prev`` whose batch shape differs from x's).
-    Parameters: scalars or ``(H,)`` (``prev`` also ``(..., H)``); ``c``, ``prev`` ``None`` without
-    damping.  ``x`` is not checked for NaN/Inf beforehand: the caller raises if the flag is false."""
-    if not applies(x, a, k, rest, c, prev):
-        return None
-    if prev is not None and prev.ndim > 1 and tuple(prev.shape[:-1]) != tuple(x.shape[:-2]):
-        return None  # broadcasting batch shapes: the eager path handles them
-    return _state["module"].bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(),
-                                             None if c is None else c.detach(), None if prev is None else prev.detach(),
-                                             _MODEL_CODE[getattr(model, "value", model)])
-
-
-def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, topo, per_triangle: bool):
-    """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
-    hinge or per triangle in C++ (serial), or ``None`` where the kernel does not apply."""
-    if not applies(x, a, k, rest, c, prev) or x.ndim != 2 or (prev is not None and prev.ndim > 1):
-        return None
-    return _state["module"].assemble(
-        x.detach(), hinges, a.detach(), k.detach(), rest.detach(), None if c is None else c.detach(),
-        None if prev is None else prev.detach(), _MODEL_CODE[getattr(model, "value", model)], pattern.hinge_pos,
-        topo.faces, topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle)
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("hinge_hessians", &hinge_hessians, "per-hinge blocks from stencils and psi', psi''");
+  m.def("bending_hessians", &bending_hessians, "fused gather, angle, psi and per-hinge blocks");
+  m.def("assemble", &assemble, "CSR values of the bending Hessian of one mesh, per hinge or per triangle");
+}

@@ -1,0 +1,89 @@
+"""Layer 3, backends: the single place that decides whether eager PyTorch or compiled code runs.
+
+Every entry point of the energies calls :func:`select_backend` with the name of its operation, the
+requested backend (``"auto" | "eager" | "native"``: the module's ``backend=`` or a call's) and its
+inputs; the answer depends only on those (device, dtype, whether an autograd graph is recorded or
+a ``torch.func`` transform traces them) and on whether the compiled extension could be built.
+There is no global switch; :func:`use_backend` changes what ``"auto"`` means inside a ``with``
+block (a context variable, so threads and tasks do not see each other's choice).
+
+Compiled operations (:mod:`torchbend.backends.native`, C++ sources in ``torchbend/csrc``):
+:data:`NATIVE_OPS`.  Every other operation runs eagerly whatever is asked.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor
+
+from .._checks import is_traced
+from ..options import Backend
+
+__all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
+
+NATIVE_OPS = frozenset({"hinge_hessians", "hvp_projected", "hessian_hinge", "hessian_triangle"})
+"""Operations with a compiled kernel: per-hinge 12x12 blocks (also behind the eigenvalue-projected
+hvp and assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+
+_ONE_MESH_OPS = frozenset({"hessian_hinge", "hessian_triangle"})
+
+_auto: contextvars.ContextVar[Backend] = contextvars.ContextVar("torchbend_auto_backend", default=Backend.AUTO)
+
+
+@contextlib.contextmanager
+def use_backend(backend) -> Iterator[None]:
+    """Inside the block, ``backend="auto"`` (the default of every module) means ``backend``."""
+    token = _auto.set(Backend.parse(backend))
+    try:
+        yield
+    finally:
+        _auto.reset(token)
+
+
+def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None:
+    """Why the compiled kernel cannot run ``op`` on these inputs (``None`` if it can)."""
+    if op not in NATIVE_OPS:
+        return f"there is no compiled kernel for {op!r}"
+    if x.device.type != "cpu":
+        return f"the compiled kernels run on the CPU, x is on {x.device}"
+    if x.dtype not in (torch.float32, torch.float64):
+        return f"the compiled kernels take float32 or float64, x is {x.dtype}"
+    tensors = (x, *params)
+    if any(is_traced(t) for t in tensors):
+        return "the inputs are traced by a torch.func transform"
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
+    batch = tuple(x.shape[:-2])
+    if op in _ONE_MESH_OPS and (batch or any(t.ndim > 1 for t in params)):
+        return "the compiled assembly takes one mesh"
+    if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
+        return "per-sample parameters whose batch shape differs from x's"
+    from . import native
+
+    if native.load() is None:
+        return f"the C++ extension is not available ({native.build_error()})"
+    return None
+
+
+def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
+    """The backend that runs operation ``op`` on positions ``x`` with per-hinge ``params``: ``EAGER`` or
+    ``NATIVE``.
+
+    ``backend="auto"`` gives ``NATIVE`` wherever the compiled kernel applies (see
+    :func:`native_unavailable_reason`) and ``EAGER`` elsewhere; ``"eager"`` always ``EAGER``;
+    ``"native"`` gives ``NATIVE`` where a kernel exists for ``op`` and raises a ``ValueError`` saying
+    why when it cannot run on these inputs (operations without a kernel run eagerly)."""
+    requested = Backend.parse(backend)
+    if requested is Backend.AUTO:
+        requested = _auto.get()
+    if requested is Backend.EAGER:
+        return Backend.EAGER
+    reason = native_unavailable_reason(op, x, *params)
+    if reason is None:
+        return Backend.NATIVE
+    if requested is Backend.NATIVE and op in NATIVE_OPS:
+        raise ValueError(f"backend='native' cannot run {op}: {reason}")
+    return Backend.EAGER

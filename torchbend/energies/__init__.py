@@ -1,0 +1,11 @@
+"""Layer 4, energies: ``nn.Module`` facades over the operations, with their parameters, Hessians and
+sparse assembly (bending, membrane, colliders)."""
+from .bending import BendingEnergy, hinge_angles
+from .colliders import Capsule, Collider, Plane, Sphere
+from .materials import lame_parameters, stiffness_from_material
+from .membrane import MembraneEnergy
+from .params import HingeParams, rest_hinge_weights
+from .sparse import to_scipy
+
+__all__ = ["BendingEnergy", "Capsule", "Collider", "HingeParams", "MembraneEnergy", "Plane", "Sphere", "hinge_angles",
+           "lame_parameters", "rest_hinge_weights", "stiffness_from_material", "to_scipy"]

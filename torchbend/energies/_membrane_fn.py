@@ -1,0 +1,118 @@
+"""The membrane energy as a twice analytically differentiable ``torch.autograd.Function`` (private).
+
+``_Energy``'s backward applies ``_Gradient`` (the closed-form gradient ``P = U diag(psi_i) V^T``
+pulled back to positions); ``_Gradient``'s backward is the Hessian-vector product through the
+closed-form eigensystem (:func:`torchbend.ops.membrane.eigensystem`).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..ops.membrane import MembraneModel, check_collapsed, deformation_gradient, eigensystem, energy_density
+from ..ops.stencil import scatter
+
+__all__ = ["energy_function", "gradient_function", "hvp_faces"]
+
+
+def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
+    """``Q diag(l) Q^T dF`` per element: ``l (..., T, 6)``, ``Q (..., T, 6, 6)``, ``dF (..., T, 6)`` ->
+    ``(..., T, 3, 2)``."""
+    c = (Q * dF[..., :, None]).sum(-2)  # coordinates in the eigenbasis
+    return (Q * (l * c)[..., None, :]).sum(-1).unflatten(-1, (3, 2))
+
+
+def to_vertices(G: Tensor, D: Tensor, faces: Tensor, vertex_count: int) -> Tensor:
+    """Pull a per-element ``dE/dF``-like ``G (..., T, 3, 2)`` back to vertices: ``(..., V, 3)``."""
+    return scatter((G @ D.transpose(-1, -2)).transpose(-1, -2), faces, vertex_count)
+
+
+def _make(model: MembraneModel):
+    class _GradientImpl(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(gE, x, faces, D, coef, mu, lam):
+            F = deformation_gradient(x, faces, D)
+            _, _, _, P = eigensystem(model, F, mu, lam)
+            G = (gE[..., None] * coef)[..., None, None] * P  # (..., T, 3, 2)
+            return to_vertices(G, D, faces, x.shape[-2])
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            gE, x, faces, D, coef, mu, lam = inputs
+            ctx.save_for_backward(gE, x, faces, D, coef, mu, lam)
+            ctx.save_for_forward(gE, x, faces, D, coef, mu, lam)
+
+        @staticmethod
+        def _second(ctx, t_gE, t_x):
+            gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
+            F = deformation_gradient(x, faces, D)
+            l, Q, _, P = eigensystem(model, F, mu, lam)
+            G = dg = None
+            if t_x is not None:
+                dF = deformation_gradient(t_x, faces, D).flatten(-2)  # (..., T, 6)
+                G = (gE[..., None] * coef)[..., None, None] * hvp_faces(l, Q, dF)
+                dg = (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2))  # (..., T)
+            if t_gE is not None:
+                term = (t_gE[..., None] * coef)[..., None, None] * P
+                G = term if G is None else G + term
+            dx = None if G is None else to_vertices(G, D, faces, x.shape[-2])
+            return dx, dg
+
+        @staticmethod
+        def backward(ctx, ggx):
+            dx, dg = _GradientImpl._second(ctx, None, ggx)
+            dgE = None if dg is None or not ctx.needs_input_grad[0] else dg.sum(-1)
+            return dgE, dx, None, None, None, None, None
+
+        @staticmethod
+        def jvp(ctx, t_gE, t_x, t_faces, t_D, t_coef, t_mu, t_lam):
+            dx, _ = _GradientImpl._second(ctx, t_gE, t_x)
+            return torch.zeros_like(ctx.saved_tensors[1]) if dx is None else dx
+
+    class _EnergyImpl(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(x, faces, D, coef, mu, lam):
+            F = deformation_gradient(x, faces, D)
+            check_collapsed(model, F)
+            return (coef * energy_density(model, F, mu, lam)).sum(-1)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            x, faces, D, coef, mu, lam = inputs
+            ctx.save_for_backward(x, faces, D, coef, mu, lam)
+            ctx.save_for_forward(x, faces, D, coef, mu, lam)
+
+        @staticmethod
+        def backward(ctx, gE):
+            x, faces, D, coef, mu, lam = ctx.saved_tensors
+            return _Gradient.apply(gE, x, faces, D, coef, mu, lam), None, None, None, None, None
+
+        @staticmethod
+        def jvp(ctx, t_x, t_faces, t_D, t_coef, t_mu, t_lam):
+            x, faces, D, coef, mu, lam = ctx.saved_tensors
+            F = deformation_gradient(x, faces, D)
+            _, _, _, P = eigensystem(model, F, mu, lam)
+            dF = deformation_gradient(t_x, faces, D)
+            return (coef[..., None, None] * P * dF).sum((-1, -2, -3))
+
+    name = "".join(w.capitalize() for w in model.value.split("_"))
+    _Gradient = type(f"{name}MembraneGradient", (_GradientImpl,), {"__module__": __name__})
+    _Energy = type(f"{name}MembraneEnergy", (_EnergyImpl,), {"__module__": __name__})
+    return _Energy, _Gradient
+
+
+_FUNCTIONS = {m: _make(m) for m in MembraneModel}
+
+
+def energy_function(model: MembraneModel) -> type[torch.autograd.Function]:
+    """The private energy Function of ``model``."""
+    return _FUNCTIONS[model][0]
+
+
+def gradient_function(model: MembraneModel) -> type[torch.autograd.Function]:
+    """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
+    return _FUNCTIONS[model][1]

@@ -1,0 +1,200 @@
+r"""Discrete hinge bending energy (Tamstorf & Grinspun 2013) as an ``nn.Module``.
+
+For every interior edge (hinge, stencil and sign convention in :mod:`torchbend.topology`)::
+
+          x2
+         /  \
+    A   /    \
+       x0 ---> x1        e0 = x1 - x0,   theta = atan2(e0_hat . (nA x nB), nA . nB)
+        \    /
+    B    \  /
+          x3
+
+    E = sum_h  a_h [ k_h (phi(theta_h) - phi(rest_h))^2  +  (k_d/dt) (phi(theta_h) - phi(theta_prev_h))^2 ]
+
+    a_h = 3 |e0_rest|^2 / (A_A_rest + A_B_rest)
+
+* ``phi`` is the bending model (:class:`~torchbend.ops.psi.BendingModel`): ``quadratic`` (``theta``),
+  ``tan`` (``2 tan(theta/2)``, paper sec. 5) or ``sin`` (``2 sin(theta/2)``);
+* ``k_h`` [N m] the bending stiffness (scalar or per hinge; ``stiffness_from_material`` gives
+  ``Y t^3 / (24 (1 - nu^2))``), ``rest_h`` the rest angle (by default that of the rest shape);
+* the second term is the optional viscous (Rayleigh) damping of the paper's sec. 5: present only
+  when the module has ``damping = k_d`` [N m s] and a call passes ``theta_prev`` and ``dt``.
+
+Derivatives are closed form (:mod:`torchbend.ops.hinge`): the backward of ``forward`` is the
+analytic gradient and its backward the analytic Hessian-vector product
+(:mod:`torchbend.energies._bending_fn`); Hessians in :mod:`torchbend.energies.bending_hessian`.
+"""
+from __future__ import annotations
+
+import math
+
+from torch import Tensor, nn
+
+from .. import backends
+from .._checks import check_direction, check_positions
+from ..mesh.topology import HingeTopology, mesh_and_rest
+from ..ops.hinge import hinge_angle
+from ..ops.psi import BendingModel
+from ..ops.stencil import gather
+from ..options import Assembly, Backend, Projection
+from . import _bending_fn as fn
+from . import bending_hessian as hs
+from .params import HingeParams, hinge_parameter, rest_hinge_weights
+from .sparse import HessianPattern
+
+__all__ = ["BendingEnergy", "hinge_angles"]
+
+
+def hinge_angles(x: Tensor, topo: HingeTopology) -> Tensor:
+    """Signed bend angles ``theta: (..., H)`` [rad] in (-pi, pi] of positions ``x: (..., V, 3)``.
+
+    ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (SPEC sec. 1): exactly 0 for a flat hinge,
+    positive where the surface bends away from its normals.  ``x`` must be finite.
+    """
+    if not isinstance(topo, HingeTopology):
+        raise ValueError(f"topo must be a HingeTopology, got {type(topo).__name__}")
+    check_positions(x, topo.vertex_count)
+    return hinge_angle(gather(x, topo.hinges.to(x.device)))
+
+
+class BendingEnergy(nn.Module):
+    """Discrete hinge bending energy with exact closed-form first and second derivatives.
+
+    Args:
+        faces: ``(F, 3)`` int triangle vertex indices, consistently oriented (or a :class:`HingeTopology`).
+        rest_positions: ``(V, 3)`` float rest positions [m]; defines ``a_h`` and the default rest angles.
+        model: ``"quadratic" | "tan" | "sin"`` (:class:`BendingModel`), keyword.
+        stiffness: ``k`` [N m], scalar or ``(H,)``; may be an ``nn.Parameter`` (then learnable).
+        rest_angles: ``(H,)`` [rad]; defaults to the angles of ``rest_positions``.  Pass an
+            ``nn.Parameter`` to learn them.
+        damping: viscous coefficient ``k_d`` [N m s] (scalar or ``(H,)``) or ``None`` (no term).
+        check_finite: check every input for NaN/Inf (``ValueError``); switch off for speed.
+        backend: ``"auto" | "eager" | "native"`` (:func:`torchbend.backends.select_backend`); each
+            method also takes ``backend=`` for one call.
+
+    Shapes: ``x: (..., V, 3)``; leading dimensions are meshes sharing this topology.  The energy
+    is ``(...,)`` [J] (``(..., M)`` for a module built by :meth:`packed` over ``M`` meshes).
+    dtype and device follow ``x``; module buffers are cast to ``x.dtype`` per call.
+    """
+
+    def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan", stiffness=1.0,
+                 rest_angles=None, damping=None, check_finite: bool = True, backend: str | Backend = "auto"):
+        super().__init__()
+        topo, rest_positions = mesh_and_rest(faces, rest_positions)
+        self.model = BendingModel.parse(model)
+        self.backend = Backend.parse(backend)
+        self.topology = topo
+        self.check_finite = bool(check_finite)
+        H, dtype, device = topo.hinge_count, rest_positions.dtype, rest_positions.device
+        self.register_buffer("hinges", topo.hinges.to(device))
+        self.register_buffer("weights", rest_hinge_weights(rest_positions, topo))
+        if rest_angles is None:
+            rest_angles = hinge_angle(gather(rest_positions.detach(), self.hinges))
+        rest_angles = hinge_parameter(rest_angles, "rest_angles", H, dtype, device, nonneg=False)
+        if rest_angles.ndim == 0 and not isinstance(rest_angles, nn.Parameter):
+            rest_angles = rest_angles.expand(H).clone()
+        if self.model is BendingModel.TAN and bool((rest_angles.detach().abs() >= math.pi).any()):
+            raise ValueError("rest_angles must satisfy |theta| < pi for the 'tan' model (phi is unbounded at pi)")
+        self._set("rest_angles", rest_angles)
+        self._set("stiffness", hinge_parameter(stiffness, "stiffness", H, dtype, device))
+        if damping is None:
+            self.damping = None
+        else:
+            self._set("damping", hinge_parameter(damping, "damping", H, dtype, device))
+        self.register_buffer("segments", None)
+        self.segment_count = 0
+        self._pattern: HessianPattern | None = None  # CSR pattern, built by the first hessian()
+
+    def _set(self, name: str, t: Tensor) -> None:
+        if isinstance(t, nn.Parameter):
+            self.register_parameter(name, t)
+        else:
+            self.register_buffer(name, t)
+
+    @classmethod
+    def packed(cls, meshes, rest_positions: Tensor | None = None, **kwargs) -> BendingEnergy:
+        """A module over meshes of different topologies packed into one (:func:`torchbend.pack_meshes`);
+        its ``forward`` returns per-mesh energies ``(..., M)``.  ``rest_positions`` defaults to ``meshes.verts``."""
+        mod = cls(meshes.faces, meshes.verts if rest_positions is None else rest_positions, **kwargs)
+        dev = mod.hinges.device
+        mod.segments = meshes.face_mesh.to(dev)[mod.topology.hinge_faces[:, 0].to(dev)]
+        mod.segment_count = meshes.mesh_count
+        return mod
+
+    @property
+    def hinge_count(self) -> int:
+        return int(self.hinges.shape[0])
+
+    @property
+    def vertex_count(self) -> int:
+        return self.topology.vertex_count
+
+    def _bind(self, x: Tensor, op: str, backend, theta_prev=None, dt=None) -> tuple[HingeParams, Backend | str]:
+        """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's)."""
+        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        if x.device != self.hinges.device:
+            raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
+        p = HingeParams.bind(self, x, theta_prev, dt)
+        backend = self.backend if backend is None else backend
+        if op:
+            backends.select_backend(op, backend, x, *p.tensors())
+        return p, backend
+
+    def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
+        """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
+        and ``dt`` [s] switch on the viscous term.  Differentiable twice (analytic backward and double backward)
+        in ``x``, stiffness, rest angles and ``theta_prev``."""
+        p, _ = self._bind(x, "energy", backend, theta_prev, dt)
+        return fn.bending_energy_raw(x, self.hinges, *p.astuple(), model=self.model, seg=self.segments,
+                                     seg_count=self.segment_count)
+
+    def gradient(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
+        """``dE/dx: (..., V, 3)`` [N] (summed over meshes when packed), closed form; differentiable (analytic HVP)."""
+        p, _ = self._bind(x, "gradient", backend, theta_prev, dt)
+        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model)
+
+    def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
+            backend=None) -> Tensor:
+        """Hessian-vector product ``(d^2E/dx^2) v: (..., V, 3)``, closed form, ``v`` shaped like ``x``.
+
+        Unprojected, per hinge ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix;
+        ``project`` (:class:`~torchbend.options.Projection`) applies the projection of :meth:`hessian`."""
+        projection = Projection.parse(project)
+        p, backend = self._bind(x, "" if projection is not Projection.NONE else "hvp", backend, theta_prev, dt)
+        v = check_direction(v, x, self.check_finite)
+        if projection is Projection.NONE:
+            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model)
+        return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
+
+    def hinge_hessians(self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
+                       backend=None) -> Tensor:
+        """Per-hinge energy Hessians ``(..., H, 12, 12)`` [J/m^2] in stencil order (flat ``3*k + j``):
+        ``psi'' g g^T + psi' Hess(theta)`` (paper eqs. 3, 5, 6), optionally projected per block."""
+        p, backend = self._bind(x, "", backend, theta_prev, dt)
+        return hs.hinge_hessians(x, self.hinges, p, self.model, Projection.parse(project), backend)
+
+    def hessian(self, x: Tensor, *, project=None, assembly: str | Assembly = "triangle",
+                theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
+        """Assembled Hessian, a torch sparse CSR tensor ``(3V, 3V)``, of one mesh ``x: (V, 3)``.
+
+        ``assembly="triangle"`` is the paper's per-triangle refactoring (eq. 7), ``"hinge"`` scatters the
+        12x12 blocks: the same matrix.  The CSR pattern is built once and kept on the module.  See
+        :func:`torchbend.energies.bending_hessian.assemble` for the projections; :func:`torchbend.to_scipy`
+        converts."""
+        projection, how = Projection.parse(project), Assembly.parse(assembly)
+        p, backend = self._bind(x, "", backend, theta_prev, dt)
+        if x.ndim != 2:
+            raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
+        if self._pattern is None:
+            self._pattern = HessianPattern(self.topology)
+        return hs.assemble(x, self.topology, self.hinges, p, self.model, projection, how, self._pattern, backend)
+
+    def angles(self, x: Tensor) -> Tensor:
+        """Bend angles ``(..., H)`` [rad] of ``x`` (e.g. to pass as the next step's ``theta_prev``)."""
+        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        return hinge_angle(gather(x, self.hinges))
+
+    def extra_repr(self) -> str:
+        return (f"model={self.model.value}, vertices={self.vertex_count}, hinges={self.hinge_count}, "
+                f"damping={'yes' if self.damping is not None else 'no'}, backend={self.backend.value}")

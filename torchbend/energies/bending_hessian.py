@@ -1,0 +1,130 @@
+r"""Exact bending Hessians: per-hinge 12x12 blocks, sparse assembly (per hinge or per triangle),
+and PSD projections for Newton-type solvers.
+
+Per hinge (paper eq. 3) the energy Hessian is
+
+    H_h = psi'' grad(theta) grad(theta)^T + psi' Hess(theta)                       (12 x 12)
+
+with ``psi' = d psi/d theta``, ``psi''`` its derivative (:mod:`torchbend.ops.psi`) and the closed-form
+``Hess(theta)`` of :mod:`torchbend.ops.hinge`.  Flat index ``3*k + j`` (stencil vertex k, axis j).
+
+Per-triangle assembly (paper sec. 4.1, eq. 7): :mod:`torchbend.ops.triangle`.
+
+Compiled (:mod:`torchbend.backends`), both assemblies (unprojected) run as one C++ pass each: the
+per-triangle one is about 1.1x faster than the per-hinge one (both are bound by scattering
+~200 resp. 144 values per hinge into the CSR array, not by arithmetic; see
+``benchmarks/results/hessian_native_cpu_2core.txt``).
+
+Projections (:class:`~torchbend.options.Projection`)
+----------------------------------------------------
+``clamp``/``abs`` replace the eigenvalues of each 12x12 hinge block by ``max(l, 0)``/``|l|``;
+``gauss_newton`` keeps ``max(psi'', 0) g g^T`` and drops ``psi' Hess(theta)``; ``reduced`` is the
+structured projection described in :func:`torchbend.ops.projection.project_blocks`.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .. import backends
+from ..mesh.topology import HingeTopology
+from ..ops import hinge as geometry
+from ..ops.projection import project_blocks
+from ..ops.psi import BendingModel, psi_theta_derivatives
+from ..ops.stencil import chunks, gather, scatter
+from ..ops.triangle import triangle_hessian_blocks
+from ..options import Assembly, Backend, Projection
+from .params import HingeParams
+from .sparse import HessianPattern
+
+__all__ = ["hinge_hessian_blocks", "hinge_hessians", "projected_hvp", "assemble"]
+
+
+def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-hinge energy Hessians ``(..., H, 12, 12)`` and angle gradients ``(..., H, 12)`` (eager).
+
+    ``x4: (..., H, 4, 3)`` stencils, ``d1 = psi'``, ``d2 = psi''``: ``(..., H)``.  Chunked so that
+    the intermediates of one chunk stay in the CPU caches."""
+    blocks, grads = [], []
+    for sl in chunks(x4.shape[-3]):
+        Hb, g = geometry.hinge_energy_hessian_soa(geometry.to_soa(x4[..., sl, :, :]), d1[..., sl], d2[..., sl])
+        blocks.append(Hb)
+        grads.append(g)
+    if len(blocks) == 1:
+        return blocks[0], grads[0]
+    return torch.cat(blocks, -3), torch.cat(grads, -2)
+
+
+def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend) -> tuple:
+    """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``."""
+    if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
+        from ..backends import native
+
+        return native.bending_hessians(x, hinges, *p.astuple(), model)[:3]
+    x4 = gather(x, hinges)
+    d1, d2 = psi_theta_derivatives(model, geometry.hinge_angle(x4), *p.astuple())
+    Hb, g = hinge_hessian_blocks(x4, d1, d2)
+    return Hb, g, d2
+
+
+def hinge_hessians(x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, projection: Projection,
+                   backend) -> Tensor:
+    """Per-hinge energy Hessians ``(..., H, 12, 12)``, projected per block unless ``projection`` is ``none``."""
+    Hb, g, d2 = _blocks("hinge_hessians", x, hinges, p, model, backend)
+    return Hb if projection is Projection.NONE else project_blocks(Hb, projection, g, d2)
+
+
+def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel,
+                  projection: Projection, backend) -> Tensor:
+    """``H_proj v: (..., V, 3)``: matrix-free for ``gauss_newton`` (``max(psi'', 0)(g.v) g``), through the
+    projected 12x12 hinge blocks otherwise."""
+    V = x.shape[-2]
+    v4 = gather(v, hinges).flatten(-2)  # (..., H, 12)
+    if projection is Projection.GAUSS_NEWTON:
+        backends.select_backend("hvp", backend, x, *p.tensors())  # no compiled kernel: eager
+        x4 = gather(x, hinges)
+        theta, g4 = geometry.hinge_angle_and_gradient(x4)
+        _, d2 = psi_theta_derivatives(model, theta, *p.astuple())
+        g = g4.flatten(-2)
+        out = (d2.clamp_min(0) * (g * v4).sum(-1))[..., None] * g
+    else:
+        Hb, g, d2 = _blocks("hvp_projected", x, hinges, p, model, backend)
+        out = (project_blocks(Hb, projection, g, d2) @ v4[..., None])[..., 0]
+    return scatter(out.unflatten(-1, (4, 3)), hinges, V)
+
+
+def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, model: BendingModel,
+             projection: Projection, assembly: Assembly, pattern: HessianPattern, backend) -> Tensor:
+    """The Hessian of one mesh ``x: (V, 3)`` as a sparse CSR tensor ``(3V, 3V)`` (see the module docstring).
+
+    The eigenvalue projections act on whole hinge blocks, so they are assembled per hinge whatever
+    ``assembly`` says; ``gauss_newton`` has no ``Hess(theta)`` part."""
+    per_triangle = assembly is Assembly.TRIANGLE and projection in (Projection.NONE, Projection.GAUSS_NEWTON)
+    if projection is Projection.NONE:
+        op = "hessian_triangle" if per_triangle else "hessian_hinge"
+        if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
+            from ..backends import native
+
+            return pattern.csr(native.assemble(x, hinges, *p.astuple(), model, pattern, topo, per_triangle))
+    values = x.new_zeros(pattern.nnz)
+    hinge_pos = pattern.hinge_pos.to(x.device)
+    if not per_triangle:
+        for sl in chunks(hinges.shape[0]):  # chunks: the blocks of one chunk stay in cache
+            Hb, g, d2 = _blocks("hessian_hinge", x, hinges[sl], p.sliced(sl), model, backend)
+            if projection is not Projection.NONE:
+                Hb = project_blocks(Hb, projection, g, d2)
+            values.index_add_(0, hinge_pos[sl].reshape(-1), Hb.reshape(-1))
+        return pattern.csr(values)
+    backends.select_backend("hessian_triangle", backend, x, *p.tensors())
+    x4 = gather(x, hinges)
+    theta, g4 = geometry.hinge_angle_and_gradient(x4)
+    d1, d2 = psi_theta_derivatives(model, theta, *p.astuple())
+    g = g4.flatten(-2)
+    w = d2 if projection is Projection.NONE else d2.clamp_min(0)
+    gg = (w[:, None] * g)[:, :, None] * g[:, None, :]
+    values.index_add_(0, hinge_pos.reshape(-1), gg.reshape(-1))
+    if projection is Projection.NONE:
+        Hf = triangle_hessian_blocks(x, topo, d1)
+        keep = pattern.face_has_hinge.to(x.device)
+        values.index_add_(0, pattern.face_pos.to(x.device)[keep].reshape(-1), Hf[keep].reshape(-1))
+    return pattern.csr(values)

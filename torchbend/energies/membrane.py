@@ -1,0 +1,140 @@
+"""Triangle membrane (stretch) energies as an ``nn.Module`` (Smith, De Goes & Kim 2019).
+
+Energy [J]: ``sum_T A_T t Psi(F_T)`` with the deformation gradient ``F`` of each triangle and the
+isotropic densities of :mod:`torchbend.ops.membrane` (``stvk``, ``arap``, ``symmetric_dirichlet``,
+``neohookean``; formulas and the closed-form eigensystem there).  The backward of ``forward`` is the
+closed-form gradient and its backward the Hessian-vector product through the eigensystem
+(:mod:`torchbend.energies._membrane_fn`); projecting the six closed-form eigenvalues (``clamp``,
+``abs``) gives PSD element Hessians without a numerical eigendecomposition.
+"""
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from .. import backends
+from .._checks import check_direction, check_positions, positive
+from ..mesh.topology import mesh_and_rest
+from ..ops.membrane import MembraneModel, deformation_gradient, eigensystem, rest_shape_matrices
+from ..ops.projection import project_eigenvalues
+from ..options import Projection
+from . import _membrane_fn as fn
+from .materials import lame_parameters
+from .sparse import StencilPattern
+
+__all__ = ["MembraneEnergy", "MEMBRANE_PROJECTIONS"]
+
+MEMBRANE_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.ABS})
+"""The projections a membrane supports (of its closed-form eigenvalues)."""
+
+
+class MembraneEnergy(nn.Module):
+    """Triangle membrane energy with closed-form gradient, Hessian eigensystem and projections.
+
+    Args:
+        faces: ``(F, 3)`` int triangles (validated like :class:`HingeTopology`), or a topology.
+        rest_positions: ``(V, 3)`` float rest positions [m]; each triangle's rest frame.
+        model: ``"stvk" | "arap" | "symmetric_dirichlet" | "neohookean"`` (keyword).
+        young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
+        thickness: ``t`` [m] (> 0).
+        check_finite: check inputs for NaN/Inf.
+        backend: ``"auto" | "eager" | "native"``; membranes have no compiled kernel yet (eager).
+
+    Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
+    backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
+    """
+
+    def __init__(self, faces, rest_positions: Tensor, *, model="stvk", young: float, poisson: float,
+                 thickness: float, check_finite: bool = True, backend="auto"):
+        super().__init__()
+        topo, rest_positions = mesh_and_rest(faces, rest_positions)
+        self.thickness = positive(thickness, "thickness")
+        mu, lam = lame_parameters(young, poisson)
+        self.model = MembraneModel.parse(model)
+        self.backend = backends.Backend.parse(backend)
+        self.topology = topo
+        self.check_finite = bool(check_finite)
+        self.young, self.poisson = float(young), float(poisson)
+        dev, dtype = rest_positions.device, rest_positions.dtype
+        faces_t = topo.faces.to(dev)
+        D, area = rest_shape_matrices(rest_positions, faces_t)
+        self.register_buffer("faces", faces_t)
+        self.register_buffer("shape_matrices", D)
+        self.register_buffer("rest_areas", area)
+        self.register_buffer("mu", rest_positions.new_tensor(mu, dtype=dtype))
+        self.register_buffer("lam", rest_positions.new_tensor(lam, dtype=dtype))
+        self._pattern: StencilPattern | None = None  # CSR pattern, built by the first hessian()
+
+    @property
+    def vertex_count(self) -> int:
+        return self.topology.vertex_count
+
+    @property
+    def face_count(self) -> int:
+        return int(self.faces.shape[0])
+
+    def _args(self, x: Tensor, op: str, backend=None):
+        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        if x.device != self.faces.device:
+            raise ValueError(f"x is on {x.device} but the module is on {self.faces.device}; move one with .to()")
+        backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x)
+        dt = x.dtype
+        return self.shape_matrices.to(dt), (self.rest_areas * self.thickness).to(dt), self.mu.to(dt), self.lam.to(dt)
+
+    def forward(self, x: Tensor, *, backend=None) -> Tensor:
+        """Membrane energy ``(...,)`` [J] of ``x: (..., V, 3)`` [m]."""
+        D, coef, mu, lam = self._args(x, "energy", backend)
+        return fn.energy_function(self.model).apply(x, self.faces, D, coef, mu, lam)
+
+    def gradient(self, x: Tensor, *, backend=None) -> Tensor:
+        """``dE/dx: (..., V, 3)`` [N], closed form (``P = U diag(psi_i) V^T``); differentiable."""
+        D, coef, mu, lam = self._args(x, "gradient", backend)
+        return fn.gradient_function(self.model).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu, lam)
+
+    def _eigen(self, x: Tensor, op: str, project, backend):
+        """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D)``."""
+        projection = Projection.parse(project, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
+        D, coef, mu, lam = self._args(x, op, backend)
+        l, Q, _, _ = eigensystem(self.model, deformation_gradient(x, self.faces, D), mu, lam)
+        return project_eigenvalues(l, projection) * coef[..., None], Q, D
+
+    def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
+        """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
+        ``(..., T, 6)`` and orthonormal eigenvectors ``(..., T, 6, 6)`` (columns) with ``Q diag(l) Q^T =
+        A t d^2Psi/df^2`` (row-major ``f``, index ``2a + b``).  Order: scaling 1, scaling 2, twist, flip,
+        normal 1, normal 2."""
+        l, Q, _ = self._eigen(x, "eigensystems", None, backend)
+        return l, Q
+
+    def deformation_gradients(self, x: Tensor) -> Tensor:
+        """``F: (..., T, 3, 2)``."""
+        return deformation_gradient(x, self.faces, self._args(x, "deformation_gradients")[0])
+
+    def element_hessians(self, x: Tensor, *, project=None, backend=None) -> Tensor:
+        """Position-space element Hessians ``(..., T, 9, 9)`` [N/m] (flat index ``3*k + j``, face order):
+        ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first."""
+        l, Q, D = self._eigen(x, "element_hessians", project, backend)
+        # z_k = B^T q_k: (Q_k D^T)^T as a 9-vector over (vertex, axis)
+        Qm = Q.transpose(-1, -2).unflatten(-1, (3, 2))  # (..., T, 6 modes, 3, 2)
+        Z = (Qm @ D.transpose(-1, -2)[..., None, :, :]).transpose(-1, -2).flatten(-2)  # (..., T, 6, 9)
+        return (Z.transpose(-1, -2) * l[..., None, :]) @ Z
+
+    def hvp(self, x: Tensor, v: Tensor, *, project=None, backend=None) -> Tensor:
+        """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected)."""
+        l, Q, D = self._eigen(x, "hvp", project, backend)
+        v = check_direction(v, x, self.check_finite)
+        dF = deformation_gradient(v, self.faces, D).flatten(-2)
+        return fn.to_vertices(fn.hvp_faces(l, Q, dF), D, self.faces, x.shape[-2])
+
+    def hessian(self, x: Tensor, *, project=None, backend=None) -> Tensor:
+        """Assembled Hessian, torch sparse CSR ``(3V, 3V)``, for one mesh ``x: (V, 3)``."""
+        if x.ndim != 2:
+            raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
+        He = self.element_hessians(x, project=project, backend=backend)
+        if self._pattern is None:
+            self._pattern = StencilPattern(self.topology.faces.numpy(), self.vertex_count)
+        pat = self._pattern
+        return pat.csr(x.new_zeros(pat.nnz).index_add_(0, pat.element_pos.to(x.device).reshape(-1), He.reshape(-1)))
+
+    def extra_repr(self) -> str:
+        return (f"model={self.model.value}, faces={self.face_count}, young={self.young:g}, "
+                f"poisson={self.poisson:g}, thickness={self.thickness:g}")
