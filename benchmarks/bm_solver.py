@@ -20,9 +20,9 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from common import machine  # noqa: E402
 
+from torchbend import ClothState, implicit_euler_step  # noqa: E402
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config  # noqa: E402
-from torchbend import ClothState, implicit_euler_step  # noqa: E402
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
 

@@ -7,8 +7,8 @@ import torch
 
 import torchbend as tb
 from torchbend import BendingEnergy
-from torchbend.ops import hinge as geometry
 from torchbend.energies._bending_fn import bending_energy_raw
+from torchbend.ops import hinge as geometry
 from torchbend.testing import plain_bending_energy, plain_hinge_angles
 
 from .conftest import MODELS, rel

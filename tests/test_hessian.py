@@ -3,8 +3,7 @@ import pytest
 import torch
 
 import torchbend as tb
-from torchbend import BendingEnergy
-from torchbend import to_scipy
+from torchbend import BendingEnergy, to_scipy
 from torchbend.energies.sparse import HessianPattern
 from torchbend.ops import hinge as geometry
 from torchbend.ops.projection import project_blocks

@@ -7,8 +7,8 @@ import torch
 
 import torchbend as tb
 from torchbend.robot import LinkCapsule, LinkPins, Robot, RobotScene, asset_path, trajectory
-from torchbend.scenes.config import parse_robot as parse_config
 from torchbend.scenes.config import build_robot_scene, load_config
+from torchbend.scenes.config import parse_robot as parse_config
 from torchbend.scenes.run import run_config
 
 ROOT = os.path.dirname(os.path.dirname(__file__))

@@ -7,10 +7,9 @@ import pytest
 import torch
 
 import torchbend as tb
-from torchbend import Capsule, Plane, Sphere
+from torchbend import Capsule, ClothModel, ClothState, Plane, Sphere, implicit_euler_step, solve_static
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config
-from torchbend import ClothModel, ClothState, implicit_euler_step, solve_static
 
 F64 = torch.float64
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")

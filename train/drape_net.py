@@ -23,8 +23,17 @@ import torch
 from torch import nn
 
 sys.path.insert(0, os.path.dirname(__file__))
-from common import (ClothPhysics, Timer, distributed, load_checkpoint, load_config, save_checkpoint,  # noqa: E402
-                    save_drape_png, seed_everything, check_positive)
+from common import (  # noqa: E402
+    ClothPhysics,
+    Timer,
+    check_positive,
+    distributed,
+    load_checkpoint,
+    load_config,
+    save_checkpoint,
+    save_drape_png,
+    seed_everything,
+)
 
 DEFAULTS = {
     "cloth": {"resolution": 9, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"],

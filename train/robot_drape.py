@@ -23,8 +23,16 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(__file__))
-from common import (ClothPhysics, Timer, check_positive, load_checkpoint, load_config, save_checkpoint,  # noqa: E402
-                    save_drape_png, seed_everything)
+from common import (  # noqa: E402
+    ClothPhysics,
+    Timer,
+    check_positive,
+    load_checkpoint,
+    load_config,
+    save_checkpoint,
+    save_drape_png,
+    seed_everything,
+)
 from drape_net import DrapeNet  # noqa: E402
 
 import torchbend as tb  # noqa: E402

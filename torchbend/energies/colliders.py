@@ -136,7 +136,7 @@ class Capsule(Collider):
         object.__setattr__(self, "stiffness", positive(self.stiffness, "Capsule.stiffness"))
         object.__setattr__(self, "margin", nonnegative(self.margin, "Capsule.margin"))
 
-    def transformed(self, a, b) -> "Capsule":
+    def transformed(self, a, b) -> Capsule:
         """The same capsule with new end points ``a``, ``b`` [m] (e.g. attached to a moving link).
 
         Tensor end points are kept as tensors: the collider's energy and gradient are then

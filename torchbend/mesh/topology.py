@@ -94,7 +94,7 @@ class HingeTopology:
         return int(self.faces.shape[0])
 
     @classmethod
-    def from_faces(cls, faces, vertex_count: int | None = None) -> "HingeTopology":
+    def from_faces(cls, faces, vertex_count: int | None = None) -> HingeTopology:
         """Build and validate the topology of ``faces: (F, 3)`` integer vertex indices.
 
         ``vertex_count`` (V) defaults to ``faces.max() + 1``; when given, every index must be

@@ -51,7 +51,6 @@ import torch
 from torch import Tensor
 
 from ..options import Option
-from .stencil import nondegenerate
 
 __all__ = ["MembraneModel", "rest_shape_matrices", "deformation_gradient", "eigensystem", "energy_density",
            "check_collapsed"]

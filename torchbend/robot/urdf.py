@@ -2,8 +2,6 @@
 :mod:`torchbend.robot`)."""
 from __future__ import annotations
 
-import copy
-import math
 import os
 import xml.etree.ElementTree as ET
 
