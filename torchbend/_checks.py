@@ -21,7 +21,7 @@ __all__ = [
 
 def is_traced(t: Tensor) -> bool:
     """True under ``torch.func`` transforms (checks that need data-dependent control flow are skipped)."""
-    return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))
+    return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def check_positions(x, vertex_count: int, name: str = "x", check_finite: bool = True) -> Tensor:

@@ -46,6 +46,8 @@ def plain_bending_energy(
     f = _phi(model, plain_hinge_angles(x, hinges))
     psi = a * k * (f - _phi(model, rest)) ** 2
     if c is not None:
+        if prev is None:
+            raise ValueError("the viscous term needs both c and prev")
         psi = psi + a * c * (f - _phi(model, prev)) ** 2
     return psi.sum(-1)
 

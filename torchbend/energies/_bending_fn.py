@@ -55,10 +55,11 @@ def _axpy4(s: Tensor, a, b):
 
 
 def _dot4(a, b) -> Tensor:
-    out = None
-    for va, vb in zip(a, b):
-        for ca, cb in zip(va, vb):
-            out = ca * cb if out is None else torch.addcmul(out, ca, cb)
+    out = a[0][0] * b[0][0]
+    for i, (va, vb) in enumerate(zip(a, b)):
+        for j, (ca, cb) in enumerate(zip(va, vb)):
+            if i or j:
+                out = torch.addcmul(out, ca, cb)
     return out
 
 
@@ -83,7 +84,7 @@ def _reduce(psi: Tensor, seg: Tensor | None, seg_count: int) -> Tensor:
     return out.index_add(-1, seg, psi)
 
 
-def _params(params: tuple) -> tuple:
+def _params(params) -> tuple:
     """``(k, rest)`` or ``(k, rest, c, prev)`` -> the 4 psi slots (``None`` where absent)."""
     return tuple(params) + (None,) * (4 - len(params))
 
@@ -103,83 +104,125 @@ def _dot_p(grad: list, vec: list) -> Tensor | None:
     return out
 
 
+def _psi(model: BendingModel, theta: Tensor, a: Tensor, p: list, *, hessian: bool) -> tuple[Tensor, list, dict]:
+    """``psi_derivatives`` with the parameter slots ``p = [k, rest, c, prev]`` of one chunk (``hess``
+    is empty without ``hessian``)."""
+    psi, grad, hess = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=hessian)
+    return psi, grad, {} if hess is None else hess
+
+
+def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params) -> tuple:
+    """``(gE dE/dx, gE dE/dk, gE dE/drest[, ...])`` chunk by chunk (closed form)."""
+    V = x.shape[-2]
+    gx, gps = None, [[] for _ in params]
+    for sl in chunks(hinges.shape[0]):
+        h = hinges[sl]
+        theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h))
+        _, pg, _ = _psi(model, theta, a[sl], [sliced(t, sl) for t in _params(params)], hessian=False)
+        w = _chunk_weight(gE, seg, sl)  # (..., h) or (..., 1)
+        part = scatter_soa(_scale4(g4, w * pg[THETA]), h, V)
+        gx = part if gx is None else gx + part
+        for i, slot in enumerate(_PARAM_SLOTS[: len(params)]):
+            gps[i].append(w * pg[slot])
+    return (gx,) + tuple(cat_or_none(g) for g in gps)
+
+
+def _add(a: Tensor | None, b: Tensor | None) -> Tensor | None:
+    if a is None:
+        return b
+    return a if b is None else a + b
+
+
+def _position_part(hv4, g4, psi1: Tensor, coef: Tensor | None):
+    """``psi' H_theta v + coef g`` over SoA stencils (``hv4`` may be ``None``: no direction in x)."""
+    if hv4 is not None:
+        dx4 = _scale4(hv4, psi1)
+        return dx4 if coef is None else _axpy4(coef, g4, dx4)
+    return None if coef is None else _scale4(g4, coef)
+
+
+def _second_chunk(model: BendingModel, saved: tuple, sl: slice, t_gE, t_x, t_params):
+    """One chunk of :func:`_second_order`: ``(dx4 or None, [d params], d gE per hinge, theta)``."""
+    gE, x, hinges, seg, a, *params = saved
+    h = hinges[sl]
+    v4 = None if t_x is None else gather_soa(t_x, h)
+    theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
+    _, pg, ph = _psi(model, theta, a[sl], [sliced(t, sl) for t in _params(params)], hessian=True)
+    w = _chunk_weight(gE, seg, sl)
+    u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., h)
+    vec = _pvec(u, tuple(sliced(t, sl) for t in t_params))
+    z = contract_hessian(ph, vec)  # Hess_p(psi) vec
+    tw = None if t_gE is None else _chunk_weight(t_gE, seg, sl)
+    coef = _add(None if z[THETA] is None else w * z[THETA], None if tw is None else tw * pg[THETA])
+    dx4 = _position_part(hv4, g4, w * pg[THETA], coef)
+    dps = []
+    for slot in _PARAM_SLOTS[: len(params)]:
+        d = _add(None if z[slot] is None else w * z[slot], None if tw is None else tw * pg[slot])
+        if d is not None and d.shape[-1] != theta.shape[-1]:
+            d = d.expand_as(theta)
+        dps.append(d)
+    return dx4, dps, _dot_p(pg, vec), h
+
+
+def _second_order(model: BendingModel, saved: tuple, t_gE, t_x, t_params):
+    """The Hessian of ``<gE, E>`` in ``(gE, x, params)`` applied to one direction.
+
+    Shared by the gradient Function's ``backward`` (cotangents of the outputs: ``t_gE`` is ``None``)
+    and ``jvp`` (tangents of the inputs).  Returns ``(dx, [d params], d gE per hinge)``."""
+    x, hinges, params = saved[1], saved[2], saved[5:]
+    dx, dps, dgs = None, [[] for _ in params], []
+    for sl in chunks(hinges.shape[0]):
+        dx4, dp, dg, h = _second_chunk(model, saved, sl, t_gE, t_x, t_params)
+        if dx4 is not None:
+            dx = _add(dx, scatter_soa(dx4, h, x.shape[-2]))
+        for i, d in enumerate(dp):
+            dps[i].append(d)
+        dgs.append(dg)
+    return dx, [cat_or_none(d) for d in dps], cat_or_none(dgs)
+
+
+def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params) -> Tensor:
+    psis = []
+    for sl in chunks(hinges.shape[0]):
+        theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
+        _check_fold(model, theta)
+        psis.append(_psi(model, theta, a[sl], [sliced(t, sl) for t in _params(params)], hessian=False)[0])
+    return _reduce(psis[0] if len(psis) == 1 else torch.cat(psis, -1), seg, seg_count)
+
+
+def _energy_jvp(model: BendingModel, saved: tuple, seg_count: int, t_x, t_params) -> Tensor:
+    x, hinges, seg, a, *params = saved
+    xs = gather_soa(x, hinges)
+    u = None
+    if t_x is not None:
+        theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(xs)
+        u = _dot4(g4, gather_soa(t_x, hinges))
+    else:
+        theta = geometry.hinge_angle_soa(xs)
+    _, pg, _ = _psi(model, theta, a, list(_params(params)), hessian=False)
+    d = _dot_p(pg, _pvec(u, tuple(t_params)))
+    return _reduce(torch.zeros_like(theta) if d is None else d, seg, seg_count)
+
+
 def _make(model: BendingModel):
-    """The pair of Functions for one bending model."""
+    """The pair of Functions for one bending model (bodies in the module-level functions above)."""
 
     class _GradientImpl(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(gE, x, hinges, seg, a, *params):
-            V = x.shape[-2]
-            gx, gps = None, [[] for _ in params]
-            for sl in chunks(hinges.shape[0]):
-                h = hinges[sl]
-                p = [sliced(t, sl) for t in _params(params)]
-                theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h))
-                _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)
-                w = _chunk_weight(gE, seg, sl)  # (..., h) or (..., 1)
-                part = scatter_soa(_scale4(g4, w * pg[THETA]), h, V)
-                gx = part if gx is None else gx + part
-                for i, slot in enumerate(_PARAM_SLOTS[: len(params)]):
-                    gps[i].append(w * pg[slot])
-            return (gx,) + tuple(cat_or_none(g) for g in gps)
+            return _gradient_forward(model, gE, x, hinges, seg, a, params)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
-            gE, x, hinges, seg, a, *params = inputs
-            ctx.save_for_backward(gE, x, hinges, seg, a, *params)
-            ctx.save_for_forward(gE, x, hinges, seg, a, *params)
-
-        @staticmethod
-        def _second(ctx, t_gE, t_x, t_params):
-            """The Hessian of ``<gE, E>`` in ``(gE, x, params)`` applied to one direction.
-
-            Shared by ``backward`` (cotangents of the outputs: ``t_gE`` is ``None``) and ``jvp``
-            (tangents of the inputs).  Returns ``(dx, [d params], d gE per hinge)``."""
-            gE, x, hinges, seg, a, *params = ctx.saved_tensors
-            V = x.shape[-2]
-            n = len(params)
-            dx, dps, dgs = None, [[] for _ in range(n)], []
-            for sl in chunks(hinges.shape[0]):
-                h = hinges[sl]
-                p = [sliced(t, sl) for t in _params(params)]
-                v4 = None if t_x is None else gather_soa(t_x, h)
-                theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
-                _, pg, ph = psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=True)
-                w = _chunk_weight(gE, seg, sl)
-                u = None if v4 is None else _dot4(g4, v4)  # g . v  (..., h)
-                vec = _pvec(u, tuple(sliced(t, sl) for t in t_params))
-                z = contract_hessian(ph, vec)  # Hess_p(psi) vec
-                coef = None if z[THETA] is None else w * z[THETA]
-                tw = None if t_gE is None else _chunk_weight(t_gE, seg, sl)
-                if tw is not None:
-                    t = tw * pg[THETA]
-                    coef = t if coef is None else coef + t
-                dx4 = None
-                if hv4 is not None:
-                    dx4 = _scale4(hv4, w * pg[THETA])  # psi' H_theta v
-                    if coef is not None:
-                        dx4 = _axpy4(coef, g4, dx4)
-                elif coef is not None:
-                    dx4 = _scale4(g4, coef)
-                if dx4 is not None:
-                    part = scatter_soa(dx4, h, V)
-                    dx = part if dx is None else dx + part
-                for i, slot in enumerate(_PARAM_SLOTS[:n]):
-                    d = None if z[slot] is None else w * z[slot]
-                    if tw is not None:
-                        d = tw * pg[slot] if d is None else d + tw * pg[slot]
-                    if d is not None and d.shape[-1] != theta.shape[-1]:
-                        d = d.expand_as(theta)
-                    dps[i].append(d)
-                dgs.append(_dot_p(pg, vec))
-            return dx, [cat_or_none(d) for d in dps], cat_or_none(dgs)
+            ctx.save_for_backward(*inputs)
+            ctx.save_for_forward(*inputs)
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
             gE, seg = ctx.saved_tensors[0], ctx.saved_tensors[3]
-            dx, dps, dg = _GradientImpl._second(ctx, None, ggx, tuple(ggp))
+            dx, dps, dg = _second_order(model, ctx.saved_tensors, None, ggx, tuple(ggp))
             dgE = None
             if ctx.needs_input_grad[0] and dg is not None:
                 dgE = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
@@ -189,7 +232,7 @@ def _make(model: BendingModel):
         @staticmethod
         def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_a, *t_params):
             x, params = ctx.saved_tensors[1], ctx.saved_tensors[5:]
-            dx, dps, _ = _GradientImpl._second(ctx, t_gE, t_x, tuple(t_params))
+            dx, dps, _ = _second_order(model, ctx.saved_tensors, t_gE, t_x, tuple(t_params))
             # tangents must match the (possibly expanded) output shapes exactly
             dx = torch.zeros_like(x) if dx is None else dx
             dps = [torch.zeros_like(params[i]) if d is None else d for i, d in enumerate(dps)]
@@ -200,13 +243,7 @@ def _make(model: BendingModel):
 
         @staticmethod
         def forward(x, hinges, seg, seg_count, a, *params):
-            psis = []
-            for sl in chunks(hinges.shape[0]):
-                p = [sliced(t, sl) for t in _params(params)]
-                theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
-                _check_fold(model, theta)
-                psis.append(psi_derivatives(model, theta, p[0], p[1], a[sl], p[2], p[3], hessian=False)[0])
-            return _reduce(cat_or_none(psis), seg, seg_count)
+            return _energy_forward(model, x, hinges, seg, seg_count, a, params)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -226,20 +263,7 @@ def _make(model: BendingModel):
 
         @staticmethod
         def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_a, *t_params):
-            x, hinges, seg, a, *params = ctx.saved_tensors
-            p = _params(params)
-            xs = gather_soa(x, hinges)
-            u = None
-            if t_x is not None:
-                theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(xs)
-                u = _dot4(g4, gather_soa(t_x, hinges))
-            else:
-                theta = geometry.hinge_angle_soa(xs)
-            _, pg, _ = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=False)
-            d = _dot_p(pg, _pvec(u, tuple(t_params)))
-            if d is None:
-                d = torch.zeros_like(theta)
-            return _reduce(d, seg, ctx.seg_count)
+            return _energy_jvp(model, ctx.saved_tensors, ctx.seg_count, t_x, t_params)
 
     # named subclasses so that autograd nodes read e.g. "TanBendingGradientBackward"
     name = model.value.capitalize()
@@ -330,4 +354,5 @@ def bending_hvp_raw(
                                        sliced(prev, sl))
         part = scatter_soa(_axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1)), h, x.shape[-2])
         out = part if out is None else out + part
+    assert out is not None  # chunks() yields at least one slice
     return out

@@ -78,6 +78,13 @@ class BendingEnergy(nn.Module):
     dtype and device follow ``x``; module buffers are cast to ``x.dtype`` per call.
     """
 
+    hinges: Tensor  # (H, 4) int64 stencils
+    weights: Tensor  # (H,) rest weights a_h
+    stiffness: Tensor  # () or (H,) [N m]
+    rest_angles: Tensor  # (H,) [rad]
+    damping: Tensor | None  # () or (H,) [N m s]
+    segments: Tensor | None  # (H,) mesh of each hinge when packed
+
     def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan", stiffness=1.0,
                  rest_angles=None, damping=None, check_finite: bool = True, backend: str | Backend = "auto"):
         super().__init__()

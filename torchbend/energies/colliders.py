@@ -156,9 +156,12 @@ class Capsule(Collider):
 class _TensorCapsule(Capsule):
     """A :class:`Capsule` whose end points are tensors ``(3,)`` (possibly requiring grad)."""
 
+    ends: tuple[Tensor, Tensor]
+
     def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float):
         a, b = torch.as_tensor(a), torch.as_tensor(b)
-        super().__init__(a=a.detach().tolist(), b=b.detach().tolist(), radius=radius, stiffness=stiffness, margin=margin)
+        super().__init__(a=tuple(a.detach().tolist()), b=tuple(b.detach().tolist()), radius=radius, stiffness=stiffness,
+                         margin=margin)
         object.__setattr__(self, "ends", (a, b))
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:

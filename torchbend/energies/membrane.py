@@ -43,6 +43,12 @@ class MembraneEnergy(nn.Module):
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
     """
 
+    faces: Tensor  # (F, 3) int64
+    shape_matrices: Tensor  # (F, 3, 2): F = X D
+    rest_areas: Tensor  # (F,) [m^2]
+    mu: Tensor  # () [Pa]
+    lam: Tensor  # () [Pa]
+
     def __init__(self, faces, rest_positions: Tensor, *, model="stvk", young: float, poisson: float,
                  thickness: float, check_finite: bool = True, backend="auto"):
         super().__init__()

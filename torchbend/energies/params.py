@@ -125,7 +125,7 @@ class HingeParams:
     def damped(self) -> bool:
         return self.c is not None
 
-    def astuple(self) -> tuple:
+    def astuple(self) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
         """``(a, k, rest, c, prev)``."""
         return (self.a, self.k, self.rest, self.c, self.prev)
 
@@ -135,7 +135,8 @@ class HingeParams:
 
     def sliced(self, sl: slice) -> HingeParams:
         """The parameters of the hinges ``sl`` (scalars stay scalars)."""
-        return HingeParams(*(sliced(t, sl) for t in self.astuple()))
+        return HingeParams(self.a[sl], self.k if self.k.ndim == 0 else self.k[sl],
+                           self.rest if self.rest.ndim == 0 else self.rest[sl], sliced(self.c, sl), sliced(self.prev, sl))
 
     def expanded(self, batch: tuple) -> list[Tensor]:
         """``[k, rest(, c, prev)]`` as ``(*batch, H)`` views (the autograd Functions return gradients

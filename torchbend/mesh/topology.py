@@ -194,11 +194,12 @@ class HingeTopology:
 
         A dtype in the arguments is ignored: index tensors stay ``int64`` (as ``nn.Module.to`` casts
         only floating point tensors), so ``topo.to(torch.float32)`` is a copy."""
-        device = torch._C._nn._parse_to(*args, **kwargs)[0]
-        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        if device is not None:
-            fields = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in fields.items()}
-        return HingeTopology(**fields)
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]  # pyright: ignore[reportAttributeAccessIssue]
+        return dataclasses.replace(self, **{
+            f.name: getattr(self, f.name).to(device)
+            for f in dataclasses.fields(self)
+            if device is not None and isinstance(getattr(self, f.name), Tensor)
+        })
 
 
 def mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:

@@ -240,7 +240,9 @@ def hinge_angle_and_gradient(x4: Tensor) -> tuple[Tensor, Tensor]:
 
 def hinge_angle_hvp(x4: Tensor, v4: Tensor) -> Tensor:
     """``Hess(theta) v`` per hinge, ``(..., H, 4, 3)``, from the closed-form blocks (no 12x12 matrix)."""
-    return hinge_angle_gradient_hvp(x4, v4)[2]
+    hv = hinge_angle_gradient_hvp(x4, v4)[2]
+    assert hv is not None
+    return hv
 
 
 def hinge_angle_gradient_hvp(x4: Tensor, v4: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:

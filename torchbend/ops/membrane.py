@@ -50,6 +50,7 @@ import math
 import torch
 from torch import Tensor
 
+from .._checks import is_traced
 from ..options import Option
 
 __all__ = ["MembraneModel", "rest_shape_matrices", "deformation_gradient", "eigensystem", "energy_density",
@@ -246,7 +247,7 @@ def eigensystem(model: MembraneModel, F: Tensor, mu: Tensor, lam: Tensor):
 
 
 def check_collapsed(model: MembraneModel, F: Tensor) -> None:
-    if model is not MembraneModel.NEOHOOKEAN or torch._C._functorch.is_functorch_wrapped_tensor(F):
+    if model is not MembraneModel.NEOHOOKEAN or is_traced(F):
         return
     J = torch.linalg.cross(F[..., 0], F[..., 1], dim=-1).norm(dim=-1)
     bad = J.detach() <= 0

@@ -74,13 +74,14 @@ def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *
     what the position Hessians need)."""
     f, f1, f2 = phi(model, theta)
     r, r1, r2 = _phi_at_reference(model, rest, params)
+    two_a = 2.0 * a
     d1 = f - r
     kd = k * d1
     psi = a * kd * d1
     grad: list = [None] * 5
-    damped = c is not None
+    hess: dict = {}
     s, kc = kd, k
-    if damped:
+    if c is not None:  # viscous term
         p, p1, p2 = _phi_at_reference(model, prev, params)
         d2 = f - p
         cd = c * d2
@@ -89,24 +90,23 @@ def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *
         if params:
             grad[C] = a * d2 * d2
             grad[PREV] = -2.0 * a * cd * p1
+        if params and hessian:
+            hess[(THETA, C)] = two_a * d2 * f1
+            hess[(THETA, PREV)] = -two_a * c * f1 * p1
+            hess[(C, PREV)] = -two_a * d2 * p1
+            hess[(PREV, PREV)] = two_a * c * (p1 * p1 - d2 * p2)
     if params:
         grad[K] = a * d1 * d1
-        grad[REST] = -2.0 * a * kd * r1
-    two_a = 2.0 * a
+        grad[REST] = -two_a * kd * r1
     grad[THETA] = two_a * s * f1
     if not hessian:
         return psi, grad, None
-    hess = {(THETA, THETA): two_a * (kc * f1 * f1 + s * f2)}
+    hess[(THETA, THETA)] = two_a * (kc * f1 * f1 + s * f2)
     if params:
         hess[(THETA, K)] = two_a * d1 * f1
         hess[(THETA, REST)] = -two_a * k * f1 * r1
         hess[(K, REST)] = -two_a * d1 * r1
         hess[(REST, REST)] = two_a * k * (r1 * r1 - d1 * r2)
-        if damped:
-            hess[(THETA, C)] = two_a * d2 * f1
-            hess[(THETA, PREV)] = -two_a * c * f1 * p1
-            hess[(C, PREV)] = -two_a * d2 * p1
-            hess[(PREV, PREV)] = two_a * c * (p1 * p1 - d2 * p2)
     return psi, grad, hess
 
 
@@ -115,7 +115,7 @@ def contract_hessian(hess: dict, vec: list) -> list:
 
     ``vec`` entries may be ``None`` (zero).  Returns a list of 5 (``None`` where zero).
     """
-    z = [None] * 5
+    z: list = [None] * 5
     for (i, j), h in hess.items():
         for a, b in ((i, j), (j, i)) if i != j else ((i, j),):
             if vec[b] is None:
@@ -128,4 +128,5 @@ def contract_hessian(hess: dict, vec: list) -> list:
 def psi_theta_derivatives(model: BendingModel, theta, a, k, rest, c=None, prev=None) -> tuple[Tensor, Tensor]:
     """``(psi', psi'')`` in ``theta`` (the scalars of every position Hessian; see :func:`psi_derivatives`)."""
     _, grad, hess = psi_derivatives(model, theta, k, rest, a, c, prev, hessian=True, params=False)
+    assert hess is not None
     return grad[THETA], hess[(THETA, THETA)]

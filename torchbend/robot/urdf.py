@@ -49,6 +49,39 @@ def _names(elements, kind: str, where: str) -> list:
     return names
 
 
+def _check_joint(joint, name: str, links: list, where: str) -> str:
+    """Checks of one ``<joint>``: type, declared parent/child links, 3-number origin and axis; returns the child link."""
+    jtype = joint.get("type")
+    if jtype not in _JOINT_TYPES:
+        raise ValueError(f"malformed URDF ({where}): joint {name!r} has type {jtype!r}; supported: "
+                         f"{sorted(_JOINT_TYPES)}")
+    named = {}
+    for tag in ("parent", "child"):
+        el = joint.find(tag)
+        link = None if el is None else el.get("link")
+        if link is None:
+            raise ValueError(f"malformed URDF ({where}): joint {name!r} has no <{tag} link=...>")
+        if link not in links:
+            raise ValueError(f"malformed URDF ({where}): joint {name!r} names {tag} link {link!r}, "
+                             f"which is not declared")
+        named[tag] = link
+    for tag, attrs in (("origin", ("xyz", "rpy")), ("axis", ("xyz",))):
+        el = joint.find(tag)
+        for attr in attrs:
+            value = None if el is None else el.get(attr)
+            if value is not None and not _three_numbers(value):
+                raise ValueError(f"malformed URDF ({where}): joint {name!r} <{tag} {attr}={value!r}> "
+                                 f"must be three numbers")
+    return named["child"]
+
+
+def _three_numbers(value: str) -> bool:
+    try:
+        return len([float(v) for v in value.split()]) == 3
+    except ValueError:
+        return False
+
+
 def _validate_urdf(text: str, where: str) -> None:
     """Structural checks with messages naming the bad element (pytorch-kinematics fails obscurely)."""
     try:
@@ -63,36 +96,11 @@ def _validate_urdf(text: str, where: str) -> None:
         raise ValueError(f"malformed URDF ({where}): no <joint> elements (a robot needs at least one)")
     children: dict[str, str] = {}
     for name, joint in zip(_names(joints, "joint", where), joints):
-        jtype = joint.get("type")
-        if jtype not in _JOINT_TYPES:
-            raise ValueError(f"malformed URDF ({where}): joint {name!r} has type {jtype!r}; supported: "
-                             f"{sorted(_JOINT_TYPES)}")
-        for tag in ("parent", "child"):
-            el = joint.find(tag)
-            link = None if el is None else el.get("link")
-            if link is None:
-                raise ValueError(f"malformed URDF ({where}): joint {name!r} has no <{tag} link=...>")
-            if link not in links:
-                raise ValueError(f"malformed URDF ({where}): joint {name!r} names {tag} link {link!r}, "
-                                 f"which is not declared")
-        child = joint.find("child").get("link")
+        child = _check_joint(joint, name, links, where)
         if child in children:
             raise ValueError(f"malformed URDF ({where}): link {child!r} is the child of two joints "
                              f"({children[child]!r} and {name!r})")
         children[child] = name
-        for tag in ("origin", "axis"):
-            el = joint.find(tag)
-            for attr in ("xyz", "rpy") if tag == "origin" else ("xyz",):
-                value = None if el is None else el.get(attr)
-                if value is None:
-                    continue
-                try:
-                    ok = len([float(v) for v in value.split()]) == 3
-                except ValueError:
-                    ok = False
-                if not ok:
-                    raise ValueError(f"malformed URDF ({where}): joint {name!r} <{tag} {attr}={value!r}> "
-                                     f"must be three numbers")
     roots = [link for link in links if link not in children]
     if len(roots) != 1:
         raise ValueError(f"malformed URDF ({where}): expected one root link (a tree), found {roots}")
