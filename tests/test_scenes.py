@@ -62,3 +62,26 @@ def test_random_sheet_is_deterministic_and_dtype_follows():
 def test_bad_scene_arguments(call):
     with pytest.raises(ValueError):
         call()
+
+
+def test_static_beam_kirchhoff_reference_follows_configured_gravity(tmp_path):
+    """The beams scene compares the tip deflection with Kirchhoff's q L^4 / (8 D): q must use the
+    configured gravity (not 9.81), so in the linear regime the ratio does not depend on g."""
+    from torchbend.scenes.run import run_config
+
+    def run(g, name):
+        cfg = {
+            "scene": {"kind": "static"},
+            "mesh": {"type": "grid", "nx": 13, "ny": 3, "size": [0.3, 0.025], "pin": "first_two_columns"},
+            "material": {"volumetric_density": 1000.0, "young": 5.0e7, "poisson": 0.3, "thicknesses": [5.0e-3]},
+            "bending": {"model": "quadratic", "from_material": True},
+            "membrane": {"model": "stvk"},
+            "gravity": [0.0, 0.0, -g],
+            "solver": {"tol": 1e-9, "max_iters": 50},
+        }
+        return run_config(cfg, str(tmp_path / name), progress=False)["steps"][0]
+
+    earth, moon = run(9.81, "earth"), run(1.62, "moon")
+    assert moon["kirchhoff_tip"] == pytest.approx(earth["kirchhoff_tip"] * 1.62 / 9.81, rel=1e-12)
+    assert moon["tip_deflection"] == pytest.approx(earth["tip_deflection"] * 1.62 / 9.81, rel=2e-2)
+    assert moon["ratio"] == pytest.approx(earth["ratio"], rel=2e-2)

@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -66,6 +68,23 @@ def test_to_device_copies_fields():
     _, F = tb.scenes.grid(3, 3)
     topo = HingeTopology.from_faces(F).to("cpu")
     assert topo.hinges.device.type == "cpu" and topo.vertex_count == 9
+
+
+def test_to_after_hessian_keeps_index_dtype_and_is_an_immutable_value():
+    """Nothing is cached on the topology (the CSR pattern lives on the energy), so .to() works after a
+    Hessian was built; a dtype argument leaves the int64 index tensors alone (as nn.Module.to)."""
+    rest, F = tb.scenes.random_curved_sheet(4, 4, dtype=torch.float64)
+    bend = tb.BendingEnergy(F, rest, model="quadratic")
+    bend.hessian(rest + 0.01)
+    topo = bend.topology
+    for args in ((torch.float32,), ("cpu",), ("cpu", torch.float64), ()):
+        moved = topo.to(*args)
+        assert moved is not topo and moved.vertex_count == topo.vertex_count
+        assert moved.hinges.dtype == torch.int64 and torch.equal(moved.hinges, topo.hinges)
+        assert torch.equal(moved.face_edge_signs, topo.face_edge_signs)
+    assert set(vars(topo)) == {f.name for f in dataclasses.fields(HingeTopology)}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        topo.vertex_count = 3  # type: ignore[misc]
 
 
 @pytest.mark.parametrize(
