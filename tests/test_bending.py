@@ -107,40 +107,36 @@ def test_finite_difference_epsilon_sweep(sheet, model, damped):
         assert errs[2] < errs[1] / 50, errs
 
 
+def _check_first_and_second_derivatives(bend, args, forward_ad=False):
+    """gradcheck and gradgradcheck of the raw energy in (x, k, rest[, c, prev]); optionally forward mode."""
+
+    def f(x, *params):
+        return bending_energy_raw(x, bend.hinges, bend.weights, *params, model=bend.model)
+
+    assert torch.autograd.gradcheck(f, args)
+    assert torch.autograd.gradgradcheck(f, args)
+    if forward_ad:
+        assert torch.autograd.gradcheck(f, args, check_forward_ad=True, check_backward_ad=False,
+                                        check_batched_grad=False, check_undefined_grad=False)
+
+
+@pytest.mark.parametrize("damped", [False, True], ids=["elastic", "viscous"])
 @pytest.mark.parametrize("model", MODELS)
-def test_gradcheck_gradgradcheck_positions_stiffness_rest(model):
-    rest, faces = tb.scenes.random_curved_sheet(3, 3, amplitude=0.4, seed=1, dtype=F64)
+def test_gradcheck_gradgradcheck_positions_stiffness_rest(model, damped):
+    """In x, stiffness and rest angles (forward mode too), and with the viscous term in c and theta_prev."""
+    rest, faces = tb.scenes.random_curved_sheet(3, 3, amplitude=0.4, seed=2 if damped else 1, dtype=F64)
     bend = BendingEnergy(faces, rest, model=model)
     H = bend.hinge_count
     x = (rest + 0.05 * torch.randn_like(rest)).requires_grad_()
     k = (0.5 + torch.rand(H, dtype=F64)).requires_grad_()
-    r = (bend.rest_angles + 0.1 * torch.randn(H, dtype=F64)).requires_grad_()
-
-    def f(x, k, r):
-        return bending_energy_raw(x, bend.hinges, bend.weights, k, r, model=bend.model)
-
-    assert torch.autograd.gradcheck(f, (x, k, r))
-    assert torch.autograd.gradgradcheck(f, (x, k, r))
-    assert torch.autograd.gradcheck(f, (x, k, r), check_forward_ad=True, check_backward_ad=False,
-                                    check_batched_grad=False, check_undefined_grad=False)
-
-
-@pytest.mark.parametrize("model", MODELS)
-def test_gradcheck_gradgradcheck_viscous_term(model):
-    rest, faces = tb.scenes.random_curved_sheet(3, 3, amplitude=0.4, seed=2, dtype=F64)
-    bend = BendingEnergy(faces, rest, model=model)
-    H = bend.hinge_count
-    x = (rest + 0.05 * torch.randn_like(rest)).requires_grad_()
-    k = (0.5 + torch.rand(H, dtype=F64)).requires_grad_()
+    if not damped:
+        r = (bend.rest_angles + 0.1 * torch.randn(H, dtype=F64)).requires_grad_()
+        _check_first_and_second_derivatives(bend, (x, k, r), forward_ad=True)
+        return
     r = bend.rest_angles.clone().requires_grad_()
     c = (0.5 + torch.rand(H, dtype=F64)).requires_grad_()
     p = (bend.rest_angles + 0.1 * torch.randn(H, dtype=F64)).requires_grad_()
-
-    def f(x, k, r, c, p):
-        return bending_energy_raw(x, bend.hinges, bend.weights, k, r, c, p, model=bend.model)
-
-    assert torch.autograd.gradcheck(f, (x, k, r, c, p))
-    assert torch.autograd.gradgradcheck(f, (x, k, r, c, p))
+    _check_first_and_second_derivatives(bend, (x, k, r, c, p))
 
 
 def test_gradients_flow_to_stiffness_and_rest_angles(sheet):

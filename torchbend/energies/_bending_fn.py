@@ -290,19 +290,9 @@ def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> li
     return HingeParams(a, k, rest, c, prev).expanded(x.shape[:-2])
 
 
-def bending_energy_raw(
-    x: Tensor,
-    hinges: Tensor,
-    a: Tensor,
-    k: Tensor,
-    rest: Tensor,
-    c: Tensor | None = None,
-    prev: Tensor | None = None,
-    *,
-    model: BendingModel = BendingModel.TAN,
-    seg: Tensor | None = None,
-    seg_count: int = 0,
-) -> Tensor:
+def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
+                       prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN, seg: Tensor | None = None,
+                       seg_count: int = 0) -> Tensor:
     """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
 
     ``x: (..., V, 3)``; ``hinges: (H, 4)`` int64; ``a: (H,)``; ``k``, ``rest``, ``c``, ``prev``
@@ -313,35 +303,16 @@ def bending_energy_raw(
     return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
 
 
-def bending_gradient_raw(
-    x: Tensor,
-    hinges: Tensor,
-    a: Tensor,
-    k: Tensor,
-    rest: Tensor,
-    c: Tensor | None = None,
-    prev: Tensor | None = None,
-    *,
-    model: BendingModel = BendingModel.TAN,
-) -> Tensor:
+def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
+                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
     params = _expand_params(x, a, k, rest, c, prev)
     ones = x.new_ones(x.shape[:-2])
     return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
 
 
-def bending_hvp_raw(
-    x: Tensor,
-    v: Tensor,
-    hinges: Tensor,
-    a: Tensor,
-    k: Tensor,
-    rest: Tensor,
-    c: Tensor | None = None,
-    prev: Tensor | None = None,
-    *,
-    model: BendingModel = BendingModel.TAN,
-) -> Tensor:
+def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
+                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""

@@ -31,6 +31,12 @@ class Collider:
     stiffness: float
     margin: float
 
+    def _check_penalty(self) -> None:
+        """Validate (and store as floats) the penalty ``stiffness`` (> 0) and ``margin`` (>= 0)."""
+        name = type(self).__name__
+        object.__setattr__(self, "stiffness", positive(self.stiffness, f"{name}.stiffness"))
+        object.__setattr__(self, "margin", nonnegative(self.margin, f"{name}.margin"))
+
     def _sd(self, x: Tensor):  # pragma: no cover - abstract
         """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
         raise NotImplementedError
@@ -83,8 +89,7 @@ class Sphere(Collider):
     def __post_init__(self):
         object.__setattr__(self, "center", vec3(self.center, "Sphere.center"))
         object.__setattr__(self, "radius", positive(self.radius, "Sphere.radius"))
-        object.__setattr__(self, "stiffness", positive(self.stiffness, "Sphere.stiffness"))
-        object.__setattr__(self, "margin", nonnegative(self.margin, "Sphere.margin"))
+        self._check_penalty()
 
     def _sd(self, x: Tensor):
         return _radial(x - x.new_tensor(self.center), self.radius)
@@ -106,8 +111,7 @@ class Plane(Collider):
         if norm == 0:
             raise ValueError("Plane.normal must be non-zero")
         object.__setattr__(self, "normal", tuple(v / norm for v in n))
-        object.__setattr__(self, "stiffness", positive(self.stiffness, "Plane.stiffness"))
-        object.__setattr__(self, "margin", nonnegative(self.margin, "Plane.margin"))
+        self._check_penalty()
 
     def _sd(self, x: Tensor):
         n = x.new_tensor(self.normal)
@@ -133,8 +137,7 @@ class Capsule(Collider):
         if length == 0:
             raise ValueError("Capsule.a and Capsule.b must differ (use a Sphere for a point)")
         object.__setattr__(self, "radius", positive(self.radius, "Capsule.radius"))
-        object.__setattr__(self, "stiffness", positive(self.stiffness, "Capsule.stiffness"))
-        object.__setattr__(self, "margin", nonnegative(self.margin, "Capsule.margin"))
+        self._check_penalty()
 
     def transformed(self, a, b) -> Capsule:
         """The same capsule with new end points ``a``, ``b`` [m] (e.g. attached to a moving link).

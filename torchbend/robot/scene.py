@@ -84,21 +84,21 @@ class LinkPins:
         return _apply(T, self.local)
 
 
-@dataclass(frozen=True)
 class LinkCapsule:
-    """A capsule fixed in the frame of ``link``: end points ``a``, ``b`` [m] in link coordinates."""
+    """A capsule fixed in the frame of ``link``: end points ``a``, ``b`` [m] in link coordinates; the
+    other arguments (validated) are those of :class:`~torchbend.Capsule`."""
 
-    link: str
-    a: tuple = (0.0, 0.0, 0.0)
-    b: tuple = (0.1, 0.0, 0.0)
-    radius: float = 0.02
-    stiffness: float = 1e4
-    margin: float = 0.0
+    def __init__(self, link: str, a=(0.0, 0.0, 0.0), b=(0.1, 0.0, 0.0), radius: float = 0.02, stiffness: float = 1e4,
+                 margin: float = 0.0):
+        self.link = str(link)
+        self.local = Capsule(a=a, b=b, radius=radius, stiffness=stiffness, margin=margin)  # in link coordinates
 
-    def __post_init__(self):
-        c = Capsule(a=self.a, b=self.b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
-        for k in ("a", "b", "radius", "stiffness", "margin"):
-            object.__setattr__(self, k, getattr(c, k))
+    a = property(lambda self: self.local.a)
+    b = property(lambda self: self.local.b)
+    radius = property(lambda self: self.local.radius)
+
+    def __repr__(self) -> str:
+        return f"LinkCapsule({self.link!r}, {self.local!r})"
 
     def endpoints(self, robot: Robot, q) -> Tensor:
         """World end points ``(..., 2, 3)`` [m] for joints ``q (..., J)``."""
@@ -110,8 +110,7 @@ class LinkCapsule:
         ends = self.endpoints(robot, q)
         if ends.ndim != 2:
             raise ValueError("LinkCapsule.collider takes one joint vector (J,), not a batch")
-        return Capsule(a=self.a, b=self.b, radius=self.radius, stiffness=self.stiffness, margin=self.margin).transformed(
-            ends[0], ends[1])
+        return self.local.transformed(ends[0], ends[1])
 
 
 class RobotScene:
