@@ -3,6 +3,7 @@ import pytest
 import torch
 
 import torchbend as tb
+from torchbend.testing import plain_bending_energy
 
 MODELS = ["quadratic", "tan", "sin"]
 
@@ -24,3 +25,13 @@ def sheet():
 def rel(a: torch.Tensor, b: torch.Tensor) -> float:
     a, b = a.detach(), b.detach()
     return float((a - b).norm() / b.norm())
+
+
+def reference_hessian(bend: tb.BendingEnergy, x: torch.Tensor) -> torch.Tensor:
+    """``(3V, 3V)`` torch.func Hessian of the plain autograd energy with ``bend``'s parameters."""
+    n = x.numel()
+
+    def energy(y):
+        return plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, bend.model)
+
+    return torch.func.hessian(energy)(x).reshape(n, n)

@@ -25,11 +25,13 @@ from ..options import Projection
 __all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 
 
+@dataclass(frozen=True, kw_only=True)
 class Collider:
-    """Base of the rigid colliders: a signed distance and the one-sided penalty on it."""
+    """Base of the rigid colliders: a signed distance and the one-sided penalty on it, with
+    ``stiffness`` [N/m] (> 0) and ``margin`` [m] (>= 0) as keyword arguments of every collider."""
 
-    stiffness: float
-    margin: float
+    stiffness: float = 1e4
+    margin: float = 0.0
 
     def _check_penalty(self) -> None:
         """Validate (and store as floats) the penalty ``stiffness`` (> 0) and ``margin`` (>= 0)."""
@@ -83,9 +85,6 @@ class Sphere(Collider):
 
     center: tuple = (0.0, 0.0, 0.0)
     radius: float = 1.0
-    stiffness: float = 1e4
-    margin: float = 0.0
-
     def __post_init__(self):
         object.__setattr__(self, "center", vec3(self.center, "Sphere.center"))
         object.__setattr__(self, "radius", positive(self.radius, "Sphere.radius"))
@@ -101,9 +100,6 @@ class Plane(Collider):
 
     point: tuple = (0.0, 0.0, 0.0)
     normal: tuple = (0.0, 0.0, 1.0)
-    stiffness: float = 1e4
-    margin: float = 0.0
-
     def __post_init__(self):
         object.__setattr__(self, "point", vec3(self.point, "Plane.point"))
         n = vec3(self.normal, "Plane.normal")
@@ -126,9 +122,6 @@ class Capsule(Collider):
     a: tuple = (0.0, 0.0, 0.0)
     b: tuple = (1.0, 0.0, 0.0)
     radius: float = 0.1
-    stiffness: float = 1e4
-    margin: float = 0.0
-
     def __post_init__(self):
         a, b = vec3(self.a, "Capsule.a"), vec3(self.b, "Capsule.b")
         object.__setattr__(self, "a", a)

@@ -18,14 +18,14 @@ Units: metres, radians (prismatic joints: metres).  Bad input raises ``ValueErro
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..energies.colliders import Capsule
 from ..sim.adjoint import solve_static_adjoint
-from ..sim.newton import ClothModel, ClothState, SolveInfo, implicit_euler_step
+from ..sim.model import ClothModel, ClothState
+from ..sim.newton import SolveInfo, implicit_euler_step
 from .urdf import Robot
 
 __all__ = ["LinkPins", "LinkCapsule", "RobotScene", "trajectory"]
