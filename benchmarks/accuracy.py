@@ -10,21 +10,19 @@ and adversarial hinges (flat, near pi, slivers, curved rest).
 """
 from __future__ import annotations
 
+import functools
 import math
-import os
-import sys
 
 import numpy as np
 import torch
 
 try:
     import mpmath as mp
-except ImportError:  # pragma: no cover
-    mp = None
+except ImportError as e:  # pragma: no cover
+    raise SystemExit("benchmarks/accuracy.py needs mpmath: pip install mpmath (or the 'bench' extra)") from e
 
-sys.path.insert(0, os.path.dirname(__file__))
-import torchbend as tb  # noqa: E402
-from torchbend.testing import plain_bending_energy  # noqa: E402
+import torchbend as tb
+from torchbend.testing import plain_bending_energy
 
 N = 12
 
@@ -117,7 +115,7 @@ def reference(x4: np.ndarray, a: float, k: float, rest: float, model: str):
         p = [X[3 * j : 3 * j + 3] for j in range(4)]
 
         def sub(u, v):
-            return [ui - vi for ui, vi in zip(u, v)]
+            return [ui - vi for ui, vi in zip(u, v, strict=True)]
 
         def cross(u, v):
             return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
@@ -139,23 +137,23 @@ def hinge_cases(n_random: int = 40, seed: int = 0):
     """Random and adversarial hinges: ``[(name, x4 (4, 3) float64, rest angle)]``."""
     rng = np.random.default_rng(seed)
     cases = []
-    for i in range(n_random):
+    for _ in range(n_random):
         x4 = rng.normal(size=(4, 3))
         cases.append(("random", x4, float(rng.uniform(-1, 1))))
     base = np.array([[0.0, 0, 0], [1, 0, 0], [0.4, 0.9, 0], [0.6, -0.8, 0]])
-    for i in range(10):
+    for _ in range(10):
         x4 = base + 1e-3 * rng.normal(size=(4, 3)) * np.array([1, 1, 0])  # exactly flat
         cases.append(("flat", x4, 0.3))
-    for i in range(10):
+    for _ in range(10):
         th = math.pi - 10.0 ** -rng.uniform(2, 5)
         x3 = np.array([0.6, -0.8 * math.cos(th), -0.8 * math.sin(th)])
         cases.append(("near_pi", np.array([base[0], base[1], base[2], x3]), 0.5))
-    for i in range(10):
+    for _ in range(10):
         x4 = base.copy()
         x4[2, 1] = 10.0 ** -rng.uniform(3, 6)  # sliver triangle A
         x4[3, 2] = 0.3 * rng.normal()
         cases.append(("sliver", x4, 0.0))
-    for i in range(10):
+    for _ in range(10):
         x4 = rng.normal(size=(4, 3))
         cases.append(("curved_rest", x4, float(rng.uniform(-2.5, 2.5))))
     return cases
@@ -177,8 +175,9 @@ def errors(model: str = "tan", n_random: int = 40):
             a_d, k_d, rest_d = (float(torch.tensor(v, dtype=dtype)) for v in (a, k, rest))
             E_r, g_r, H_r = reference(x.double().numpy(), a_d, k_d, rest_d, model)
             faces = torch.tensor([[0, 1, 2], [1, 0, 3]])
+            # the eager closed forms (the compiled kernels are checked against them in tests/test_native.py)
             bend = tb.BendingEnergy(faces, x.detach().clone(), model=model, stiffness=k_d, rest_angles=rest_d,
-                                    check_finite=False)
+                                    check_finite=False, backend="eager")
             bend.weights = torch.tensor([a_d], dtype=dtype)
             E = float(bend(x))
             g = bend.gradient(x).reshape(-1).double().numpy()
@@ -186,13 +185,12 @@ def errors(model: str = "tan", n_random: int = 40):
             aw = torch.tensor([a_d], dtype=dtype)
             rr = torch.tensor([rest_d], dtype=dtype)
 
-            def plain(y):
-                return plain_bending_energy(y, hinges, aw, k_d, rr, model)
+            plain = functools.partial(plain_bending_energy, hinges=hinges, a=aw, k=k_d, rest=rr, model=model)
 
             y = x.clone().requires_grad_()
             Ep = plain(y)
             (gp,) = torch.autograd.grad(Ep, y)
-            Hp = torch.autograd.functional.hessian(plain, x).reshape(12, 12).double().numpy()
+            Hp = torch.func.hessian(plain)(x).reshape(12, 12).double().numpy()
             for method, (Ev, gv, Hv) in {"torchbend": (E, g, Hb),
                                         "autograd": (float(Ep.detach()), gp.reshape(-1).double().numpy(), Hp)}.items():
                 for q, (val, ref) in {"energy": (np.array([Ev]), np.array([E_r])), "gradient": (gv, g_r),
@@ -204,9 +202,6 @@ def errors(model: str = "tan", n_random: int = 40):
 
 
 def main() -> None:
-    if mp is None:
-        print("mpmath is not installed: pip install mpmath")
-        return
     for model in ("tan", "quadratic"):
         errs, names = errors(model)
         print(f"\nmodel {model}: normwise relative error in ulps over {len(names)} hinges (median / 90% / max)")

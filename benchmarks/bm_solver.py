@@ -12,17 +12,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import torch
+from common import machine
 
-sys.path.insert(0, os.path.dirname(__file__))
-from common import machine  # noqa: E402
-
-from torchbend import ClothState, implicit_euler_step  # noqa: E402
+from torchbend import ClothState, implicit_euler_step
 from torchbend.scenes.config import build_scene, load_config
-from torchbend.scenes.run import run_config  # noqa: E402
+from torchbend.scenes.run import run_config
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
 
@@ -46,7 +43,7 @@ def drape(n: int, hessian: str, steps: int) -> str:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--drape", type=int, nargs="*", default=[11, 21, 41])
     p.add_argument("--steps", type=int, default=120)
     p.add_argument("--hessians", nargs="+", default=["exact", "clamp", "abs", "gauss_newton"])

@@ -4,7 +4,9 @@
 
 Operations (one mesh, random curved sheet, tan model): ``energy``, ``gradient``, ``hvp``,
 ``hinge_hessians`` (12x12 blocks) and ``assembly`` (sparse CSR).  Methods:
-``torchbend`` (closed forms), ``autograd`` (eager PyTorch of the plain atan2 energy: backward and
+``torchbend`` (closed forms, eager PyTorch: ``backend="eager"``, the path whose numbers
+BENCHMARKS.md records; the compiled kernels that ``"auto"`` picks for ``hinge_hessians`` and
+``assembly`` are measured by ``benchmarks/bm_hessian.py``), ``autograd`` (eager PyTorch of the plain atan2 energy: backward and
 double backward), ``torch.func`` (``grad``, ``jvp(grad)``, ``vmap(hessian)``), ``jax`` (``jit`` of
 the same plain energy; optional, skipped when JAX is missing).  Reported as ns per hinge (median).
 """
@@ -15,13 +17,11 @@ import os
 import sys
 
 import torch
+from common import machine, sheet_for_hinges, timeit
 
-sys.path.insert(0, os.path.dirname(__file__))
-from common import machine, sheet_for_hinges, timeit  # noqa: E402
-
-import torchbend as tb  # noqa: E402
-from torchbend.energies.sparse import HessianPattern  # noqa: E402
-from torchbend.testing import plain_bending_energy  # noqa: E402
+import torchbend as tb
+from torchbend.energies.sparse import HessianPattern
+from torchbend.testing import plain_bending_energy
 
 OPS = ["energy", "gradient", "hvp", "hinge_hessians", "assembly"]
 
@@ -125,12 +125,11 @@ def run(sizes, dtypes, repeat: int, with_jax: bool = True, log=print):
         for target in sizes:
             n = sheet_for_hinges(target)
             rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=dtype)
-            bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-3, check_finite=False)
+            bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-3, check_finite=False, backend="eager")
             gen = torch.Generator().manual_seed(0)
             x = rest + (0.1 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
             v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
             H = bend.hinge_count
-            HessianPattern(bend.topology)
             ms = methods(bend, x, v)
             r = repeat if H <= 200_000 else 1
             for method in list(ms) + (["jax"] if with_jax else []):
@@ -151,7 +150,7 @@ def run(sizes, dtypes, repeat: int, with_jax: bool = True, log=print):
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     p.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     p.add_argument("--repeat", type=int, default=3)

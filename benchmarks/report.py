@@ -12,16 +12,13 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import os
-import sys
 
+import bm_throughput
 import numpy as np
 import torch
-
-sys.path.insert(0, os.path.dirname(__file__))
-import accuracy  # noqa: E402
-import bm_throughput  # noqa: E402
-from common import machine  # noqa: E402
+from common import machine
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLOTS = os.path.join(ROOT, "benchmarks", "plots")
@@ -72,9 +69,10 @@ def plot_throughput(rows, dtype, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     fig, axes = plt.subplots(1, len(bm_throughput.OPS), figsize=(4 * len(bm_throughput.OPS), 3.4), sharey=False)
-    for ax, op in zip(axes, bm_throughput.OPS):
+    for ax, op in zip(axes, bm_throughput.OPS, strict=True):
         for m in METHODS:
             pts = sorted((h, v) for (mm, o, d, h), v in rows.items() if mm == m and o == op and d == dtype)
             if pts:
@@ -83,7 +81,7 @@ def plot_throughput(rows, dtype, path):
         ax.set_xlabel("hinges")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("ns per hinge")
-    handles = [plt.Line2D([], [], color=COLORS[m], marker="o", label=m) for m in METHODS]
+    handles = [Line2D([], [], color=COLORS[m], marker="o", label=m) for m in METHODS]
     axes[-1].legend(handles=handles, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -97,7 +95,7 @@ def plot_accuracy(errs, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
-    for ax, q in zip(axes, ["energy", "gradient", "hessian"]):
+    for ax, q in zip(axes, ["energy", "gradient", "hessian"], strict=True):
         for (m, d, qq), v in sorted(errs.items()):
             if qq != q or d != "float64":
                 continue
@@ -138,12 +136,14 @@ def why_text(rows, errs_all) -> list:
         "one pass over memory per elementwise operation (a few hundred per hinge for the HVP); the closed",
         "forms save operations and autograd bookkeeping, not passes, so on 2 CPU cores both torchbend and",
         "autograd are memory-bound and the ratios stay small. The kernels process hinges in cache-sized",
-        "chunks (`torchbend.autograd.CHUNK`), which keeps their cost per hinge nearly flat.",
+        "chunks (`torchbend.ops.stencil.CHUNK`), which keeps their cost per hinge nearly flat.",
         f"At {big:,} hinges (float64) `jax.jit`, which fuses the whole per-hinge computation into one loop, is "
         f"faster than torchbend for: {', '.join(faster_jax) or 'none'}; torchbend is faster for: {', '.join(slower_jax) or 'none'}.",
         "Reaching 10x/50x needs the same fusion for torchbend: compiling the pure per-hinge kernels",
-        "(`torchbend/geometry.py`, structure-of-arrays, written for it) with `torch.compile` or a C++/CUDA/Triton",
-        "kernel; a quick `torch.compile` of the HVP measured about 4.5x over eager on this machine.",
+        "(`torchbend/ops/hinge.py`, structure-of-arrays, written for it). The compiled C++ kernels",
+        "(`torchbend/csrc`, the default `backend=\"auto\"` on the CPU) do this for the per-hinge Hessians and",
+        "the sparse assembly; the `torchbend` rows here are the eager path (`backend=\"eager\"`), the compiled",
+        "one is measured by `benchmarks/bm_hessian.py`.",
     ]
     if errs_all:
         out += [
@@ -156,7 +156,7 @@ def why_text(rows, errs_all) -> list:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--quick", action="store_true", help="sizes 1e3..1e5 only, fewer solver steps")
     p.add_argument("--no-jax", action="store_true")
     p.add_argument("--out", default=os.path.join(ROOT, "BENCHMARKS.md"))
@@ -188,7 +188,9 @@ def main(argv=None) -> None:
         plot_throughput(rows, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
     acc_lines = []
     errs_all = {}
-    if accuracy.mp is not None:
+    if importlib.util.find_spec("mpmath") is not None:
+        import accuracy
+
         for model in ("tan", "quadratic"):
             errs, names = accuracy.errors(model)
             names = np.array(names)
@@ -210,8 +212,8 @@ def main(argv=None) -> None:
     big = max(h for (_, _, d, h) in rows if d == "float64" and h <= 1_000_000)
     h5 = min((h for (_, _, d, h) in rows if d == "float64" and h >= 100000), default=big)
 
-    def r(m, op, h=h5, dt="float64"):
-        return rows.get((m, op, dt, h))
+    def r(m, op, h=h5, dt="float64") -> float:
+        return rows[(m, op, dt, h)]
 
     targets = []
     hvp_ratio = r("autograd", "hvp") / r("torchbend", "hvp")

@@ -1,12 +1,12 @@
 """Demo: bending energy, gradient and Hessian-vector product on a curved sheet, against autograd.
 
-    python -m torchbend.demo                # small embedded default (about 30k hinges, float64)
-    python -m torchbend.demo --n 185 --dtype float32 --model quadratic
+    python examples/demo.py                 # small embedded default (about 30k hinges, float64)
+    python examples/demo.py --n 185 --dtype float32 --model quadratic
 
 Builds a random curved sheet (its own rest shape), deforms it (a smooth wave plus noise), and evaluates the energy, the
 gradient and the HVP three ways: torchbend's closed forms (``bend.gradient``/``bend.hvp`` and the
 double backward through the custom Function) and plain autograd of the SPEC's atan2 energy
-(:mod:`torchbend.reference`).  Prints relative errors and median wall-clock times side by side.
+(:mod:`torchbend.testing`).  Prints relative errors and median wall-clock times side by side.
 """
 from __future__ import annotations
 
@@ -95,7 +95,7 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--n", type=int, default=100, help="vertices per side of the sheet (default 100)")
     p.add_argument("--model", default="tan", choices=["quadratic", "tan", "sin"])
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])

@@ -1,20 +1,46 @@
 """Training scripts: loss decreases, logs/checkpoints/resume, residual-loss gradient, material id, DDP."""
+import importlib.util
 import json
 import math
 import os
 import subprocess
 import sys
+from types import ModuleType
 
 import pytest
 import torch
 import yaml
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "train"))
 
-import drape_net  # noqa: E402
-import material_id  # noqa: E402
-from common import ClothPhysics, load_config  # noqa: E402
+
+def load_script(name: str) -> ModuleType:
+    """Import ``train/<name>.py`` from its path, without touching ``sys.path``.
+
+    The scripts import their siblings by plain name (``import common``, as ``python train/X.py``
+    allows), so each is registered in ``sys.modules`` under that name; load a script's siblings
+    before it (``common`` first, ``drape_net`` before ``robot_drape``)."""
+    path = os.path.join(ROOT, "train", f"{name}.py")
+    loaded = sys.modules.get(name)
+    if loaded is not None and getattr(loaded, "__file__", None) == path:
+        return loaded
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    return module
+
+
+common = load_script("common")
+drape_net = load_script("drape_net")
+material_id = load_script("material_id")
+robot_drape = load_script("robot_drape")
+ClothPhysics, load_config = common.ClothPhysics, common.load_config
 
 TINY = {
     "cloth": {"resolution": 5, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"]},
@@ -72,11 +98,11 @@ def test_residual_loss_gradient_matches_finite_differences(tiny):
     L = loss()
     grads = torch.autograd.grad(L, params)
     direction = [torch.randn_like(p) for p in params]
-    analytic = sum((g * d).sum() for g, d in zip(grads, direction)).item()
+    analytic = torch.stack([(g * d).sum() for g, d in zip(grads, direction, strict=True)]).sum().item()
     errs = []
     def shift(scale):
         with torch.no_grad():
-            for p, d in zip(params, direction):
+            for p, d in zip(params, direction, strict=True):
                 p.add_(scale * d)
 
     for eps in (1e-4, 1e-5, 1e-6):
@@ -148,8 +174,6 @@ def test_ddp_two_processes_keep_parameters_identical(tiny, tmp_path):
 
 
 def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
-    import robot_drape
-
     cfg = {"cloth": {"resolution": 5}, "model": {"hidden": 16, "layers": 2},
            "train": {"steps": 20, "batch": 4, "lr": 3e-3, "log_every": 5, "checkpoint_every": 10}}
     path = tmp_path / "robot.yaml"
@@ -168,7 +192,7 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
     trained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
     trained.load_state_dict(torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["model"])
     q = towel.sample(8, torch.Generator().manual_seed(99)).requires_grad_()
-    energy = {k: float(sum(towel.physics.energies(towel.drape(n, q), None, None).values()).mean().detach())
+    energy = {k: float(common.total(towel.physics.energies(towel.drape(n, q), None, None)).mean().detach())
               for k, n in (("untrained", untrained), ("trained", trained))}
     assert energy["trained"] < energy["untrained"]
     # the prediction is a batch function of q, differentiable in q through the forward kinematics

@@ -59,6 +59,11 @@ def check_positive(cfg: dict, key: str, allow_zero: bool = False) -> float:
 
 
 # ------------------------------------------------------------------------------ physics
+def total(terms: dict) -> torch.Tensor:
+    """Sum of the energy terms ``{name: (B,)}`` of :meth:`ClothPhysics.energies`: ``(B,)`` [J]."""
+    return torch.stack(list(terms.values())).sum(0)
+
+
 class ClothPhysics:
     """Potential energy of batched cloth states ``x (B, V, 3)`` with per-sample sphere colliders.
 
@@ -66,7 +71,7 @@ class ClothPhysics:
     (torchbend hinge energy, analytic first and second derivatives), ``gravity``, ``sphere``
     (one-sided quadratic penalty, per-sample centre/radius) and ``ground`` (plane z = ground_z)."""
 
-    def __init__(self, cfg: dict, dtype=torch.float64, device="cpu", mesh=None):
+    def __init__(self, cfg: dict, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", mesh=None):
         """``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's square grid."""
         c = cfg["cloth"]
         terms = set(c["energies"])
@@ -101,8 +106,9 @@ class ClothPhysics:
         self.k_contact = check_positive(cfg, "cloth.contact_stiffness")
         self.ground_z = float(c["ground_z"])
 
-    def energies(self, x: torch.Tensor, center: torch.Tensor, radius: torch.Tensor) -> dict:
-        """Per-sample energy terms ``{name: (B,)}`` [J]."""
+    def energies(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> dict:
+        """Per-sample energy terms ``{name: (B,)}`` [J]; ``center (B, 3)`` and ``radius (B,)`` are needed
+        only with the ``sphere`` term."""
         out = {}
         if self.mem is not None:
             out["membrane"] = self.mem(x)
@@ -111,6 +117,8 @@ class ClothPhysics:
         if "gravity" in self.terms:
             out["gravity"] = -(self.mass[:, None] * self.g * x).sum((-1, -2))
         if "sphere" in self.terms:
+            if center is None or radius is None:
+                raise ValueError("the 'sphere' energy needs the sphere's center and radius")
             d = (radius[:, None] - (x - center[:, None, :]).norm(dim=-1)).clamp_min(0)
             out["sphere"] = 0.5 * self.k_contact * (d * d).sum(-1)
         if "ground" in self.terms:
@@ -118,7 +126,7 @@ class ClothPhysics:
             out["ground"] = 0.5 * self.k_contact * (d * d).sum(-1)
         return out
 
-    def gradient(self, x: torch.Tensor, center: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+    def gradient(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> torch.Tensor:
         """``dE/dx (B, V, 3)``, differentiable: bending and membrane through their analytic
         gradient Functions (whose backward is the analytic HVP), the rest through autograd."""
         g = torch.zeros_like(x)
@@ -130,11 +138,11 @@ class ClothPhysics:
             g = g - self.mass[:, None] * self.g
         rest_terms = {k: v for k, v in self.energies(x, center, radius).items() if k in ("sphere", "ground")}
         if rest_terms:
-            (gc,) = torch.autograd.grad(sum(v.sum() for v in rest_terms.values()), x, create_graph=True)
+            (gc,) = torch.autograd.grad(torch.stack([v.sum() for v in rest_terms.values()]).sum(), x, create_graph=True)
             g = g + gc
         return g
 
-    def residual(self, x, center, radius) -> torch.Tensor:
+    def residual(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> torch.Tensor:
         """Mass-weighted squared equilibrium residual per sample ``sum_i |g_i|^2 / m_i`` ``(B,)``."""
         g = self.gradient(x, center, radius)
         return (g * g / self.mass[:, None]).sum((-1, -2))

@@ -17,13 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import torch
-from torch import nn
-
-sys.path.insert(0, os.path.dirname(__file__))
-from common import (  # noqa: E402
+from common import (
     ClothPhysics,
     Timer,
     check_positive,
@@ -33,7 +29,9 @@ from common import (  # noqa: E402
     save_checkpoint,
     save_drape_png,
     seed_everything,
+    total,
 )
+from torch import nn
 
 DEFAULTS = {
     "cloth": {"resolution": 9, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"],
@@ -54,7 +52,7 @@ class DrapeNet(nn.Module):
         super().__init__()
         dims = [inputs] + [hidden] * layers
         mods = []
-        for a, b in zip(dims[:-1], dims[1:]):
+        for a, b in zip(dims[:-1], dims[1:], strict=True):
             mods += [nn.Linear(a, b), nn.Tanh()]
         mods.append(nn.Linear(hidden, 3 * vertex_count))
         nn.init.zeros_(mods[-1].weight)
@@ -79,7 +77,7 @@ def sample_conditions(cfg, batch: int, gen: torch.Generator, dtype, device):
 def loss_fn(kind: str, physics: ClothPhysics, x, center, radius):
     if kind == "energy":
         terms = physics.energies(x, center, radius)
-        return sum(terms.values()).mean(), terms
+        return total(terms).mean(), terms
     if kind == "residual":
         res = physics.residual(x, center, radius)
         return res.mean(), None
@@ -87,7 +85,7 @@ def loss_fn(kind: str, physics: ClothPhysics, x, center, radius):
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_drape.yaml"))
     p.add_argument("--out", default="runs/drape_net", help="output directory (logs, checkpoint, PNG)")
     p.add_argument("--loss", choices=["energy", "residual"], help="override train.loss")
@@ -102,42 +100,69 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def apply_overrides(cfg: dict, a: argparse.Namespace) -> dict:
+    """Command-line overrides of ``cfg["train"]``, then its checks; returns ``cfg["train"]``."""
+    t = cfg["train"]
+    for key in ("loss", "steps", "seed", "lr"):
+        if getattr(a, key) is not None:
+            t[key] = getattr(a, key)
+    check_positive(cfg, "train.lr")
+    if t["loss"] not in ("energy", "residual"):
+        raise ValueError(f"config key 'train.loss' must be 'energy' or 'residual', got {t['loss']!r}")
+    if t["dtype"] not in ("float32", "float64"):
+        raise ValueError(f"config key 'train.dtype' must be float32 or float64, got {t['dtype']!r}")
+    return t
+
+
+def log_step(writer, physics: ClothPhysics, step: int, x, center, radius, loss: float, seconds: float) -> None:
+    """TensorBoard scalars of one step: every energy term, residual norms, mean |theta - theta_rest|."""
+    with torch.no_grad():
+        terms = physics.energies(x.detach(), center, radius)
+    for k, v in terms.items():
+        writer.add_scalar(f"energy/{k}", float(v.mean()), step)
+    writer.add_scalar("energy/total", float(total(terms).mean()), step)
+    xg = x.detach().requires_grad_()
+    res = physics.residual(xg, center, radius).detach()
+    writer.add_scalar("residual/mass_weighted_sq", float(res.mean()), step)
+    writer.add_scalar("residual/norm", float(physics.gradient(xg, center, radius).detach().norm(dim=(-1, -2)).mean()), step)
+    writer.add_scalar("bending/mean_abs_theta_minus_rest", physics.mean_angle_deviation(x), step)
+    writer.add_scalar("loss", loss, step)
+    writer.add_scalar("time/seconds_per_step", seconds, step)
+
+
+def save_outputs(out: str, cfg: dict, net: DrapeNet, physics: ClothPhysics, result: dict, dtype, device) -> None:
+    """Rank 0 at the end: a PNG of three predicted drapes and ``history.json``."""
+    with torch.no_grad():
+        cond, _, _ = sample_conditions(cfg, 3, torch.Generator().manual_seed(12345), dtype, device)
+        x = net(cond, physics.rest)
+    save_drape_png(os.path.join(out, "drapes.png"), [(xi, physics.faces) for xi in x],
+                   [f"sphere ({c[0]:+.2f}, {c[1]:+.2f}), r={c[2]:.2f}" for c in cond.tolist()])
+    with open(os.path.join(out, "history.json"), "w") as f:
+        json.dump(result, f)
+
+
 def main(argv=None) -> dict:
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
     a = parse_args(argv)
     cfg = load_config(a.config, DEFAULTS)
-    t = cfg["train"]
-    if a.loss:
-        t["loss"] = a.loss
-    if a.steps is not None:
-        t["steps"] = a.steps
-    if a.seed is not None:
-        t["seed"] = a.seed
-    if a.lr is not None:
-        t["lr"] = a.lr
-    check_positive(cfg, "train.lr")
-    if t["loss"] not in ("energy", "residual"):
-        raise ValueError(f"config key 'train.loss' must be 'energy' or 'residual', got {t['loss']!r}")
-    if t["dtype"] not in ("float32", "float64"):
-        raise ValueError(f"config key 'train.dtype' must be float32 or float64, got {t['dtype']!r}")
+    t = apply_overrides(cfg, a)
     rank, world = distributed()
     dtype, device = getattr(torch, t["dtype"]), torch.device(a.device)
     seed_everything(int(t["seed"]))
     physics = ClothPhysics(cfg, dtype=dtype, device=device)
-    net = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"])).to(dtype=dtype, device=device)
-    if world > 1:
-        net = nn.parallel.DistributedDataParallel(net)
+    model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"])).to(dtype=dtype, device=device)
+    net = nn.parallel.DistributedDataParallel(model) if world > 1 else model  # `model` holds the weights
     opt = torch.optim.Adam(net.parameters(), lr=float(t["lr"]))
     os.makedirs(a.out, exist_ok=True)
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.init:
-        (net.module if world > 1 else net).load_state_dict(load_checkpoint(a.init)["model"])
+        model.load_state_dict(load_checkpoint(a.init)["model"])
     if a.resume:
         ck = load_checkpoint(ckpt_path)
-        (net.module if world > 1 else net).load_state_dict(ck["model"])
+        model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["step"])
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + rank + 7919 * start)
@@ -145,48 +170,30 @@ def main(argv=None) -> dict:
     history = []
     timer = Timer()
     steps = int(t["steps"])
+    cond, center, radius = sample_conditions(cfg, int(t["batch"]), gen, dtype, device)
     for step in tqdm(range(start + 1, steps + 1), desc=f"train ({t['loss']})", disable=a.no_progress or rank != 0,
                      initial=start, total=steps):
-        if step == start + 1 or not cfg["scene"]["fixed_conditions"]:
+        if step > start + 1 and not cfg["scene"]["fixed_conditions"]:
             cond, center, radius = sample_conditions(cfg, int(t["batch"]), gen, dtype, device)
         x = net(cond, physics.rest)
-        loss, terms = loss_fn(t["loss"], physics, x, center, radius)
+        loss, _ = loss_fn(t["loss"], physics, x, center, radius)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         seconds = timer.lap()
         history.append(float(loss.detach()))
         if writer is not None and (step % int(t["log_every"]) == 0 or step == steps):
-            with torch.no_grad():
-                terms = physics.energies(x.detach(), center, radius)
-            for k, v in terms.items():
-                writer.add_scalar(f"energy/{k}", float(v.mean()), step)
-            writer.add_scalar("energy/total", float(sum(terms.values()).mean()), step)
-            xg = x.detach().requires_grad_()
-            res = physics.residual(xg, center, radius).detach()
-            writer.add_scalar("residual/mass_weighted_sq", float(res.mean()), step)
-            writer.add_scalar("residual/norm", float(physics.gradient(xg, center, radius).detach().norm(dim=(-1, -2)).mean()), step)
-            writer.add_scalar("bending/mean_abs_theta_minus_rest", physics.mean_angle_deviation(x), step)
-            writer.add_scalar("loss", float(loss.detach()), step)
-            writer.add_scalar("time/seconds_per_step", seconds, step)
+            log_step(writer, physics, step, x, center, radius, history[-1], seconds)
         if writer is not None and step % int(t["mesh_every"]) == 0:
             writer.add_mesh("prediction", vertices=x.detach()[:1].float(), faces=physics.faces[None].int(), global_step=step)
         if rank == 0 and (step % int(t["checkpoint_every"]) == 0 or step == steps):
-            save_checkpoint(ckpt_path, step=step, model=(net.module if world > 1 else net).state_dict(),
-                            optimizer=opt.state_dict(), config=cfg)
+            save_checkpoint(ckpt_path, step=step, model=model.state_dict(), optimizer=opt.state_dict(), config=cfg)
     result = {"losses": history, "start": start, "steps": steps}
-    if rank == 0:
-        with torch.no_grad():
-            gen_eval = torch.Generator().manual_seed(12345)
-            cond, center, radius = sample_conditions(cfg, 3, gen_eval, dtype, device)
-            x = net(cond, physics.rest)
-        save_drape_png(os.path.join(a.out, "drapes.png"), [(xi, physics.faces) for xi in x],
-                       [f"sphere ({c[0]:+.2f}, {c[1]:+.2f}), r={c[2]:.2f}" for c in cond.tolist()])
-        with open(os.path.join(a.out, "history.json"), "w") as f:
-            json.dump(result, f)
+    if writer is not None:
+        save_outputs(a.out, cfg, model, physics, result, dtype, device)
         writer.close()
     # every rank writes its parameters (the DDP test checks they stay identical)
-    flat = torch.cat([p.detach().reshape(-1) for p in (net.module if world > 1 else net).parameters()])
+    flat = torch.cat([p.detach().reshape(-1) for p in model.parameters()])
     torch.save(flat, os.path.join(a.out, f"params_rank{rank}.pt"))
     if world > 1:
         import torch.distributed as dist

@@ -6,7 +6,7 @@ A cantilever strip (quadratic bending, StVK membrane, gravity, clamped end) is s
 stiffness to make a synthetic observation ``x_obs``.  Starting from a wrong guess, ``log k`` is
 fitted by gradient descent on ``L(k) = |x*(k) - x_obs|^2 / |x_obs - X|^2`` where ``x*(k)`` is the
 equilibrium from :func:`torchbend.solve_static`; ``dL/dk`` comes from the implicit-function adjoint
-(:func:`torchbend.implicit.solve_static_adjoint`: one sparse solve with the exact Hessian, a
+(:func:`torchbend.solve_static_adjoint`: one sparse solve with the exact Hessian, a
 vector-Jacobian product through the analytic gradient), never by unrolling Newton.  Optionally the
 rest angles are fitted too (``fit_rest_angles``).  TensorBoard logs, checkpoints, ``--resume``.
 """
@@ -16,15 +16,12 @@ import argparse
 import json
 import math
 import os
-import sys
+from typing import Any
 
 import torch
+from common import Timer, check_positive, load_checkpoint, load_config, save_checkpoint, seed_everything
 
-sys.path.insert(0, os.path.dirname(__file__))
-from common import Timer, check_positive, load_checkpoint, load_config, save_checkpoint, seed_everything  # noqa: E402
-
-import torchbend as tb  # noqa: E402
-from torchbend import solve_static_adjoint  # noqa: E402
+import torchbend as tb
 
 DEFAULTS = {
     "beam": {"nx": 21, "ny": 4, "length": 0.2, "width": 0.03, "young": 5e6, "poisson": 0.3, "thickness": 2e-3,
@@ -76,7 +73,7 @@ def loss_of(cfg, log_k, rest_shift, x_obs, x_start=None):
         bend.rest_angles = bend.rest_angles + rest_shift
         params.append(bend.rest_angles)
     x0 = rest if x_start is None else x_start.detach()
-    x, info = solve_static_adjoint(model, x0, params, tol=1e-10, continuation=True)
+    x, info = tb.solve_static_adjoint(model, x0, params, tol=1e-10, continuation=True)
     scale = ((x_obs - rest) ** 2).sum()
     return ((x - x_obs) ** 2).sum() / scale, x, info
 
@@ -85,7 +82,7 @@ def main(argv=None) -> dict:
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_material.yaml"))
     p.add_argument("--out", default="runs/material_id")
     p.add_argument("--steps", type=int)
@@ -130,7 +127,7 @@ def main(argv=None) -> dict:
     timer = Timer()
     history = []
     steps = int(it["steps"])
-    state = {"x": None}
+    state: dict[str, Any] = {"x": None}  # the last evaluation of the closure: x, info, L
     for step in tqdm(range(start + 1, steps + 1), desc="identify", disable=a.no_progress, initial=start, total=steps):
 
         def closure():

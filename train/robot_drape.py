@@ -18,12 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import torch
-
-sys.path.insert(0, os.path.dirname(__file__))
-from common import (  # noqa: E402
+from common import (
     ClothPhysics,
     Timer,
     check_positive,
@@ -32,11 +29,12 @@ from common import (  # noqa: E402
     save_checkpoint,
     save_drape_png,
     seed_everything,
+    total,
 )
-from drape_net import DrapeNet  # noqa: E402
+from drape_net import DrapeNet
 
-import torchbend as tb  # noqa: E402
-from torchbend.robot import LinkPins, Robot, RobotScene  # noqa: E402
+import torchbend as tb
+from torchbend.robot import LinkPins, Robot, RobotScene
 
 DEFAULTS = {
     "cloth": {"resolution": 9, "size": 0.3, "energies": ["membrane", "bending", "gravity", "ground"],
@@ -107,7 +105,7 @@ class HeldTowel:
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_robot.yaml"))
     p.add_argument("--out", default="runs/robot_drape", help="output directory (logs, checkpoint, PNG)")
     p.add_argument("--steps", type=int, help="override train.steps")
@@ -146,7 +144,7 @@ def main(argv=None) -> dict:
         q = towel.sample(int(t["batch"]), gen)
         x = towel.drape(net, q)
         terms = towel.physics.energies(x, None, None)
-        loss = sum(terms.values()).mean()
+        loss = total(terms).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -163,10 +161,10 @@ def main(argv=None) -> dict:
     with torch.no_grad():
         x_pred = towel.drape(net, q_eval)
     scene, evals = towel.scene(), []
-    for qi, xi in zip(q_eval, x_pred):
+    for qi, xi in zip(q_eval, x_pred, strict=True):
         x_eq, info = scene.solve_static(qi, xi, tol=1e-8, continuation=True)
-        e_pred = float(sum(towel.physics.energies(xi[None], None, None).values()))
-        e_eq = float(sum(towel.physics.energies(x_eq[None].detach(), None, None).values()))
+        e_pred = float(total(towel.physics.energies(xi[None], None, None)))
+        e_eq = float(total(towel.physics.energies(x_eq[None].detach(), None, None)))
         evals.append({"q": qi.tolist(), "converged": info.converged,
                       "rms_distance_to_equilibrium": float((xi - x_eq).norm(dim=-1).pow(2).mean().sqrt()),
                       "energy_gap": e_pred - e_eq, "energy_equilibrium": e_eq,
