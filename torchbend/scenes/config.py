@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -41,7 +42,7 @@ def load_config(path: str) -> dict:
     return cfg
 
 
-def get_key(section: dict, key: str, where: str, default=None, *, kind=float, positive=False, required=False):
+def get_key(section: dict, key: str, where: str, default=None, *, kind=float, positive=False, required=False) -> Any:
     """``section[key]`` converted by ``kind`` (``ValueError`` naming ``where.key`` if missing, malformed or not positive)."""
     if key not in section:
         if required:
@@ -87,10 +88,44 @@ def build_robot_scene(cfg: dict, *, resolution: tuple | None = None):
     if not cfg.get("robot"):
         raise ValueError("config has no 'robot' section")
     model, x0, faces, rc = _build(cfg, None, resolution)
+    assert rc is not None  # the config has a robot section
     pins = LinkPins(rc.robot, rc.vertices, rc.links, x0[rc.vertices], rc.keyframes[0][1])
     scene = RobotScene(model, rc.robot, pins, rc.capsules)
     # the cloth starts with the held vertices exactly at their forward kinematics
     return scene, scene.place(x0, rc.keyframes[0][1]), faces, rc.keyframes
+
+
+def _bending(b: dict, faces, rest, young: float, t: float, poisson: float) -> BendingEnergy:
+    """The ``bending`` section: ``model``, ``stiffness`` [N m] or ``from_material: true``, ``damping``."""
+    if b.get("from_material"):
+        k = stiffness_from_material(young, t, poisson)
+    else:
+        k = get_key(b, "stiffness", "bending", required=True)
+        if k < 0:
+            raise ValueError(f"config key 'bending.stiffness' must be non-negative, got {k}")
+    damping = b.get("damping")
+    if damping is not None:
+        damping = get_key(b, "damping", "bending")
+        if damping < 0:
+            raise ValueError(f"config key 'bending.damping' must be non-negative, got {damping}")
+    try:
+        return BendingEnergy(faces, rest, model=b.get("model", "tan"), stiffness=k, damping=damping or None)
+    except ValueError as e:
+        raise ValueError(f"config key 'bending': {e}") from None
+
+
+def _pinned(pin, rest: Tensor, nx: int) -> Tensor | None:
+    """The ``mesh.pin`` option: ``first_two_columns`` (a clamped beam), ``corners`` or none."""
+    if pin is None:
+        return None
+    if pin == "first_two_columns":
+        xs = rest[:, 0].unique()
+        return rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
+    if pin == "corners":
+        pinned = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
+        pinned[[0, nx - 1]] = True
+        return pinned
+    raise ValueError(f"config key 'mesh.pin' must be 'first_two_columns' or 'corners', got {pin!r}")
 
 
 def _build(cfg: dict, thickness, resolution):
@@ -114,24 +149,7 @@ def _build(cfg: dict, thickness, resolution):
         density = get_key(mat, "volumetric_density", "material", positive=True) * t
     else:
         density = get_key(mat, "density", "material", 0.2, positive=True)
-    bend = None
-    if cfg.get("bending") is not None:
-        b = cfg["bending"]
-        if b.get("from_material"):
-            k = stiffness_from_material(young, t, poisson)
-        else:
-            k = get_key(b, "stiffness", "bending", required=True)
-            if k < 0:
-                raise ValueError(f"config key 'bending.stiffness' must be non-negative, got {k}")
-        damping = b.get("damping")
-        if damping is not None:
-            damping = get_key(b, "damping", "bending")
-            if damping < 0:
-                raise ValueError(f"config key 'bending.damping' must be non-negative, got {damping}")
-        try:
-            bend = BendingEnergy(faces, rest, model=b.get("model", "tan"), stiffness=k, damping=damping or None)
-        except ValueError as e:
-            raise ValueError(f"config key 'bending': {e}") from None
+    bend = None if cfg.get("bending") is None else _bending(cfg["bending"], faces, rest, young, t, poisson)
     mem = None
     if cfg.get("membrane") is not None:
         m = cfg["membrane"]
@@ -139,20 +157,9 @@ def _build(cfg: dict, thickness, resolution):
             mem = MembraneEnergy(faces, rest, model=m.get("model", "stvk"), young=young, poisson=poisson, thickness=t)
         except ValueError as e:
             raise ValueError(f"config key 'membrane': {e}") from None
-    pinned = None
-    pin = mesh.get("pin")
-    if pin is not None:
-        if pin == "first_two_columns":
-            xs = rest[:, 0].unique()
-            pinned = rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
-        elif pin == "corners":
-            pinned = torch.zeros(len(rest), dtype=torch.bool)
-            pinned[[0, nx - 1]] = True
-        else:
-            raise ValueError(f"config key 'mesh.pin' must be 'first_two_columns' or 'corners', got {pin!r}")
+    pinned = _pinned(mesh.get("pin"), rest, nx)
     rc = None
     if cfg.get("robot") is not None:
-
         rc = parse_robot(cfg["robot"], rest)
         if pinned is None:
             pinned = torch.zeros(len(rest), dtype=torch.bool)
