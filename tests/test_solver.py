@@ -2,12 +2,16 @@
 import json
 import math
 import os
+import sys
+from typing import cast
 
 import pytest
 import torch
+from torch.overrides import TorchFunctionMode
 
 import torchbend as tb
 from torchbend import Capsule, ClothModel, ClothState, Plane, Sphere, implicit_euler_step, solve_static
+from torchbend.options import Projection
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config
 
@@ -39,7 +43,7 @@ def test_static_cantilever_converges_and_solvers_agree():
         assert info.converged and info.iterations <= 30, info.message
         assert info.residual <= 1e-9 * weight
         assert torch.equal(x[model.pinned], rest[model.pinned])  # pinned DOFs eliminated
-        assert all(b <= a + 1e-12 * abs(a) for a, b in zip(info.energy_history, info.energy_history[1:]))
+        assert all(b <= a + 1e-12 * abs(a) for a, b in zip(info.energy_history, info.energy_history[1:], strict=False))
         tips.append(tip(x, rest))
         print(f"cantilever {nx}x{ny}: tip {tips[-1]:.6e} m, Kirchhoff {kirchhoff:.6e} m, ratio {tips[-1] / kirchhoff:.4f}, "
               f"{info.iterations} Newton iterations")
@@ -75,7 +79,7 @@ def test_drape_no_penetration_energy_monotone(hessian):
         state, info = implicit_euler_step(model, state, 0.01, hessian=hessian)
         assert info.converged, info.message
         hist = info.energy_history
-        assert all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(hist, hist[1:]))
+        assert all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(hist, hist[1:], strict=False))
         its.append(info.iterations)
         assert float(sphere.depth(state.x).max()) <= 0.01 * edge
     assert torch.isfinite(state.x).all()
@@ -88,11 +92,12 @@ def test_viscous_bending_damping_enters_the_step():
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     model, x0, _ = build_scene(cfg, resolution=(7, 7))
     state = ClothState(x0 + 0.01 * torch.randn_like(x0), torch.zeros_like(x0))
+    bend = cast(tb.BendingEnergy, model.bending)
     s1, _ = implicit_euler_step(model, state, 0.01)
-    model.bending.damping = model.bending.damping * 1e6  # much more viscous: less bending motion
+    bend.damping = cast(torch.Tensor, bend.damping) * 1e6  # much more viscous: less bending motion
     s2, _ = implicit_euler_step(model, state, 0.01)
-    d1 = (model.bending.angles(s1.x) - model.bending.angles(state.x)).abs().sum()
-    d2 = (model.bending.angles(s2.x) - model.bending.angles(state.x)).abs().sum()
+    d1 = (bend.angles(s1.x) - bend.angles(state.x)).abs().sum()
+    d2 = (bend.angles(s2.x) - bend.angles(state.x)).abs().sum()
     assert d2 < d1
 
 
@@ -103,10 +108,98 @@ def test_colliders_derivatives_match_autograd():
         y = x.clone().requires_grad_()
         (g,) = torch.autograd.grad(c.energy(y), y)
         assert float((c.gradient(x) - g).norm()) <= 1e-12 * max(float(g.norm()), 1.0)
-        H = torch.func.hessian(lambda z: c.energy(z))(x).reshape(150, 150)
+        H = torch.func.hessian(lambda z, c=c: c.energy(z))(x).reshape(150, 150)
         blocks = torch.block_diag(*c.hessian_blocks(x))
         assert float((blocks - H).norm()) <= 1e-10 * max(float(H.norm()), 1.0)
         assert (torch.linalg.eigvalsh(c.hessian_blocks(x, project="clamp")) >= -1e-12).all()
+
+
+SIM_DIR = os.path.dirname(os.path.abspath(tb.sim.__file__))
+TORCH_DIR = os.path.dirname(os.path.abspath(torch.__file__))
+FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.eye, torch.arange, torch.linspace, torch.tensor,
+             torch.as_tensor, torch.scalar_tensor, torch.rand, torch.randn}
+
+
+class DevicelessFactories(TorchFunctionMode):
+    """Records the tensor factory calls made from ``torchbend/sim`` without an explicit ``device=``
+    (such a tensor lands on the CPU whatever the device of the positions)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list = []
+        self.seen = 0
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in FACTORIES:
+            frame = sys._getframe(1)
+            while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
+                frame = frame.f_back
+            if frame is not None and frame.f_code.co_filename.startswith(SIM_DIR):
+                self.seen += 1
+                keeps_device = func is torch.as_tensor and bool(args) and isinstance(args[0], torch.Tensor)
+                if kwargs.get("device") is None and not keeps_device:
+                    self.calls.append(f"torch.{func.__name__} at {os.path.basename(frame.f_code.co_filename)}:{frame.f_lineno}")
+        return func(*args, **kwargs)
+
+
+def test_model_tensors_live_on_the_device_of_the_rest_positions():
+    rest, faces = tb.scenes.grid(5, 3, (0.2, 0.05), dtype=F64)
+    meta = rest.to("meta")  # shapes only: a tensor created on the CPU cannot mix with it
+    colliders = (Sphere((0.1, 0.0, -0.3), 0.3, margin=0.01), Plane((0, 0, -0.1), (0, 0, 1)))
+    x = torch.empty(15, 3, dtype=F64, device="meta")
+    for pinned in (None, [0, 5, 10], rest[:, 0] <= 0):
+        model = ClothModel(faces, meta, density=0.5, pinned=pinned, colliders=colliders)
+        tensors = {k: v for k, v in vars(model).items() if isinstance(v, torch.Tensor)}
+        assert {"rest_positions", "mass", "pinned", "gravity"} <= set(tensors)
+        for name, t in tensors.items():
+            assert t.device.type == "meta", name
+        assert model.mass.dtype == model.gravity.dtype == F64 and model.pinned.dtype == torch.bool
+        assert model.mass.shape == (15,) and model.pinned.shape == (15,) and model.gravity.shape == (3,)
+        derived = {"external_force": model.external_force(), "gradient": model.gradient(x),
+                   "hvp": model.hvp(x, x, Projection.NONE), "block_diagonal": model.block_diagonal(x, Projection.CLAMP)}
+        for name, t in derived.items():
+            assert t.device.type == "meta", name
+    with pytest.raises(ValueError, match=r"pinned must have shape \(15,\)"):
+        ClothModel(faces, meta, pinned=torch.zeros(4, dtype=torch.bool))
+    # the dtype follows the rest positions too
+    model = ClothModel(faces, rest.float(), pinned=[0, 5])
+    assert model.mass.dtype == model.gravity.dtype == torch.float32 and int(model.pinned.sum()) == 2
+
+
+def test_solvers_create_no_tensor_on_a_default_device():
+    recorder = DevicelessFactories()
+    with recorder:  # the recorder itself: a call without device= from a file of torchbend/sim is caught
+        exec(compile("torch.zeros(3, dtype=torch.float64)", os.path.join(SIM_DIR, "newton.py"), "exec"), {"torch": torch})
+    assert len(recorder.calls) == 1 and recorder.seen == 1
+    recorder = DevicelessFactories()
+    with recorder:
+        model, rest, _ = cantilever(5, 3)
+        for linear in ("direct", "cg"):
+            x, info = solve_static(model, rest, linear_solver=linear, tol=1e-8)
+            assert info.converged, info.message
+        solve_static(model, rest, max_iters=1, continuation=True, max_relax_steps=5)
+        cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))  # damping and a collider
+        scene, x0, faces = build_scene(cfg, resolution=(5, 5))
+        scene = ClothModel(faces, x0, bending=scene.bending, membrane=scene.membrane, pinned=[0, 4],
+                           colliders=scene.colliders)
+        for linear in ("direct", "cg"):
+            state, info = implicit_euler_step(scene, ClothState(x0, torch.zeros_like(x0)), 0.01, linear_solver=linear)
+            assert info.converged, info.message
+    assert recorder.seen > 0
+    assert recorder.calls == [], recorder.calls
+
+
+def test_collider_hessian_is_block_diagonal():
+    rest, faces = tb.scenes.grid(8, 5, (1.0, 1.0), dtype=F64)
+    x = rest + 0.3 * torch.randn_like(rest)
+    colliders = (Sphere((0.5, 0.5, 0.0), 0.4, stiffness=100.0, margin=0.05), Capsule((0, 0, 0), (1, 1, 0), 0.3, stiffness=70.0))
+    model = ClothModel(faces, rest, colliders=colliders)
+    for option in (Projection.NONE, Projection.CLAMP):
+        H = model.hessian(x, option)
+        blocks = colliders[0].hessian_blocks(x, project=option) + colliders[1].hessian_blocks(x, project=option)
+        assert H.shape == (120, 120)
+        assert torch.equal(torch.from_numpy(H.toarray()), torch.block_diag(*blocks))
 
 
 def test_bad_solver_input():

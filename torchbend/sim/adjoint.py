@@ -23,7 +23,8 @@ import torch
 from torch import Tensor
 
 from ..options import Projection
-from .newton import ClothModel, SolveInfo, solve_static
+from .model import ClothModel
+from .newton import SolveInfo, solve_static
 
 __all__ = ["solve_static_adjoint"]
 

@@ -1,0 +1,246 @@
+r"""Static data of a cloth scene and its potential: :class:`ClothModel` and :class:`ClothState`.
+
+The potential of a static equilibrium is
+
+    Phi(x) = E_membrane(x) + E_bending(x) + sum_c E_c(x) - sum_i m_i g . x_i        [J]
+
+over positions ``x (V, 3)`` [m]: only the terms a model declares are built and evaluated.  Lumped
+masses ``m_i`` [kg] are a third of the rest-area mass of each incident triangle.  Every tensor the
+model creates (masses, the pinned mask, gravity, Hessian blocks) lives on the device and in the
+dtype of the rest positions (or of the positions ``x`` it is evaluated at); the ``scipy.sparse``
+Hessian is assembled on the CPU.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from torch import Tensor
+
+from .._checks import check_positions, positive, vec3
+from ..energies.bending import BendingEnergy
+from ..energies.colliders import Capsule, Plane, Sphere
+from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
+from ..energies.sparse import to_scipy
+from ..mesh.topology import HingeTopology, mesh_and_rest
+from ..options import Projection
+
+__all__ = ["ClothModel", "ClothState"]
+
+
+@dataclass
+class ClothState:
+    """Dynamic state: positions ``x (V, 3)`` [m] and velocities ``v (V, 3)`` [m/s]."""
+
+    x: Tensor
+    v: Tensor
+
+
+class ClothModel:
+    """Static data of a cloth scene: only the terms it declares are built and evaluated.
+
+    Args:
+        faces: ``(F, 3)`` int triangles (or a :class:`~torchbend.mesh.HingeTopology`).
+        rest_positions: ``(V, 3)`` [m]; its device and dtype are those of every tensor of the model.
+        bending: a :class:`~torchbend.BendingEnergy` over the same mesh, or ``None``.
+        membrane: a :class:`~torchbend.MembraneEnergy` over the same mesh, or ``None``.
+        density: areal density [kg/m^2] (> 0): lumped masses, 1/3 of each triangle's rest-area mass per vertex.
+        gravity: ``(3,)`` acceleration [m/s^2].
+        pinned: ``(V,)`` bool mask of vertices held at their given positions, a list of vertex
+            indices, or ``None`` (nothing pinned).
+        colliders: :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` instances.
+
+    Attributes:
+        topology: the :class:`~torchbend.mesh.HingeTopology` (integer connectivity, CPU).
+        rest_positions: ``(V, 3)`` [m].
+        mass: ``(V,)`` lumped vertex masses [kg].
+        gravity: ``(3,)`` [m/s^2].
+        pinned: ``(V,)`` bool.
+        colliders: tuple of colliders.
+
+    A model may be built on the ``meta`` device (shapes only): the checks that need values are
+    then skipped, and it cannot be solved.
+    """
+
+    def __init__(self, faces, rest_positions, *, bending: BendingEnergy | None = None,
+                 membrane: MembraneEnergy | None = None, density: float = 0.1,
+                 gravity=(0.0, 0.0, -9.81), pinned=None, colliders=()):
+        topo, rest = _mesh_and_rest(faces, rest_positions)
+        V = topo.vertex_count
+        density = positive(density, "density")
+        _check_terms(V, bending, membrane)
+        self.topology = topo
+        self.rest_positions = rest
+        self.bending, self.membrane = bending, membrane
+        self.density = density
+        self.gravity = torch.tensor(_gravity(gravity), dtype=rest.dtype, device=rest.device)
+        self.pinned = _pinned_mask(pinned, V, rest.device)
+        self.colliders = _check_colliders(colliders)
+        self.mass = _lumped_mass(topo.faces.to(rest.device), rest, V, density)
+
+    @property
+    def vertex_count(self) -> int:
+        return self.topology.vertex_count
+
+    def external_force(self, dtype=None) -> Tensor:
+        """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses')."""
+        return (self.mass[:, None] * self.gravity[None, :]).to(dtype or self.mass.dtype)
+
+    # ---------------------------------------------------------------- potential and derivatives
+    def energies(self, x: Tensor, bend_kw: dict | None = None) -> dict:
+        """Per-term energies [J] at ``x (V, 3)`` [m] (only the declared terms): keys ``membrane``,
+        ``bending``, ``gravity``, ``collider0``, ...  ``bend_kw`` go to the bending energy (e.g. the
+        viscous ``theta_prev``, ``dt``)."""
+        bend_kw = bend_kw or {}
+        out = {}
+        if self.membrane is not None:
+            out["membrane"] = float(self.membrane(x))
+        if self.bending is not None:
+            out["bending"] = float(self.bending(x, **bend_kw))
+        out["gravity"] = float(-(self.external_force(x.dtype) * x).sum())
+        for i, c in enumerate(self.colliders):
+            out[f"collider{i}"] = float(c.energy(x))
+        return out
+
+    def potential(self, x: Tensor, bend_kw: dict | None = None) -> float:
+        """The potential ``Phi(x)`` [J]: the sum of :meth:`energies`."""
+        return sum(self.energies(x, bend_kw).values())
+
+    def gradient(self, x: Tensor, bend_kw: dict | None = None) -> Tensor:
+        """``dPhi/dx`` ``(V, 3)`` [N] (minus the net force on each vertex)."""
+        g = -self.external_force(x.dtype).clone()
+        if self.membrane is not None:
+            g = g + self.membrane.gradient(x)
+        if self.bending is not None:
+            g = g + self.bending.gradient(x, **(bend_kw or {}))
+        for c in self.colliders:
+            g = g + c.gradient(x)
+        return g
+
+    def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None) -> sp.csr_matrix:
+        """``scipy.sparse`` CSR Hessian ``(3V, 3V)`` [N/m] of the potential (without inertia) at ``x (V, 3)``.
+
+        ``option``: a :class:`torchbend.options.Projection` for the bending term; the membrane gets the
+        nearest one it supports, colliders drop their curvature term for every member but ``NONE``."""
+        n = 3 * self.vertex_count
+        H = sp.csr_matrix((n, n))
+        if self.membrane is not None:
+            H = H + to_scipy(self.membrane.hessian(x, project=option.restricted(MEMBRANE_PROJECTIONS)))
+        if self.bending is not None:
+            H = H + to_scipy(self.bending.hessian(x, project=option, **(bend_kw or {})))
+        if self.colliders:
+            blocks = self.colliders[0].hessian_blocks(x, project=option)
+            for c in self.colliders[1:]:
+                blocks = blocks + c.hessian_blocks(x, project=option)
+            H = H + _block_diagonal_csr(blocks.detach().cpu().numpy())
+        return H.tocsr()
+
+    def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
+        """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``
+        as in :meth:`hessian`)."""
+        out = torch.zeros_like(x)
+        if self.membrane is not None:
+            out = out + self.membrane.hvp(x, v, project=option.restricted(MEMBRANE_PROJECTIONS))
+        if self.bending is not None:
+            out = out + self.bending.hvp(x, v, project=option, **(bend_kw or {}))
+        for c in self.colliders:
+            out = out + (c.hessian_blocks(x, project=option) @ v[..., None])[..., 0]
+        return out
+
+    def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
+        """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` [N/m] (block-Jacobi
+        preconditioner; ``option`` as in :meth:`hessian`)."""
+        V = self.vertex_count
+        out = x.new_zeros(V, 3, 3)
+        if self.membrane is not None:
+            He = self.membrane.element_hessians(x, project=option.restricted(MEMBRANE_PROJECTIONS)).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
+            diag = torch.stack([He[:, k, :, k, :] for k in range(3)], 1)  # (T, 3, 3, 3)
+            out = out.index_add(0, self.membrane.faces.reshape(-1), diag.reshape(-1, 3, 3))
+        if self.bending is not None:
+            Hb = self.bending.hinge_hessians(x, project=option, **(bend_kw or {}))
+            Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
+            diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
+            out = out.index_add(0, self.bending.hinges.reshape(-1), diag.reshape(-1, 3, 3))
+        for c in self.colliders:
+            out = out + c.hessian_blocks(x, project=option)
+        return out
+
+
+# -------------------------------------------------------------------- construction helpers
+def _mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
+    """:func:`~torchbend.mesh.topology.mesh_and_rest`, with shape checks only for ``meta`` positions."""
+    if not (isinstance(rest_positions, Tensor) and rest_positions.device.type == "meta"):
+        return mesh_and_rest(faces, rest_positions)
+    topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
+    check_positions(rest_positions, topo.vertex_count, "rest_positions", check_finite=False)
+    if rest_positions.ndim != 2:
+        raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest_positions.shape)}")
+    return topo, rest_positions
+
+
+def _gravity(gravity) -> tuple[float, float, float]:
+    """``gravity`` [m/s^2] as a finite 3-tuple (a tensor is read on its device)."""
+    if isinstance(gravity, Tensor):
+        gravity = gravity.detach().reshape(-1).tolist()
+    return vec3(gravity, "gravity")
+
+
+def _check_terms(V: int, bending, membrane) -> None:
+    if bending is not None and not isinstance(bending, BendingEnergy):
+        raise ValueError(f"bending must be a BendingEnergy or None, got {type(bending).__name__}")
+    if membrane is not None and not isinstance(membrane, MembraneEnergy):
+        raise ValueError(f"membrane must be a MembraneEnergy or None, got {type(membrane).__name__}")
+    for name, term in (("bending", bending), ("membrane", membrane)):
+        if term is not None and term.vertex_count != V:
+            raise ValueError(f"{name} has {term.vertex_count} vertices but the mesh has {V}")
+
+
+def _check_colliders(colliders) -> tuple:
+    colliders = tuple(colliders)
+    for i, c in enumerate(colliders):
+        if not isinstance(c, (Sphere, Plane, Capsule)):
+            raise ValueError(f"colliders[{i}] must be a Sphere, Plane or Capsule, got {type(c).__name__}")
+    return colliders
+
+
+def _pinned_mask(pinned, V: int, device: torch.device) -> Tensor:
+    """``(V,)`` bool mask on ``device`` from a mask, a list of vertex indices or ``None``.
+
+    Index values are checked where they are given (a list: on the CPU), then the mask is built on
+    ``device``; values on the ``meta`` device are not checked."""
+    if pinned is None:
+        return torch.zeros(V, dtype=torch.bool, device=device)
+    if not isinstance(pinned, Tensor):
+        pinned = torch.as_tensor(pinned, device="cpu")  # user data (a list): checked on the host
+    if pinned.dtype != torch.bool:
+        if pinned.ndim == 1 and not pinned.is_floating_point() and pinned.numel() != V:
+            # a list of vertex indices
+            if pinned.numel() and pinned.device.type != "meta" and (int(pinned.min()) < 0 or int(pinned.max()) >= V):
+                raise ValueError(f"pinned indices must lie in [0, {V}), got range "
+                                 f"[{int(pinned.min())}, {int(pinned.max())}]")
+            mask = torch.zeros(V, dtype=torch.bool, device=device)
+            mask[pinned.long().to(device)] = True
+            return mask
+        raise ValueError(f"pinned must be a (V,) = ({V},) bool mask or a list of vertex indices")
+    if pinned.shape != (V,):
+        raise ValueError(f"pinned must have shape ({V},), got {tuple(pinned.shape)}")
+    return pinned.to(device)
+
+
+def _lumped_mass(faces: Tensor, rest: Tensor, V: int, density: float) -> Tensor:
+    """``(V,)`` lumped masses [kg]: a third of each triangle's rest-area mass per vertex."""
+    p = rest[faces]
+    area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
+    mass = torch.zeros(V, dtype=rest.dtype, device=rest.device)
+    return mass.index_add_(0, faces.reshape(-1), (density * area / 3).repeat_interleave(3))
+
+
+def _block_diagonal_csr(blocks: np.ndarray):
+    """``scipy.sparse`` CSR matrix ``(3V, 3V)`` with the ``(V, 3, 3)`` ``blocks`` on its diagonal
+    (one construction: every row ``3v + i`` holds columns ``3v, 3v + 1, 3v + 2``)."""
+    V = blocks.shape[0]
+    cols = (3 * np.arange(V)[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)  # (V, 3, 3)
+    indptr = np.arange(0, 9 * V + 1, 3)
+    return sp.csr_matrix((blocks.reshape(-1), cols.reshape(-1), indptr), shape=(3 * V, 3 * V))
