@@ -175,15 +175,15 @@ def errors(model: str = "tan", n_random: int = 40):
             a_d, k_d, rest_d = (float(torch.tensor(v, dtype=dtype)) for v in (a, k, rest))
             E_r, g_r, H_r = reference(x.double().numpy(), a_d, k_d, rest_d, model)
             faces = torch.tensor([[0, 1, 2], [1, 0, 3]])
+            aw = torch.tensor([a_d], dtype=dtype)
+            rr = torch.tensor([rest_d], dtype=dtype)
             # the eager closed forms (the compiled kernels are checked against them in tests/test_native.py)
-            bend = tb.BendingEnergy(faces, x.detach().clone(), model=model, stiffness=k_d, rest_angles=rest_d,
+            bend = tb.BendingEnergy(faces, x.detach().clone(), model=model, stiffness=k_d, rest_angles=rr,
                                     check_finite=False, backend="eager")
-            bend.weights = torch.tensor([a_d], dtype=dtype)
+            bend.weights = aw
             E = float(bend(x))
             g = bend.gradient(x).reshape(-1).double().numpy()
             Hb = bend.hinge_hessians(x)[0].double().numpy()
-            aw = torch.tensor([a_d], dtype=dtype)
-            rr = torch.tensor([rest_d], dtype=dtype)
 
             plain = functools.partial(plain_bending_energy, hinges=hinges, a=aw, k=k_d, rest=rr, model=model)
 
