@@ -150,6 +150,7 @@ def test_gradients_flow_to_stiffness_and_rest_angles(sheet):
     k_ref = k.detach().clone().requires_grad_()
     r_ref = r.detach().clone().requires_grad_()
     plain_bending_energy(x, bend.hinges, bend.weights, k_ref, r_ref, "tan").backward()
+    assert k.grad is not None and r.grad is not None and k_ref.grad is not None and r_ref.grad is not None
     assert rel(k.grad, k_ref.grad) < 1e-13
     assert rel(r.grad, r_ref.grad) < 1e-13
     # scalar learnable stiffness
@@ -157,7 +158,7 @@ def test_gradients_flow_to_stiffness_and_rest_angles(sheet):
     bend = BendingEnergy(faces, rest, model="sin", stiffness=ks)
     E = bend(x)
     E.backward()
-    assert ks.grad.shape == () and abs(ks.grad.item() - E.item() / 2.0) < 1e-12 * abs(E.item())
+    assert ks.grad is not None and ks.grad.shape == () and abs(ks.grad.item() - E.item() / 2.0) < 1e-12 * abs(E.item())
 
 
 # ----------------------------------------------------------------------------- analytic double backward

@@ -54,10 +54,10 @@ def test_hinges_are_consistent_with_faces(mesh):
     for f in range(len(Fa)):
         for k in range(3):
             s, d = Fa[f, (k + 1) % 3], Fa[f, (k + 2) % 3]
-            e = topo.face_edges[f, k].item()
+            e = int(topo.face_edges[f, k])
             assert sorted((s, d)) == list(E[e])
             assert topo.face_edge_signs[f, k].item() == (1 if s < d else -1)
-            h = topo.face_edge_hinges[f, k].item()
+            h = int(topo.face_edge_hinges[f, k])
             assert h == topo.edge_hinges[e].item()
             if h >= 0:
                 assert sorted(H[h, :2]) == sorted((s, d))

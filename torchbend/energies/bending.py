@@ -85,8 +85,9 @@ class BendingEnergy(nn.Module):
     damping: Tensor | None  # () or (H,) [N m s]
     segments: Tensor | None  # (H,) mesh of each hinge when packed
 
-    def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan", stiffness=1.0,
-                 rest_angles=None, damping=None, check_finite: bool = True, backend: str | Backend = "auto"):
+    def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan",
+                 stiffness: float | Tensor = 1.0, rest_angles: float | Tensor | None = None,
+                 damping: float | Tensor | None = None, check_finite: bool = True, backend: str | Backend = "auto"):
         super().__init__()
         topo, rest_positions = mesh_and_rest(faces, rest_positions)
         self.model = BendingModel.parse(model)
