@@ -39,7 +39,7 @@ def test_native_blocks_match_eager_and_torch_func(kernel, sheet, model):
     assert rel(fused, _per_hinge_reference(bend, x, kw)) <= 1e-12
     # everything built on the blocks follows: hinge assembly, projections
     for project in (None, "clamp", "reduced"):
-        a, b = _both(lambda: bend.hessian(x, assembly="hinge", project=project).to_dense())
+        a, b = _both(lambda project=project: bend.hessian(x, assembly="hinge", project=project).to_dense())
         assert rel(a, b) <= 1e-14
 
 
@@ -79,11 +79,11 @@ def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
     fused, eager = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01))
     assert fused.shape == (2, bend.hinge_count, 12, 12) and rel(fused, eager) <= 1e-15
     for project in ("gauss_newton", "reduced"):
-        a, b = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, project=project))
+        a, b = _both(lambda project=project: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, project=project))
         assert rel(a, b) <= 1e-14
     v = torch.randn(xb.shape, generator=gen, dtype=F64)
     for project in ("clamp", "gauss_newton"):
-        a, b = _both(lambda: bend.hvp(xb, v, theta_prev=prev, dt=0.01, project=project))
+        a, b = _both(lambda project=project: bend.hvp(xb, v, theta_prev=prev, dt=0.01, project=project))
         assert rel(a, b) <= 1e-14
     bad = xb.clone()
     bad[1, 4, 2] = float("nan")
@@ -114,7 +114,7 @@ def test_native_assembly_both_paths_match_eager(kernel, mesh, model):
     bend = _bend(rest, faces, model, damped=True)
     kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, generator=gen, dtype=F64), "dt": 0.05}
     for assembly in ("hinge", "triangle"):
-        fused, eager = _both(lambda: bend.hessian(x, assembly=assembly, **kw).to_dense())
+        fused, eager = _both(lambda assembly=assembly: bend.hessian(x, assembly=assembly, **kw).to_dense())
         assert rel(fused, eager) <= 1e-14
     Dt, Dh = (bend.hessian(x, assembly=a).to_dense() for a in ("triangle", "hinge"))  # both in C++
     assert rel(Dt, Dh) <= 1e-13
@@ -123,3 +123,35 @@ def test_native_assembly_both_paths_match_eager(kernel, mesh, model):
         lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)
     )(x).reshape(n, n)
     assert rel(Dt, ref) <= 1e-13
+
+
+def test_native_out_buffers(kernel):
+    """out=(Hb, g): the blocks and gradients are written into the caller's buffers and returned, equal to
+    fresh outputs; buffers of the wrong shape, dtype or layout, or overlapping x, are refused."""
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=3, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2, damping=1e-3)
+    gen = torch.Generator().manual_seed(3)
+    xb = rest + 0.05 * torch.randn((2,) + rest.shape, generator=gen, dtype=F64)
+    H = bend.hinge_count
+    a, k, r = bend.weights, torch.tensor(1e-2, dtype=F64), bend.rest_angles
+    c, prev = torch.full((H,), 0.1, dtype=F64), bend.angles(xb) + 0.01
+    args = (xb, bend.hinges, a, k, r, c, prev, "tan")
+    Hb0, g0, d20 = native.bending_hessians(*args)
+    hb, g = torch.full((2, H, 12, 12), float("nan"), dtype=F64), torch.full((2, H, 12), float("nan"), dtype=F64)
+    for _ in range(2):  # reused
+        Hb1, g1, d21 = native.bending_hessians(*args, out=(hb, g))
+        assert Hb1.data_ptr() == hb.data_ptr() and g1.data_ptr() == g.data_ptr()
+        assert torch.equal(Hb1, Hb0) and torch.equal(g1, g0) and torch.equal(d21, d20)
+    bad = [
+        ((torch.empty(2, H, 12, 13, dtype=F64), g), "must have shape"),
+        ((hb.float(), g), "x's dtype"),
+        ((hb, torch.empty(2, 12, H, dtype=F64).transpose(1, 2)), "contiguous"),
+        ((hb, hb.view(-1)[: 2 * H * 12].view(2, H, 12)), "overlap"),
+    ]
+    for out, match in bad:
+        with pytest.raises(RuntimeError, match=match):
+            native.bending_hessians(*args, out=out)
+    xr = torch.empty(2 * H * 144, dtype=F64)
+    xr[: xb.numel()] = xb.reshape(-1)
+    with pytest.raises(RuntimeError, match="overlaps x"):
+        native.bending_hessians(xr[: xb.numel()].view(xb.shape), *args[1:], out=(xr.view(2, H, 12, 12), g))

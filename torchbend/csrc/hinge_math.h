@@ -1,0 +1,303 @@
+// Per-hinge mathematics of torchbend's compiled kernels: the bend angle, psi' and psi'' of the three
+// models, the half-hinge quantities, the closed-form 12x12 blocks and angle gradients, and the 9x9
+// per-triangle blocks of the triangle assembly.  It mirrors the eager reference in torchbend/ops
+// (hinge.py, psi.py, triangle.py), which the tests compare against.
+//
+// No torch, no std:: containers, no std:: math (the C functions, which nvcc also has on the device)
+// and no pragmas outside the TB_SIMD / TB_IVDEP macros: every function is `TB_HD static inline` (or a
+// template), so that a CUDA driver can compile this header with nvcc (TB_HD = __host__ __device__
+// there, the loop pragmas empty) as the CPU driver bending_cpu.cpp does with g++.
+//
+// Hinges are handled in tiles of W lanes with every quantity stored as [component][lane]: on the CPU,
+// W = 8 and each formula is vectorized across the lanes of a tile; a GPU driver would take W = 1 (one
+// hinge per thread).  The CPU build passes -fno-math-errno, without which no loop that takes a square
+// root vectorizes (see TB_LANES_AGG).
+#pragma once
+
+#include <cfloat>
+#include <cmath>
+#include <cstdint>
+
+#if defined(__CUDACC__)
+#define TB_HD __host__ __device__
+#define TB_FORCEINLINE __forceinline__
+#define TB_SIMD
+#define TB_IVDEP
+#else
+#define TB_HD
+#define TB_FORCEINLINE inline __attribute__((always_inline))
+#define TB_SIMD _Pragma("omp simd")
+#if defined(__clang__)
+#define TB_IVDEP _Pragma("clang loop vectorize(assume_safety)")
+#else
+#define TB_IVDEP _Pragma("GCC ivdep")
+#endif
+#endif
+// A loop over the W lanes of a tile, vectorized across hinges on the CPU.  TB_LANES (`omp simd`) is for
+// bodies of scalar locals only: GCC turns every aggregate or address-taken local of an `omp simd` body
+// into a per-lane array in memory, which defeats vectorization.  Bodies that use the V3 / Tri values of
+// tri_frame take TB_LANES_AGG (`ivdep`: no loop-carried dependences, no privatization), whose locals
+// become registers; it vectorizes when the cost model agrees, which with -fno-math-errno (sqrt without
+// its errno branch) it does.
+#define TB_LANES(W) TB_SIMD for (int l = 0; l < (W); ++l)
+#define TB_LANES_AGG(W) TB_IVDEP for (int l = 0; l < (W); ++l)
+
+namespace torchbend {
+
+// ---- scalar helpers (host and device spellings of the same C functions) ----------------------
+TB_HD static inline float tb_sqrt(float v) { return sqrtf(v); }
+TB_HD static inline double tb_sqrt(double v) { return sqrt(v); }
+TB_HD static inline float tb_atan2(float y, float x) { return atan2f(y, x); }
+TB_HD static inline double tb_atan2(double y, double x) { return atan2(y, x); }
+TB_HD static inline float tb_tan(float v) { return tanf(v); }
+TB_HD static inline double tb_tan(double v) { return tan(v); }
+TB_HD static inline float tb_sin(float v) { return sinf(v); }
+TB_HD static inline double tb_sin(double v) { return sin(v); }
+TB_HD static inline float tb_cos(float v) { return cosf(v); }
+TB_HD static inline double tb_cos(double v) { return cos(v); }
+TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
+TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
+template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
+
+template <typename T> TB_HD static inline void cross(const T* u, const T* v, T* o) {
+  o[0] = u[1] * v[2] - u[2] * v[1]; o[1] = u[2] * v[0] - u[0] * v[2]; o[2] = u[0] * v[1] - u[1] * v[0];
+}
+template <typename T> TB_HD static inline T dot(const T* u, const T* v) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
+
+// ---- one triangle ----------------------------------------------------------------------------
+// 3-vectors by value: in the lane loops they become one register per component (see TB_LANES_AGG)
+template <typename T> struct V3 { T x, y, z; };
+template <typename T> TB_HD static TB_FORCEINLINE V3<T> sub3(V3<T> u, V3<T> v) { return {u.x - v.x, u.y - v.y, u.z - v.z}; }
+template <typename T> TB_HD static TB_FORCEINLINE V3<T> scale3(V3<T> u, T s) { return {u.x * s, u.y * s, u.z * s}; }
+template <typename T> TB_HD static TB_FORCEINLINE T dot3(V3<T> u, V3<T> v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
+template <typename T> TB_HD static TB_FORCEINLINE V3<T> cross3(V3<T> u, V3<T> v) {
+  return {u.y * v.z - u.z * v.y, u.z * v.x - u.x * v.z, u.x * v.y - u.y * v.x};
+}
+
+// The quantities of a triangle p0 p1 p2 that both the half-hinge tiles and the per-triangle blocks
+// need, from its cyclic edge vectors e_k = p_{k+2} - p_{k+1} (edge k is opposite p_k):
+// N = e_1 x e_2 = (p1 - p0) x (p2 - p0), valid = |N| > eps max_k |e_k|^2 (degenerate, collinear
+// triangles give zeros: torchbend.ops.hinge's policy), ia = 1/|N| (0 if not valid), the unit normal
+// n = N ia, en_k = e_k x n and mh_k = en_k ia = m_k / h_k (the edge normal over the height on edge k).
+template <typename T> struct Tri {
+  T ee0, ee1, ee2;            // |e_k|^2
+  T valid;                    // 1 if valid, else 0 (a number, not a bool: it stays in a vector lane)
+  T ia;                       // 1/|N|, 0 if not valid
+  V3<T> n, en0, en1, en2;     // unit normal, e_k x n
+  V3<T> mh0, mh1, mh2;        // (e_k x n) / |N|
+};
+
+template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<T> e1, V3<T> e2) {
+  Tri<T> t;
+  V3<T> N = cross3(e1, e2);
+  t.ee0 = dot3(e0, e0); t.ee1 = dot3(e1, e1); t.ee2 = dot3(e2, e2);
+  T area2 = tb_sqrt(dot3(N, N));
+  bool valid = area2 > tb_eps(T(0)) * tb_max(tb_max(t.ee2, t.ee1), t.ee0);
+  t.valid = valid ? T(1) : T(0);
+  t.ia = t.valid / (valid ? area2 : T(1));
+  t.n = scale3(N, t.ia);
+  t.en0 = cross3(e0, t.n); t.en1 = cross3(e1, t.n); t.en2 = cross3(e2, t.n);
+  t.mh0 = scale3(t.en0, t.ia); t.mh1 = scale3(t.en1, t.ia); t.mh2 = scale3(t.en2, t.ia);
+  return t;
+}
+
+// ---- half-hinges -----------------------------------------------------------------------------
+// One half-hinge (a, b, c) = (x0, x1, wing) of W hinges: rho_k, the unit normal n, mh[k] = m_k / h_k
+// (k = 0: vertex a, 1: b, 2: the wing c) and mc = m_c / (h_c |e|^2); zeros where degenerate.
+template <typename T, int W> struct Half { T rho[3][W], n[3][W], mh[3][3][W], mc[3][W]; };
+
+template <typename T, int W>
+TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], Half<T, W>& o) {
+  TB_LANES_AGG(W) {
+    V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
+    V3<T> e{E[0][l], E[1][l], E[2][l]};
+    // the triangle's cyclic edges: e_0 = c - b (opposite a), e_1 = a - c (opposite b), e_2 = e = b - a
+    V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
+    Tri<T> t = tri_frame(e0, e1, e);
+    T elen = tb_sqrt(t.ee2);
+    T ie = t.valid / (t.valid != T(0) ? elen : T(1));
+    T s = ie * t.ia;
+    o.rho[0][l] = -dot3(e, e0) * s;  // -(e . (c - b)) / (|e| |N|)
+    o.rho[1][l] = -dot3(e, e1) * s;  //  (e . (c - a)) / (|e| |N|)
+    o.rho[2][l] = -elen * t.ia;
+    T ie3 = ie * ie * ie;
+    o.n[0][l] = t.n.x; o.n[1][l] = t.n.y; o.n[2][l] = t.n.z;
+    o.mh[0][0][l] = t.mh0.x; o.mh[0][1][l] = t.mh0.y; o.mh[0][2][l] = t.mh0.z;
+    o.mh[1][0][l] = t.mh1.x; o.mh[1][1][l] = t.mh1.y; o.mh[1][2][l] = t.mh1.z;
+    o.mh[2][0][l] = t.mh2.x; o.mh[2][1][l] = t.mh2.y; o.mh[2][2][l] = t.mh2.z;
+    o.mc[0][l] = t.en2.x * ie3; o.mc[1][l] = t.en2.y * ie3; o.mc[2][l] = t.en2.z * ie3;
+  }
+}
+
+// both half-hinges (triangles A = x0 x1 x2, B = x0 x1 x3) of W stencils X[3 * vertex + axis][lane]
+template <typename T, int W> TB_HD static inline void halves_tile(const T (*X)[W], Half<T, W>& hA, Half<T, W>& hB) {
+  T E[3][W];
+  for (int p = 0; p < 3; ++p) TB_LANES(W) E[p][l] = X[3 + p][l] - X[p][l];
+  half_tile<T, W>(X, X + 3, X + 6, E, hA);
+  half_tile<T, W>(X, X + 3, X + 9, E, hB);
+}
+
+// ---- bend angle and psi --------------------------------------------------------------------------
+// phi(theta) and its first two derivatives (torchbend.ops.psi): model 0 quadratic, 1 tan, 2 sin
+template <typename T> TB_HD static inline void phi(int model, T t, T& f, T& f1, T& f2) {
+  if (model == 0) { f = t; f1 = T(1); f2 = T(0); }
+  else if (model == 1) { T u = tb_tan(T(0.5) * t), s2 = T(1) + u * u; f = T(2) * u; f1 = s2; f2 = s2 * u; }
+  else { T sn = tb_sin(T(0.5) * t), cs = tb_cos(T(0.5) * t); f = T(2) * sn; f1 = cs; f2 = T(-0.5) * sn; }
+}
+template <typename T> TB_HD static inline T phi0(int model, T t) {
+  if (model == 0) return t;
+  if (model == 1) return T(2) * tb_tan(T(0.5) * t);
+  return T(2) * tb_sin(T(0.5) * t);
+}
+
+// a per-hinge parameter given as a scalar (n == 1), one per hinge (n == H) or one per sample and hinge
+template <typename T> struct Param {
+  const T* p; int64_t n, H;
+  TB_HD inline T operator()(int64_t b, int64_t h) const { return n == 1 ? p[0] : (n == H ? p[h] : p[b * H + h]); }
+};
+
+// the stencil x0 x1 x2 x3 of one hinge (vertex ids st[0..3]) from positions xb (V, 3) into lane l of X
+template <typename T, int W> TB_HD static inline void load_hinge(const T* xb, const int64_t* st, T (*X)[W], int l) {
+  for (int v = 0; v < 4; ++v)
+    for (int m = 0; m < 3; ++m) X[3 * v + m][l] = xb[3 * st[v] + m];
+}
+
+// psi' (d1) and psi'' (d2) of lane l of the stencils X at its bend angle
+// theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e (the SPEC formula, as
+// torchbend.ops.hinge); psi = a (k (phi - phi(rest))^2 + c (phi - phi(prev))^2) as torchbend.ops.psi,
+// the viscous term only if damped
+template <typename T, int W>
+TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, T rest, bool damped, T c, T prev,
+                                   T& d1, T& d2) {
+  T e[3], u[3], w[3];
+  for (int m = 0; m < 3; ++m) {
+    e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
+  }
+  T NA[3], NB[3], NN[3];
+  cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
+  T elen = tb_sqrt(dot(e, e));
+  T inv = elen > T(0) ? T(1) / elen : T(0);
+  T theta = tb_atan2(dot(e, NN) * inv, dot(NA, NB));
+  T f, f1, f2;
+  phi(model, theta, f, f1, f2);
+  T s = k * (f - phi0(model, rest)), kc = k;
+  if (damped) { s += c * (f - phi0(model, prev)); kc += c; }
+  T two_a = T(2) * a;
+  d1 = two_a * s * f1;
+  d2 = two_a * (kc * f1 * f1 + s * f2);
+}
+
+// ---- 12x12 blocks and angle gradients ------------------------------------------------------------
+// The blocks of W hinges before their output: the upper triangle (r <= c) of
+// H[(i,p),(j,q)] = psi' (rhoA_i mhA_j[p] nA_q + rhoA_j mhA_i[q] nA_p - (same for B)) + psi'' g_r g_c,
+// the B term B = psi' (nA mcA^T - nB mcB^T) of the (x0, x1) blocks, and the angle gradients g.
+template <typename T, int W> struct Blocks { T O[144][W], Bm[3][3][W], G[12][W]; };
+
+template <typename T, int W>
+TB_HD static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, Blocks<T, W>& b) {
+  Half<T, W> hA, hB;
+  halves_tile<T, W>(X, hA, hB);
+  // coefficients per stencil vertex: rho (times psi'), mh; vertex 3 is not in triangle A, 2 not in B
+  T RA[4][W], RB[4][W], MA[4][3][W], MB[4][3][W];
+  const int ia_[4] = {0, 1, 2, -1}, ib_[4] = {0, 1, -1, 2};
+  for (int i = 0; i < 4; ++i) {
+    int sa = ia_[i], sb = ib_[i];
+    TB_LANES(W) {
+      RA[i][l] = sa < 0 ? T(0) : d1[l] * hA.rho[sa][l];
+      RB[i][l] = sb < 0 ? T(0) : d1[l] * hB.rho[sb][l];
+    }
+    for (int p = 0; p < 3; ++p) TB_LANES(W) {
+      MA[i][p][l] = sa < 0 ? T(0) : hA.mh[sa][p][l];
+      MB[i][p][l] = sb < 0 ? T(0) : hB.mh[sb][p][l];
+      b.G[3 * i + p][l] = (sa < 0 ? T(0) : hA.rho[sa][l] * hA.n[p][l]) - (sb < 0 ? T(0) : hB.rho[sb][l] * hB.n[p][l]);
+    }
+  }
+  for (int r = 0; r < 12; ++r) {
+    int i = r / 3, p = r % 3;
+    for (int c = r; c < 12; ++c) {
+      int j = c / 3, q = c % 3;
+      TB_LANES(W) b.O[12 * r + c][l] = RA[i][l] * MA[j][p][l] * hA.n[q][l] + RA[j][l] * MA[i][q][l] * hA.n[p][l]
+                                     - RB[i][l] * MB[j][p][l] * hB.n[q][l] - RB[j][l] * MB[i][q][l] * hB.n[p][l]
+                                     + d2[l] * b.G[r][l] * b.G[c][l];
+    }
+  }
+  // B is symmetric only when both halves are valid, so it is applied as is (as torchbend.ops.hinge
+  // does) rather than mirrored
+  for (int p = 0; p < 3; ++p)
+    for (int q = 0; q < 3; ++q)
+      TB_LANES(W) b.Bm[p][q][l] = d1[l] * (hA.n[p][l] * hA.mc[q][l] - hB.n[p][l] * hB.mc[q][l]);
+}
+
+// the row-major 12x12 block of lane l (144 values into o): the mirrored upper triangle plus the B
+// terms [[-B, B], [B^T, -B]] on the (x0, x1) blocks
+template <typename T, int W> TB_HD static inline void block_lane(const Blocks<T, W>& b, int l, T* o) {
+  for (int r = 0; r < 12; ++r) {
+    for (int c = 0; c < r; ++c) o[12 * r + c] = b.O[12 * c + r][l];
+    for (int c = r; c < 12; ++c) o[12 * r + c] = b.O[12 * r + c][l];
+  }
+  for (int p = 0; p < 3; ++p)
+    for (int q = 0; q < 3; ++q) {
+      T B = b.Bm[p][q][l];
+      o[12 * p + q] -= B;
+      o[12 * p + 3 + q] += B;
+      o[12 * (3 + q) + p] += B;
+      o[12 * (3 + p) + 3 + q] -= B;
+    }
+}
+
+// angle gradients of W hinges (G[3 * vertex + axis][lane])
+template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
+  Half<T, W> hA, hB;
+  halves_tile<T, W>(X, hA, hB);
+  for (int p = 0; p < 3; ++p) TB_LANES(W) {
+    G[p][l] = hA.rho[0][l] * hA.n[p][l] - hB.rho[0][l] * hB.n[p][l];
+    G[3 + p][l] = hA.rho[1][l] * hA.n[p][l] - hB.rho[1][l] * hB.n[p][l];
+    G[6 + p][l] = hA.rho[2][l] * hA.n[p][l];
+    G[9 + p][l] = -hB.rho[2][l] * hB.n[p][l];
+  }
+}
+
+// ---- per-triangle blocks (triangle assembly) -----------------------------------------------------
+// 9x9 block (flat (3 i + p) * 9 + 3 j + q) of sum_h psi'_h Hess(theta_h) over the hinges of one
+// triangle p0 p1 p2 (paper eq. 7, torchbend.ops.triangle); c[k] = psi' of the hinge on edge k
+// (opposite p_k; 0 on the boundary), sg[k] > 0 where the triangle runs edge k in its global direction
+template <typename T>
+TB_HD static inline void face_block(const T* P0, const T* P1, const T* P2, const T* c, const int64_t* sg, T* o) {
+  V3<T> p0{P0[0], P0[1], P0[2]}, p1{P1[0], P1[1], P1[2]}, p2{P2[0], P2[1], P2[2]};
+  V3<T> ev[3] = {sub3(p2, p1), sub3(p0, p2), sub3(p1, p0)};  // e_k = p_{k+2} - p_{k+1}
+  Tri<T> t = tri_frame(ev[0], ev[1], ev[2]);
+  if (t.valid == T(0)) { for (int m = 0; m < 81; ++m) o[m] = T(0); return; }
+  const T ee[3] = {t.ee0, t.ee1, t.ee2}, n[3] = {t.n.x, t.n.y, t.n.z};
+  const T en[3][3] = {{t.en0.x, t.en0.y, t.en0.z}, {t.en1.x, t.en1.y, t.en1.z}, {t.en2.x, t.en2.y, t.en2.z}};
+  const T mh[3][3] = {{t.mh0.x, t.mh0.y, t.mh0.z}, {t.mh1.x, t.mh1.y, t.mh1.z}, {t.mh2.x, t.mh2.y, t.mh2.z}};
+  T elen[3], ie[3];
+  for (int k = 0; k < 3; ++k) { elen[k] = tb_sqrt(ee[k]); ie[k] = T(1) / elen[k]; }
+  T cs[3], d[3];
+  for (int k = 0; k < 3; ++k) cs[k] = -dot3(ev[(k + 1) % 3], ev[(k + 2) % 3]) * ie[(k + 1) % 3] * ie[(k + 2) % 3];
+  for (int k = 0; k < 3; ++k)
+    d[k] = (c[(k + 1) % 3] * cs[(k + 2) % 3] + c[(k + 2) % 3] * cs[(k + 1) % 3] - c[k]) * (elen[k] * t.ia);
+  T R[3][3][3];  // R_k = c_k n (e_k x n)^T / |e_k|^3
+  for (int k = 0; k < 3; ++k) {
+    T s = c[k] * ie[k] * ie[k] * ie[k];
+    for (int p = 0; p < 3; ++p)
+      for (int q = 0; q < 3; ++q) R[k][p][q] = s * n[p] * en[k][q];
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      for (int p = 0; p < 3; ++p)
+        for (int q = 0; q < 3; ++q) {
+          T v = d[i] * mh[j][p] * n[q] + d[j] * n[p] * mh[i][q];
+          if (i == j) {
+            v -= R[(i + 1) % 3][p][q] + R[(i + 2) % 3][p][q];
+          } else if (j == (i + 1) % 3) {  // edge k = i + 2 runs p_i -> p_{i+1}: R, or R^T if reversed
+            int k = (i + 2) % 3;
+            v += sg[k] > 0 ? R[k][p][q] : R[k][q][p];
+          } else {  // j = i - 1: the transpose of block (j, i) of edge k = i + 1
+            int k = (i + 1) % 3;
+            v += sg[k] > 0 ? R[k][q][p] : R[k][p][q];
+          }
+          o[(3 * i + p) * 9 + 3 * j + q] = v;
+        }
+}
+
+}  // namespace torchbend
