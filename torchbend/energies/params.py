@@ -121,10 +121,6 @@ class HingeParams:
             c = module.damping.to(dtype) / dt
         return cls(module.weights.to(dtype), module.stiffness.to(dtype), module.rest_angles.to(dtype), c, prev)
 
-    @property
-    def damped(self) -> bool:
-        return self.c is not None
-
     def astuple(self) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
         """``(a, k, rest, c, prev)``."""
         return (self.a, self.k, self.rest, self.c, self.prev)
