@@ -26,14 +26,14 @@ def is_traced(t: Tensor) -> bool:
 
 def check_positions(x, vertex_count: int, name: str = "x", check_finite: bool = True) -> Tensor:
     """``x`` must be a floating ``(..., V, 3)`` tensor; with ``check_finite`` also finite (the error
-    names the first offending vertices)."""
+    names the first offending vertices).  ``meta`` tensors have no values: only their shape is checked."""
     if not isinstance(x, Tensor):
         raise ValueError(f"{name} must be a torch.Tensor of shape (..., {vertex_count}, 3), got {type(x).__name__}")
     if not x.is_floating_point():
         raise ValueError(f"{name} must be a floating point tensor, got dtype {x.dtype}")
     if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != vertex_count:
         raise ValueError(f"{name} must have shape (..., {vertex_count}, 3) (V = {vertex_count}), got {tuple(x.shape)}")
-    if check_finite and not is_traced(x):
+    if check_finite and not is_traced(x) and x.device.type != "meta":
         bad = ~torch.isfinite(x.detach())
         if bool(bad.any()):
             verts = torch.nonzero(bad.reshape(-1, vertex_count, 3).any(-1).any(0)).reshape(-1)[:8].tolist()

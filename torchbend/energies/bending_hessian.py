@@ -100,9 +100,9 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
     The eigenvalue projections act on whole hinge blocks, so they are assembled per hinge whatever
     ``assembly`` says; ``gauss_newton`` has no ``Hess(theta)`` part."""
     per_triangle = assembly is Assembly.TRIANGLE and projection in (Projection.NONE, Projection.GAUSS_NEWTON)
-    if projection is Projection.NONE:
+    if per_triangle or projection is Projection.NONE:  # projected per-hinge blocks ask in _blocks
         op = "hessian_triangle" if per_triangle else "hessian_hinge"
-        if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
+        if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE and projection is Projection.NONE:
             from ..backends import native
 
             return pattern.csr(native.assemble(x, hinges, *p.astuple(), model, pattern, topo, per_triangle))
@@ -115,7 +115,6 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
                 Hb = project_blocks(Hb, projection, g, d2)
             values.index_add_(0, hinge_pos[sl].reshape(-1), Hb.reshape(-1))
         return pattern.csr(values)
-    backends.select_backend("hessian_triangle", backend, x, *p.tensors())
     x4 = gather(x, hinges)
     theta, g4 = geometry.hinge_angle_and_gradient(x4)
     d1, d2 = psi_theta_derivatives(model, theta, *p.astuple())

@@ -19,12 +19,12 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from .._checks import check_positions, positive, vec3
+from .._checks import positive, vec3
 from ..energies.bending import BendingEnergy
-from ..energies.colliders import Capsule, Plane, Sphere
+from ..energies.colliders import Collider
 from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..energies.sparse import to_scipy
-from ..mesh.topology import HingeTopology, mesh_and_rest
+from ..mesh.topology import mesh_and_rest
 from ..options import Projection
 
 __all__ = ["ClothModel", "ClothState"]
@@ -67,7 +67,7 @@ class ClothModel:
     def __init__(self, faces, rest_positions, *, bending: BendingEnergy | None = None,
                  membrane: MembraneEnergy | None = None, density: float = 0.1,
                  gravity=(0.0, 0.0, -9.81), pinned=None, colliders=()):
-        topo, rest = _mesh_and_rest(faces, rest_positions)
+        topo, rest = mesh_and_rest(faces, rest_positions)
         V = topo.vertex_count
         density = positive(density, "density")
         _check_terms(V, bending, membrane)
@@ -169,17 +169,6 @@ class ClothModel:
 
 
 # -------------------------------------------------------------------- construction helpers
-def _mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
-    """:func:`~torchbend.mesh.topology.mesh_and_rest`, with shape checks only for ``meta`` positions."""
-    if not (isinstance(rest_positions, Tensor) and rest_positions.device.type == "meta"):
-        return mesh_and_rest(faces, rest_positions)
-    topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
-    check_positions(rest_positions, topo.vertex_count, "rest_positions", check_finite=False)
-    if rest_positions.ndim != 2:
-        raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest_positions.shape)}")
-    return topo, rest_positions
-
-
 def _gravity(gravity) -> tuple[float, float, float]:
     """``gravity`` [m/s^2] as a finite 3-tuple (a tensor is read on its device)."""
     if isinstance(gravity, Tensor):
@@ -200,7 +189,7 @@ def _check_terms(V: int, bending, membrane) -> None:
 def _check_colliders(colliders) -> tuple:
     colliders = tuple(colliders)
     for i, c in enumerate(colliders):
-        if not isinstance(c, (Sphere, Plane, Capsule)):
+        if not isinstance(c, Collider):
             raise ValueError(f"colliders[{i}] must be a Sphere, Plane or Capsule, got {type(c).__name__}")
     return colliders
 
