@@ -114,8 +114,8 @@ def test_colliders_derivatives_match_autograd():
         assert (torch.linalg.eigvalsh(c.hessian_blocks(x, project="clamp")) >= -1e-12).all()
 
 
-SIM_DIR = os.path.dirname(os.path.abspath(tb.sim.__file__))
-TORCH_DIR = os.path.dirname(os.path.abspath(torch.__file__))
+SIM_DIR = os.path.dirname(os.path.abspath(str(tb.sim.__file__)))
+TORCH_DIR = os.path.dirname(os.path.abspath(str(torch.__file__)))
 FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.eye, torch.arange, torch.linspace, torch.tensor,
              torch.as_tensor, torch.scalar_tensor, torch.rand, torch.randn}
 

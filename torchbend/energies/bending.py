@@ -99,12 +99,12 @@ class BendingEnergy(nn.Module):
         self.register_buffer("weights", rest_hinge_weights(rest_positions, topo))
         if rest_angles is None:
             rest_angles = hinge_angle(gather(rest_positions.detach(), self.hinges))
-        rest_angles = hinge_parameter(rest_angles, "rest_angles", H, dtype, device, nonneg=False)
-        if rest_angles.ndim == 0 and not isinstance(rest_angles, nn.Parameter):
-            rest_angles = rest_angles.expand(H).clone()
-        if self.model is BendingModel.TAN and bool((rest_angles.detach().abs() >= math.pi).any()):
+        rest = hinge_parameter(rest_angles, "rest_angles", H, dtype, device, nonneg=False)
+        if rest.ndim == 0 and not isinstance(rest, nn.Parameter):
+            rest = rest.expand(H).clone()
+        if self.model is BendingModel.TAN and bool((rest.detach().abs() >= math.pi).any()):
             raise ValueError("rest_angles must satisfy |theta| < pi for the 'tan' model (phi is unbounded at pi)")
-        self._set("rest_angles", rest_angles)
+        self._set("rest_angles", rest)
         self._set("stiffness", hinge_parameter(stiffness, "stiffness", H, dtype, device))
         if damping is None:
             self.damping = None
