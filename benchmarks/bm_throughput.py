@@ -13,6 +13,7 @@ the same plain energy; optional, skipped when JAX is missing).  Reported as ns p
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 
@@ -21,7 +22,7 @@ from common import machine, sheet_for_hinges, timeit
 
 import torchbend as tb
 from torchbend.energies.sparse import HessianPattern
-from torchbend.testing import plain_bending_energy
+from torchbend.testing import autograd_gradient, autograd_hvp, plain_bending_energy
 
 OPS = ["energy", "gradient", "hvp", "hinge_hessians", "assembly"]
 
@@ -76,14 +77,8 @@ def methods(bend, x, v):
     def plain(y):
         return plain_bending_energy(y, hinges, a, k, rest, "tan")
 
-    def ag_grad():
-        y = x.detach().requires_grad_()
-        return torch.autograd.grad(plain(y), y)[0]
-
-    def ag_hvp():
-        y = x.detach().requires_grad_()
-        (g,) = torch.autograd.grad(plain(y), y, create_graph=True)
-        return torch.autograd.grad(g, y, v)[0]
+    ag_grad = functools.partial(autograd_gradient, plain, x)
+    ag_hvp = functools.partial(autograd_hvp, plain, x, v)
 
     idx = torch.arange(4)[None]
 

@@ -11,12 +11,13 @@ double backward through the custom Function) and plain autograd of the SPEC's at
 from __future__ import annotations
 
 import argparse
+import functools
 import platform
 
 import torch
 
 import torchbend as tb
-from torchbend.testing import median_time, plain_bending_energy
+from torchbend.testing import autograd_gradient, autograd_hvp, median_time, plain_bending_energy
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -37,23 +38,10 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
     H = bend.hinge_count
     plain = lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)  # noqa: E731
 
-    def tb_double_backward():
-        y = x.detach().requires_grad_()
-        (g,) = torch.autograd.grad(bend(y), y, create_graph=True)
-        return torch.autograd.grad(g, y, v)[0]
-
-    def ag_grad():
-        y = x.detach().requires_grad_()
-        return torch.autograd.grad(plain(y), y)[0]
-
-    def ag_hvp():
-        y = x.detach().requires_grad_()
-        (g,) = torch.autograd.grad(plain(y), y, create_graph=True)
-        return torch.autograd.grad(g, y, v)[0]
-
-    def tb_grad_backward():
-        y = x.detach().requires_grad_()
-        return torch.autograd.grad(bend(y), y)[0]
+    tb_double_backward = functools.partial(autograd_hvp, bend, x, v)  # torchbend's analytic double backward
+    tb_grad_backward = functools.partial(autograd_gradient, bend, x)
+    ag_grad = functools.partial(autograd_gradient, plain, x)  # autograd of the plain energy
+    ag_hvp = functools.partial(autograd_hvp, plain, x, v)
 
     # accuracy: against autograd in float64 (independent of the working dtype)
     x64, v64 = x.double(), v.double()

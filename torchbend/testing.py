@@ -13,7 +13,7 @@ import time
 import torch
 from torch import Tensor
 
-__all__ = ["plain_hinge_angles", "plain_bending_energy", "median_time"]
+__all__ = ["plain_hinge_angles", "plain_bending_energy", "autograd_gradient", "autograd_hvp", "median_time"]
 
 
 def plain_hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
@@ -62,3 +62,16 @@ def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def autograd_gradient(energy, x: Tensor) -> Tensor:
+    """``dE/dx`` of a scalar ``energy(x)`` by reverse-mode autograd (what a user would write)."""
+    y = x.detach().requires_grad_()
+    return torch.autograd.grad(energy(y), y)[0]
+
+
+def autograd_hvp(energy, x: Tensor, v: Tensor) -> Tensor:
+    """``(d^2E/dx^2) v`` of a scalar ``energy(x)`` by double backward (what a user would write)."""
+    y = x.detach().requires_grad_()
+    (g,) = torch.autograd.grad(energy(y), y, create_graph=True)
+    return torch.autograd.grad(g, y, v)[0]
