@@ -446,8 +446,10 @@ def test_bad_rest_shape_and_parameters(small):
         BendingEnergy(faces, rest, rest_angles=float("nan"))
     with pytest.raises(ValueError, match=r"\|theta\| < pi"):
         BendingEnergy(faces, rest, model="tan", rest_angles=math.pi)
+    with pytest.raises(ValueError, match=r"face 3 = \[2, 5, 4\] has index 5 >= V = 5"):
+        BendingEnergy(faces, rest[:5])  # too few rest positions: the first face that reaches past them
     with pytest.raises(ValueError, match=r"rest_positions must have shape \(\.\.\., 9, 3\)"):
-        BendingEnergy(faces, rest[:5])
+        BendingEnergy(faces, rest[:5, :2])
 
 
 def test_bad_damping_arguments(small):

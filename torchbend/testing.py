@@ -38,17 +38,26 @@ def _phi(model: str, t: Tensor) -> Tensor:
     raise ValueError(f"unknown bending model {model!r}")
 
 
+def _term(model: str, theta: Tensor, ref) -> Tensor:
+    """``(phi(theta') - phi(ref))^2`` with ``theta' = ref + wrap(theta - ref)`` for quadratic and sin
+    (SPEC sec. 1, continuity through +-pi), ``theta`` for tan."""
+    if model != "tan":
+        d = theta - ref
+        theta = ref + (d - 2.0 * torch.pi * torch.ceil((d - torch.pi) / (2.0 * torch.pi)).detach())
+    return (_phi(model, theta) - _phi(model, torch.as_tensor(ref))) ** 2
+
+
 def plain_bending_energy(
     x: Tensor, hinges: Tensor, a: Tensor, k, rest: Tensor, model: str = "tan", c=None, prev=None
 ) -> Tensor:
     """``E: (...,)`` = sum_h a [k (phi - phi_rest)^2 + c (phi - phi_prev)^2], plain autograd ops."""
     model = getattr(model, "value", model)
-    f = _phi(model, plain_hinge_angles(x, hinges))
-    psi = a * k * (f - _phi(model, rest)) ** 2
+    theta = plain_hinge_angles(x, hinges)
+    psi = a * k * _term(model, theta, rest)
     if c is not None:
         if prev is None:
             raise ValueError("the viscous term needs both c and prev")
-        psi = psi + a * c * (f - _phi(model, prev)) ** 2
+        psi = psi + a * c * _term(model, theta, prev)
     return psi.sum(-1)
 
 

@@ -29,6 +29,8 @@ from typing import Any
 
 from torch import Tensor
 
+from ..ops.psi import BendingModel, check_fold
+
 __all__ = ["load", "build_error", "extension_name", "bending_hessians", "assemble", "MODEL_CODE"]
 
 CSRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "csrc")
@@ -95,7 +97,8 @@ def _opt(t: Tensor | None) -> Tensor | None:
 def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model,
                      out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Fused gather + angle + ``psi'``/``psi''`` + blocks for finite positions ``x: (..., V, 3)`` (the caller
-    checks): ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))``.  Parameters: scalars or ``(H,)``
+    checks): ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))``; a folded ``tan`` hinge is the
+    ``ValueError`` of :func:`torchbend.ops.psi.check_fold` (the kernel returns the angles for the check).  Parameters: scalars or ``(H,)``
     (``prev`` also ``(..., H)`` with x's batch shape); ``c``, ``prev`` ``None`` without damping.
 
     ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of fresh tensors
@@ -103,14 +106,19 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     touch, which for large meshes costs more than the kernel itself: a loop that calls this repeatedly
     (a Newton solver) can keep the buffers (see ``benchmarks/results/hessian_native_cpu_2core.txt``)."""
     hb, g = (None, None) if out is None else out
-    return _module().bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev),
-                                      _model_code(model), _opt(hb), _opt(g))
+    Hb, g, d2, theta = _module().bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
+                                                  _opt(prev), _model_code(model), _opt(hb), _opt(g))
+    check_fold(BendingModel.parse(model), theta)
+    return Hb, g, d2
 
 
 def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, topo, per_triangle: bool) -> Tensor:
     """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
-    hinge or per triangle in C++ (serial: the scatter targets overlap)."""
-    return _module().assemble(
+    hinge or per triangle in C++ (serial: the scatter targets overlap); a folded ``tan`` hinge is a
+    ``ValueError`` as in :func:`bending_hessians`."""
+    values, theta = _module().assemble(
         x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev), _model_code(model),
         pattern.hinge_pos, topo.faces, topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz,
         per_triangle)
+    check_fold(BendingModel.parse(model), theta)
+    return values

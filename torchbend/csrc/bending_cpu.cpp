@@ -57,10 +57,10 @@ static inline void write_tile(const Blocks<T, W>& b, int nl, T* const* out, T* c
 // the angle gradient; B samples of H hinges, tiles over the flattened (sample, hinge) index.
 template <typename T>
 static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, Param<T> a, Param<T> k,
-                  Param<T> rest, Param<T> c, Param<T> prev, bool damped, int model, T* out, T* gout, T* d2out) {
+                  Param<T> rest, Param<T> c, Param<T> prev, bool damped, int model, T* out, T* gout, T* d2out, T* thout) {
   int64_t tiles = (B * H + W - 1) / W;
   at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
-    T X[12][W], D1[W], D2[W];
+    T X[12][W], D1[W], D2[W], TH;
     Blocks<T, W> tile;
     T* op[W]; T* gp[W];
     for (int64_t t = begin; t < end; ++t) {
@@ -77,8 +77,9 @@ static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64
         int64_t bh = bh0 + l;
         load_hinge<T, W>(x + 3 * V * b, hinges + 4 * h, X, l);
         T c0 = damped ? c(b, h) : T(0), p0 = damped ? prev(b, h) : T(0);
-        hinge_psi<T, W>(X, l, model, a(b, h), k(b, h), rest(b, h), damped, c0, p0, D1[l], D2[l]);
+        hinge_psi<T, W>(X, l, model, a(b, h), k(b, h), rest(b, h), damped, c0, p0, TH, D1[l], D2[l]);
         d2out[bh] = D2[l];
+        thout[bh] = TH;
         op[l] = out + 144 * bh; gp[l] = gout + 12 * bh;
       }
       block_tile<T, W>(X, D1, D2, tile);
@@ -114,9 +115,9 @@ static torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::
 
 // Positions x (..., V, 3); per-hinge parameters given as scalars, (H,) or (..., H) like x's batch;
 // c and prev None without damping; out and gout optional buffers for the first two results.
-// Returns (blocks (..., H, 12, 12), angle gradients (..., H, 12), psi'' (..., H)).  The caller
-// checks that x is finite.
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_hessians(
+// Returns (blocks (..., H, 12, 12), angle gradients (..., H, 12), psi'' (..., H), theta (..., H)).  The
+// caller checks that x is finite and, with theta, that no tan hinge has folded through.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_hessians(
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
     c10::optional<torch::Tensor> out_, c10::optional<torch::Tensor> gout_) {
@@ -143,15 +144,15 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_hessians(
   auto out = output(out_, sb, x, "out (blocks)");
   auto g = output(gout_, sg, x, "out (gradients)");
   TORCH_CHECK(disjoint(out, g), "the two out buffers overlap");
-  auto d2 = torch::empty(sd, x.options());
+  auto d2 = torch::empty(sd, x.options()), theta = torch::empty(sd, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "bending_hessians", [&] {
     Param<scalar_t> none{nullptr, 0, H};
     fused<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), B, V, H, param<scalar_t>(a, H),
                     param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
                     damped ? param<scalar_t>(prev, H) : none, damped, int(model), out.data_ptr<scalar_t>(),
-                    g.data_ptr<scalar_t>(), d2.data_ptr<scalar_t>());
+                    g.data_ptr<scalar_t>(), d2.data_ptr<scalar_t>(), theta.data_ptr<scalar_t>());
   });
-  return {out, g, d2};
+  return {out, g, d2, theta};
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -165,7 +166,7 @@ template <typename T>
 static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
                           Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hpos,
                           const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fpos,
-                          int64_t F, bool per_triangle, T* values) {
+                          int64_t F, bool per_triangle, T* values, T* thout) {
   std::vector<T> d1s(per_triangle ? H : 0);
   alignas(64) T buf[W][144];
   T gbuf[W][12];
@@ -180,7 +181,7 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
       int64_t h = h0 + l;
       load_hinge<T, W>(x, hinges + 4 * h, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
-                      damped ? prev(0, h) : T(0), D1[l], D2[l]);
+                      damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
     }
     if (!per_triangle) {
       block_tile<T, W>(X, D1, D2, tile);
@@ -214,8 +215,8 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
   }
 }
 
-// CSR values (nnz,) of the Hessian of one mesh x (V, 3); parameters as in bending_hessians
-torch::Tensor assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+// (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,)); parameters as in bending_hessians
+std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
                        c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
                        torch::Tensor hinge_pos, torch::Tensor faces, torch::Tensor face_edge_hinges,
                        torch::Tensor face_edge_signs, torch::Tensor face_pos, int64_t nnz, bool per_triangle) {
@@ -235,7 +236,7 @@ torch::Tensor assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, t
   hinges = idx(hinges); hinge_pos = idx(hinge_pos); faces = idx(faces);
   face_edge_hinges = idx(face_edge_hinges); face_edge_signs = idx(face_edge_signs); face_pos = idx(face_pos);
   TORCH_CHECK(hinge_pos.numel() == 144 * H && face_pos.numel() == 81 * F, "pattern does not match the mesh");
-  auto values = torch::zeros({nnz}, x.options());
+  auto values = torch::zeros({nnz}, x.options()), theta = torch::empty({H}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
     Param<scalar_t> none{nullptr, 0, H};
     assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),
@@ -243,9 +244,10 @@ torch::Tensor assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, t
                             damped ? param<scalar_t>(prev, H) : none, damped, int(model),
                             hinge_pos.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
                             face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
-                            face_pos.data_ptr<int64_t>(), F, per_triangle, values.data_ptr<scalar_t>());
+                            face_pos.data_ptr<int64_t>(), F, per_triangle, values.data_ptr<scalar_t>(),
+                            theta.data_ptr<scalar_t>());
   });
-  return values;
+  return {values, theta};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -55,6 +55,10 @@ TB_HD static inline float tb_sin(float v) { return sinf(v); }
 TB_HD static inline double tb_sin(double v) { return sin(v); }
 TB_HD static inline float tb_cos(float v) { return cosf(v); }
 TB_HD static inline double tb_cos(double v) { return cos(v); }
+TB_HD static inline float tb_ceil(float v) { return ceilf(v); }
+TB_HD static inline double tb_ceil(double v) { return ceil(v); }
+TB_HD static inline float tb_floor(float v) { return floorf(v); }
+TB_HD static inline double tb_floor(double v) { return floor(v); }
 TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
@@ -138,16 +142,24 @@ template <typename T, int W> TB_HD static inline void halves_tile(const T (*X)[W
 }
 
 // ---- bend angle and psi --------------------------------------------------------------------------
-// phi(theta) and its first two derivatives (torchbend.ops.psi): model 0 quadratic, 1 tan, 2 sin
-template <typename T> TB_HD static inline void phi(int model, T t, T& f, T& f1, T& f2) {
-  if (model == 0) { f = t; f1 = T(1); f2 = T(0); }
-  else if (model == 1) { T u = tb_tan(T(0.5) * t), s2 = T(1) + u * u; f = T(2) * u; f1 = s2; f2 = s2 * u; }
-  else { T sn = tb_sin(T(0.5) * t), cs = tb_cos(T(0.5) * t); f = T(2) * sn; f1 = cs; f2 = T(-0.5) * sn; }
-}
-template <typename T> TB_HD static inline T phi0(int model, T t) {
-  if (model == 0) return t;
-  if (model == 1) return T(2) * tb_tan(T(0.5) * t);
-  return T(2) * tb_sin(T(0.5) * t);
+// phi(theta') - phi(ref) and phi', phi'' at theta' (torchbend.ops.psi.phi_difference): model 0 quadratic,
+// 1 tan, 2 sin.  theta' = ref + wrap(theta - ref) (wrap into (-pi, pi]) for quadratic and sin, theta for tan;
+// the difference is written without cancellation (2 sin((t-r)/2) / (cos(t/2) cos(r/2)) for tan,
+// 4 cos((t+r)/4) sin((t-r)/4) for sin).
+template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {
+  const T pi = T(3.14159265358979323846), two_pi = T(6.28318530717958647692);
+  T delta = t - ref;
+  if (model == 1) {
+    T h = T(0.5) * t, ct = tb_cos(h), u = tb_sin(h) / ct, s2 = T(1) + u * u;
+    d = T(2) * tb_sin(T(0.5) * delta) / (ct * tb_cos(T(0.5) * ref)); f1 = s2; f2 = s2 * u;
+    return;
+  }
+  T turns = tb_ceil((delta - pi) / two_pi);  // theta' = theta - 2 pi turns
+  T dw = turns != T(0) ? delta - two_pi * turns : delta;
+  if (model == 0) { d = dw; f1 = T(1); f2 = T(0); return; }
+  T sign = T(1) - T(2) * (turns - T(2) * tb_floor(T(0.5) * turns));  // (-1)^turns
+  T h = T(0.5) * t, q = T(0.25) * dw;
+  d = T(4) * tb_cos(T(0.5) * ref + q) * tb_sin(q); f1 = sign * tb_cos(h); f2 = T(-0.5) * sign * tb_sin(h);
 }
 
 // a per-hinge parameter given as a scalar (n == 1), one per hinge (n == H) or one per sample and hinge
@@ -162,13 +174,14 @@ template <typename T, int W> TB_HD static inline void load_hinge(const T* xb, co
     for (int m = 0; m < 3; ++m) X[3 * v + m][l] = xb[3 * st[v] + m];
 }
 
-// psi' (d1) and psi'' (d2) of lane l of the stencils X at its bend angle
+// theta, psi' (d1) and psi'' (d2) of lane l of the stencils X at its bend angle
 // theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e (the SPEC formula, as
-// torchbend.ops.hinge); psi = a (k (phi - phi(rest))^2 + c (phi - phi(prev))^2) as torchbend.ops.psi,
-// the viscous term only if damped
+// torchbend.ops.hinge); psi = a (k (phi - phi(rest))^2 + c (phi - phi(prev))^2) as torchbend.ops.psi, each
+// term on the branch of its reference angle, the viscous term only if damped.  The caller checks theta
+// for folded tan hinges (|theta| >= pi), where psi' and psi'' are meaningless.
 template <typename T, int W>
 TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, T rest, bool damped, T c, T prev,
-                                   T& d1, T& d2) {
+                                   T& theta, T& d1, T& d2) {
   T e[3], u[3], w[3];
   for (int m = 0; m < 3; ++m) {
     e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
@@ -177,14 +190,22 @@ TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, 
   cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
   T elen = tb_sqrt(dot(e, e));
   T inv = elen > T(0) ? T(1) / elen : T(0);
-  T theta = tb_atan2(dot(e, NN) * inv, dot(NA, NB));
-  T f, f1, f2;
-  phi(model, theta, f, f1, f2);
-  T s = k * (f - phi0(model, rest)), kc = k;
-  if (damped) { s += c * (f - phi0(model, prev)); kc += c; }
+  theta = tb_atan2(dot(e, NN) * inv, dot(NA, NB));
+  T dr, f1, f2;
+  phi_difference(model, theta, rest, dr, f1, f2);
+  T kd = k * dr, s = kd, h2 = k * f1 * f1 + kd * f2;
+  if (damped) {
+    T dp, g1, g2;
+    phi_difference(model, theta, prev, dp, g1, g2);
+    T cd = c * dp;
+    s = kd * f1 + cd * g1;
+    h2 += c * g1 * g1 + cd * g2;
+  } else {
+    s = kd * f1;
+  }
   T two_a = T(2) * a;
-  d1 = two_a * s * f1;
-  d2 = two_a * (kc * f1 * f1 + s * f2);
+  d1 = two_a * s;
+  d2 = two_a * h2;
 }
 
 // ---- 12x12 blocks and angle gradients ------------------------------------------------------------

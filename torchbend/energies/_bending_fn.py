@@ -29,7 +29,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import is_traced
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -61,20 +60,6 @@ def _dot4(a, b) -> Tensor:
             if i or j:
                 out = torch.addcmul(out, ca, cb)
     return out
-
-
-def _check_fold(model: BendingModel, theta: Tensor) -> None:
-    """``tan`` energy is unbounded at |theta| = pi: a hinge folded flat onto itself is an error, not NaN/Inf."""
-    if model is not BendingModel.TAN or is_traced(theta) or theta.numel() == 0:
-        return
-    limit = torch.tensor(torch.pi, dtype=theta.dtype)
-    folded = theta.detach().abs() >= limit.to(theta.device)
-    if bool(folded.any()):
-        idx = torch.nonzero(folded.reshape(-1, theta.shape[-1]).any(0)).reshape(-1)[:8].tolist()
-        raise ValueError(
-            f"hinges {idx} have folded through (|theta| = pi): the 'tan' bending energy is unbounded "
-            "there by design (it forbids interpenetration); use smaller steps or the 'quadratic'/'sin' model"
-        )
 
 
 def _reduce(psi: Tensor, seg: Tensor | None, seg_count: int) -> Tensor:
@@ -185,7 +170,6 @@ def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params) -
     psis = []
     for sl in chunks(hinges.shape[0]):
         theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
-        _check_fold(model, theta)
         psis.append(_psi(model, theta, a[sl], [sliced(t, sl) for t in _params(params)], hessian=False)[0])
     return _reduce(psis[0] if len(psis) == 1 else torch.cat(psis, -1), seg, seg_count)
 

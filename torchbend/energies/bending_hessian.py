@@ -99,6 +99,8 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
 
     The eigenvalue projections act on whole hinge blocks, so they are assembled per hinge whatever
     ``assembly`` says; ``gauss_newton`` has no ``Hess(theta)`` part."""
+    if hinges.shape[0] == 0:  # no interior edge: the zero matrix
+        return pattern.csr(x.new_zeros(pattern.nnz))
     per_triangle = assembly is Assembly.TRIANGLE and projection in (Projection.NONE, Projection.GAUSS_NEWTON)
     if per_triangle or projection is Projection.NONE:  # projected per-hinge blocks ask in _blocks
         op = "hessian_triangle" if per_triangle else "hessian_hinge"

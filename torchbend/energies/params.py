@@ -29,10 +29,17 @@ def rest_hinge_weights(rest_positions: Tensor, topo: HingeTopology) -> Tensor:
     """
     X = rest_positions.detach().to(torch.float64)
     tol = torch.finfo(rest_positions.dtype).eps
-    scale = X.abs().amax().clamp_min(1.0) if X.numel() else X.new_tensor(1.0)
+    F = topo.faces.to(X.device)
+    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
+    lengths = torch.stack(((p2 - p1).norm(dim=-1), (p0 - p2).norm(dim=-1), (p1 - p0).norm(dim=-1)), 1)  # opposite k
+    longest = lengths.amax(-1)
+    # an edge is of zero length relative to its own triangles (no absolute threshold: the units and the
+    # mesh's scale do not matter), i.e. when it is shorter than eps times the longest edge of its faces
     E = topo.edges.to(X.device)
     elen = (X[E[:, 1]] - X[E[:, 0]]).norm(dim=-1)
-    bad = torch.nonzero(~(elen > tol * scale)).reshape(-1)
+    local = X.new_zeros(E.shape[0]).scatter_reduce(0, topo.face_edges.to(X.device).reshape(-1),
+                                                   longest.repeat_interleave(3), "amax", include_self=False)
+    bad = torch.nonzero(~(elen > tol * local)).reshape(-1)
     if bad.numel():
         pairs = [tuple(p) for p in E[bad[:8]].tolist()]
         hinge_ids = topo.edge_hinges.to(X.device)[bad[:8]].tolist()
@@ -40,9 +47,6 @@ def rest_hinge_weights(rest_positions: Tensor, topo: HingeTopology) -> Tensor:
             f"rest shape has zero-length edges {pairs} (hinge index or -1 for boundary: {hinge_ids})"
             + (f" ... ({bad.numel()} in all)" if bad.numel() > 8 else "")
         )
-    F = topo.faces.to(X.device)
-    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
-    longest = torch.stack(((p1 - p0).norm(dim=-1), (p2 - p1).norm(dim=-1), (p0 - p2).norm(dim=-1)), 1).amax(-1)
     area2 = torch.linalg.cross(p1 - p0, p2 - p0).norm(dim=-1)  # 2 * area
     bad = torch.nonzero(~nondegenerate(area2, longest * longest, eps=tol)).reshape(-1)
     if bad.numel():

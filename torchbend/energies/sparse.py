@@ -56,7 +56,7 @@ class StencilPattern:
         cols = np.tile(elements, (1, m)).astype(np.int64)
         b = np.searchsorted(self._keys, rows * self._V + cols).reshape(n, m, m)
         P = self._pos[b]  # (n, m, m, 3, 3) [a, b, p, q]
-        return torch.as_tensor(P.transpose(0, 1, 3, 2, 4).reshape(n, -1), dtype=torch.int64)
+        return torch.as_tensor(P.transpose(0, 1, 3, 2, 4).reshape(n, (3 * m) ** 2), dtype=torch.int64)
 
     def csr(self, values: Tensor) -> Tensor:
         dev = values.device

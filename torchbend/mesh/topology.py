@@ -114,9 +114,10 @@ class HingeTopology:
         vertex_count = int(vertex_count)
         bad = np.nonzero((F >= vertex_count).any(1))[0]
         if bad.size:
+            f0 = int(bad[0])
             raise ValueError(
-                f"vertex index out of range [0, {vertex_count}) in faces [{_faces_str(bad)}] "
-                f"(largest index {vmax})"
+                f"vertex index out of range [0, {vertex_count}) in faces [{_faces_str(bad)}]: face {f0} = "
+                f"{F[f0].tolist()} has index {int(F[f0].max())} >= V = {vertex_count} (largest index {vmax})"
             )
         bad = np.nonzero((F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0]))[0]
         if bad.size:
@@ -203,11 +204,17 @@ class HingeTopology:
 
 
 def mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
-    """Validated ``(topology, rest positions (V, 3) float)`` from faces (or a topology) and positions."""
-    topo = faces if isinstance(faces, HingeTopology) else HingeTopology.from_faces(faces)
+    """Validated ``(topology, rest positions (V, 3) float)`` from faces (or a topology) and positions.
+
+    ``V`` is the number of rest positions: a face index ``>= V`` is reported as such (naming the face)."""
     rest = torch.as_tensor(rest_positions)
     if not rest.is_floating_point():
         rest = rest.to(torch.get_default_dtype())
+    if isinstance(faces, HingeTopology):
+        topo = faces
+    else:
+        V = rest.shape[0] if rest.ndim == 2 and rest.shape[1] == 3 else None
+        topo = HingeTopology.from_faces(faces, V)
     check_positions(rest, topo.vertex_count, "rest_positions")
     if rest.ndim != 2:
         raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest.shape)}")

@@ -16,12 +16,15 @@ stiffness and rest angles.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
+from .._checks import is_traced
 from ..options import Option
 
-__all__ = ["BendingModel", "phi", "psi_derivatives", "psi_theta_derivatives", "contract_hessian",
+__all__ = ["BendingModel", "phi", "phi_difference", "check_fold", "psi_derivatives", "psi_theta_derivatives", "contract_hessian",
            "THETA", "K", "REST", "C", "PREV"]
 
 
@@ -54,13 +57,61 @@ def phi(model: BendingModel, theta: Tensor, order: int = 2) -> tuple[Tensor, ...
 # parameter slots of psi
 THETA, K, REST, C, PREV = range(5)
 
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+
+
+def phi_difference(model: BendingModel, theta: Tensor, ref) -> tuple[Tensor, Tensor, Tensor]:
+    """``(phi(theta') - phi(ref), phi'(theta'), phi''(theta'))`` on the branch nearest ``ref`` (SPEC sec. 1).
+
+    ``theta' = ref + wrap(theta - ref)`` (``wrap`` into (-pi, pi]) for ``quadratic`` and ``sin``, so that
+    their energies are continuous where a hinge turns through +-pi; ``theta' = theta`` for ``tan``
+    (its barrier at +-pi is the point).  The difference is formed without cancellation:
+    ``2 tan(t/2) - 2 tan(r/2) = 2 sin((t - r)/2) / (cos(t/2) cos(r/2))`` and
+    ``2 sin(t/2) - 2 sin(r/2) = 4 cos((t + r)/4) sin((t - r)/4)``, so ``psi`` and ``psi'`` keep their
+    relative accuracy when ``theta`` is close to the reference."""
+    delta = theta - ref
+    if model is BendingModel.TAN:
+        h = 0.5 * theta
+        ct = torch.cos(h)
+        t = torch.sin(h) / ct
+        sec2 = 1.0 + t * t
+        return 2.0 * torch.sin(0.5 * delta) / (ct * torch.cos(0.5 * ref)), sec2, sec2 * t
+    turns = torch.ceil((delta - _PI) / _TWO_PI)  # theta' = theta - 2 pi turns; 0 unless |theta - ref| > pi
+    wrapped = turns != 0
+    dw = torch.where(wrapped, delta - _TWO_PI * turns, delta)
+    if model is BendingModel.QUADRATIC:
+        return dw, torch.ones_like(dw), torch.zeros_like(dw)
+    if model is BendingModel.SIN:
+        h = 0.5 * theta
+        sign = 1.0 - 2.0 * torch.remainder(turns, 2.0)  # sin/cos(theta'/2) = (-1)^turns sin/cos(theta/2)
+        q = 0.25 * dw
+        return 4.0 * torch.cos(0.5 * ref + q) * torch.sin(q), sign * torch.cos(h), -0.5 * sign * torch.sin(h)
+    raise ValueError(f"unknown bending model {model!r}")  # pragma: no cover - BendingModel.parse guards this
+
+
+def check_fold(model: BendingModel, theta: Tensor) -> None:
+    """``ValueError`` where a ``tan`` hinge has folded through (``|theta| >= pi`` in theta's dtype): its energy
+    is unbounded there by design, so every entry point refuses rather than return a huge or sign-flipped number.
+    Skipped while tracing (``torch.compile``, ``vmap``): the check needs the values."""
+    if model is not BendingModel.TAN or theta.numel() == 0 or is_traced(theta):
+        return
+    folded = theta.detach().abs() >= torch.tensor(_PI, dtype=theta.dtype)
+    if bool(folded.any()):
+        idx = torch.nonzero(folded.reshape(-1, theta.shape[-1]).any(0)).reshape(-1)
+        raise ValueError(
+            f"hinges {idx[:8].tolist()}" + (f" ... ({idx.numel()} in all)" if idx.numel() > 8 else "")
+            + " have folded through (|theta| = pi): the 'tan' bending energy is unbounded there by design "
+            "(it forbids interpenetration); use smaller steps or the 'quadratic'/'sin' model"
+        )
+
 
 def _phi_at_reference(model: BendingModel, t, derivatives: bool) -> tuple:
-    """``(phi, phi', phi'')`` at a reference angle; the derivatives (``None`` without ``derivatives``)
-    are needed only for the parameter derivatives."""
+    """``(phi', phi'')`` at a reference angle (``None`` without ``derivatives``): the parameter
+    derivatives need them."""
     if derivatives:
-        return phi(model, t)
-    return phi(model, t, order=0)[0], None, None
+        return phi(model, t)[1:]
+    return None, None
 
 
 def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *, hessian: bool,
@@ -68,40 +119,43 @@ def psi_derivatives(model: BendingModel, theta, k, rest, a, c=None, prev=None, *
     """Value, gradient and (optionally) Hessian of ``psi`` in ``p = (theta, k, rest, c, prev)``.
 
     The one implementation of ``psi`` and its derivatives (every eager path uses it; the compiled
-    kernels transcribe it).  Returns ``(psi, grad, hess)``: ``grad`` a list of 5 tensors (``None``
-    for absent slots), ``hess`` a dict ``{(i, j): tensor}`` of the nonzero entries with ``i <= j``
-    (or ``None``).  With ``params=False`` only the ``theta`` entries are formed (``psi'``, ``psi''``:
-    what the position Hessians need)."""
-    f, f1, f2 = phi(model, theta)
-    r, r1, r2 = _phi_at_reference(model, rest, params)
+    kernels transcribe it).  Each term is evaluated on the branch of its reference angle
+    (:func:`phi_difference`), and a folded ``tan`` hinge is an error (:func:`check_fold`).  Returns
+    ``(psi, grad, hess)``: ``grad`` a list of 5 tensors (``None`` for absent slots), ``hess`` a dict
+    ``{(i, j): tensor}`` of the nonzero entries with ``i <= j`` (or ``None``).  With ``params=False``
+    only the ``theta`` entries are formed (``psi'``, ``psi''``: what the position Hessians need)."""
+    check_fold(model, theta)
+    d1, f1, f2 = phi_difference(model, theta, rest)
+    r1, r2 = _phi_at_reference(model, rest, params)
     two_a = 2.0 * a
-    d1 = f - r
     kd = k * d1
     psi = a * kd * d1
     grad: list = [None] * 5
     hess: dict = {}
-    s, kc = kd, k
-    if c is not None:  # viscous term
-        p, p1, p2 = _phi_at_reference(model, prev, params)
-        d2 = f - p
+    s, h2 = kd, k * f1 * f1 + kd * f2
+    if c is not None:  # viscous term, on the branch of theta_prev
+        d2, g1, g2 = phi_difference(model, theta, prev)
+        p1, p2 = _phi_at_reference(model, prev, params)
         cd = c * d2
         psi = psi + a * cd * d2
-        s, kc = kd + cd, k + c
+        s, h2 = s + cd, h2 + c * g1 * g1 + cd * g2
         if params:
             grad[C] = a * d2 * d2
             grad[PREV] = -2.0 * a * cd * p1
         if params and hessian:
-            hess[(THETA, C)] = two_a * d2 * f1
-            hess[(THETA, PREV)] = -two_a * c * f1 * p1
+            hess[(THETA, C)] = two_a * d2 * g1
+            hess[(THETA, PREV)] = -two_a * c * g1 * p1
             hess[(C, PREV)] = -two_a * d2 * p1
             hess[(PREV, PREV)] = two_a * c * (p1 * p1 - d2 * p2)
+        grad[THETA] = two_a * (kd * f1 + cd * g1)
+    else:
+        grad[THETA] = two_a * (kd * f1)
     if params:
         grad[K] = a * d1 * d1
         grad[REST] = -two_a * kd * r1
-    grad[THETA] = two_a * s * f1
     if not hessian:
         return psi, grad, None
-    hess[(THETA, THETA)] = two_a * (kc * f1 * f1 + s * f2)
+    hess[(THETA, THETA)] = two_a * h2
     if params:
         hess[(THETA, K)] = two_a * d1 * f1
         hess[(THETA, REST)] = -two_a * k * f1 * r1
