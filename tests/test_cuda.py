@@ -33,7 +33,7 @@ def test_cuda_ops_match_eager(dtype, model, damped):
     v, f = tb.scenes.grid(12, 9)
     rest = v.to(dtype)
     x = rest + 0.05 * torch.randn((3, *rest.shape), dtype=dtype, generator=gen)
-    kw = {"damping": 0.3} if damped else {}
+    kw: dict = {"damping": 0.3} if damped else {}
     bend = tb.BendingEnergy(f, rest, model=model, stiffness=torch.rand(1, generator=gen).item() + 0.5,
                             **kw).to(dev)
     x, d = x.to(dev), torch.randn(x.shape, dtype=dtype, generator=gen).to(dev)
