@@ -63,10 +63,13 @@ Numerical policy
 * Near collapse every formula is written without cancellation or intermediate overflow (the
   small scaling eigenvalue comes from the determinant, eigenvectors from non-cancelling
   components, squares through ``hypot``, ``s - 1/s`` as ``(s - 1)(s + 1)/s``), so a value that
-  fits in the dtype comes out to a few ulps of its own magnitude given ``s``.  Where a needed value
-  itself does not fit (``symmetric_dirichlet`` ``s2^-2``/``s2^-4`` or ``neohookean`` ``s2^-2`` in float32
-  for ``s2`` below about ``1e-19``/``1e-10``; absurd stretches), the entry point raises a ``ValueError``
-  naming the faces (:func:`check_finite_values`) instead of returning Inf/NaN.
+  fits in the dtype comes out to a few ulps of its own magnitude given ``s``.  (``s2`` itself is
+  known to ``eps s1`` only when the columns of ``F`` are nearly parallel: relative condition
+  ``s1/s2``.)  Where a needed value does not fit the dtype, the entry point raises a ``ValueError``
+  naming the faces (:func:`check_finite_values`) instead of returning Inf/NaN.  In float32 with
+  ``mu ~ 4e4`` Pa: the ``symmetric_dirichlet`` Hessian (``~ mu s2^-4``) below ``s2 ~ 5e-9``, its
+  gradient below ``~ 1e-11``, its energy below ``~ 1e-17``; the ``neohookean`` Hessian
+  (``~ lam |log J| s2^-2``) below ``~ 5e-17``; absurd stretches.
 * Position independence: ``F`` and ``N`` come from edge vectors, so a translated mesh gives the
   same values (bit for bit when the translated coordinates are exact), float32 included.
 * These checks need data-dependent control flow and are skipped under ``torch.func`` transforms.
