@@ -2,14 +2,25 @@
 
 ``_Energy``'s backward applies ``_Gradient`` (the closed-form gradient ``P = U diag(psi_i) V^T``
 pulled back to positions); ``_Gradient``'s backward is the Hessian-vector product through the
-closed-form eigensystem (:func:`torchbend.ops.membrane.eigensystem`).
+closed-form eigensystem (:func:`torchbend.ops.membrane.eigensystem`).  Every forward checks its
+elements first (:func:`~torchbend.ops.membrane.check_collapsed`) and its values after
+(:func:`~torchbend.ops.membrane.check_finite_values`), outside ``torch.func`` transforms.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from ..ops.membrane import MembraneModel, check_collapsed, deformation_gradient, eigensystem, energy_density
+from ..ops.membrane import (
+    MembraneModel,
+    check_collapsed,
+    check_finite_values,
+    deformation,
+    deformation_gradient,
+    eigensystem,
+    energy_density,
+    stress,
+)
 from ..ops.stencil import scatter
 
 __all__ = ["energy_function", "gradient_function", "hvp_faces"]
@@ -33,8 +44,10 @@ def _make(model: MembraneModel):
 
         @staticmethod
         def forward(gE, x, faces, D, coef, mu, lam):
-            F = deformation_gradient(x, faces, D)
-            _, _, _, P = eigensystem(model, F, mu, lam)
+            F, N = deformation(x, faces, D)
+            check_collapsed(model, F, N)
+            _, P = stress(model, F, mu, lam, N)
+            check_finite_values(model, "gradient", P, F, N)
             G = (gE[..., None] * coef)[..., None, None] * P  # (..., T, 3, 2)
             return to_vertices(G, D, faces, x.shape[-2])
 
@@ -47,10 +60,11 @@ def _make(model: MembraneModel):
         @staticmethod
         def _second(ctx, t_gE, t_x):
             gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
-            F = deformation_gradient(x, faces, D)
-            l, Q, _, P = eigensystem(model, F, mu, lam)
+            F, N = deformation(x, faces, D)
+            l, Q, _, P = eigensystem(model, F, mu, lam, N)
             G = dg = None
             if t_x is not None:
+                check_finite_values(model, "Hessian", l, F, N)
                 dF = deformation_gradient(t_x, faces, D).flatten(-2)  # (..., T, 6)
                 G = (gE[..., None] * coef)[..., None, None] * hvp_faces(l, Q, dF)
                 dg = (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2))  # (..., T)
@@ -76,9 +90,11 @@ def _make(model: MembraneModel):
 
         @staticmethod
         def forward(x, faces, D, coef, mu, lam):
-            F = deformation_gradient(x, faces, D)
-            check_collapsed(model, F)
-            return (coef * energy_density(model, F, mu, lam)).sum(-1)
+            F, N = deformation(x, faces, D)
+            check_collapsed(model, F, N)
+            psi = energy_density(model, F, mu, lam, N)
+            check_finite_values(model, "energy", psi, F, N)
+            return (coef * psi).sum(-1)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -94,8 +110,8 @@ def _make(model: MembraneModel):
         @staticmethod
         def jvp(ctx, t_x, t_faces, t_D, t_coef, t_mu, t_lam):
             x, faces, D, coef, mu, lam = ctx.saved_tensors
-            F = deformation_gradient(x, faces, D)
-            _, _, _, P = eigensystem(model, F, mu, lam)
+            F, N = deformation(x, faces, D)
+            _, P = stress(model, F, mu, lam, N)
             dF = deformation_gradient(t_x, faces, D)
             return (coef[..., None, None] * P * dF).sum((-1, -2, -3))
 

@@ -14,7 +14,15 @@ from torch import Tensor, nn
 from .. import backends
 from .._checks import check_direction, check_positions, positive
 from ..mesh.topology import mesh_and_rest
-from ..ops.membrane import MembraneModel, deformation_gradient, eigensystem, rest_shape_matrices
+from ..ops.membrane import (
+    MembraneModel,
+    check_collapsed,
+    check_finite_values,
+    deformation,
+    deformation_gradient,
+    eigensystem,
+    rest_shape_matrices,
+)
 from ..ops.projection import project_eigenvalues
 from ..options import Projection
 from . import _membrane_fn as fn
@@ -41,10 +49,20 @@ class MembraneEnergy(nn.Module):
 
     Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
+
+    Numerical policy (details in :mod:`torchbend.ops.membrane`): ``F`` is built from edge vectors,
+    so results do not depend on where the mesh is (float32 included).  A 3x2 ``F`` cannot invert (a
+    flipped triangle is a rotated one): ``J >= 0`` always.  At collapsed triangles (``J = 0``:
+    collinear vertices, a collapsed edge, all at one point) ``stvk`` is exact and ``arap`` finite (the
+    cone of its Hessian is evaluated with the stretches floored at ``sqrt(eps)``); ``neohookean`` and
+    ``symmetric_dirichlet`` are undefined there, and every entry point raises a ``ValueError`` naming
+    the faces.  A needed value that overflows the dtype (``symmetric_dirichlet`` or ``neohookean``
+    very near collapse in float32) raises a ``ValueError`` too: never NaN or Inf.  These checks are
+    skipped under ``torch.func`` transforms.
     """
 
     faces: Tensor  # (F, 3) int64
-    shape_matrices: Tensor  # (F, 3, 2): F = X D
+    shape_matrices: Tensor  # (F, 3, 2): F = X D; rows 1-2 are W = Dm^-1 (F = Ds W is what is computed)
     rest_areas: Tensor  # (F,) [m^2]
     mu: Tensor  # () [Pa]
     lam: Tensor  # () [Pa]
@@ -96,19 +114,25 @@ class MembraneEnergy(nn.Module):
         D, coef, mu, lam = self._args(x, "gradient", backend)
         return fn.gradient_function(self.model).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu, lam)
 
-    def _eigen(self, x: Tensor, op: str, project, backend):
-        """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D)``."""
+    def _eigen(self, x: Tensor, op: str, project, backend, v=None):
+        """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D, v)``; ``v`` (an HVP's
+        direction) is checked with the inputs, before any work."""
         projection = Projection.parse(project, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, op, backend)
-        l, Q, _, _ = eigensystem(self.model, deformation_gradient(x, self.faces, D), mu, lam)
-        return project_eigenvalues(l, projection) * coef[..., None], Q, D
+        if v is not None:
+            v = check_direction(v, x, self.check_finite)
+        F, N = deformation(x, self.faces, D)
+        check_collapsed(self.model, F, N)
+        l, Q, _, _ = eigensystem(self.model, F, mu, lam, N)
+        check_finite_values(self.model, "Hessian", l, F, N)
+        return project_eigenvalues(l, projection) * coef[..., None], Q, D, v
 
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
         """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
         ``(..., T, 6)`` and orthonormal eigenvectors ``(..., T, 6, 6)`` (columns) with ``Q diag(l) Q^T =
         A t d^2Psi/df^2`` (row-major ``f``, index ``2a + b``).  Order: scaling 1, scaling 2, twist, flip,
         normal 1, normal 2."""
-        l, Q, _ = self._eigen(x, "eigensystems", None, backend)
+        l, Q, _, _ = self._eigen(x, "eigensystems", None, backend)
         return l, Q
 
     def deformation_gradients(self, x: Tensor) -> Tensor:
@@ -118,7 +142,7 @@ class MembraneEnergy(nn.Module):
     def element_hessians(self, x: Tensor, *, project=None, backend=None) -> Tensor:
         """Position-space element Hessians ``(..., T, 9, 9)`` [N/m] (flat index ``3*k + j``, face order):
         ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first."""
-        l, Q, D = self._eigen(x, "element_hessians", project, backend)
+        l, Q, D, _ = self._eigen(x, "element_hessians", project, backend)
         # z_k = B^T q_k: (Q_k D^T)^T as a 9-vector over (vertex, axis)
         Qm = Q.transpose(-1, -2).unflatten(-1, (3, 2))  # (..., T, 6 modes, 3, 2)
         Z = (Qm @ D.transpose(-1, -2)[..., None, :, :]).transpose(-1, -2).flatten(-2)  # (..., T, 6, 9)
@@ -126,8 +150,7 @@ class MembraneEnergy(nn.Module):
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, backend=None) -> Tensor:
         """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected)."""
-        l, Q, D = self._eigen(x, "hvp", project, backend)
-        v = check_direction(v, x, self.check_finite)
+        l, Q, D, v = self._eigen(x, "hvp", project, backend, v)
         dF = deformation_gradient(v, self.faces, D).flatten(-2)
         return fn.to_vertices(fn.hvp_faces(l, Q, dF), D, self.faces, x.shape[-2])
 
