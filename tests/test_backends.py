@@ -106,7 +106,11 @@ def test_the_dispatchers_answer_alone_decides(sheet):
 def test_select_backend_rules(sheet):
     _, _, x = sheet
     p = torch.ones(3, dtype=F64)
-    assert backends.select_backend("energy", "auto", x, p) is Backend.EAGER  # no kernel for the energy
+    assert backends.select_backend("solve", "auto", x, p) is Backend.EAGER  # no kernel for that
+    # the energy's kernels run inside the analytic autograd Functions: a recorded graph does not matter
+    assert backends.native_unavailable_reason("energy", x.clone().requires_grad_(), p) in (
+        None, f"the C++ extension is not available ({native.build_error()})")
+    assert "for cuda tensors" not in str(backends.native_unavailable_reason("gradient", x, p))
     assert backends.select_backend("hinge_hessians", "eager", x, p) is Backend.EAGER
     reason = backends.native_unavailable_reason("hinge_hessians", x.clone().requires_grad_(), p)
     assert reason is not None and "autograd graph" in reason

@@ -24,11 +24,19 @@ from ..options import Backend
 
 __all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
 
-NATIVE_OPS = frozenset({"hinge_hessians", "hvp_projected", "hessian_hinge", "hessian_triangle"})
-"""Operations with a compiled kernel: per-hinge 12x12 blocks (also behind the eigenvalue-projected
-hvp and assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+NATIVE_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected", "hessian_hinge",
+                        "hessian_triangle"})
+"""Operations with a compiled kernel: the energy, its gradient and Hessian-vector product (inside the
+analytic autograd Functions), per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and
+assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+
+CUDA_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected"})
+"""Operations whose compiled kernel also runs on CUDA devices."""
 
 _ONE_MESH_OPS = frozenset({"hessian_hinge", "hessian_triangle"})
+_FUNCTION_OPS = frozenset({"energy", "gradient", "hvp"})
+"""Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph
+does not keep them from running."""
 
 _auto: contextvars.ContextVar[Backend] = contextvars.ContextVar("torchbend_auto_backend", default=Backend.AUTO)
 
@@ -47,20 +55,26 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
     """Why the compiled kernel cannot run ``op`` on these inputs (``None`` if it can)."""
     if op not in NATIVE_OPS:
         return f"there is no compiled kernel for {op!r}"
-    if x.device.type != "cpu":
-        return f"the compiled kernels run on the CPU, x is on {x.device}"
+    if x.device.type not in ("cpu", "cuda") or (x.device.type == "cuda" and op not in CUDA_OPS):
+        return f"there is no compiled {op!r} kernel for {x.device.type} tensors"
     if x.dtype not in (torch.float32, torch.float64):
         return f"the compiled kernels take float32 or float64, x is {x.dtype}"
     tensors = (x, *params)
     if any(is_traced(t) for t in tensors):
         return "the inputs are traced by a torch.func transform"
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+    if op not in _FUNCTION_OPS and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
     batch = tuple(x.shape[:-2])
     if op in _ONE_MESH_OPS and (batch or any(t.ndim > 1 for t in params)):
         return "the compiled assembly takes one mesh"
     if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
         return "per-sample parameters whose batch shape differs from x's"
+    if x.device.type == "cuda":
+        from . import cuda
+
+        if cuda.load() is None:
+            return f"the CUDA kernels are not available ({cuda.build_error()})"
+        return None
     from . import native
 
     if native.load() is None:

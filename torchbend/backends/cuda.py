@@ -167,15 +167,15 @@ def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> Ten
     return psi
 
 
-def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, params: bool):
-    """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)``."""
+def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool):
+    """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` (``inc`` unused: atomic scatter)."""
     gx, gp, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                                _opt(prev), _code(model), weight.detach(), params, _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return gx, (gp if params else None)
 
 
-def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor) -> Tensor:
+def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc=None) -> Tensor:
     """``w H v (..., V, 3)``."""
     hv, theta = _module().bending_hvp(x.detach(), v.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                       _opt(prev), _code(model), weight.detach(), _stream(x))
@@ -189,3 +189,9 @@ def bending_hessians(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> t
                                                   _opt(prev), _code(model), _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return Hb, g, d2
+
+
+def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
+    """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
+    zero = x.new_zeros(1)
+    return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0, _stream(x))[1]

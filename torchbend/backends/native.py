@@ -159,3 +159,9 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model
                                       _opt(prev), _model_code(model), weight.detach(), inc[0], inc[1])
     check_fold(BendingModel.parse(model), theta)
     return hv
+
+
+def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
+    """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
+    zero = x.new_zeros(1)
+    return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0)[1]

@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..backends import kernels
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -96,8 +97,21 @@ def _psi(model: BendingModel, theta: Tensor, a: Tensor, p: list, *, hessian: boo
     return psi, grad, {} if hess is None else hess
 
 
-def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params) -> tuple:
-    """``(gE dE/dx, gE dE/dk, gE dE/drest[, ...])`` chunk by chunk (closed form)."""
+def _hinge_weight(gE: Tensor, seg: Tensor | None, H: int) -> Tensor:
+    """The cotangent of each hinge's energy for the kernels: one value, or ``(..., H)``."""
+    if seg is not None:
+        return gE[..., seg]
+    return gE.reshape(1) if gE.numel() == 1 else gE[..., None].expand(*gE.shape, H)
+
+
+def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params, impl=None) -> tuple:
+    """``(gE dE/dx, gE dE/dk, gE dE/drest[, ...])`` chunk by chunk (closed form), or in one compiled pass."""
+    if impl is not None:
+        k, rest, c, prev = (kernels.compact(t) for t in _params(params))
+        gx, gp = kernels.module(x).bending_gradient(x, hinges, a, k, rest, c, prev, model,
+                                                    _hinge_weight(gE, seg, hinges.shape[0]), kernels.incidence(hinges, x.shape[-2]),
+                                                    True)
+        return (gx,) + tuple(gp[..., i] for i in range(len(params)))
     V = x.shape[-2]
     gx, gps = None, [[] for _ in params]
     for sl in chunks(hinges.shape[0]):
@@ -166,7 +180,10 @@ def _second_order(model: BendingModel, saved: tuple, t_gE, t_x, t_params):
     return dx, [cat_or_none(d) for d in dps], cat_or_none(dgs)
 
 
-def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params) -> Tensor:
+def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params, impl=None) -> Tensor:
+    if impl is not None:
+        k, rest, c, prev = (kernels.compact(t) for t in _params(params))
+        return _reduce(kernels.module(x).bending_energy(x, hinges, a, k, rest, c, prev, model), seg, seg_count)
     psis = []
     for sl in chunks(hinges.shape[0]):
         theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
@@ -195,26 +212,35 @@ def _make(model: BendingModel):
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(gE, x, hinges, seg, a, *params):
-            return _gradient_forward(model, gE, x, hinges, seg, a, params)
+        def forward(gE, x, hinges, seg, impl, a, *params):
+            return _gradient_forward(model, gE, x, hinges, seg, a, params, impl)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
-            ctx.save_for_backward(*inputs)
-            ctx.save_for_forward(*inputs)
+            ctx.impl = inputs[4]
+            tensors = inputs[:4] + inputs[5:]
+            ctx.save_for_backward(*tensors)
+            ctx.save_for_forward(*tensors)
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
-            gE, seg = ctx.saved_tensors[0], ctx.saved_tensors[3]
+            gE, x, hinges, seg, a, *params = ctx.saved_tensors
+            param_grads = any(ctx.needs_input_grad[6:]) or any(g is not None for g in ggp)
+            if ctx.impl is not None and ggx is not None and not ctx.needs_input_grad[0] and not param_grads:
+                # the compiled Hessian-vector product: the double backward of a Newton step or of hvp()
+                k, rest, c, prev = (kernels.compact(t) for t in _params(params))
+                dx = kernels.module(x).bending_hvp(x, ggx, hinges, a, k, rest, c, prev, model,
+                                                   _hinge_weight(gE, seg, hinges.shape[0]), kernels.incidence(hinges, x.shape[-2]))
+                return (None, dx, None, None, None, None, *([None] * len(params)))
             dx, dps, dg = _second_order(model, ctx.saved_tensors, None, ggx, tuple(ggp))
             dgE = None
             if ctx.needs_input_grad[0] and dg is not None:
                 dgE = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
-            dps = [d if ctx.needs_input_grad[5 + i] else None for i, d in enumerate(dps)]
-            return (dgE, dx, None, None, None, *dps)
+            dps = [d if ctx.needs_input_grad[6 + i] else None for i, d in enumerate(dps)]
+            return (dgE, dx, None, None, None, None, *dps)
 
         @staticmethod
-        def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_a, *t_params):
+        def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_impl, t_a, *t_params):
             x, params = ctx.saved_tensors[1], ctx.saved_tensors[5:]
             dx, dps, _ = _second_order(model, ctx.saved_tensors, t_gE, t_x, tuple(t_params))
             # tangents must match the (possibly expanded) output shapes exactly
@@ -226,27 +252,28 @@ def _make(model: BendingModel):
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(x, hinges, seg, seg_count, a, *params):
-            return _energy_forward(model, x, hinges, seg, seg_count, a, params)
+        def forward(x, hinges, seg, seg_count, impl, a, *params):
+            return _energy_forward(model, x, hinges, seg, seg_count, a, params, impl)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
-            x, hinges, seg, seg_count, a, *params = inputs
+            x, hinges, seg, seg_count, impl, a, *params = inputs
             ctx.save_for_backward(x, hinges, seg, a, *params)
             ctx.save_for_forward(x, hinges, seg, a, *params)
             ctx.seg_count = seg_count
+            ctx.impl = impl
 
         @staticmethod
         def backward(ctx, gE):
             x, hinges, seg, a, *params = ctx.saved_tensors
-            out = _Gradient.apply(gE, x, hinges, seg, a, *params)
+            out = _Gradient.apply(gE, x, hinges, seg, ctx.impl, a, *params)
             gx, gps = out[0], out[1:]
             gx = gx if ctx.needs_input_grad[0] else None
-            gps = [g if ctx.needs_input_grad[5 + i] else None for i, g in enumerate(gps)]
-            return (gx, None, None, None, None, *gps)
+            gps = [g if ctx.needs_input_grad[6 + i] else None for i, g in enumerate(gps)]
+            return (gx, None, None, None, None, None, *gps)
 
         @staticmethod
-        def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_a, *t_params):
+        def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_impl, t_a, *t_params):
             return _energy_jvp(model, ctx.saved_tensors, ctx.seg_count, t_x, t_params)
 
     # named subclasses so that autograd nodes read e.g. "TanBendingGradientBackward"
@@ -276,7 +303,7 @@ def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> li
 
 def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                        prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN, seg: Tensor | None = None,
-                       seg_count: int = 0) -> Tensor:
+                       seg_count: int = 0, impl: str | None = None) -> Tensor:
     """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
 
     ``x: (..., V, 3)``; ``hinges: (H, 4)`` int64; ``a: (H,)``; ``k``, ``rest``, ``c``, ``prev``
@@ -284,22 +311,29 @@ def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Te
     twice (analytic backward and double backward) in ``x``, ``k``, ``rest``, ``c``, ``prev``.
     """
     params = _expand_params(x, a, k, rest, c, prev)
-    return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
+    return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, impl, a, *params)
 
 
 def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
+                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                         impl: str | None = None) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
     params = _expand_params(x, a, k, rest, c, prev)
     ones = x.new_ones(x.shape[:-2])
-    return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
+    return _FUNCTIONS[model][1].apply(ones, x, hinges, None, impl, a, *params)[0]
 
 
 def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
+                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                    impl: str | None = None) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
-    Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
+    Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``; ``impl="native"``:
+    the compiled kernel (CPU or CUDA, by x's device)."""
+    if impl is not None:
+        one = x.new_ones(1)
+        return kernels.module(x).bending_hvp(x, v, hinges, a, k, rest, c, prev, model, one,
+                                             kernels.incidence(hinges, x.shape[-2]))
     out = None
     for sl in chunks(hinges.shape[0]):
         h = hinges[sl]
