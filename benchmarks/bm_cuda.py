@@ -86,7 +86,7 @@ def case(verts, faces, dtype, bw: float) -> list[str]:
 
     ops = {
         "energy": (lambda: cuda.bending_energy(x, hinges, *p.astuple(), bend.model).sum(), ag_energy),
-        "gradient": (lambda: cuda.bending_gradient(x, hinges, *p.astuple(), bend.model, w, False), ag_gradient),
+        "gradient": (lambda: cuda.bending_gradient(x, hinges, *p.astuple(), bend.model, w, None, False), ag_gradient),
         "hvp": (lambda: cuda.bending_hvp(x, v, hinges, *p.astuple(), bend.model, w), ag_hvp),
         "blocks": (lambda: cuda.bending_hessians(x, hinges, *p.astuple(), bend.model), ag_blocks),
     }

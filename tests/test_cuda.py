@@ -46,7 +46,7 @@ def test_cuda_ops_match_eager(dtype, model, damped):
 
     close(cuda.bending_energy(x, bend.hinges, *p.astuple(), bend.model).sum(-1), bend(x, backend="eager", **ex))
     w = torch.ones(1, dtype=dtype, device=dev)
-    gx, gp = cuda.bending_gradient(x, bend.hinges, *p.astuple(), bend.model, w, True)
+    gx, gp = cuda.bending_gradient(x, bend.hinges, *p.astuple(), bend.model, w, None, True)
     close(gx, bend.gradient(x, backend="eager", **ex))
     close(cuda.bending_hvp(x, d, bend.hinges, *p.astuple(), bend.model, w), bend.hvp(x, d, backend="eager", **ex))
     Hb, g, d2 = cuda.bending_hessians(x, bend.hinges, *p.astuple(), bend.model)
