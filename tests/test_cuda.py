@@ -99,5 +99,5 @@ def test_cuda_default_path_matches_eager_through_autograd(model):
     assert torch.allclose(bend.hvp(x, d), hv1, rtol=1e-11, atol=1e-13)
     y = x.clone().requires_grad_()
     # the CUDA scatter adds with atomics (summation order varies run to run): round-off nondeterminism
-    assert torch.autograd.gradcheck(lambda z: bend(z), (y,), nondet_tol=1e-12)
-    assert torch.autograd.gradgradcheck(lambda z: bend(z), (y,), nondet_tol=1e-12)
+    assert torch.autograd.gradcheck(lambda z: bend(z), (y,), nondet_tol=1e-9)
+    assert torch.autograd.gradgradcheck(lambda z: bend(z), (y,), nondet_tol=1e-9)
