@@ -320,7 +320,7 @@ def _energy_values(x: torch.Tensor, vs: list, a: float, k: float, rest: float, m
         bend = tb.BendingEnergy(FACES, x.detach().clone(), model=model, stiffness=k, rest_angles=rr,
                                 check_finite=False, backend=backend)
         bend.weights = aw
-        d = {"hessian": bend.hinge_hessians(x)[0], "assembly": bend.hessian(x, assembly="triangle").to_dense()}
+        d: dict = {"hessian": bend.hinge_hessians(x)[0], "assembly": bend.hessian(x, assembly="triangle").to_dense()}
         if method == "torchbend":  # energy, gradient and hvp have no compiled kernel
             d.update(energy=bend(x), gradient=bend.gradient(x), hvp=[bend.hvp(x, v.reshape(4, 3)) for v in vs])
         out[method] = d
