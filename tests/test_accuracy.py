@@ -129,14 +129,15 @@ def test_energy_gradient_float64_within_a_few_ulps(errors, model):
 @pytest.mark.parametrize("model", ["tan", "quadratic"])
 def test_energy_hvp_float64_within_a_few_ulps(errors, model):
     """The error is relative to ``|H v|``; for some random directions ``|H| |v| / |H v|`` is near 10 and the
-    same absolute error (about half an ulp of ``|H| |v|``) reads as 5-6 ulps (the benchmark's maximum over 300
-    directions: 6.3; autograd's 7.3), hence the looser maximum."""
-    _check(errors, ("hvp", model, "eager"), 2.0, 7.0)
+    same absolute error (about half an ulp of ``|H| |v|``) reads as ~5 ulps (tan: 4.9 in this sample, 4.5 over
+    the benchmark's 300 directions, autograd 16; benchmarks/results/accuracy_after.txt), hence a maximum with
+    some room."""
+    _check(errors, ("hvp", model, "eager"), 2.0, 6.0)
 
 
 @pytest.mark.parametrize(("quantity", "backend", "median", "worst"), [
     ("theta_grad", "eager", 1.0, 2.0), ("theta_grad", "native", 1.0, 2.0),
-    ("theta_hvp", "eager", 1.75, 4.0), ("theta_hess", "eager", 1.25, 3.0)])
+    ("theta_hvp", "eager", 1.75, 4.0), ("theta_hess", "eager", 1.5, 3.5)])
 def test_angle_derivatives_float64_well_shaped(errors, quantity, backend, median, worst):
     _check(errors, (quantity, "well_shaped", backend), median, worst)
 

@@ -50,17 +50,20 @@ u x w``).  Where the digits went before (float64, against a 40-digit reference, 
 - ``N = e x u`` whatever the shape: a cross product's rounding errors are ``~eps |p| |q|``, so for a
   triangle with a small angle at ``a`` the relative error of ``N`` is ``~eps / sin(alpha_a)`` (Kahan's
   needle).  It is mostly an error in ``|N|``, which ``n = N/|N|`` hides but ``rho = .../|N|`` and
-  ``1/h = |e|/|N|`` do not: the angle gradient of a needle lost ~1600 ulps (median), its Hessian ~3000.
+  ``1/h = |e|/|N|`` do not: on needles the angle gradient lost 490 ulps (median; max 15000), its Hessian 900
+  (max 29000); now 0.7 / 0.8 and 0.8 / 1.5.
   From the two shortest edges (the cross product at the largest angle) the error is ``~eps`` unless the
   largest angle is near 180 degrees, where every formula loses ``eps / sin``.
 - Each factor normalized separately: ``n = N (1/|N|)``, ``rho = c (1/|e|)(1/|N|)``, ``mh = (w x n)(1/|N|)``
   (a cross product with the already rounded ``n``), ``mc = (e x n)(1/|e|)^3``: some ten roundings per Hessian
-  entry, where ``t = c/|e|/|N|^2`` and ``mh = (w x N)/|N|^2`` take about half as many.  The angle Hessian
-  went from median 1.4 / max 3.8 ulps to 1.0 / 2.8 on well-shaped hinges, from 1.6 / 12.4 to 1.2 / 4.2
-  on random ones (autograd: 1.9 / 3.5 and 1.9 / 5.5).
+  entry, where ``t = c (1/|e|)(1/|N|^2)`` and ``mh = (w x N)(1/|N|^2)`` take about half as many.  The angle Hessian
+  went from median 1.4 / max 3.8 ulps to 1.1 / 2.9 on well-shaped hinges, from 1.6 / 12.4 to 1.3 / 4.6
+  on random ones (autograd: 1.9 / 3.5 and 1.9 / 5.5; benchmarks/results/accuracy_after.txt).
 
 ``theta`` itself keeps the SPEC formula with ``nA = e x (x2 - x0)``, ``nB = (x3 - x0) x e``
-(:func:`hinge_angle_soa`), so that angles at the rest state vanish bit for bit.
+(:func:`hinge_angle_soa`, and the compiled ``hinge_psi``), so that angles at the rest state vanish bit for
+bit; on needles its error (~100 eps, max 14000) still limits the energy and its derivatives (from the
+shortest-edge normals it would be ~0.3 eps: the same change in ``hinge_angle_soa`` and ``hinge_psi``).
 
 Layout
 ------
@@ -148,11 +151,12 @@ def _normal(e: Vec, u: Vec, w: Vec, ee: Tensor, uu: Tensor, ww: Tensor) -> Vec:
     product are ``~eps |p| |q|``, so this choice keeps the relative error of ``N`` near ``eps`` unless the
     largest angle is close to 180 degrees, where the others lose ``~eps / sin(smallest angle)`` (Kahan)."""
     # selections as exact blends m a + (1 - m) b with m in {0, 1} (several times faster than torch.where)
-    m = ((ee >= uu) & (ee >= ww)).to(ee.dtype)  # e longest
-    k = ((ww > ee) & (ww >= uu)).to(ee.dtype)  # w longest
-    m1, k1 = 1.0 - m, 1.0 - k
-    p = tuple(ui * m + ei * m1 for ui, ei in zip(u, e, strict=True))  # u x w | e x w | e x u
-    q = tuple(ui * k + wi * k1 for ui, wi in zip(u, w, strict=True))
+    m = (ee >= torch.maximum(uu, ww)).to(ee.dtype)  # e longest (ties included)
+    m1 = 1.0 - m
+    k = m1 * (ww >= uu).to(ee.dtype)  # else w longest (ties with u included)
+    k1 = 1.0 - k
+    p = tuple(torch.addcmul(ei * m1, ui, m) for ui, ei in zip(u, e, strict=True))  # u x w | e x w | e x u
+    q = tuple(torch.addcmul(wi * k1, ui, k) for ui, wi in zip(u, w, strict=True))
     return _cross(p, q)
 
 
@@ -160,27 +164,30 @@ class _HalfHinge:
     """Local quantities of one half-hinge ``(a, b, c)`` (components ``(..., H)``), in terms of the
     unnormalized normal ``N`` (see the module docstring, "Accuracy")."""
 
-    __slots__ = ("N", "t", "e", "u", "w", "inn", "ee", "elen", "_mh", "_bl")
+    __slots__ = ("N", "t", "e", "u", "w", "inn", "ie", "_mh", "_bl")
 
-    def __init__(self, xa: Vec, xb: Vec, xc: Vec, e: Vec | None = None):
+    def __init__(self, xa: Vec, xb: Vec, xc: Vec, e: Vec | None = None, ee: Tensor | None = None):
         e = _sub(xb, xa) if e is None else e  # hinge edge
         u = _sub(xc, xa)  # edge opposite b
         w = _sub(xc, xb)  # edge opposite a
-        ee, uu, ww = _dot(e, e), _dot(u, u), _dot(w, w)
-        N = _normal(e, u, w, ee, uu, ww)
+        ee_: Tensor = _dot(e, e) if ee is None else ee
+        uu, ww = _dot(u, u), _dot(w, w)
+        N = _normal(e, u, w, ee_, uu, ww)
         nn = _dot(N, N)
         # degenerate-geometry policy: a numerically collinear triangle (|N| <= eps * longest^2,
         # which includes a collapsed hinge edge) gets zero derivatives
-        valid = nondegenerate(nn.sqrt(), torch.maximum(torch.maximum(ee, uu), ww)).to(nn.dtype)
+        valid = nondegenerate(nn.sqrt(), torch.maximum(torch.maximum(ee_, uu), ww)).to(nn.dtype)
         invalid = 1.0 - valid
         nn = nn + invalid  # unchanged where valid, >= 1 where not (so are the edge lengths below)
-        ee = ee + invalid
-        elen = ee.sqrt()
-        # t_k = rho_k / |N|:  -(e.w)/(|e| |N|^2),  (e.u)/(|e| |N|^2),  -|e|/|N|^2
-        self.t = (-_dot(e, w) / elen / nn * valid, _dot(e, u) / elen / nn * valid, -elen / nn * valid)
+        ee_ = ee_ + invalid
+        elen = ee_.sqrt()
+        inn = valid / nn  # 1/|N|^2, 0 if degenerate
+        ie = elen.reciprocal()
+        # t_k = rho_k / |N|:  -(e.w)/(|e| |N|^2),  (e.u)/(|e| |N|^2),  -|e|/|N|^2  (reciprocals, not
+        # divisions: one rounding more, but divisions cost the compiled blocks ~10%)
+        self.t = (-_dot(e, w) * ie * inn, _dot(e, u) * ie * inn, -elen * inn)
         self.N, self.e, self.u, self.w = N, e, u, w
-        self.inn = valid / nn  # 1/|N|^2, 0 if degenerate
-        self.ee, self.elen = ee, elen
+        self.inn, self.ie = inn, ie
         self._mh = self._bl = None
 
     @property
@@ -196,11 +203,9 @@ class _HalfHinge:
     def bl(self) -> Vec:
         """``N / |e|^3``: the B term is ``B = n m_c^T / |e|^2 = bl mh_c^T``."""
         if self._bl is None:
-            self._bl = _scale(self.N, (self.ee * self.elen).reciprocal())
+            ie = self.ie
+            self._bl = _scale(self.N, ie * ie * ie)
         return self._bl
-
-    def gradient(self) -> tuple[Vec, Vec, Vec]:
-        return tuple(_scale(self.N, t) for t in self.t)  # type: ignore[return-value]
 
     def hvp(self, va: Vec, vb: Vec, vc: Vec) -> tuple[Vec, Vec, Vec]:
         N = self.N
@@ -223,18 +228,32 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
     return u[..., :, None] * v[..., None, :]
 
 
-def _theta(e: Vec, nA: Vec, nB: Vec) -> Tensor:
+def _theta(e: Vec, nA: Vec, nB: Vec, ee: Tensor | None = None) -> Tensor:
     """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)``; the single formula used everywhere,
-    so that angles (and hence energies and gradients) at the rest state vanish bit for bit."""
-    elen = _dot(e, e).sqrt()
-    inv = torch.where(elen > 0, torch.where(elen > 0, elen, torch.ones_like(elen)).reciprocal(), 0.0)
+    so that angles (and hence energies and gradients) at the rest state vanish bit for bit (``ee = e . e``
+    if already computed)."""
+    elen = (_dot(e, e) if ee is None else ee).sqrt()
+    pos = (elen > 0).to(elen.dtype)
+    inv = pos / (elen + (1.0 - pos))  # 1/|e|, 0 for a collapsed edge (arithmetic: torch.where is slow)
     return torch.atan2(_dot(e, _cross(nA, nB)) * inv, _dot(nA, nB))
 
 
-def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec]:
+def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec, Tensor]:
     x0, x1, x2, x3 = xs
     e = _sub(x1, x0)
-    return _HalfHinge(x0, x1, x2, e), _HalfHinge(x0, x1, x3, e), e
+    ee = _dot(e, e)
+    return _HalfHinge(x0, x1, x2, e, ee), _HalfHinge(x0, x1, x3, e, ee), e, ee
+
+
+def _gradient(hA: _HalfHinge, hB: _HalfHinge) -> tuple[Vec, Vec, Vec, Vec]:
+    """``grad theta = T'_A - T'_B`` per stencil vertex (``g_k = t_k N`` per half)."""
+    (ta, tb, tc), (sa, sb, sc) = hA.t, hB.t
+    NA, NB = hA.N, hB.N
+
+    def diff(t: Tensor, s: Tensor) -> Vec:
+        return tuple(torch.addcmul(a * t, b, s, value=-1.0) for a, b in zip(NA, NB, strict=True))  # type: ignore[return-value]
+
+    return diff(ta, sa), diff(tb, sb), _scale(NA, tc), _scale(NB, -sc)
 
 
 def hinge_angle_soa(xs) -> Tensor:
@@ -249,13 +268,11 @@ def hinge_angle_gradient_hvp_soa(xs, vs=None):
     """``(theta, grad theta, Hess(theta) v)`` on SoA stencils; ``vs=None`` skips the HVP.
 
     ``grad`` and ``Hv`` are 4-tuples (per stencil vertex) of component triples ``(..., H)``."""
-    hA, hB, e = _halves(xs)
+    hA, hB, e, ee = _halves(xs)
     # the SPEC formula with the same operations as hinge_angle_soa (hA.u = x2 - x0, hB.u = x3 - x0), so that
     # angles at the rest state vanish bit for bit; the half-hinge normals N are formed differently
-    theta = _theta(e, _cross(e, hA.u), _cross(hB.u, e))
-    ga, gb, gc = hA.gradient()
-    ka, kb, kc = hB.gradient()
-    grad = (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc))
+    theta = _theta(e, _cross(e, hA.u), _cross(hB.u, e), ee)
+    grad = _gradient(hA, hB)
     if vs is None:
         return theta, grad, None
     v0, v1, v2, v3 = vs
@@ -309,10 +326,8 @@ def hinge_energy_hessian_soa(xs, d1: Tensor | None, d2: Tensor | None) -> tuple[
         X[(i,p),(j,q)] = d1 sum_s sign_s t_s[i] mh_s[j,p] N_s[q],     Y = X + d2/2 g g^T,
         H = Y + Y^T + [[-Bs, Bs], [Bs^T, -Bs]] on the (x0, x1) blocks,   Bs = d1 (B_A - B_B)
     """
-    hA, hB, _ = _halves(xs)
-    ga, gb, gc = hA.gradient()
-    ka, kb, kc = hB.gradient()
-    g = torch.stack([c for v in (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc)) for c in v], -1)  # (..., H, 12)
+    hA, hB, _, _ = _halves(xs)
+    g = torch.stack([c for v in _gradient(hA, hB) for c in v], -1)  # (..., H, 12)
     zero = torch.zeros_like(hA.t[0])
     tA = torch.stack((hA.t[0], hA.t[1], hA.t[2], zero), -1)  # (..., H, 4)
     tB = -torch.stack((hB.t[0], hB.t[1], zero, hB.t[2]), -1)  # minus: Hess = T''_A - T''_B
