@@ -79,36 +79,45 @@ template <typename T> TB_HD static TB_FORCEINLINE V3<T> cross3(V3<T> u, V3<T> v)
 }
 
 // The quantities of a triangle p0 p1 p2 that both the half-hinge tiles and the per-triangle blocks
-// need, from its cyclic edge vectors e_k = p_{k+2} - p_{k+1} (edge k is opposite p_k):
-// N = e_1 x e_2 = (p1 - p0) x (p2 - p0), valid = |N| > eps max_k |e_k|^2 (degenerate, collinear
-// triangles give zeros: torchbend.ops.hinge's policy), ia = 1/|N| (0 if not valid), the unit normal
-// n = N ia, en_k = e_k x n and mh_k = en_k ia = m_k / h_k (the edge normal over the height on edge k).
+// need, from its cyclic edge vectors e_k = p_{k+2} - p_{k+1} (edge k is opposite p_k), written with the
+// unnormalized normal N (twice the area times the unit normal; torchbend.ops.hinge, "Accuracy"):
+// N = e_{m+1} x e_{m+2} from the two shortest edges (m the longest: the cross product at the largest angle
+// keeps N's relative error near eps, where the others lose eps / sin(smallest angle)),
+// valid = |N| > eps max_k |e_k|^2 (degenerate, collinear triangles give zeros: torchbend.ops.hinge's
+// policy), nn = |N|^2 (1 if not valid), inn = 1/|N|^2 (0 if not valid) and mh_k = (e_k x N) inn = m_k / h_k
+// (the outward edge normal over the height on edge k).
 template <typename T> struct Tri {
   T ee0, ee1, ee2;            // |e_k|^2
   T valid;                    // 1 if valid, else 0 (a number, not a bool: it stays in a vector lane)
-  T ia;                       // 1/|N|, 0 if not valid
-  V3<T> n, en0, en1, en2;     // unit normal, e_k x n
-  V3<T> mh0, mh1, mh2;        // (e_k x n) / |N|
+  T nn, inn;                  // |N|^2 and 1/|N|^2 (1 and 0 if not valid)
+  V3<T> N, mh0, mh1, mh2;     // normal, (e_k x N) / |N|^2
 };
+
+template <typename T> TB_HD static TB_FORCEINLINE V3<T> pick3(bool c, V3<T> a, V3<T> b) {
+  return {c ? a.x : b.x, c ? a.y : b.y, c ? a.z : b.z};
+}
 
 template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<T> e1, V3<T> e2) {
   Tri<T> t;
-  V3<T> N = cross3(e1, e2);
   t.ee0 = dot3(e0, e0); t.ee1 = dot3(e1, e1); t.ee2 = dot3(e2, e2);
-  T area2 = tb_sqrt(dot3(N, N));
-  bool valid = area2 > tb_eps(T(0)) * tb_max(tb_max(t.ee2, t.ee1), t.ee0);
+  // the longest edge m: 2 if e2 is (ties included), else 0 if e0 is at least as long as e1, else 1
+  bool m2 = t.ee2 >= t.ee1 && t.ee2 >= t.ee0, m0 = !m2 && t.ee0 >= t.ee1;
+  // m = 2: e0 x e1, m = 0: e1 x e2, m = 1: e2 x e0
+  t.N = cross3(pick3(m2, e0, pick3(m0, e1, e2)), pick3(m2, e1, pick3(m0, e2, e0)));
+  T nn = dot3(t.N, t.N);
+  bool valid = tb_sqrt(nn) > tb_eps(T(0)) * tb_max(tb_max(t.ee2, t.ee1), t.ee0);
   t.valid = valid ? T(1) : T(0);
-  t.ia = t.valid / (valid ? area2 : T(1));
-  t.n = scale3(N, t.ia);
-  t.en0 = cross3(e0, t.n); t.en1 = cross3(e1, t.n); t.en2 = cross3(e2, t.n);
-  t.mh0 = scale3(t.en0, t.ia); t.mh1 = scale3(t.en1, t.ia); t.mh2 = scale3(t.en2, t.ia);
+  t.nn = valid ? nn : T(1);
+  t.inn = t.valid / t.nn;
+  t.mh0 = scale3(cross3(e0, t.N), t.inn); t.mh1 = scale3(cross3(e1, t.N), t.inn); t.mh2 = scale3(cross3(e2, t.N), t.inn);
   return t;
 }
 
 // ---- half-hinges -----------------------------------------------------------------------------
-// One half-hinge (a, b, c) = (x0, x1, wing) of W hinges: rho_k, the unit normal n, mh[k] = m_k / h_k
-// (k = 0: vertex a, 1: b, 2: the wing c) and mc = m_c / (h_c |e|^2); zeros where degenerate.
-template <typename T, int W> struct Half { T rho[3][W], n[3][W], mh[3][3][W], mc[3][W]; };
+// One half-hinge (a, b, c) = (x0, x1, wing) of W hinges: t_k = rho_k / |N| (the angle gradient of vertex
+// k is t_k N; k = 0: vertex a, 1: b, 2: the wing c), the normal N, mh[k] = m_k / h_k and bl = N / |e|^3
+// (the B term is bl mh[2]^T); zeros where degenerate.
+template <typename T, int W> struct Half { T t[3][W], N[3][W], mh[3][3][W], bl[3][W]; };
 
 template <typename T, int W>
 TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], Half<T, W>& o) {
@@ -118,18 +127,18 @@ TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*
     // the triangle's cyclic edges: e_0 = c - b (opposite a), e_1 = a - c (opposite b), e_2 = e = b - a
     V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
     Tri<T> t = tri_frame(e0, e1, e);
-    T elen = tb_sqrt(t.ee2);
-    T ie = t.valid / (t.valid != T(0) ? elen : T(1));
-    T s = ie * t.ia;
-    o.rho[0][l] = -dot3(e, e0) * s;  // -(e . (c - b)) / (|e| |N|)
-    o.rho[1][l] = -dot3(e, e1) * s;  //  (e . (c - a)) / (|e| |N|)
-    o.rho[2][l] = -elen * t.ia;
-    T ie3 = ie * ie * ie;
-    o.n[0][l] = t.n.x; o.n[1][l] = t.n.y; o.n[2][l] = t.n.z;
+    T ee = t.valid != T(0) ? t.ee2 : T(1);
+    T elen = tb_sqrt(ee);
+    T ie = T(1) / elen;  // reciprocals: divisions here cost the blocks ~10%
+    o.t[0][l] = -dot3(e, e0) * ie * t.inn;  // -(e . (c - b)) / (|e| |N|^2)
+    o.t[1][l] = -dot3(e, e1) * ie * t.inn;  //  (e . (c - a)) / (|e| |N|^2)
+    o.t[2][l] = -elen * t.inn;
+    T r = ie * ie * ie;
+    o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
     o.mh[0][0][l] = t.mh0.x; o.mh[0][1][l] = t.mh0.y; o.mh[0][2][l] = t.mh0.z;
     o.mh[1][0][l] = t.mh1.x; o.mh[1][1][l] = t.mh1.y; o.mh[1][2][l] = t.mh1.z;
     o.mh[2][0][l] = t.mh2.x; o.mh[2][1][l] = t.mh2.y; o.mh[2][2][l] = t.mh2.z;
-    o.mc[0][l] = t.en2.x * ie3; o.mc[1][l] = t.en2.y * ie3; o.mc[2][l] = t.en2.z * ie3;
+    o.bl[0][l] = t.N.x * r; o.bl[1][l] = t.N.y * r; o.bl[2][l] = t.N.z * r;
   }
 }
 
@@ -210,35 +219,35 @@ TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, 
 
 // ---- 12x12 blocks and angle gradients ------------------------------------------------------------
 // The blocks of W hinges before their output: the upper triangle (r <= c) of
-// H[(i,p),(j,q)] = psi' (rhoA_i mhA_j[p] nA_q + rhoA_j mhA_i[q] nA_p - (same for B)) + psi'' g_r g_c,
-// the B term B = psi' (nA mcA^T - nB mcB^T) of the (x0, x1) blocks, and the angle gradients g.
+// H[(i,p),(j,q)] = psi' (tA_i mhA_j[p] NA_q + tA_j mhA_i[q] NA_p - (same for B)) + psi'' g_r g_c,
+// the B term B = psi' (blA mhA_2^T - blB mhB_2^T) of the (x0, x1) blocks, and the angle gradients g.
 template <typename T, int W> struct Blocks { T O[144][W], Bm[3][3][W], G[12][W]; };
 
 template <typename T, int W>
 TB_HD static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, Blocks<T, W>& b) {
   Half<T, W> hA, hB;
   halves_tile<T, W>(X, hA, hB);
-  // coefficients per stencil vertex: rho (times psi'), mh; vertex 3 is not in triangle A, 2 not in B
+  // coefficients per stencil vertex: t (times psi'), mh; vertex 3 is not in triangle A, 2 not in B
   T RA[4][W], RB[4][W], MA[4][3][W], MB[4][3][W];
   const int ia_[4] = {0, 1, 2, -1}, ib_[4] = {0, 1, -1, 2};
   for (int i = 0; i < 4; ++i) {
     int sa = ia_[i], sb = ib_[i];
     TB_LANES(W) {
-      RA[i][l] = sa < 0 ? T(0) : d1[l] * hA.rho[sa][l];
-      RB[i][l] = sb < 0 ? T(0) : d1[l] * hB.rho[sb][l];
+      RA[i][l] = sa < 0 ? T(0) : d1[l] * hA.t[sa][l];
+      RB[i][l] = sb < 0 ? T(0) : d1[l] * hB.t[sb][l];
     }
     for (int p = 0; p < 3; ++p) TB_LANES(W) {
       MA[i][p][l] = sa < 0 ? T(0) : hA.mh[sa][p][l];
       MB[i][p][l] = sb < 0 ? T(0) : hB.mh[sb][p][l];
-      b.G[3 * i + p][l] = (sa < 0 ? T(0) : hA.rho[sa][l] * hA.n[p][l]) - (sb < 0 ? T(0) : hB.rho[sb][l] * hB.n[p][l]);
+      b.G[3 * i + p][l] = (sa < 0 ? T(0) : hA.t[sa][l] * hA.N[p][l]) - (sb < 0 ? T(0) : hB.t[sb][l] * hB.N[p][l]);
     }
   }
   for (int r = 0; r < 12; ++r) {
     int i = r / 3, p = r % 3;
     for (int c = r; c < 12; ++c) {
       int j = c / 3, q = c % 3;
-      TB_LANES(W) b.O[12 * r + c][l] = RA[i][l] * MA[j][p][l] * hA.n[q][l] + RA[j][l] * MA[i][q][l] * hA.n[p][l]
-                                     - RB[i][l] * MB[j][p][l] * hB.n[q][l] - RB[j][l] * MB[i][q][l] * hB.n[p][l]
+      TB_LANES(W) b.O[12 * r + c][l] = RA[i][l] * MA[j][p][l] * hA.N[q][l] + RA[j][l] * MA[i][q][l] * hA.N[p][l]
+                                     - RB[i][l] * MB[j][p][l] * hB.N[q][l] - RB[j][l] * MB[i][q][l] * hB.N[p][l]
                                      + d2[l] * b.G[r][l] * b.G[c][l];
     }
   }
@@ -246,7 +255,7 @@ TB_HD static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, B
   // does) rather than mirrored
   for (int p = 0; p < 3; ++p)
     for (int q = 0; q < 3; ++q)
-      TB_LANES(W) b.Bm[p][q][l] = d1[l] * (hA.n[p][l] * hA.mc[q][l] - hB.n[p][l] * hB.mc[q][l]);
+      TB_LANES(W) b.Bm[p][q][l] = d1[l] * (hA.bl[p][l] * hA.mh[2][q][l] - hB.bl[p][l] * hB.mh[2][q][l]);
 }
 
 // the row-major 12x12 block of lane l (144 values into o): the mirrored upper triangle plus the B
@@ -271,10 +280,10 @@ template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W],
   Half<T, W> hA, hB;
   halves_tile<T, W>(X, hA, hB);
   for (int p = 0; p < 3; ++p) TB_LANES(W) {
-    G[p][l] = hA.rho[0][l] * hA.n[p][l] - hB.rho[0][l] * hB.n[p][l];
-    G[3 + p][l] = hA.rho[1][l] * hA.n[p][l] - hB.rho[1][l] * hB.n[p][l];
-    G[6 + p][l] = hA.rho[2][l] * hA.n[p][l];
-    G[9 + p][l] = -hB.rho[2][l] * hB.n[p][l];
+    G[p][l] = hA.t[0][l] * hA.N[p][l] - hB.t[0][l] * hB.N[p][l];
+    G[3 + p][l] = hA.t[1][l] * hA.N[p][l] - hB.t[1][l] * hB.N[p][l];
+    G[6 + p][l] = hA.t[2][l] * hA.N[p][l];
+    G[9 + p][l] = -hB.t[2][l] * hB.N[p][l];
   }
 }
 
@@ -288,26 +297,26 @@ TB_HD static inline void face_block(const T* P0, const T* P1, const T* P2, const
   V3<T> ev[3] = {sub3(p2, p1), sub3(p0, p2), sub3(p1, p0)};  // e_k = p_{k+2} - p_{k+1}
   Tri<T> t = tri_frame(ev[0], ev[1], ev[2]);
   if (t.valid == T(0)) { for (int m = 0; m < 81; ++m) o[m] = T(0); return; }
-  const T ee[3] = {t.ee0, t.ee1, t.ee2}, n[3] = {t.n.x, t.n.y, t.n.z};
-  const T en[3][3] = {{t.en0.x, t.en0.y, t.en0.z}, {t.en1.x, t.en1.y, t.en1.z}, {t.en2.x, t.en2.y, t.en2.z}};
+  const T ee[3] = {t.ee0, t.ee1, t.ee2}, N[3] = {t.N.x, t.N.y, t.N.z};
   const T mh[3][3] = {{t.mh0.x, t.mh0.y, t.mh0.z}, {t.mh1.x, t.mh1.y, t.mh1.z}, {t.mh2.x, t.mh2.y, t.mh2.z}};
-  T elen[3], ie[3];
-  for (int k = 0; k < 3; ++k) { elen[k] = tb_sqrt(ee[k]); ie[k] = T(1) / elen[k]; }
-  T cs[3], d[3];
-  for (int k = 0; k < 3; ++k) cs[k] = -dot3(ev[(k + 1) % 3], ev[(k + 2) % 3]) * ie[(k + 1) % 3] * ie[(k + 2) % 3];
-  for (int k = 0; k < 3; ++k)
-    d[k] = (c[(k + 1) % 3] * cs[(k + 2) % 3] + c[(k + 2) % 3] * cs[(k + 1) % 3] - c[k]) * (elen[k] * t.ia);
-  T R[3][3][3];  // R_k = c_k n (e_k x n)^T / |e_k|^3
+  T elen[3], s[3], G[3][3];
+  for (int k = 0; k < 3; ++k) { elen[k] = tb_sqrt(ee[k]); s[k] = c[k] / elen[k]; }
+  // G_i = D_i N with D_i = -(sum_k (c_k / |e_k|) e_i . e_k) / |N|^2 (torchbend.ops.triangle)
+  for (int i = 0; i < 3; ++i) {
+    T D = -((dot3(ev[i], ev[0]) * s[0] + dot3(ev[i], ev[1]) * s[1]) + dot3(ev[i], ev[2]) * s[2]) / t.nn;
+    for (int p = 0; p < 3; ++p) G[i][p] = D * N[p];
+  }
+  T R[3][3][3];  // R_k = c_k n (e_k x n)^T / |e_k|^3 = (c_k / |e_k|^3) N mh_k^T
   for (int k = 0; k < 3; ++k) {
-    T s = c[k] * ie[k] * ie[k] * ie[k];
+    T r = c[k] / (ee[k] * elen[k]);
     for (int p = 0; p < 3; ++p)
-      for (int q = 0; q < 3; ++q) R[k][p][q] = s * n[p] * en[k][q];
+      for (int q = 0; q < 3; ++q) R[k][p][q] = r * N[p] * mh[k][q];
   }
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j)
       for (int p = 0; p < 3; ++p)
         for (int q = 0; q < 3; ++q) {
-          T v = d[i] * mh[j][p] * n[q] + d[j] * n[p] * mh[i][q];
+          T v = mh[j][p] * G[i][q] + G[j][p] * mh[i][q];
           if (i == j) {
             v -= R[(i + 1) % 3][p][q] + R[(i + 2) % 3][p][q];
           } else if (j == (i + 1) % 3) {  // edge k = i + 2 runs p_i -> p_{i+1}: R, or R^T if reversed

@@ -150,8 +150,9 @@ class MembraneEnergy(nn.Module):
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, backend=None) -> Tensor:
         """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected)."""
-        l, Q, D, v = self._eigen(x, "hvp", project, backend, v)
-        dF = deformation_gradient(v, self.faces, D).flatten(-2)
+        l, Q, D, vc = self._eigen(x, "hvp", project, backend, v)
+        assert vc is not None  # _eigen returns the checked direction when given one
+        dF = deformation_gradient(vc, self.faces, D).flatten(-2)
         return fn.to_vertices(fn.hvp_faces(l, Q, dF), D, self.faces, x.shape[-2])
 
     def hessian(self, x: Tensor, *, project=None, backend=None) -> Tensor:

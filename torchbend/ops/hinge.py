@@ -30,12 +30,40 @@ and the 3x3 blocks (tech report sec. 6, ``H_ij = d/dx_j (d T/dx_i)``)
     H_cc = -S(m_c n^T)/h_c^2                        H_bc = (cos(alpha_a) m_c n^T - n m_b^T)/(h_b h_c)
 
 with ``S(A) = A + A^T`` and ``B = n m_c^T / |e0|^2`` (the term that is transposed in the per-triangle
-assembly; summed over both halves it is symmetric).  Applied to a direction ``v`` these blocks
-collapse to dot products (no 12x12 matrix is formed):
+assembly; summed over both halves it is symmetric).
 
-    (H v)_k = rho_k mu + n (m_k/h_k . nu) + [B terms],   mu = sum_k (m_k/h_k)(n . v_k),  nu = sum_k rho_k v_k
+Accuracy: everything in terms of ``N``
+--------------------------------------
+The kernels never normalize ``N``.  With the edges ``e = b - a``, ``u = c - a``, ``w = c - b``:
 
-where ``mu`` is the directional derivative of ``n``.
+    grad_k T = t_k N,        t = (-(e.w), e.u, -|e|^2) / (|e| |N|^2)          (t_k = rho_k / |N|)
+    mh_k = m_k / h_k:        mh_a = (w x N)/|N|^2,  mh_b = (N x u)/|N|^2,  mh_c = (e x N)/|N|^2
+    H_ij = mh_j g_i^T + g_j mh_i^T  (g_i = t_i N),  B = bl mh_c^T with bl = N / |e|^3
+
+and applied to a direction ``v`` (no 12x12 matrix is formed):
+
+    (H v)_k = t_k mu + (mh_k . nu) N + [B terms],   mu = sum_k mh_k (N . v_k),  nu = sum_k t_k v_k.
+
+``N`` is the cross product of the triangle's two *shortest* edges (:func:`_normal`; ``e x u = e x w =
+u x w``).  Where the digits went before (float64, against a 40-digit reference, ``benchmarks/accuracy.py``):
+
+- ``N = e x u`` whatever the shape: a cross product's rounding errors are ``~eps |p| |q|``, so for a
+  triangle with a small angle at ``a`` the relative error of ``N`` is ``~eps / sin(alpha_a)`` (Kahan's
+  needle).  It is mostly an error in ``|N|``, which ``n = N/|N|`` hides but ``rho = .../|N|`` and
+  ``1/h = |e|/|N|`` do not: on needles the angle gradient lost 490 ulps (median; max 15000), its Hessian 900
+  (max 29000); now 0.7 / 0.8 and 0.8 / 1.5.
+  From the two shortest edges (the cross product at the largest angle) the error is ``~eps`` unless the
+  largest angle is near 180 degrees, where every formula loses ``eps / sin``.
+- Each factor normalized separately: ``n = N (1/|N|)``, ``rho = c (1/|e|)(1/|N|)``, ``mh = (w x n)(1/|N|)``
+  (a cross product with the already rounded ``n``), ``mc = (e x n)(1/|e|)^3``: some ten roundings per Hessian
+  entry, where ``t = c (1/|e|)(1/|N|^2)`` and ``mh = (w x N)(1/|N|^2)`` take about half as many.  The angle Hessian
+  went from median 1.4 / max 3.8 ulps to 1.1 / 2.9 on well-shaped hinges, from 1.6 / 12.4 to 1.3 / 4.6
+  on random ones (autograd: 1.9 / 3.5 and 1.9 / 5.5; benchmarks/results/accuracy_after.txt).
+
+``theta`` itself keeps the SPEC formula with ``nA = e x (x2 - x0)``, ``nB = (x3 - x0) x e``
+(:func:`hinge_angle_soa`, and the compiled ``hinge_psi``), so that angles at the rest state vanish bit for
+bit; on needles its error (~100 eps, max 14000) still limits the energy and its derivatives (from the
+shortest-edge normals it would be ~0.3 eps: the same change in ``hinge_angle_soa`` and ``hinge_psi``).
 
 Layout
 ------
@@ -50,7 +78,7 @@ Degenerate deformed geometry
 A triangle of zero area (or a hinge edge of zero length) in the *deformed* state has no normal,
 and the closed forms divide by its area and edge length.  Policy: a half-hinge whose triangle is
 numerically collinear (``|N| <= eps * longest_edge^2``, which includes a collapsed hinge edge) has
-zero normal and zero angle derivatives, so the hinge's gradient and Hessian are those of its other
+zero angle derivatives, so the hinge's gradient and Hessian are those of its other
 half: finite, never NaN (an exactly collinear triangle also has ``theta = atan2(0, 0) = 0``).
 Rest shapes with such triangles are rejected upstream (:func:`torchbend.rest_hinge_weights`).
 """
@@ -117,69 +145,81 @@ def from_soa(vs) -> Tensor:
     return torch.stack(flat, -1).unflatten(-1, (4, 3))
 
 
+def _normal(e: Vec, u: Vec, w: Vec, ee: Tensor, uu: Tensor, ww: Tensor) -> Vec:
+    """``N = e x u = e x w = u x w`` of the triangle with edges ``e = b - a``, ``u = c - a``, ``w = c - b``,
+    from its two shortest edges (the cross product at the largest angle): the rounding errors of a cross
+    product are ``~eps |p| |q|``, so this choice keeps the relative error of ``N`` near ``eps`` unless the
+    largest angle is close to 180 degrees, where the others lose ``~eps / sin(smallest angle)`` (Kahan)."""
+    # selections as exact blends m a + (1 - m) b with m in {0, 1} (several times faster than torch.where)
+    m = (ee >= torch.maximum(uu, ww)).to(ee.dtype)  # e longest (ties included)
+    m1 = 1.0 - m
+    k = m1 * (ww >= uu).to(ee.dtype)  # else w longest (ties with u included)
+    k1 = 1.0 - k
+    p = tuple(torch.addcmul(ei * m1, ui, m) for ui, ei in zip(u, e, strict=True))  # u x w | e x w | e x u
+    q = tuple(torch.addcmul(wi * k1, ui, k) for ui, wi in zip(u, w, strict=True))
+    return _cross(p, q)
+
+
 class _HalfHinge:
-    """Local quantities of one half-hinge ``(a, b, c)`` (components ``(..., H)``)."""
+    """Local quantities of one half-hinge ``(a, b, c)`` (components ``(..., H)``), in terms of the
+    unnormalized normal ``N`` (see the module docstring, "Accuracy")."""
 
-    __slots__ = ("N", "n", "rho", "e", "u", "w", "inv_area2", "inv_elen", "_mh", "_mc_s")
+    __slots__ = ("N", "t", "e", "u", "w", "inn", "ie", "_mh", "_bl")
 
-    def __init__(self, xa: Vec, xb: Vec, xc: Vec, e: Vec | None = None):
+    def __init__(self, xa: Vec, xb: Vec, xc: Vec, e: Vec | None = None, ee: Tensor | None = None):
         e = _sub(xb, xa) if e is None else e  # hinge edge
         u = _sub(xc, xa)  # edge opposite b
         w = _sub(xc, xb)  # edge opposite a
-        N = _cross(e, u)
-        ee, uu, ww = _dot(e, e), _dot(u, u), _dot(w, w)
-        area2 = _dot(N, N).sqrt()  # |N| = 2 * area
-        elen = ee.sqrt()
+        ee_: Tensor = _dot(e, e) if ee is None else ee
+        uu, ww = _dot(u, u), _dot(w, w)
+        N = _normal(e, u, w, ee_, uu, ww)
+        nn = _dot(N, N)
         # degenerate-geometry policy: a numerically collinear triangle (|N| <= eps * longest^2,
-        # which includes a collapsed hinge edge) gets zero normal and zero derivatives
-        valid = nondegenerate(area2, torch.maximum(torch.maximum(ee, uu), ww))
-        one = torch.ones_like(area2)
-        inv_area2 = torch.where(valid, torch.where(valid, area2, one).reciprocal(), 0.0)
-        inv_elen = torch.where(valid, torch.where(valid, elen, one).reciprocal(), 0.0)
-        # gradient coefficients rho_k = cos(alpha_other)/h_k, written without angles:
-        #   cos(alpha_b)/h_a = -(e.w)/(|e||N|),  cos(alpha_a)/h_b = (e.u)/(|e||N|),  -1/h_c = -|e|/|N|
-        s = inv_elen * inv_area2
-        self.rho = (-_dot(e, w) * s, _dot(e, u) * s, -elen * inv_area2)
-        self.N = N
-        self.n = _scale(N, inv_area2)  # unit normal (zero for a degenerate triangle)
-        self.e, self.u, self.w = e, u, w
-        self.inv_area2, self.inv_elen = inv_area2, inv_elen
-        self._mh = self._mc_s = None
+        # which includes a collapsed hinge edge) gets zero derivatives
+        valid = nondegenerate(nn.sqrt(), torch.maximum(torch.maximum(ee_, uu), ww)).to(nn.dtype)
+        invalid = 1.0 - valid
+        nn = nn + invalid  # unchanged where valid, >= 1 where not (so are the edge lengths below)
+        ee_ = ee_ + invalid
+        elen = ee_.sqrt()
+        inn = valid / nn  # 1/|N|^2, 0 if degenerate
+        ie = elen.reciprocal()
+        # t_k = rho_k / |N|:  -(e.w)/(|e| |N|^2),  (e.u)/(|e| |N|^2),  -|e|/|N|^2  (reciprocals, not
+        # divisions: one rounding more, but divisions cost the compiled blocks ~10%)
+        self.t = (-_dot(e, w) * ie * inn, _dot(e, u) * ie * inn, -elen * inn)
+        self.N, self.e, self.u, self.w = N, e, u, w
+        self.inn, self.ie = inn, ie
+        self._mh = self._bl = None
 
     @property
     def mh(self) -> tuple[Vec, Vec, Vec]:
         """Outward in-plane edge normals over the altitude to the opposite vertex (second order only):
-        ``m_a/h_a = (w x n)/|N|,  m_b/h_b = -(u x n)/|N|,  m_c/h_c = (e x n)/|N|``."""
+        ``m_a/h_a = (w x N)/|N|^2,  m_b/h_b = (N x u)/|N|^2,  m_c/h_c = (e x N)/|N|^2`` (0 if degenerate)."""
         if self._mh is None:
-            n, r = self.n, self.inv_area2
-            self._mh = (_scale(_cross(self.w, n), r), _scale(_cross(n, self.u), r), _scale(_cross(self.e, n), r))
+            N, r = self.N, self.inn
+            self._mh = (_scale(_cross(self.w, N), r), _scale(_cross(N, self.u), r), _scale(_cross(self.e, N), r))
         return self._mh
 
     @property
-    def mc_s(self) -> Vec:
-        """``m_c / |e0|^2 = (e x n)/|e|^3`` (the B term); equals ``mh_c |N| / |e|^3``."""
-        if self._mc_s is None:
-            ie = self.inv_elen
-            self._mc_s = _scale(_cross(self.e, self.n), ie * ie * ie)
-        return self._mc_s
-
-    def gradient(self) -> tuple[Vec, Vec, Vec]:
-        return tuple(_scale(self.n, r) for r in self.rho)  # type: ignore[return-value]
+    def bl(self) -> Vec:
+        """``N / |e|^3``: the B term is ``B = n m_c^T / |e|^2 = bl mh_c^T``."""
+        if self._bl is None:
+            ie = self.ie
+            self._bl = _scale(self.N, ie * ie * ie)
+        return self._bl
 
     def hvp(self, va: Vec, vb: Vec, vc: Vec) -> tuple[Vec, Vec, Vec]:
-        n = self.n
-        ra, rb, rc = self.rho
+        N = self.N
+        ta, tb, tc = self.t
         mha, mhb, mhc = self.mh
-        wa, wb, wc = _dot(n, va), _dot(n, vb), _dot(n, vc)
-        mu = _add(_add(_scale(mha, wa), _scale(mhb, wb)), _scale(mhc, wc))  # d n / d x [v]
-        nu = _add(_add(_scale(va, ra), _scale(vb, rb)), _scale(vc, rc))
-        # B = n m_c^T/|e|^2 enters as [[-B, B], [B^T, -B]] on the (a, b) blocks
-        mc_s = self.mc_s
-        bd = _dot(mc_s, _sub(vb, va))
-        bb = _dot(mc_s, vb)
-        oa = _axpy(_dot(mha, nu) + bd, n, _scale(mu, ra))
-        ob = _axpy(wa, mc_s, _axpy(_dot(mhb, nu) - bb, n, _scale(mu, rb)))
-        oc = _axpy(_dot(mhc, nu), n, _scale(mu, rc))
+        wa, wb, wc = _dot(N, va), _dot(N, vb), _dot(N, vc)
+        mu = _add(_add(_scale(mha, wa), _scale(mhb, wb)), _scale(mhc, wc))  # |N| d n / d x [v]
+        nu = _add(_add(_scale(va, ta), _scale(vb, tb)), _scale(vc, tc))
+        # B = bl mhc^T enters as [[-B, B], [B^T, -B]] on the (a, b) blocks
+        bl = self.bl
+        bd = _dot(mhc, _sub(vb, va))
+        oa = _axpy(_dot(mha, nu), N, _axpy(bd, bl, _scale(mu, ta)))
+        ob = _axpy(_dot(bl, va), mhc, _axpy(_dot(mhb, nu), N, _axpy(-_dot(mhc, vb), bl, _scale(mu, tb))))
+        oc = _axpy(_dot(mhc, nu), N, _scale(mu, tc))
         return oa, ob, oc
 
 
@@ -188,18 +228,32 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
     return u[..., :, None] * v[..., None, :]
 
 
-def _theta(e: Vec, nA: Vec, nB: Vec) -> Tensor:
+def _theta(e: Vec, nA: Vec, nB: Vec, ee: Tensor | None = None) -> Tensor:
     """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)``; the single formula used everywhere,
-    so that angles (and hence energies and gradients) at the rest state vanish bit for bit."""
-    elen = _dot(e, e).sqrt()
-    inv = torch.where(elen > 0, torch.where(elen > 0, elen, torch.ones_like(elen)).reciprocal(), 0.0)
+    so that angles (and hence energies and gradients) at the rest state vanish bit for bit (``ee = e . e``
+    if already computed)."""
+    elen = (_dot(e, e) if ee is None else ee).sqrt()
+    pos = (elen > 0).to(elen.dtype)
+    inv = pos / (elen + (1.0 - pos))  # 1/|e|, 0 for a collapsed edge (arithmetic: torch.where is slow)
     return torch.atan2(_dot(e, _cross(nA, nB)) * inv, _dot(nA, nB))
 
 
-def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec]:
+def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec, Tensor]:
     x0, x1, x2, x3 = xs
     e = _sub(x1, x0)
-    return _HalfHinge(x0, x1, x2, e), _HalfHinge(x0, x1, x3, e), e
+    ee = _dot(e, e)
+    return _HalfHinge(x0, x1, x2, e, ee), _HalfHinge(x0, x1, x3, e, ee), e, ee
+
+
+def _gradient(hA: _HalfHinge, hB: _HalfHinge) -> tuple[Vec, Vec, Vec, Vec]:
+    """``grad theta = T'_A - T'_B`` per stencil vertex (``g_k = t_k N`` per half)."""
+    (ta, tb, tc), (sa, sb, sc) = hA.t, hB.t
+    NA, NB = hA.N, hB.N
+
+    def diff(t: Tensor, s: Tensor) -> Vec:
+        return tuple(torch.addcmul(a * t, b, s, value=-1.0) for a, b in zip(NA, NB, strict=True))  # type: ignore[return-value]
+
+    return diff(ta, sa), diff(tb, sb), _scale(NA, tc), _scale(NB, -sc)
 
 
 def hinge_angle_soa(xs) -> Tensor:
@@ -214,11 +268,11 @@ def hinge_angle_gradient_hvp_soa(xs, vs=None):
     """``(theta, grad theta, Hess(theta) v)`` on SoA stencils; ``vs=None`` skips the HVP.
 
     ``grad`` and ``Hv`` are 4-tuples (per stencil vertex) of component triples ``(..., H)``."""
-    hA, hB, e = _halves(xs)
-    theta = _theta(e, hA.N, _neg(hB.N))  # hB.N = e0 x (x3 - x0) = -nB
-    ga, gb, gc = hA.gradient()
-    ka, kb, kc = hB.gradient()
-    grad = (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc))
+    hA, hB, e, ee = _halves(xs)
+    # the SPEC formula with the same operations as hinge_angle_soa (hA.u = x2 - x0, hB.u = x3 - x0), so that
+    # angles at the rest state vanish bit for bit; the half-hinge normals N are formed differently
+    theta = _theta(e, _cross(e, hA.u), _cross(hB.u, e), ee)
+    grad = _gradient(hA, hB)
     if vs is None:
         return theta, grad, None
     v0, v1, v2, v3 = vs
@@ -267,39 +321,36 @@ def hinge_energy_hessian_soa(xs, d1: Tensor | None, d2: Tensor | None) -> tuple[
 
     ``d1``/``d2`` are per-hinge scalars ``(..., H)`` (``psi'`` and ``psi''``); ``None`` means
     ``d1 = 1`` and ``d2 = 0`` (the angle Hessian itself).  Built from the half-hinge factors with one
-    batched matrix product: with ``rho``, ``mh`` zero-padded to the 4 stencil vertices,
+    batched matrix product: with ``t``, ``mh`` zero-padded to the 4 stencil vertices (module docstring),
 
-        X[(i,p),(j,q)] = d1 sum_s sign_s rho_s[i] mh_s[j,p] n_s[q],     Y = X + d2/2 g g^T,
+        X[(i,p),(j,q)] = d1 sum_s sign_s t_s[i] mh_s[j,p] N_s[q],     Y = X + d2/2 g g^T,
         H = Y + Y^T + [[-Bs, Bs], [Bs^T, -Bs]] on the (x0, x1) blocks,   Bs = d1 (B_A - B_B)
     """
-    hA, hB, _ = _halves(xs)
-    ga, gb, gc = hA.gradient()
-    ka, kb, kc = hB.gradient()
-    g = torch.stack([c for v in (_sub(ga, ka), _sub(gb, kb), gc, _neg(kc)) for c in v], -1)  # (..., H, 12)
-    zero = torch.zeros_like(hA.rho[0])
-    one = None if d1 is None else d1
-    rhoA = torch.stack((hA.rho[0], hA.rho[1], hA.rho[2], zero), -1)  # (..., H, 4)
-    rhoB = -torch.stack((hB.rho[0], hB.rho[1], zero, hB.rho[2]), -1)  # minus: Hess = T''_A - T''_B
-    if one is not None:
-        rhoA = rhoA * one[..., None]
-        rhoB = rhoB * one[..., None]
-    z3 = torch.zeros_like(torch.stack(hA.n, -1))
+    hA, hB, _, _ = _halves(xs)
+    g = torch.stack([c for v in _gradient(hA, hB) for c in v], -1)  # (..., H, 12)
+    zero = torch.zeros_like(hA.t[0])
+    tA = torch.stack((hA.t[0], hA.t[1], hA.t[2], zero), -1)  # (..., H, 4)
+    tB = -torch.stack((hB.t[0], hB.t[1], zero, hB.t[2]), -1)  # minus: Hess = T''_A - T''_B
+    if d1 is not None:
+        tA = tA * d1[..., None]
+        tB = tB * d1[..., None]
+    z3 = torch.zeros_like(torch.stack(hA.N, -1))
     mhA = torch.stack((_stack_vec(hA.mh[0]), _stack_vec(hA.mh[1]), _stack_vec(hA.mh[2]), z3), -2)  # (..., H, 4, 3)
     mhB = torch.stack((_stack_vec(hB.mh[0]), _stack_vec(hB.mh[1]), z3, _stack_vec(hB.mh[2])), -2)
-    # T[i, p, j, s] = rho_s[i] mh_s[j, p]
-    T = torch.stack((rhoA[..., :, None, None] * mhA.transpose(-1, -2)[..., None, :, :],
-                     rhoB[..., :, None, None] * mhB.transpose(-1, -2)[..., None, :, :]), -1)  # (..., H, i, p, j, s)
+    # T[i, p, j, s] = t_s[i] mh_s[j, p]
+    T = torch.stack((tA[..., :, None, None] * mhA.transpose(-1, -2)[..., None, :, :],
+                     tB[..., :, None, None] * mhB.transpose(-1, -2)[..., None, :, :]), -1)  # (..., H, i, p, j, s)
     batch = T.shape[:-4]
-    N = torch.stack((_stack_vec(hA.n), _stack_vec(hB.n)), -2)  # (..., H, 2, 3)
+    N = torch.stack((_stack_vec(hA.N), _stack_vec(hB.N)), -2)  # (..., H, 2, 3)
     T = T.reshape((-1, 48, 2))
     Y = torch.bmm(T, N.reshape(-1, 2, 3)).reshape((-1, 12, 12))  # rows (i, p), cols (j, q)
     gf = g.reshape(-1, 12)
     if d2 is not None:
         Y.baddbmm_((0.5 * d2.reshape(-1, 1) * gf)[:, :, None], gf[:, None, :])
     Hs = Y + Y.transpose(-1, -2)
-    Bs = _outer(_stack_vec(hA.n), _stack_vec(hA.mc_s)) - _outer(_stack_vec(hB.n), _stack_vec(hB.mc_s))
-    if one is not None:
-        Bs = Bs * one[..., None, None]
+    Bs = _outer(_stack_vec(hA.bl), _stack_vec(hA.mh[2])) - _outer(_stack_vec(hB.bl), _stack_vec(hB.mh[2]))
+    if d1 is not None:
+        Bs = Bs * d1[..., None, None]
     Bs = Bs.reshape(-1, 3, 3)
     Hs[:, 0:3, 0:3] -= Bs
     Hs[:, 0:3, 3:6] += Bs

@@ -17,6 +17,14 @@ where ``R^dagger`` is ``R`` when the triangle traverses edge ``i+2`` in its glob
 (``i0 -> i1``; it is the hinge's triangle A) and ``R^T`` otherwise: the paper's conditional
 transpose.  The rank-one term ``psi'' g g^T`` couples both triangles of a hinge and is added per
 hinge (sec. 4.2).
+
+Evaluated, as the per-hinge kernels (:mod:`torchbend.ops.hinge`, "Accuracy"), without normalizing ``N``,
+which is the cross product of the two shortest edges:
+
+    mh_k = (e_k x N) / |N|^2,     d_i n = D_i N  with  D_i = -(sum_k (c_k / |e_k|) e_i . e_k) / |N|^2,
+    H_ij = mh_j G_i^T + G_j mh_i^T  (G_i = D_i N),     R_k = (c_k / |e_k|^3) N mh_k^T
+
+(``cos(alpha_{i+2}) |e_i| = -(e_i . e_{i+1}) / |e_{i+1}|``, so ``D_i = d_i / |N|``).
 """
 from __future__ import annotations
 
@@ -36,32 +44,32 @@ def triangle_hessian_blocks(x: Tensor, topo: HingeTopology, d1: Tensor) -> Tenso
     F = topo.faces.to(x.device)
     p = x[F]  # (F, 3, 3) [vertex k, axis]
     e = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]  # e_k = p_{k+2} - p_{k+1}, (F, 3, 3)
-    N = torch.linalg.cross(e[:, 2], -e[:, 1], dim=-1)  # (p1 - p0) x (p2 - p0)
-    area2 = N.norm(dim=-1)  # (F,)
     ee = (e * e).sum(-1)  # (F, 3) |e_k|^2
-    valid = nondegenerate(area2, ee.amax(-1))
-    one = torch.ones_like(area2)
-    inv_area2 = torch.where(valid, torch.where(valid, area2, one).reciprocal(), 0.0)
-    n = N * inv_area2[:, None]  # (F, 3)
-    elen = ee.sqrt()
-    inv_elen = torch.where(valid[:, None], torch.where(valid[:, None], elen, 1.0).reciprocal(), 0.0)
-    en = torch.linalg.cross(e, n[:, None, :].expand_as(e), dim=-1)  # e_k x n  (|e_k| * outward normal)
-    mh = en * inv_area2[:, None, None]  # (F, 3, 3)
-    # cos(alpha_k) = -(e_{k+1} . e_{k+2}) / (|e_{k+1}| |e_{k+2}|)
-    e1, e2 = e[:, [1, 2, 0]], e[:, [2, 0, 1]]
-    cos = -(e1 * e2).sum(-1) * inv_elen[:, [1, 2, 0]] * inv_elen[:, [2, 0, 1]]  # (F, 3)
-    h_inv = elen * inv_area2[:, None]  # 1 / h_k = |e_k| / |N|
+    # N = e_{k+1} x e_{k+2} for any k: from the two shortest edges (k the longest, ties as the compiled
+    # tri_frame: 2, then 0; see hinge._normal)
+    Ns = torch.linalg.cross(e[:, [1, 2, 0]], e[:, [2, 0, 1]], dim=-1)  # (F, k, 3): N without edge k
+    m2 = (ee[:, 2] >= ee[:, 1]) & (ee[:, 2] >= ee[:, 0])
+    longest = torch.where(m2, 2, torch.where(ee[:, 0] >= ee[:, 1], 0, 1))
+    N = Ns.gather(1, longest[:, None, None].expand(-1, 1, 3))[:, 0]  # (F, 3)
+    nn = (N * N).sum(-1)  # |N|^2
+    valid = nondegenerate(nn.sqrt(), ee.amax(-1))
+    one = torch.ones_like(nn)
+    vf = valid.to(x.dtype)
+    nn_s = torch.where(valid, nn, one)
+    ee_s = torch.where(valid[:, None], ee, 1.0)
+    elen = ee_s.sqrt()
+    mh = torch.linalg.cross(e, N[:, None, :].expand_as(e), dim=-1) * (vf / nn_s)[:, None, None]  # (e_k x N)/|N|^2
     fh = topo.face_edge_hinges.to(x.device)
     c = torch.where(fh >= 0, d1[fh.clamp_min(0)], 0.0)  # (F, 3)
-    c1, c2 = c[:, [1, 2, 0]], c[:, [2, 0, 1]]
-    cos1, cos2 = cos[:, [1, 2, 0]], cos[:, [2, 0, 1]]
-    d = (c1 * cos2 + c2 * cos1 - c) * h_inv  # (F, 3)
-    # H_ij = d_i mh_j n^T + d_j n mh_i^T
-    mhn = mh[:, :, :, None] * n[:, None, None, :]  # (F, j, 3, 3) = mh_j n^T
-    Hl = d[:, :, None, None, None] * mhn[:, None]  # (F, i, j, 3, 3)
+    # D_i = d_i / |N| = -(sum_k (c_k / |e_k|) e_i . e_k) / |N|^2   (d_i n = D_i N)
+    gram = e @ e.transpose(-1, -2)  # (F, i, k) e_i . e_k
+    D = -(gram @ (c / elen)[:, :, None])[:, :, 0] / nn_s[:, None] * vf[:, None]  # (F, 3)
+    G = D[:, :, None] * N[:, None, :]  # (F, i, 3)
+    # H_ij = mh_j G_i^T + G_j mh_i^T
+    Hl = mh[:, None, :, :, None] * G[:, :, None, None, :]  # (F, i, j, 3, 3)
     Hl = Hl + Hl.permute(0, 2, 1, 4, 3)
-    # R_k = c_k n (e_k x n)^T / |e_k|^3 on the endpoints (p, q) = (k+1, k+2) of edge k
-    R = (c * inv_elen**3)[:, :, None, None] * (n[:, None, :, None] * en[:, :, None, :])  # (F, k, 3, 3)
+    # R_k = c_k n (e_k x n)^T / |e_k|^3 = (c_k / |e_k|^3) N mh_k^T on the endpoints (p, q) = (k+1, k+2) of edge k
+    R = (c / (ee_s * elen))[:, :, None, None] * (N[:, None, :, None] * mh[:, :, None, :])  # (F, k, 3, 3)
     signs = topo.face_edge_signs.to(x.device)
     RT = R.transpose(-1, -2)
     fwd = (signs > 0)[:, :, None, None]
