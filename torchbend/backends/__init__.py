@@ -18,6 +18,7 @@ from collections.abc import Iterator
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 
 from .._checks import is_traced
 from ..options import Backend
@@ -34,7 +35,7 @@ CUDA_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projec
 """Operations whose compiled kernel also runs on CUDA devices."""
 
 _ONE_MESH_OPS = frozenset({"hessian_hinge", "hessian_triangle"})
-_FUNCTION_OPS = frozenset({"energy", "gradient", "hvp"})
+_FUNCTION_OPS = frozenset({"energy", "gradient"})
 """Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph
 does not keep them from running."""
 
@@ -60,8 +61,11 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
     if x.dtype not in (torch.float32, torch.float64):
         return f"the compiled kernels take float32 or float64, x is {x.dtype}"
     tensors = (x, *params)
-    if any(is_traced(t) for t in tensors):
+    compiling = torch.compiler.is_compiling()
+    if not compiling and any(is_traced(t) for t in tensors):
         return "the inputs are traced by a torch.func transform"
+    if not compiling and forward_ad._current_level >= 0:
+        return "forward-mode AD is active (the eager Functions define jvp)"
     if op not in _FUNCTION_OPS and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
     batch = tuple(x.shape[:-2])
@@ -69,17 +73,20 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
         return "the compiled assembly takes one mesh"
     if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
         return "per-sample parameters whose batch shape differs from x's"
-    if x.device.type == "cuda":
+    return _unavailable(x.device.type)
+
+
+@torch.compiler.assume_constant_result
+def _unavailable(device_type: str) -> str | None:
+    """Why the compiled kernels of ``device_type`` cannot be loaded (builds them on first use; a constant
+    for ``torch.compile``, which does not trace the build)."""
+    if device_type == "cuda":
         from . import cuda
 
-        if cuda.load() is None:
-            return f"the CUDA kernels are not available ({cuda.build_error()})"
-        return None
+        return None if cuda.load() is not None else f"the CUDA kernels are not available ({cuda.build_error()})"
     from . import native
 
-    if native.load() is None:
-        return f"the C++ extension is not available ({native.build_error()})"
-    return None
+    return None if native.load() is not None else f"the C++ extension is not available ({native.build_error()})"
 
 
 def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:

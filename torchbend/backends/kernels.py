@@ -7,7 +7,7 @@ from typing import Any
 
 from torch import Tensor
 
-__all__ = ["module", "incidence", "compact"]
+__all__ = ["module", "incidence"]
 
 def module(x: Tensor) -> Any:
     """The kernel module for ``x``'s device."""
@@ -33,14 +33,3 @@ def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
     hinges._torchbend_incidence = (key, inc)  # pyright: ignore[reportAttributeAccessIssue]
     return inc
 
-
-def compact(t: Tensor | None) -> Tensor | None:
-    """A parameter without its broadcast copies: a view expanded over batch dimensions (stride 0) is
-    passed to the kernels as the tensor it was expanded from (a scalar as one value)."""
-    if t is None:
-        return None
-    while t.ndim > 1 and t.stride(0) == 0:
-        t = t[0]
-    if t.ndim == 1 and t.shape[0] > 1 and t.stride(0) == 0:
-        t = t[:1]
-    return t

@@ -116,10 +116,17 @@ def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, top
     """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
     hinge or per triangle in C++ (serial: the scatter targets overlap); a folded ``tan`` hinge is a
     ``ValueError`` as in :func:`bending_hessians`."""
+    return assemble_arrays(x, hinges, a, k, rest, c, prev, model, pattern.hinge_pos, topo.faces,
+                           topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle)
+
+
+def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_pos: Tensor, faces: Tensor,
+                    face_edge_hinges: Tensor, face_edge_signs: Tensor, face_pos: Tensor, nnz: int,
+                    per_triangle: bool) -> Tensor:
+    """:func:`assemble` with the pattern's and topology's arrays passed one by one."""
     values, theta = _module().assemble(
         x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev), _model_code(model),
-        pattern.hinge_pos, topo.faces, topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz,
-        per_triangle)
+        hinge_pos, faces, face_edge_hinges, face_edge_signs, face_pos, nnz, per_triangle)
     check_fold(BendingModel.parse(model), theta)
     return values
 

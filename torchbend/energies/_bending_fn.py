@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from ..backends import kernels
+from ..backends import ops as _ops  # noqa: F401  (registers torch.ops.torchbend)
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -104,14 +105,8 @@ def _hinge_weight(gE: Tensor, seg: Tensor | None, H: int) -> Tensor:
     return gE.reshape(1) if gE.numel() == 1 else gE[..., None].expand(*gE.shape, H)
 
 
-def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params, impl=None) -> tuple:
-    """``(gE dE/dx, gE dE/dk, gE dE/drest[, ...])`` chunk by chunk (closed form), or in one compiled pass."""
-    if impl is not None:
-        k, rest, c, prev = (kernels.compact(t) for t in _params(params))
-        gx, gp = kernels.module(x).bending_gradient(x, hinges, a, k, rest, c, prev, model,
-                                                    _hinge_weight(gE, seg, hinges.shape[0]), kernels.incidence(hinges, x.shape[-2]),
-                                                    True)
-        return (gx,) + tuple(gp[..., i] for i in range(len(params)))
+def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params) -> tuple:
+    """``(gE dE/dx, gE dE/dk, gE dE/drest[, ...])`` chunk by chunk (closed form)."""
     V = x.shape[-2]
     gx, gps = None, [[] for _ in params]
     for sl in chunks(hinges.shape[0]):
@@ -180,10 +175,7 @@ def _second_order(model: BendingModel, saved: tuple, t_gE, t_x, t_params):
     return dx, [cat_or_none(d) for d in dps], cat_or_none(dgs)
 
 
-def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params, impl=None) -> Tensor:
-    if impl is not None:
-        k, rest, c, prev = (kernels.compact(t) for t in _params(params))
-        return _reduce(kernels.module(x).bending_energy(x, hinges, a, k, rest, c, prev, model), seg, seg_count)
+def _energy_forward(model: BendingModel, x, hinges, seg, seg_count, a, params) -> Tensor:
     psis = []
     for sl in chunks(hinges.shape[0]):
         theta = geometry.hinge_angle_soa(gather_soa(x, hinges[sl]))  # (..., h)
@@ -212,35 +204,26 @@ def _make(model: BendingModel):
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(gE, x, hinges, seg, impl, a, *params):
-            return _gradient_forward(model, gE, x, hinges, seg, a, params, impl)
+        def forward(gE, x, hinges, seg, a, *params):
+            return _gradient_forward(model, gE, x, hinges, seg, a, params)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
-            ctx.impl = inputs[4]
-            tensors = inputs[:4] + inputs[5:]
-            ctx.save_for_backward(*tensors)
-            ctx.save_for_forward(*tensors)
+            ctx.save_for_backward(*inputs)
+            ctx.save_for_forward(*inputs)
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
             gE, x, hinges, seg, a, *params = ctx.saved_tensors
-            param_grads = any(ctx.needs_input_grad[6:]) or any(g is not None for g in ggp)
-            if ctx.impl is not None and ggx is not None and not ctx.needs_input_grad[0] and not param_grads:
-                # the compiled Hessian-vector product: the double backward of a Newton step or of hvp()
-                k, rest, c, prev = (kernels.compact(t) for t in _params(params))
-                dx = kernels.module(x).bending_hvp(x, ggx, hinges, a, k, rest, c, prev, model,
-                                                   _hinge_weight(gE, seg, hinges.shape[0]), kernels.incidence(hinges, x.shape[-2]))
-                return (None, dx, None, None, None, None, *([None] * len(params)))
             dx, dps, dg = _second_order(model, ctx.saved_tensors, None, ggx, tuple(ggp))
             dgE = None
             if ctx.needs_input_grad[0] and dg is not None:
                 dgE = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
-            dps = [d if ctx.needs_input_grad[6 + i] else None for i, d in enumerate(dps)]
-            return (dgE, dx, None, None, None, None, *dps)
+            dps = [d if ctx.needs_input_grad[5 + i] else None for i, d in enumerate(dps)]
+            return (dgE, dx, None, None, None, *dps)
 
         @staticmethod
-        def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_impl, t_a, *t_params):
+        def jvp(ctx, t_gE, t_x, t_hinges, t_seg, t_a, *t_params):
             x, params = ctx.saved_tensors[1], ctx.saved_tensors[5:]
             dx, dps, _ = _second_order(model, ctx.saved_tensors, t_gE, t_x, tuple(t_params))
             # tangents must match the (possibly expanded) output shapes exactly
@@ -252,28 +235,27 @@ def _make(model: BendingModel):
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(x, hinges, seg, seg_count, impl, a, *params):
-            return _energy_forward(model, x, hinges, seg, seg_count, a, params, impl)
+        def forward(x, hinges, seg, seg_count, a, *params):
+            return _energy_forward(model, x, hinges, seg, seg_count, a, params)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
-            x, hinges, seg, seg_count, impl, a, *params = inputs
+            x, hinges, seg, seg_count, a, *params = inputs
             ctx.save_for_backward(x, hinges, seg, a, *params)
             ctx.save_for_forward(x, hinges, seg, a, *params)
             ctx.seg_count = seg_count
-            ctx.impl = impl
 
         @staticmethod
         def backward(ctx, gE):
             x, hinges, seg, a, *params = ctx.saved_tensors
-            out = _Gradient.apply(gE, x, hinges, seg, ctx.impl, a, *params)
+            out = _Gradient.apply(gE, x, hinges, seg, a, *params)
             gx, gps = out[0], out[1:]
             gx = gx if ctx.needs_input_grad[0] else None
-            gps = [g if ctx.needs_input_grad[6 + i] else None for i, g in enumerate(gps)]
-            return (gx, None, None, None, None, None, *gps)
+            gps = [g if ctx.needs_input_grad[5 + i] else None for i, g in enumerate(gps)]
+            return (gx, None, None, None, None, *gps)
 
         @staticmethod
-        def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_impl, t_a, *t_params):
+        def jvp(ctx, t_x, t_hinges, t_seg, t_seg_count, t_a, *t_params):
             return _energy_jvp(model, ctx.saved_tensors, ctx.seg_count, t_x, t_params)
 
     # named subclasses so that autograd nodes read e.g. "TanBendingGradientBackward"
@@ -284,6 +266,113 @@ def _make(model: BendingModel):
 
 
 _FUNCTIONS = {m: _make(m) for m in BendingModel}
+
+
+def _kernel_second_order(model: BendingModel, saved: tuple, ggx, ggp):
+    """The general double backward of the kernel path (cotangents of ``gx`` and of the parameter gradients
+    ``gp``): ``(dx, [d k, d rest, d c, d prev] per hinge, d gE per hinge)``."""
+    gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
+    damped = c is not None and prev is not None
+    second = getattr(kernels.module(x), "bending_second_order", None)
+    if second is not None:
+        dx, dp, dg = second(x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
+                            _hinge_weight(gE, seg, hinges.shape[0]), (ptr, idx))
+        n = 4 if damped else 2
+        return dx, [dp[..., j] for j in range(n)], dg
+    # no compiled kernel for it: the eager closed form over the (expanded) parameters
+    params = HingeParams(a, k, rest, c, prev).expanded(x.shape[:-2])
+    t = () if ggp is None else tuple(ggp[..., j] for j in range(len(params)))
+    dx, dps, dg = _second_order(model, (gE, x, hinges, seg, a, *params), None, ggx, t)
+    return dx, dps, dg
+
+
+def _sum_to(g: Tensor, p: Tensor) -> Tensor:
+    """A per-hinge parameter gradient reduced to the parameter's shape (one value or ``(H,)``)."""
+    return g.sum_to_size(p.shape) if g.shape != p.shape else g
+
+
+def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) -> tuple:
+    """The backward of the kernel path's gradient Function: cotangents ``ggx`` of ``gx`` and ``ggp`` of the
+    per-hinge parameter gradients ``(..., H, 4)`` (``None`` or empty when unused)."""
+    gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
+    if ggp is not None and ggp.numel() == 0:
+        ggp = None
+    out: list = [None] * 12
+    if ggx is None and ggp is None:
+        return tuple(out)
+    if ggp is None and not needs[0] and not any(needs[5:9]):
+        # the double backward of a Newton step or of hvp(): the compiled Hessian-vector product
+        w = _hinge_weight(gE, seg, hinges.shape[0])
+        out[1] = torch.ops.torchbend.bending_hvp(x, ggx, hinges, a, k, rest, c, prev, model.value, w, ptr, idx)
+        return tuple(out)
+    dx, dps, dg = _kernel_second_order(model, saved, ggx, ggp)
+    out[1] = dx if needs[1] else None
+    if needs[0] and dg is not None:
+        out[0] = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
+    for j, p in enumerate((k, rest, c, prev)):
+        if needs[5 + j] and p is not None and dps[j] is not None:
+            out[5 + j] = _sum_to(dps[j], p)
+    return tuple(out)
+
+
+def _make_kernel(model: BendingModel):
+    """The pair of Functions of the compiled path (``torch.ops.torchbend``): no ``jvp`` and no vmap rule, so
+    that ``torch.compile(fullgraph=True)`` traces them (the backends choose the eager Functions above under
+    ``torch.func`` transforms and forward-mode AD).  Parameters are passed as they are stored (one value,
+    ``(H,)`` or ``(..., H)``), not expanded; the parameter gradients are reduced to their shapes."""
+    code = model.value
+
+    class _GradientImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params):
+            w = _hinge_weight(gE, seg, hinges.shape[0])
+            return torch.ops.torchbend.bending_gradient(x, hinges, a, k, rest, c, prev, code, w, ptr, idx, params,
+                                                        False)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs[:11])
+            ctx.set_materialize_grads(False)
+
+        @staticmethod
+        def backward(ctx, ggx, ggp):
+            return _kernel_double_backward(model, ctx.saved_tensors, ctx.needs_input_grad, ggx, ggp)
+
+    class _EnergyImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check):
+            psi = torch.ops.torchbend.bending_energy(x, hinges, a, k, rest, c, prev, code, check)
+            return _reduce(psi, seg, seg_count)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check = inputs
+            ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx)
+
+        @staticmethod
+        def backward(ctx, gE):
+            x, hinges, seg, a, k, rest, c, prev, ptr, idx = ctx.saved_tensors
+            needs = ctx.needs_input_grad
+            params = any(needs[5:9])
+            gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+            out = [None] * 12
+            out[0] = gx if needs[0] else None
+            for j, p in enumerate((k, rest, c, prev)):
+                if needs[5 + j] and p is not None:
+                    out[5 + j] = _sum_to(gp[..., j], p)
+            return tuple(out)
+
+    name = model.value.capitalize()
+    _Gradient = type(f"{name}BendingGradientKernel", (_GradientImpl,), {"__module__": __name__})
+    _Energy = type(f"{name}BendingEnergyKernel", (_EnergyImpl,), {"__module__": __name__})
+    return _Energy, _Gradient
+
+
+_KERNEL_FUNCTIONS = {m: _make_kernel(m) for m in BendingModel}
+
+
+def _incidence(hinges: Tensor, V: int, inc) -> tuple[Tensor, Tensor]:
+    return kernels.incidence(hinges, V) if inc is None else inc
 
 
 def energy_function(model: BendingModel) -> type[torch.autograd.Function]:
@@ -303,37 +392,46 @@ def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> li
 
 def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                        prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN, seg: Tensor | None = None,
-                       seg_count: int = 0, impl: str | None = None) -> Tensor:
+                       seg_count: int = 0, impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
+                       check: bool = False) -> Tensor:
     """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
 
     ``x: (..., V, 3)``; ``hinges: (H, 4)`` int64; ``a: (H,)``; ``k``, ``rest``, ``c``, ``prev``
     broadcastable to ``(..., H)`` (``c``/``prev`` both given or both ``None``).  Differentiable
     twice (analytic backward and double backward) in ``x``, ``k``, ``rest``, ``c``, ``prev``.
+    ``impl="native"``: the compiled operators (``torch.ops.torchbend``; ``inc`` the vertex incidence lists,
+    computed when not given; ``check``: the operator checks that x is finite).
     """
+    if impl is not None:
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        return _KERNEL_FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check)
     params = _expand_params(x, a, k, rest, c, prev)
-    return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, impl, a, *params)
+    return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
 
 
 def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                          prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
-                         impl: str | None = None) -> Tensor:
+                         impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
-    params = _expand_params(x, a, k, rest, c, prev)
     ones = x.new_ones(x.shape[:-2])
-    return _FUNCTIONS[model][1].apply(ones, x, hinges, None, impl, a, *params)[0]
+    if impl is not None:
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        params = any(t is not None and t.requires_grad for t in (k, rest, c, prev)) and torch.is_grad_enabled()
+        return _KERNEL_FUNCTIONS[model][1].apply(ones, x, hinges, None, a, k, rest, c, prev, ptr, idx, params)[0]
+    params = _expand_params(x, a, k, rest, c, prev)
+    return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
 
 
 def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                     prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
-                    impl: str | None = None) -> Tensor:
+                    impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``; ``impl="native"``:
     the compiled kernel (CPU or CUDA, by x's device)."""
     if impl is not None:
-        one = x.new_ones(1)
-        return kernels.module(x).bending_hvp(x, v, hinges, a, k, rest, c, prev, model, one,
-                                             kernels.incidence(hinges, x.shape[-2]))
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        return torch.ops.torchbend.bending_hvp(x, v, hinges, a, k, rest, c, prev, model.value, x.new_ones(1), ptr, idx)
     out = None
     for sl in chunks(hinges.shape[0]):
         h = hinges[sl]

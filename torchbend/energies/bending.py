@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 
+import torch
 from torch import Tensor, nn
 
 from .. import backends
@@ -110,6 +111,11 @@ class BendingEnergy(nn.Module):
             self.damping = None
         else:
             self._set("damping", hinge_parameter(damping, "damping", H, dtype, device))
+        from ..backends.native import incidence
+
+        ptr, idx = incidence(self.hinges, topo.vertex_count)  # the compiled gradient and HVP sum through them
+        self.register_buffer("_inc_ptr", ptr, persistent=False)
+        self.register_buffer("_inc_idx", idx, persistent=False)
         self.register_buffer("segments", None)
         self.segment_count = 0
         self._pattern: HessianPattern | None = None  # CSR pattern, built by the first hessian()
@@ -142,7 +148,9 @@ class BendingEnergy(nn.Module):
     def _bind(self, x: Tensor, op: str, backend, theta_prev=None, dt=None) -> tuple[HingeParams, Backend | str]:
         """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's); with an
         ``op``, the backend chosen for it is in ``self._impl`` (``"native"`` or ``None``)."""
-        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        # under torch.compile/export the finiteness check runs inside the compiled operators (data-dependent
+        # Python control flow would break the graph); eagerly it runs here, before any work
+        check_positions(x, self.vertex_count, check_finite=self.check_finite and not torch.compiler.is_compiling())
         if x.device != self.hinges.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
         p = HingeParams.bind(self, x, theta_prev, dt)
@@ -152,18 +160,23 @@ class BendingEnergy(nn.Module):
             self._impl = "native"
         return p, backend
 
+    def _incidence(self) -> tuple[Tensor, Tensor]:
+        return self._inc_ptr, self._inc_idx
+
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
         and ``dt`` [s] switch on the viscous term.  Differentiable twice (analytic backward and double backward)
         in ``x``, stiffness, rest angles and ``theta_prev``."""
         p, _ = self._bind(x, "energy", backend, theta_prev, dt)
         return fn.bending_energy_raw(x, self.hinges, *p.astuple(), model=self.model, seg=self.segments,
-                                     seg_count=self.segment_count, impl=self._impl)
+                                     seg_count=self.segment_count, impl=self._impl, inc=self._incidence(),
+                                     check=self.check_finite and torch.compiler.is_compiling())
 
     def gradient(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N] (summed over meshes when packed), closed form; differentiable (analytic HVP)."""
         p, _ = self._bind(x, "gradient", backend, theta_prev, dt)
-        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=self._impl)
+        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+                                       inc=self._incidence())
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
             backend=None) -> Tensor:
@@ -175,7 +188,8 @@ class BendingEnergy(nn.Module):
         p, backend = self._bind(x, "" if projection is not Projection.NONE else "hvp", backend, theta_prev, dt)
         v = check_direction(v, x, self.check_finite)
         if projection is Projection.NONE:
-            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=self._impl)
+            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+                                      inc=self._incidence())
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
 
     def hinge_hessians(self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
