@@ -75,12 +75,12 @@ def test_the_dispatchers_answer_alone_decides(sheet):
     bend, mem, x = _modules(sheet)
     boom = mock.Mock(side_effect=AssertionError("compiled code ran"))
     with mock.patch.object(backends, "select_backend", return_value=Backend.EAGER), \
-            mock.patch.object(native, "bending_hessians", boom), mock.patch.object(native, "assemble", boom):
+            mock.patch.object(native, "bending_hessians", boom), mock.patch.object(native, "assemble_arrays", boom):
         eager = {name: call() for name, call in _entry_points(bend, mem, x).items()}
     if native.load() is None:
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
     ran = []
-    real_blocks, real_assemble = native.bending_hessians, native.assemble
+    real_blocks, real_assemble = native.bending_hessians, native.assemble_arrays
 
     def blocks(*a):
         ran.append("blocks")
@@ -95,7 +95,7 @@ def test_the_dispatchers_answer_alone_decides(sheet):
 
     with mock.patch.object(backends, "select_backend", side_effect=decide), \
             mock.patch.object(native, "bending_hessians", side_effect=blocks), \
-            mock.patch.object(native, "assemble", side_effect=assemble):
+            mock.patch.object(native, "assemble_arrays", side_effect=assemble):
         fused = {name: call() for name, call in _entry_points(bend, mem, x).items() if name.startswith("bend.h")}
     assert "blocks" in ran and "assemble" in ran
     for name, out in fused.items():

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import warnings
 from collections.abc import Iterator
 
 import torch
@@ -50,6 +51,13 @@ def use_backend(backend) -> Iterator[None]:
         yield
     finally:
         _auto.reset(token)
+
+
+@torch.compiler.assume_constant_result
+def _auto_value() -> str:
+    """What ``"auto"`` means here (:func:`use_backend`); a constant for ``torch.compile`` (a compiled
+    function keeps the choice it was traced with)."""
+    return _auto.get().value
 
 
 def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None:
@@ -99,7 +107,7 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
     why when it cannot run on these inputs (operations without a kernel run eagerly)."""
     requested = Backend.parse(backend)
     if requested is Backend.AUTO:
-        requested = _auto.get()
+        requested = Backend(_auto_value())
     if requested is Backend.EAGER:
         return Backend.EAGER
     reason = native_unavailable_reason(op, x, *params)
@@ -107,4 +115,19 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
         return Backend.NATIVE
     if requested is Backend.NATIVE and op in NATIVE_OPS:
         raise ValueError(f"backend='native' cannot run {op}: {reason}")
+    if op in NATIVE_OPS and reason.startswith(_WARN_REASONS) and not torch.compiler.is_compiling():
+        _warn_once(op, reason)
     return Backend.EAGER
+
+
+_WARN_REASONS = ("the compiled kernels take", "there is no compiled")
+"""Fallbacks that cost speed without the caller having asked for them (an unsupported dtype or device):
+they warn once per operation and reason.  A missing compiler warns once where the build fails; torch.func
+transforms, forward-mode AD and recorded graphs of non-differentiable kernels are by design."""
+_warned: set[tuple[str, str]] = set()
+
+
+def _warn_once(op: str, reason: str) -> None:
+    if (op, reason) not in _warned:
+        _warned.add((op, reason))
+        warnings.warn(f"torchbend: {op} runs on the eager path: {reason}", RuntimeWarning, stacklevel=4)

@@ -354,7 +354,10 @@ def _make_kernel(model: BendingModel):
             x, hinges, seg, a, k, rest, c, prev, ptr, idx = ctx.saved_tensors
             needs = ctx.needs_input_grad
             params = any(needs[5:9])
-            gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+            if torch.is_grad_enabled():  # create_graph=True: the gradient is differentiable (analytic HVP)
+                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+            else:  # a plain backward (and torch.compile's trace of it): the operator alone
+                gx, gp = _GradientImpl.forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
             out = [None] * 12
             out[0] = gx if needs[0] else None
             for j, p in enumerate((k, rest, c, prev)):
