@@ -246,3 +246,18 @@ def test_checks_stay_on_inside_compiled_code(fresh_dynamo):
     for f in (hinge, compiled):
         with pytest.raises(ValueError, match=r"hinges \[0\] have folded through"):
             f(folded)
+
+
+def test_unsupported_dtype_falls_back_with_one_warning():
+    rest, faces = tb.scenes.random_curved_sheet(4, 4, amplitude=0.3, seed=3, dtype=F64)
+    bend = BendingEnergy(faces, rest, model="quadratic").to(torch.bfloat16)
+    x = rest.to(torch.bfloat16)
+    tb.backends._warned.clear()
+    with pytest.warns(RuntimeWarning, match="energy runs on the eager path: the compiled kernels take float32"):
+        e = bend(x)
+    assert torch.isfinite(e)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bend(x)  # once only
