@@ -85,10 +85,10 @@ def case(verts, faces, dtype, bw: float) -> list[str]:
         return hess(x[hinges], bend.weights, bend.stiffness, bend.rest_angles)
 
     ops = {
-        "energy": (lambda: cuda.bending_energy(x, hinges, *p.astuple(), bend.model).sum(), ag_energy),
-        "gradient": (lambda: cuda.bending_gradient(x, hinges, *p.astuple(), bend.model, w, None, False), ag_gradient),
-        "hvp": (lambda: cuda.bending_hvp(x, v, hinges, *p.astuple(), bend.model, w), ag_hvp),
-        "blocks": (lambda: cuda.bending_hessians(x, hinges, *p.astuple(), bend.model), ag_blocks),
+        "energy": (lambda: cuda.bending_energy(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model).sum(), ag_energy),
+        "gradient": (lambda: cuda.bending_gradient(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model, w, None, False), ag_gradient),
+        "hvp": (lambda: cuda.bending_hvp(x, v, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model, w), ag_hvp),
+        "blocks": (lambda: cuda.bending_hessians(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model), ag_blocks),
     }
     s = torch.finfo(dtype).bits // 8
     rows = []

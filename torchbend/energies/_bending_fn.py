@@ -310,8 +310,9 @@ def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) 
     if needs[0] and dg is not None:
         out[0] = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
     for j, p in enumerate((k, rest, c, prev)):
-        if needs[5 + j] and p is not None and dps[j] is not None:
-            out[5 + j] = _sum_to(dps[j], p)
+        d = dps[j]
+        if needs[5 + j] and p is not None and d is not None:
+            out[5 + j] = _sum_to(d, p)
     return tuple(out)
 
 
@@ -358,7 +359,7 @@ def _make_kernel(model: BendingModel):
                 gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
             else:  # a plain backward (and torch.compile's trace of it): the operator alone
                 gx, gp = _GradientImpl.forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
-            out = [None] * 12
+            out: list = [None] * 12
             out[0] = gx if needs[0] else None
             for j, p in enumerate((k, rest, c, prev)):
                 if needs[5 + j] and p is not None:

@@ -85,6 +85,8 @@ class BendingEnergy(nn.Module):
     rest_angles: Tensor  # (H,) [rad]
     damping: Tensor | None  # () or (H,) [N m s]
     segments: Tensor | None  # (H,) mesh of each hinge when packed
+    _inc_ptr: Tensor  # (V+1,) vertex -> stencil-slot incidence lists (native.incidence)
+    _inc_idx: Tensor  # (4H,)
 
     def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan",
                  stiffness: float | Tensor = 1.0, rest_angles: float | Tensor | None = None,
