@@ -310,7 +310,7 @@ def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) 
     if needs[0] and dg is not None:
         out[0] = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
     for j, p in enumerate((k, rest, c, prev)):
-        d = dps[j]
+        d = dps[j] if j < len(dps) else None  # c, prev: only with damping
         if needs[5 + j] and p is not None and d is not None:
             out[5 + j] = _sum_to(d, p)
     return tuple(out)
