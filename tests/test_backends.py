@@ -75,12 +75,12 @@ def test_the_dispatchers_answer_alone_decides(sheet):
     bend, mem, x = _modules(sheet)
     boom = mock.Mock(side_effect=AssertionError("compiled code ran"))
     with mock.patch.object(backends, "select_backend", return_value=Backend.EAGER), \
-            mock.patch.object(native, "bending_hessians", boom), mock.patch.object(native, "assemble", boom):
+            mock.patch.object(native, "bending_hessians", boom), mock.patch.object(native, "assemble_arrays", boom):
         eager = {name: call() for name, call in _entry_points(bend, mem, x).items()}
     if native.load() is None:
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
     ran = []
-    real_blocks, real_assemble = native.bending_hessians, native.assemble
+    real_blocks, real_assemble = native.bending_hessians, native.assemble_arrays
 
     def blocks(*a):
         ran.append("blocks")
@@ -95,7 +95,7 @@ def test_the_dispatchers_answer_alone_decides(sheet):
 
     with mock.patch.object(backends, "select_backend", side_effect=decide), \
             mock.patch.object(native, "bending_hessians", side_effect=blocks), \
-            mock.patch.object(native, "assemble", side_effect=assemble):
+            mock.patch.object(native, "assemble_arrays", side_effect=assemble):
         fused = {name: call() for name, call in _entry_points(bend, mem, x).items() if name.startswith("bend.h")}
     assert "blocks" in ran and "assemble" in ran
     for name, out in fused.items():
@@ -106,7 +106,11 @@ def test_the_dispatchers_answer_alone_decides(sheet):
 def test_select_backend_rules(sheet):
     _, _, x = sheet
     p = torch.ones(3, dtype=F64)
-    assert backends.select_backend("energy", "auto", x, p) is Backend.EAGER  # no kernel for the energy
+    assert backends.select_backend("solve", "auto", x, p) is Backend.EAGER  # no kernel for that
+    # the energy's kernels run inside the analytic autograd Functions: a recorded graph does not matter
+    assert backends.native_unavailable_reason("energy", x.clone().requires_grad_(), p) in (
+        None, f"the C++ extension is not available ({native.build_error()})")
+    assert "for cuda tensors" not in str(backends.native_unavailable_reason("gradient", x, p))
     assert backends.select_backend("hinge_hessians", "eager", x, p) is Backend.EAGER
     reason = backends.native_unavailable_reason("hinge_hessians", x.clone().requires_grad_(), p)
     assert reason is not None and "autograd graph" in reason

@@ -9,6 +9,7 @@ import torchbend as tb
 from torchbend import BendingEnergy
 from torchbend.energies._bending_fn import bending_energy_raw
 from torchbend.ops import hinge as geometry
+from torchbend.options import Backend
 from torchbend.testing import plain_bending_energy, plain_hinge_angles
 
 from .conftest import MODELS, reference_hessian, rel
@@ -163,8 +164,10 @@ def test_gradients_flow_to_stiffness_and_rest_angles(sheet):
 
 # ----------------------------------------------------------------------------- analytic double backward
 def test_double_backward_runs_the_analytic_hvp(sheet):
+    """The eager path (the compiled path's analogue: tests/test_ops.py)."""
     rest, faces, x = sheet
     bend = _module(rest, faces, "tan")
+    bend.backend = Backend.EAGER
     y = x.clone().requires_grad_()
     (g,) = torch.autograd.grad(bend(y), y, create_graph=True)
     # the first derivative is the output of one analytic node, not an autograd graph of ops

@@ -20,7 +20,10 @@ __all__ = [
 
 
 def is_traced(t: Tensor) -> bool:
-    """True under ``torch.func`` transforms (checks that need data-dependent control flow are skipped)."""
+    """True under ``torch.func`` transforms and while ``torch.compile``/``torch.export`` trace (checks that need
+    data-dependent control flow are skipped there; the compiled operators check inside)."""
+    if torch.compiler.is_compiling():
+        return True
     return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))  # pyright: ignore[reportAttributeAccessIssue]
 
 

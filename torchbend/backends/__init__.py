@@ -14,21 +14,31 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import warnings
 from collections.abc import Iterator
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 
 from .._checks import is_traced
 from ..options import Backend
 
 __all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
 
-NATIVE_OPS = frozenset({"hinge_hessians", "hvp_projected", "hessian_hinge", "hessian_triangle"})
-"""Operations with a compiled kernel: per-hinge 12x12 blocks (also behind the eigenvalue-projected
-hvp and assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+NATIVE_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected", "hessian_hinge",
+                        "hessian_triangle"})
+"""Operations with a compiled kernel: the energy, its gradient and Hessian-vector product (inside the
+analytic autograd Functions), per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and
+assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+
+CUDA_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected"})
+"""Operations whose compiled kernel also runs on CUDA devices."""
 
 _ONE_MESH_OPS = frozenset({"hessian_hinge", "hessian_triangle"})
+_FUNCTION_OPS = frozenset({"energy", "gradient"})
+"""Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph
+does not keep them from running."""
 
 _auto: contextvars.ContextVar[Backend] = contextvars.ContextVar("torchbend_auto_backend", default=Backend.AUTO)
 
@@ -43,29 +53,48 @@ def use_backend(backend) -> Iterator[None]:
         _auto.reset(token)
 
 
+@torch.compiler.assume_constant_result
+def _auto_value() -> str:
+    """What ``"auto"`` means here (:func:`use_backend`); a constant for ``torch.compile`` (a compiled
+    function keeps the choice it was traced with)."""
+    return _auto.get().value
+
+
 def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None:
     """Why the compiled kernel cannot run ``op`` on these inputs (``None`` if it can)."""
     if op not in NATIVE_OPS:
         return f"there is no compiled kernel for {op!r}"
-    if x.device.type != "cpu":
-        return f"the compiled kernels run on the CPU, x is on {x.device}"
+    if x.device.type not in ("cpu", "cuda") or (x.device.type == "cuda" and op not in CUDA_OPS):
+        return f"there is no compiled {op!r} kernel for {x.device.type} tensors"
     if x.dtype not in (torch.float32, torch.float64):
         return f"the compiled kernels take float32 or float64, x is {x.dtype}"
     tensors = (x, *params)
-    if any(is_traced(t) for t in tensors):
+    compiling = torch.compiler.is_compiling()
+    if not compiling and any(is_traced(t) for t in tensors):
         return "the inputs are traced by a torch.func transform"
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+    if not compiling and forward_ad._current_level >= 0:
+        return "forward-mode AD is active (the eager Functions define jvp)"
+    if op not in _FUNCTION_OPS and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
     batch = tuple(x.shape[:-2])
     if op in _ONE_MESH_OPS and (batch or any(t.ndim > 1 for t in params)):
         return "the compiled assembly takes one mesh"
     if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
         return "per-sample parameters whose batch shape differs from x's"
+    return _unavailable(x.device.type)
+
+
+@torch.compiler.assume_constant_result
+def _unavailable(device_type: str) -> str | None:
+    """Why the compiled kernels of ``device_type`` cannot be loaded (builds them on first use; a constant
+    for ``torch.compile``, which does not trace the build)."""
+    if device_type == "cuda":
+        from . import cuda
+
+        return None if cuda.load() is not None else f"the CUDA kernels are not available ({cuda.build_error()})"
     from . import native
 
-    if native.load() is None:
-        return f"the C++ extension is not available ({native.build_error()})"
-    return None
+    return None if native.load() is not None else f"the C++ extension is not available ({native.build_error()})"
 
 
 def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
@@ -78,7 +107,7 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
     why when it cannot run on these inputs (operations without a kernel run eagerly)."""
     requested = Backend.parse(backend)
     if requested is Backend.AUTO:
-        requested = _auto.get()
+        requested = Backend(_auto_value())
     if requested is Backend.EAGER:
         return Backend.EAGER
     reason = native_unavailable_reason(op, x, *params)
@@ -86,4 +115,19 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
         return Backend.NATIVE
     if requested is Backend.NATIVE and op in NATIVE_OPS:
         raise ValueError(f"backend='native' cannot run {op}: {reason}")
+    if op in NATIVE_OPS and reason.startswith(_WARN_REASONS) and not torch.compiler.is_compiling():
+        _warn_once(op, reason)
     return Backend.EAGER
+
+
+_WARN_REASONS = ("the compiled kernels take", "there is no compiled")
+"""Fallbacks that cost speed without the caller having asked for them (an unsupported dtype or device):
+they warn once per operation and reason.  A missing compiler warns once where the build fails; torch.func
+transforms, forward-mode AD and recorded graphs of non-differentiable kernels are by design."""
+_warned: set[tuple[str, str]] = set()
+
+
+def _warn_once(op: str, reason: str) -> None:
+    if (op, reason) not in _warned:
+        _warned.add((op, reason))
+        warnings.warn(f"torchbend: {op} runs on the eager path: {reason}", RuntimeWarning, stacklevel=4)

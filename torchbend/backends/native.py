@@ -35,7 +35,7 @@ __all__ = ["load", "build_error", "extension_name", "bending_hessians", "assembl
 
 CSRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "csrc")
 SOURCES = ("bending_cpu.cpp",)
-HEADERS = ("hinge_math.h",)
+HEADERS = ("hinge_math.h", "hinge_ops.h")
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
 CFLAGS = ("-O3", "-march=native", "-fopenmp", "-fno-math-errno")
 """-fno-math-errno: sqrt without its errno branch, so that the half-hinge lane loops vectorize (about 8%
@@ -116,9 +116,59 @@ def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, top
     """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
     hinge or per triangle in C++ (serial: the scatter targets overlap); a folded ``tan`` hinge is a
     ``ValueError`` as in :func:`bending_hessians`."""
+    return assemble_arrays(x, hinges, a, k, rest, c, prev, model, pattern.hinge_pos, topo.faces,
+                           topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle)
+
+
+def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_pos: Tensor, faces: Tensor,
+                    face_edge_hinges: Tensor, face_edge_signs: Tensor, face_pos: Tensor, nnz: int,
+                    per_triangle: bool) -> Tensor:
+    """:func:`assemble` with the pattern's and topology's arrays passed one by one."""
     values, theta = _module().assemble(
         x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev), _model_code(model),
-        pattern.hinge_pos, topo.faces, topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz,
-        per_triangle)
+        hinge_pos, faces, face_edge_hinges, face_edge_signs, face_pos, nnz, per_triangle)
     check_fold(BendingModel.parse(model), theta)
     return values
+
+
+def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
+    """Vertex -> stencil-slot incidence lists of ``hinges (H, 4)``: ``(ptr (V+1,), idx (4H,))`` with the entries
+    ``4 h + slot`` of vertex ``v`` in ``idx[ptr[v]:ptr[v+1]]`` (the compiled gradient and HVP sum per vertex
+    through them: deterministic, no two threads writing one vertex)."""
+    import torch
+
+    flat = hinges.reshape(-1)
+    idx = torch.argsort(flat, stable=True)
+    ptr = torch.zeros(vertex_count + 1, dtype=torch.int64, device=hinges.device)
+    ptr[1:] = torch.cumsum(torch.bincount(flat, minlength=vertex_count), 0)
+    return ptr, idx
+
+
+def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> Tensor:
+    """Per-hinge energies ``psi (..., H)`` in one compiled pass (folded ``tan`` hinges: ``ValueError``)."""
+    psi, theta = _module().bending_energy(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
+                                          _opt(prev), _model_code(model))
+    check_fold(BendingModel.parse(model), theta)
+    return psi
+
+
+def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool):
+    """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` with the per-hinge weight ``w``."""
+    gx, gp, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
+                                               _opt(prev), _model_code(model), weight.detach(), inc[0], inc[1], params)
+    check_fold(BendingModel.parse(model), theta)
+    return gx, (gp if params else None)
+
+
+def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc) -> Tensor:
+    """``w H v (..., V, 3)``: the closed-form Hessian of the energy applied to ``v`` (no matrix stored)."""
+    hv, theta = _module().bending_hvp(x.detach(), v.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
+                                      _opt(prev), _model_code(model), weight.detach(), inc[0], inc[1])
+    check_fold(BendingModel.parse(model), theta)
+    return hv
+
+
+def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
+    """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
+    zero = x.new_zeros(1)
+    return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0)[1]

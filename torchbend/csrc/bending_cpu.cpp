@@ -12,7 +12,7 @@
 #include <immintrin.h>
 #endif
 
-#include "hinge_math.h"
+#include "hinge_ops.h"
 
 using namespace torchbend;
 
@@ -250,7 +250,215 @@ std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor
   return {values, theta};
 }
 
+// ----------------------------------------------------------------------------------------------
+// Energy, gradient and Hessian-vector product (the hot paths of training and of matrix-free solvers).
+// Each is one parallel pass over tiles of hinges (gather, angle, psi, closed forms); the gradient and
+// the HVP write their per-hinge 12-vectors to a buffer that a second parallel pass sums per vertex
+// through the incidence lists (inc_ptr (V+1), inc_idx (4H): entries 4 h + slot, sorted by vertex), so
+// the result is deterministic and no two threads write the same vertex.
+
+template <typename T> static HingeArgs<T> hinge_args(const torch::Tensor& a, const torch::Tensor& k,
+                                                     const torch::Tensor& rest, const torch::Tensor& c,
+                                                     const torch::Tensor& prev, bool damped, int model, int64_t H) {
+  Param<T> none{nullptr, 0, H};
+  return HingeArgs<T>{param<T>(a, H), param<T>(k, H), param<T>(rest, H), damped ? param<T>(c, H) : none,
+                      damped ? param<T>(prev, H) : none, damped, model};
+}
+
+// out[b, v, :] = sum over the incidences i of v of w[b, i / 4, 3 (i % 4) + :]
+template <typename T>
+static void gather_vertices(const T* w, const int64_t* ptr, const int64_t* idx, int64_t B, int64_t V, int64_t H, T* out) {
+  at::parallel_for(0, B * V, 2048, [&](int64_t begin, int64_t end) {
+    for (int64_t bv = begin; bv < end; ++bv) {
+      int64_t b = bv / V, v = bv - b * V;
+      const T* wb = w + 12 * H * b;
+      T s0 = 0, s1 = 0, s2 = 0;
+      for (int64_t j = ptr[v]; j < ptr[v + 1]; ++j) {
+        int64_t i = idx[j];
+        const T* src = wb + 12 * (i >> 2) + 3 * (i & 3);
+        s0 += src[0]; s1 += src[1]; s2 += src[2];
+      }
+      out[3 * bv] = s0; out[3 * bv + 1] = s1; out[3 * bv + 2] = s2;
+    }
+  });
+}
+
+struct Prepared {
+  torch::Tensor x, hinges, a, k, rest, c, prev;
+  std::vector<int64_t> batch;
+  int64_t B, V, H;
+  bool damped;
+};
+
+static Prepared prepare(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                        const c10::optional<torch::Tensor>& c_, const c10::optional<torch::Tensor>& prev_) {
+  TORCH_CHECK(x.device().is_cpu() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CPU (..., V, 3) tensor");
+  TORCH_CHECK(hinges.dim() == 2 && hinges.size(1) == 4 && hinges.scalar_type() == torch::kLong,
+              "hinges must be an int64 (H, 4) tensor");
+  Prepared p;
+  p.x = x.contiguous();
+  p.hinges = hinges.contiguous();
+  p.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
+  p.V = x.size(-2); p.H = hinges.size(0); p.B = 1;
+  for (auto s : p.batch) p.B *= s;
+  p.damped = c_.has_value();
+  auto prep = [&](torch::Tensor t) {
+    t = t.to(x.scalar_type()).contiguous();
+    int64_t n = t.numel();
+    TORCH_CHECK(n == 1 || n == p.H || n == p.B * p.H, "a per-hinge parameter has ", n, " values; expected 1, H or B*H");
+    return t;
+  };
+  p.a = prep(a); p.k = prep(k); p.rest = prep(rest);
+  if (p.damped) { p.c = prep(*c_); p.prev = prep(*prev_); }
+  return p;
+}
+
+static std::vector<int64_t> shape_with(const std::vector<int64_t>& batch, std::initializer_list<int64_t> tail) {
+  std::vector<int64_t> s = batch;
+  s.insert(s.end(), tail);
+  return s;
+}
+
+// (psi (..., H), theta (..., H)): the per-hinge energies (summed by the caller per mesh or segment)
+std::tuple<torch::Tensor, torch::Tensor> bending_energy(torch::Tensor x, torch::Tensor hinges, torch::Tensor a,
+                                                        torch::Tensor k, torch::Tensor rest,
+                                                        c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev,
+                                                        int64_t model) {
+  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  auto psi = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(psi);
+  AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_energy", [&] {
+    using T = scalar_t;
+    HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
+    const T* xp = P.x.data_ptr<T>();
+    const int64_t* hp = P.hinges.data_ptr<int64_t>();
+    T* po = psi.data_ptr<T>(); T* to = theta.data_ptr<T>();
+    int64_t B = P.B, H = P.H, V = P.V;
+    at::parallel_for(0, B * H, 1024, [&](int64_t begin, int64_t end) {
+      T X[12][1];
+      for (int64_t bh = begin; bh < end; ++bh) {
+        int64_t b = bh / H, h = bh - b * H;
+        load_hinge<T, 1>(xp + 3 * V * b, hp + 4 * h, X, 0);
+        T th = hinge_theta<T, 1>(X, 0), d1;
+        psi_first<T>(args, b, h, th, po[bh], d1, nullptr);
+        to[bh] = th;
+      }
+    });
+  });
+  return {psi, theta};
+}
+
+// (w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H)); w a
+// per-hinge weight (the cotangent of the energy: scalar, (H,) or (B, H))
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
+    torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params) {
+  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  weight = weight.to(P.x.scalar_type()).contiguous();
+  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
+              weight.numel(), " values; expected 1, H or B*H");
+  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
+  auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
+  auto gp = params ? torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options()) : torch::empty({0}, P.x.options());
+  auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
+  AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_gradient", [&] {
+    using T = scalar_t;
+    HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
+    Param<T> w{weight.data_ptr<T>(), weight.numel(), P.H};
+    const T* xp = P.x.data_ptr<T>();
+    const int64_t* hp = P.hinges.data_ptr<int64_t>();
+    T* bp = buf.data_ptr<T>(); T* gpp = params ? gp.data_ptr<T>() : nullptr; T* to = theta.data_ptr<T>();
+    int64_t B = P.B, H = P.H, V = P.V;
+    int64_t tiles = (B * H + W - 1) / W;
+    at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
+      T X[12][W], G[12][W], S[W];
+      for (int64_t t = begin; t < end; ++t) {
+        int64_t bh0 = t * W;
+        int nl = int(std::min<int64_t>(W, B * H - bh0));
+        for (int l = 0; l < W; ++l) {
+          if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); S[l] = T(0); continue; }
+          int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
+          load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
+          T th = hinge_theta<T, W>(X, l), psi, d1, g4[4];
+          psi_first<T>(args, b, h, th, psi, d1, params ? g4 : nullptr);
+          T wi = w(b, h);
+          S[l] = wi * d1;
+          to[bh] = th;
+          if (params) for (int j = 0; j < 4; ++j) gpp[4 * bh + j] = wi * g4[j];
+        }
+        grad_tile<T, W>(X, G);
+        for (int l = 0; l < nl; ++l)
+          for (int m = 0; m < 12; ++m) bp[12 * (bh0 + l) + m] = S[l] * G[m][l];
+      }
+    });
+    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), B, V, H, gx.data_ptr<T>());
+  });
+  return {gx, gp, theta};
+}
+
+// (w H v (..., V, 3), theta (..., H)): the Hessian of the energy applied to directions v (..., V, 3) of x's
+// shape, without forming any matrix in memory; w a per-hinge weight as in bending_gradient
+std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges,
+                                                     torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                                                     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev,
+                                                     int64_t model, torch::Tensor weight, torch::Tensor inc_ptr,
+                                                     torch::Tensor inc_idx) {
+  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  TORCH_CHECK(v.sizes() == P.x.sizes() && v.scalar_type() == P.x.scalar_type() && v.device().is_cpu(),
+              "v must be a CPU tensor of x's shape and dtype");
+  v = v.contiguous();
+  weight = weight.to(P.x.scalar_type()).contiguous();
+  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
+              weight.numel(), " values; expected 1, H or B*H");
+  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
+  auto hv = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
+  auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
+  AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_hvp", [&] {
+    using T = scalar_t;
+    HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
+    Param<T> w{weight.data_ptr<T>(), weight.numel(), P.H};
+    const T* xp = P.x.data_ptr<T>(); const T* vp = v.data_ptr<T>();
+    const int64_t* hp = P.hinges.data_ptr<int64_t>();
+    T* bp = buf.data_ptr<T>(); T* to = theta.data_ptr<T>();
+    int64_t B = P.B, H = P.H, V = P.V;
+    int64_t tiles = (B * H + W - 1) / W;
+    at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
+      T X[12][W], Vd[12][W], D1[W], D2[W], O[12][W], TH;
+      Blocks<T, W> tile;
+      for (int64_t t = begin; t < end; ++t) {
+        int64_t bh0 = t * W;
+        int nl = int(std::min<int64_t>(W, B * H - bh0));
+        for (int l = 0; l < W; ++l) {
+          if (l >= nl) {
+            for (int m = 0; m < 12; ++m) X[m][l] = Vd[m][l] = T(0);
+            D1[l] = D2[l] = T(0);
+            continue;
+          }
+          int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
+          load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
+          load_hinge<T, W>(vp + 3 * V * b, hp + 4 * h, Vd, l);
+          hinge_psi<T, W>(X, l, args.model, args.a(b, h), args.k(b, h), args.rest(b, h), args.damped,
+                          args.damped ? args.c(b, h) : T(0), args.damped ? args.prev(b, h) : T(0), TH, D1[l], D2[l]);
+          T wi = w(b, h);
+          D1[l] *= wi; D2[l] *= wi;
+          to[bh] = TH;
+        }
+        hvp_tile<T, W>(X, Vd, D1, D2, tile, O);
+        for (int l = 0; l < nl; ++l)
+          for (int m = 0; m < 12; ++m) bp[12 * (bh0 + l) + m] = O[m][l];
+      }
+    });
+    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), B, V, H, hv.data_ptr<T>());
+  });
+  return {hv, theta};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_hessians", &bending_hessians, "fused gather, angle, psi and per-hinge blocks");
   m.def("assemble", &assemble, "CSR values of the bending Hessian of one mesh, per hinge or per triangle");
+  m.def("bending_energy", &bending_energy, "per-hinge energies and angles");
+  m.def("bending_gradient", &bending_gradient, "weighted gradient in positions and per-hinge parameter gradients");
+  m.def("bending_hvp", &bending_hvp, "weighted Hessian-vector product in positions");
 }

@@ -29,6 +29,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..backends import kernels
+from ..backends import ops as _ops  # noqa: F401  (registers torch.ops.torchbend)
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -94,6 +96,13 @@ def _psi(model: BendingModel, theta: Tensor, a: Tensor, p: list, *, hessian: boo
     is empty without ``hessian``)."""
     psi, grad, hess = psi_derivatives(model, theta, p[0], p[1], a, p[2], p[3], hessian=hessian)
     return psi, grad, {} if hess is None else hess
+
+
+def _hinge_weight(gE: Tensor, seg: Tensor | None, H: int) -> Tensor:
+    """The cotangent of each hinge's energy for the kernels: one value, or ``(..., H)``."""
+    if seg is not None:
+        return gE[..., seg]
+    return gE.reshape(1) if gE.numel() == 1 else gE[..., None].expand(*gE.shape, H)
 
 
 def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params) -> tuple:
@@ -205,7 +214,7 @@ def _make(model: BendingModel):
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
-            gE, seg = ctx.saved_tensors[0], ctx.saved_tensors[3]
+            gE, x, hinges, seg, a, *params = ctx.saved_tensors
             dx, dps, dg = _second_order(model, ctx.saved_tensors, None, ggx, tuple(ggp))
             dgE = None
             if ctx.needs_input_grad[0] and dg is not None:
@@ -259,6 +268,117 @@ def _make(model: BendingModel):
 _FUNCTIONS = {m: _make(m) for m in BendingModel}
 
 
+def _kernel_second_order(model: BendingModel, saved: tuple, ggx, ggp):
+    """The general double backward of the kernel path (cotangents of ``gx`` and of the parameter gradients
+    ``gp``): ``(dx, [d k, d rest, d c, d prev] per hinge, d gE per hinge)``."""
+    gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
+    damped = c is not None and prev is not None
+    second = getattr(kernels.module(x), "bending_second_order", None)
+    if second is not None:
+        dx, dp, dg = second(x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
+                            _hinge_weight(gE, seg, hinges.shape[0]), (ptr, idx))
+        n = 4 if damped else 2
+        return dx, [dp[..., j] for j in range(n)], dg
+    # no compiled kernel for it: the eager closed form over the (expanded) parameters
+    params = HingeParams(a, k, rest, c, prev).expanded(x.shape[:-2])
+    t = () if ggp is None else tuple(ggp[..., j] for j in range(len(params)))
+    dx, dps, dg = _second_order(model, (gE, x, hinges, seg, a, *params), None, ggx, t)
+    return dx, dps, dg
+
+
+def _sum_to(g: Tensor, p: Tensor) -> Tensor:
+    """A per-hinge parameter gradient reduced to the parameter's shape (one value or ``(H,)``)."""
+    return g.sum_to_size(p.shape) if g.shape != p.shape else g
+
+
+def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) -> tuple:
+    """The backward of the kernel path's gradient Function: cotangents ``ggx`` of ``gx`` and ``ggp`` of the
+    per-hinge parameter gradients ``(..., H, 4)`` (``None`` or empty when unused)."""
+    gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
+    if ggp is not None and ggp.numel() == 0:
+        ggp = None
+    out: list = [None] * 12
+    if ggx is None and ggp is None:
+        return tuple(out)
+    if ggp is None and not needs[0] and not any(needs[5:9]):
+        # the double backward of a Newton step or of hvp(): the compiled Hessian-vector product
+        w = _hinge_weight(gE, seg, hinges.shape[0])
+        out[1] = torch.ops.torchbend.bending_hvp(x, ggx, hinges, a, k, rest, c, prev, model.value, w, ptr, idx)
+        return tuple(out)
+    dx, dps, dg = _kernel_second_order(model, saved, ggx, ggp)
+    out[1] = dx if needs[1] else None
+    if needs[0] and dg is not None:
+        out[0] = _reduce(dg, seg, gE.shape[-1] if seg is not None else 0)
+    for j, p in enumerate((k, rest, c, prev)):
+        d = dps[j] if j < len(dps) else None  # c, prev: only with damping
+        if needs[5 + j] and p is not None and d is not None:
+            out[5 + j] = _sum_to(d, p)
+    return tuple(out)
+
+
+def _make_kernel(model: BendingModel):
+    """The pair of Functions of the compiled path (``torch.ops.torchbend``): no ``jvp`` and no vmap rule, so
+    that ``torch.compile(fullgraph=True)`` traces them (the backends choose the eager Functions above under
+    ``torch.func`` transforms and forward-mode AD).  Parameters are passed as they are stored (one value,
+    ``(H,)`` or ``(..., H)``), not expanded; the parameter gradients are reduced to their shapes."""
+    code = model.value
+
+    class _GradientImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params):
+            w = _hinge_weight(gE, seg, hinges.shape[0])
+            return torch.ops.torchbend.bending_gradient(x, hinges, a, k, rest, c, prev, code, w, ptr, idx, params,
+                                                        False)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs[:11])
+            ctx.set_materialize_grads(False)
+
+        @staticmethod
+        def backward(ctx, ggx, ggp):
+            return _kernel_double_backward(model, ctx.saved_tensors, ctx.needs_input_grad, ggx, ggp)
+
+    class _EnergyImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check):
+            psi = torch.ops.torchbend.bending_energy(x, hinges, a, k, rest, c, prev, code, check)
+            return _reduce(psi, seg, seg_count)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check = inputs
+            ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx)
+
+        @staticmethod
+        def backward(ctx, gE):
+            x, hinges, seg, a, k, rest, c, prev, ptr, idx = ctx.saved_tensors
+            needs = ctx.needs_input_grad
+            params = any(needs[5:9])
+            if torch.is_grad_enabled():  # create_graph=True: the gradient is differentiable (analytic HVP)
+                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+            else:  # a plain backward (and torch.compile's trace of it): the operator alone
+                gx, gp = _GradientImpl.forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+            out: list = [None] * 12
+            out[0] = gx if needs[0] else None
+            for j, p in enumerate((k, rest, c, prev)):
+                if needs[5 + j] and p is not None:
+                    out[5 + j] = _sum_to(gp[..., j], p)
+            return tuple(out)
+
+    name = model.value.capitalize()
+    _Gradient = type(f"{name}BendingGradientKernel", (_GradientImpl,), {"__module__": __name__})
+    _Energy = type(f"{name}BendingEnergyKernel", (_EnergyImpl,), {"__module__": __name__})
+    return _Energy, _Gradient
+
+
+_KERNEL_FUNCTIONS = {m: _make_kernel(m) for m in BendingModel}
+
+
+def _incidence(hinges: Tensor, V: int, inc) -> tuple[Tensor, Tensor]:
+    return kernels.incidence(hinges, V) if inc is None else inc
+
+
 def energy_function(model: BendingModel) -> type[torch.autograd.Function]:
     """The private energy Function of ``model`` (for tests and advanced use)."""
     return _FUNCTIONS[BendingModel.parse(model)][0]
@@ -276,30 +396,46 @@ def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> li
 
 def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                        prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN, seg: Tensor | None = None,
-                       seg_count: int = 0) -> Tensor:
+                       seg_count: int = 0, impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
+                       check: bool = False) -> Tensor:
     """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
 
     ``x: (..., V, 3)``; ``hinges: (H, 4)`` int64; ``a: (H,)``; ``k``, ``rest``, ``c``, ``prev``
     broadcastable to ``(..., H)`` (``c``/``prev`` both given or both ``None``).  Differentiable
     twice (analytic backward and double backward) in ``x``, ``k``, ``rest``, ``c``, ``prev``.
+    ``impl="native"``: the compiled operators (``torch.ops.torchbend``; ``inc`` the vertex incidence lists,
+    computed when not given; ``check``: the operator checks that x is finite).
     """
+    if impl is not None:
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        return _KERNEL_FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check)
     params = _expand_params(x, a, k, rest, c, prev)
     return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
 
 
 def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
+                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                         impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
-    params = _expand_params(x, a, k, rest, c, prev)
     ones = x.new_ones(x.shape[:-2])
+    if impl is not None:
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        params = any(t is not None and t.requires_grad for t in (k, rest, c, prev)) and torch.is_grad_enabled()
+        return _KERNEL_FUNCTIONS[model][1].apply(ones, x, hinges, None, a, k, rest, c, prev, ptr, idx, params)[0]
+    params = _expand_params(x, a, k, rest, c, prev)
     return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
 
 
 def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN) -> Tensor:
+                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                    impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
-    Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``."""
+    Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``; ``impl="native"``:
+    the compiled kernel (CPU or CUDA, by x's device)."""
+    if impl is not None:
+        ptr, idx = _incidence(hinges, x.shape[-2], inc)
+        return torch.ops.torchbend.bending_hvp(x, v, hinges, a, k, rest, c, prev, model.value, x.new_ones(1), ptr, idx)
     out = None
     for sl in chunks(hinges.shape[0]):
         h = hinges[sl]

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 
+import torch
 from torch import Tensor, nn
 
 from .. import backends
@@ -84,6 +85,8 @@ class BendingEnergy(nn.Module):
     rest_angles: Tensor  # (H,) [rad]
     damping: Tensor | None  # () or (H,) [N m s]
     segments: Tensor | None  # (H,) mesh of each hinge when packed
+    _inc_ptr: Tensor  # (V+1,) vertex -> stencil-slot incidence lists (native.incidence)
+    _inc_idx: Tensor  # (4H,)
 
     def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan",
                  stiffness: float | Tensor = 1.0, rest_angles: float | Tensor | None = None,
@@ -98,7 +101,7 @@ class BendingEnergy(nn.Module):
         self.register_buffer("hinges", topo.hinges.to(device))
         self.register_buffer("weights", rest_hinge_weights(rest_positions, topo))
         if rest_angles is None:
-            rest_angles = hinge_angle(gather(rest_positions.detach(), self.hinges))
+            rest_angles = self._theta(rest_positions.detach())
         rest = hinge_parameter(rest_angles, "rest_angles", H, dtype, device, nonneg=False)
         if rest.ndim == 0 and not isinstance(rest, nn.Parameter):
             rest = rest.expand(H).clone()
@@ -110,9 +113,15 @@ class BendingEnergy(nn.Module):
             self.damping = None
         else:
             self._set("damping", hinge_parameter(damping, "damping", H, dtype, device))
+        from ..backends.native import incidence
+
+        ptr, idx = incidence(self.hinges, topo.vertex_count)  # the compiled gradient and HVP sum through them
+        self.register_buffer("_inc_ptr", ptr, persistent=False)
+        self.register_buffer("_inc_idx", idx, persistent=False)
         self.register_buffer("segments", None)
         self.segment_count = 0
         self._pattern: HessianPattern | None = None  # CSR pattern, built by the first hessian()
+        self._impl: str | None = None  # the kernel chosen by the last _bind
 
     def _set(self, name: str, t: Tensor) -> None:
         if isinstance(t, nn.Parameter):
@@ -139,15 +148,22 @@ class BendingEnergy(nn.Module):
         return self.topology.vertex_count
 
     def _bind(self, x: Tensor, op: str, backend, theta_prev=None, dt=None) -> tuple[HingeParams, Backend | str]:
-        """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's)."""
-        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's); with an
+        ``op``, the backend chosen for it is in ``self._impl`` (``"native"`` or ``None``)."""
+        # under torch.compile/export the finiteness check runs inside the compiled operators (data-dependent
+        # Python control flow would break the graph); eagerly it runs here, before any work
+        check_positions(x, self.vertex_count, check_finite=self.check_finite and not torch.compiler.is_compiling())
         if x.device != self.hinges.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
         p = HingeParams.bind(self, x, theta_prev, dt)
         backend = self.backend if backend is None else backend
-        if op:
-            backends.select_backend(op, backend, x, *p.tensors())
+        self._impl = None
+        if op and backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
+            self._impl = "native"
         return p, backend
+
+    def _incidence(self) -> tuple[Tensor, Tensor]:
+        return self._inc_ptr, self._inc_idx
 
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
@@ -155,12 +171,14 @@ class BendingEnergy(nn.Module):
         in ``x``, stiffness, rest angles and ``theta_prev``."""
         p, _ = self._bind(x, "energy", backend, theta_prev, dt)
         return fn.bending_energy_raw(x, self.hinges, *p.astuple(), model=self.model, seg=self.segments,
-                                     seg_count=self.segment_count)
+                                     seg_count=self.segment_count, impl=self._impl, inc=self._incidence(),
+                                     check=self.check_finite and torch.compiler.is_compiling())
 
     def gradient(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N] (summed over meshes when packed), closed form; differentiable (analytic HVP)."""
         p, _ = self._bind(x, "gradient", backend, theta_prev, dt)
-        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model)
+        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+                                       inc=self._incidence())
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
             backend=None) -> Tensor:
@@ -172,7 +190,8 @@ class BendingEnergy(nn.Module):
         p, backend = self._bind(x, "" if projection is not Projection.NONE else "hvp", backend, theta_prev, dt)
         v = check_direction(v, x, self.check_finite)
         if projection is Projection.NONE:
-            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model)
+            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+                                      inc=self._incidence())
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
 
     def hinge_hessians(self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
@@ -201,6 +220,15 @@ class BendingEnergy(nn.Module):
     def angles(self, x: Tensor) -> Tensor:
         """Bend angles ``(..., H)`` [rad] of ``x`` (e.g. to pass as the next step's ``theta_prev``)."""
         check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        return self._theta(x)
+
+    def _theta(self, x: Tensor) -> Tensor:
+        """The angles as the energy's default path computes them (the compiled kernel where it runs), so that
+        the energy and its gradient vanish bit for bit at the rest shape."""
+        if backends.select_backend("energy", self.backend, x.detach()) is Backend.NATIVE:
+            from ..backends import kernels
+
+            return kernels.module(x).hinge_angles(x.detach(), self.hinges)
         return hinge_angle(gather(x, self.hinges))
 
     def extra_repr(self) -> str:

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .. import backends
+from ..backends import ops as _ops  # noqa: F401  (registers torch.ops.torchbend)
 from ..mesh.topology import HingeTopology
 from ..ops import hinge as geometry
 from ..ops.projection import project_blocks
@@ -58,9 +59,7 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Te
 def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend) -> tuple:
     """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``."""
     if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
-        from ..backends import native
-
-        return native.bending_hessians(x, hinges, *p.astuple(), model)[:3]
+        return torch.ops.torchbend.hinge_hessians(x, hinges, *p.astuple(), model.value)
     x4 = gather(x, hinges)
     d1, d2 = psi_theta_derivatives(model, geometry.hinge_angle(x4), *p.astuple())
     Hb, g = hinge_hessian_blocks(x4, d1, d2)
@@ -105,9 +104,9 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
     if per_triangle or projection is Projection.NONE:  # projected per-hinge blocks ask in _blocks
         op = "hessian_triangle" if per_triangle else "hessian_hinge"
         if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE and projection is Projection.NONE:
-            from ..backends import native
-
-            return pattern.csr(native.assemble(x, hinges, *p.astuple(), model, pattern, topo, per_triangle))
+            return pattern.csr(torch.ops.torchbend.assemble(
+                x, hinges, *p.astuple(), model.value, pattern.hinge_pos, topo.faces, topo.face_edge_hinges,
+                topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle))
     values = x.new_zeros(pattern.nnz)
     hinge_pos = pattern.hinge_pos.to(x.device)
     if not per_triangle:

@@ -1,0 +1,267 @@
+"""The compiled operators (``torch.ops.torchbend.*``) behind the default path: every op against the eager
+closed forms (the oracle) in both dtypes, all models, with and without damping, batched and packed;
+``torch.library.opcheck``; gradcheck/gradgradcheck through the compiled path; ``torch.compile`` with
+``fullgraph=True`` and ``torch.export``; the checks that stay on inside compiled code."""
+import math
+
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend import BendingEnergy
+from torchbend.backends import native, ops
+
+from .conftest import MODELS
+
+F64, F32 = torch.float64, torch.float32
+
+
+@pytest.fixture(scope="module", autouse=True)
+def kernel():
+    if native.load() is None:
+        pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
+
+
+def _eps_ulp(a, b, dtype) -> float:
+    a, b = a.detach().double(), b.detach().double()
+    return float((a - b).norm() / b.norm()) / torch.finfo(dtype).eps
+
+
+def _grad(t: torch.Tensor) -> torch.Tensor:
+    assert t.grad is not None
+    return t.grad
+
+
+def _setup(model, dtype, damped, batch, learn=False, packed=False):
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=3, dtype=F64)
+    gen = torch.Generator().manual_seed(7)
+    kw: dict = dict(model=model, damping=0.3 if damped else None)
+    if packed:
+        rest2, faces2 = tb.scenes.random_curved_sheet(4, 4, amplitude=0.2, seed=5, dtype=F64)
+        meshes = tb.pack_meshes([(rest, faces), (rest2, faces2)])
+        bend = BendingEnergy.packed(meshes, **kw)
+        rest = meshes.verts
+    else:
+        bend = BendingEnergy(faces, rest, **kw)
+    H = bend.hinge_count
+    if learn:  # per-hinge learnable stiffness and rest angles
+        bend.stiffness = torch.nn.Parameter(0.5 + torch.rand(H, generator=gen, dtype=F64))
+        bend.rest_angles = torch.nn.Parameter(bend.rest_angles.detach() + 0.1 * torch.randn(H, generator=gen, dtype=F64))
+    bend = bend.to(dtype)
+    x = (rest + 0.05 * torch.randn((*batch, *rest.shape), generator=gen, dtype=F64)).to(dtype)
+    call = {}
+    if damped:
+        call = dict(theta_prev=(bend.angles(x) + 0.3 * torch.randn(x.shape[:-2] + (H,), generator=gen, dtype=F64)
+                                .to(dtype)), dt=0.01)
+    return bend, x, call
+
+
+def _everything(bend, x, call, backend):
+    """Energy, gradient (backward), HVP (double backward) and parameter gradients with ``backend`` meaning it."""
+    with tb.use_backend(backend):
+        y = x.clone().requires_grad_()
+        E = bend(y, **call)
+        params = [p for p in (bend.stiffness, bend.rest_angles) if p.requires_grad]
+        g = torch.autograd.grad(E.sum(), [y, *params], create_graph=True)
+        v = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64).to(x.dtype)
+        (hv,) = torch.autograd.grad(g[0], y, v)
+        with torch.no_grad():  # learnable parameters: hvp() records no graph here
+            hv_method = bend.hvp(x, v, **call)
+        out = {"energy": E, "gradient": g[0], "hvp": hv, "hvp_method": hv_method}
+        for i in range(len(params)):
+            out[f"param{i}"] = g[1 + i]
+    return out
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("batch", [(), (2,)])
+@pytest.mark.parametrize("learn", [False, True])
+def test_compiled_ops_match_eager_within_4_ulp(dtype, model, damped, batch, learn):
+    """Without learnable parameters the double backward is the HVP operator, with them the second-order one."""
+    bend, x, call = _setup(model, dtype, damped, batch, learn=learn)
+    a, b = _everything(bend, x, call, "native"), _everything(bend, x, call, "eager")
+    for name in a:
+        assert a[name].dtype == dtype and a[name].shape == b[name].shape, name
+        err = _eps_ulp(a[name], b[name], dtype)
+        assert err <= 4, f"{name}: {err:.2f} ulp normwise"
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_compiled_ops_packed_meshes(dtype):
+    bend, x, _ = _setup("tan", dtype, False, (), packed=True)
+    a, b = _everything(bend, x, {}, "native"), _everything(bend, x, {}, "eager")
+    assert a["energy"].shape == (2,)
+    for name in a:
+        assert _eps_ulp(a[name], b[name], dtype) <= 4, name
+
+
+def test_the_default_path_runs_the_operators(monkeypatch):
+    """No opt-in: a plain module call, its backward and double backward go through torch.ops.torchbend."""
+    bend, x, _ = _setup("tan", F64, False, ())
+    calls = []
+    for name in ("bending_energy", "bending_gradient", "bending_hvp"):
+        orig = getattr(native, name)
+
+        def spy(*args, _orig=orig, _name=name, **kw):
+            calls.append(_name)
+            return _orig(*args, **kw)
+
+        monkeypatch.setattr(native, name, spy)
+    y = x.clone().requires_grad_()
+    (g,) = torch.autograd.grad(bend(y), y, create_graph=True)
+    assert g.grad_fn is not None and g.grad_fn.name().startswith("TanBendingGradient")
+    torch.autograd.grad(g, y, torch.ones_like(x))
+    assert calls == ["bending_energy", "bending_gradient", "bending_hvp"]
+
+
+# ----------------------------------------------------------------------------- torch.library
+def _op_args(model="tan", damped=False, batch=()):
+    bend, x, call = _setup(model, F64, damped, batch)
+    p = tb.energies.HingeParams.bind(bend, x, call.get("theta_prev"), call.get("dt"))
+    a, k, rest, c, prev = p.astuple()
+    return bend, x, (bend.hinges, a, k, rest, c, prev, model)
+
+
+@pytest.mark.parametrize("damped", [False, True])
+def test_opcheck_every_operator(damped):
+    bend, x, (hinges, a, k, rest, c, prev, model) = _op_args("tan", damped, (2,))
+    ptr, idx = bend._incidence()
+    w = torch.rand(x.shape[:-2] + (hinges.shape[0],), dtype=F64)
+    v = torch.randn_like(x)
+    base = (hinges, a, k, rest, c, prev, model)
+    cases = {
+        "bending_energy": (x, *base, True),
+        "bending_gradient": (x, *base, w, ptr, idx, True, False),
+        "bending_hvp": (x, v, *base, w, ptr, idx),
+        "hinge_hessians": (x, *base),
+    }
+    for name, args in cases.items():
+        torch.library.opcheck(getattr(torch.ops.torchbend, name).default, args)
+    torch.library.opcheck(torch.ops.torchbend.bending_gradient.default, (x, *base, w, ptr, idx, False, False))
+    # the assembly: one mesh
+    bend1, x1, (h1, a1, k1, r1, c1, p1, m1) = _op_args("tan", damped, ())
+    from torchbend.energies.sparse import HessianPattern
+
+    pat, topo = HessianPattern(bend1.topology), bend1.topology
+    for per_triangle in (False, True):
+        torch.library.opcheck(torch.ops.torchbend.assemble.default,
+                              (x1, h1, a1, k1, r1, c1, p1, m1, pat.hinge_pos, topo.faces, topo.face_edge_hinges,
+                               topo.face_edge_signs, pat.face_pos, pat.nnz, per_triangle))
+    assert set(cases) | {"assemble"} <= set(ops.OPS)
+    for name in ops.OPS:
+        assert hasattr(torch.ops.torchbend, name)
+
+
+# ----------------------------------------------------------------------------- gradcheck through the compiled path
+@pytest.mark.parametrize("model", MODELS)
+def test_gradcheck_and_gradgradcheck_compiled_path(model):
+    bend, x, _ = _setup(model, F64, False, (), learn=True)
+    assert tb.backends.select_backend("energy", "auto", x) is tb.Backend.NATIVE
+
+    def f(y, k, r):
+        bend.stiffness, bend.rest_angles = k, r
+        return bend(y)
+
+    k = bend.stiffness.detach().clone().requires_grad_()
+    r = bend.rest_angles.detach().clone().requires_grad_()
+    y = x.clone().requires_grad_()
+    del bend.stiffness, bend.rest_angles  # plain attributes during the check (tensors with requires_grad)
+    assert torch.autograd.gradcheck(f, (y, k, r))
+    assert torch.autograd.gradgradcheck(f, (y, k, r))
+
+
+# ----------------------------------------------------------------------------- torch.compile / torch.export
+@pytest.fixture
+def fresh_dynamo():
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
+@pytest.mark.parametrize("damped", [False, True])
+def test_torch_compile_fullgraph_energy(fresh_dynamo, damped):
+    bend, x, call = _setup("tan", F64, damped, (2,))
+    compiled = torch.compile(bend, fullgraph=True)
+    assert _eps_ulp(compiled(x, **call), bend(x, **call), F64) <= 4  # the graph may sum in another order
+
+
+def test_torch_compile_fullgraph_training_step(fresh_dynamo, monkeypatch):
+    """loss = energy, then .backward(), all inside one compiled graph (learnable stiffness and rest angles)."""
+    monkeypatch.setattr(torch._dynamo.config, "trace_autograd_ops", True)
+    bend, x, _ = _setup("quadratic", F64, False, (), learn=True)
+
+    def step(y):
+        loss = bend(y).sum()
+        loss.backward()
+        return loss.detach()
+
+    compiled = torch.compile(step, fullgraph=True)
+    y1, y2 = x.clone().requires_grad_(), x.clone().requires_grad_()
+    l1 = compiled(y1)
+    g1 = [_grad(p).clone() for p in (y1, bend.stiffness, bend.rest_angles)]
+    bend.zero_grad()
+    l2 = step(y2)
+    g2 = [_grad(p) for p in (y2, bend.stiffness, bend.rest_angles)]
+    assert _eps_ulp(l1, l2, F64) <= 4
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-14, atol=0)
+
+
+def test_compiled_module_backward_and_eager_double_backward(fresh_dynamo):
+    """A compiled forward with its (compiled) backward; second order runs eagerly through the same operators
+    (PyTorch cannot differentiate twice through a compiled region, pytorch#91469)."""
+    bend, x, _ = _setup("tan", F64, False, ())
+    compiled = torch.compile(bend, fullgraph=True)
+    y = x.clone().requires_grad_()
+    compiled(y).backward()
+    z = x.clone().requires_grad_()
+    (g,) = torch.autograd.grad(bend(z), z, create_graph=True)
+    assert torch.allclose(_grad(y), g, rtol=1e-14, atol=0)
+    v = torch.randn_like(x)
+    (hv,) = torch.autograd.grad(g, z, v)
+    assert torch.allclose(hv, bend.hvp(x, v), rtol=1e-13, atol=0)
+
+
+def test_torch_export_energy_module():
+    bend, x, _ = _setup("sin", F64, False, ())
+    exported = torch.export.export(bend, (x,))
+    targets = {str(n.target) for n in exported.graph.nodes if n.op == "call_function"}
+    assert "torchbend.bending_energy.default" in targets
+    assert _eps_ulp(exported.module()(x), bend(x), F64) <= 4
+
+
+def test_checks_stay_on_inside_compiled_code(fresh_dynamo):
+    bend, x, _ = _setup("tan", F64, False, ())
+    compiled = torch.compile(bend, fullgraph=True)
+    compiled(x)
+    bad = x.clone()
+    bad[3, 1] = math.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        compiled(bad)
+    # a hinge folded flat onto itself (|theta| = pi): the same ValueError compiled and eager
+    rest, faces = tb.scenes.single_hinge(0.0, dtype=F64)
+    folded = rest.clone()
+    folded[3] = torch.tensor([0.3, 0.8, 0.0], dtype=F64)
+    hinge = BendingEnergy(faces, rest, model="tan")
+    compiled = torch.compile(hinge, fullgraph=True)
+    compiled(rest)
+    for f in (hinge, compiled):
+        with pytest.raises(ValueError, match=r"hinges \[0\] have folded through"):
+            f(folded)
+
+
+def test_unsupported_dtype_falls_back_with_one_warning():
+    rest, faces = tb.scenes.random_curved_sheet(4, 4, amplitude=0.3, seed=3, dtype=F64)
+    bend = BendingEnergy(faces, rest, model="quadratic").to(torch.bfloat16)
+    x = rest.to(torch.bfloat16)
+    tb.backends._warned.clear()
+    with pytest.warns(RuntimeWarning, match="energy runs on the eager path: the compiled kernels take float32"):
+        e = bend(x)
+    assert torch.isfinite(e)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bend(x)  # once only

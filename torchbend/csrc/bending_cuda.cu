@@ -1,0 +1,177 @@
+// CUDA driver of torchbend's compiled bending operations: one thread per (sample, hinge), the per-hinge
+// mathematics of hinge_math.h / hinge_ops.h with W = 1 (the same functions the CPU driver runs in tiles
+// of 8 lanes, which the CPU tests compare against the eager reference), atomic scatter of the per-vertex
+// results.  No torch headers: the C interface is bending_cuda.h, bound to torch in cuda_binding.cpp.
+#include <cuda_runtime.h>
+
+#include "bending_cuda.h"
+#include "hinge_ops.h"
+
+using namespace torchbend;
+
+namespace {
+
+constexpr int kThreads = 128;
+
+template <typename T> Param<T> param(tb_param p, int64_t H) { return Param<T>{static_cast<const T*>(p.p), p.n, H}; }
+
+template <typename T> HingeArgs<T> hinge_args(const tb_hinge_args& a, int64_t H) {
+  return HingeArgs<T>{param<T>(a.a, H), param<T>(a.k, H), param<T>(a.rest, H), param<T>(a.c, H), param<T>(a.prev, H),
+                      a.damped != 0, a.model};
+}
+
+__device__ inline int64_t thread_index() { return int64_t(blockIdx.x) * blockDim.x + threadIdx.x; }
+
+template <typename T>
+__global__ void energy_kernel(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, HingeArgs<T> args,
+                              T* psi, T* theta) {
+  int64_t bh = thread_index();
+  if (bh >= B * H) return;
+  int64_t b = bh / H, h = bh - b * H;
+  T X[12][1];
+  load_hinge<T, 1>(x + 3 * V * b, hinges + 4 * h, X, 0);
+  T th = hinge_theta<T, 1>(X, 0), p, d1;
+  psi_first<T>(args, b, h, th, p, d1, nullptr);
+  psi[bh] = p;
+  theta[bh] = th;
+}
+
+template <typename T>
+__global__ void gradient_kernel(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, HingeArgs<T> args,
+                                Param<T> w, T* gx, T* gp, T* theta) {
+  int64_t bh = thread_index();
+  if (bh >= B * H) return;
+  int64_t b = bh / H, h = bh - b * H;
+  const int64_t* st = hinges + 4 * h;
+  T X[12][1], G[12][1];
+  load_hinge<T, 1>(x + 3 * V * b, st, X, 0);
+  T th = hinge_theta<T, 1>(X, 0), p, d1, g4[4];
+  psi_first<T>(args, b, h, th, p, d1, gp ? g4 : nullptr);
+  T wi = w(b, h), s = wi * d1;
+  theta[bh] = th;
+  if (gp) for (int j = 0; j < 4; ++j) gp[4 * bh + j] = wi * g4[j];
+  grad_tile<T, 1>(X, G);
+  T* out = gx + 3 * V * b;
+  for (int v = 0; v < 4; ++v)
+    for (int m = 0; m < 3; ++m) atomicAdd(out + 3 * st[v] + m, s * G[3 * v + m][0]);
+}
+
+template <typename T>
+__global__ void hvp_kernel(const T* x, const T* vd, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                           HingeArgs<T> args, Param<T> w, T* hv, T* theta) {
+  int64_t bh = thread_index();
+  if (bh >= B * H) return;
+  int64_t b = bh / H, h = bh - b * H;
+  const int64_t* st = hinges + 4 * h;
+  T X[12][1], Vd[12][1], O[12][1], th, d1, d2;
+  load_hinge<T, 1>(x + 3 * V * b, st, X, 0);
+  load_hinge<T, 1>(vd + 3 * V * b, st, Vd, 0);
+  hinge_psi<T, 1>(X, 0, args.model, args.a(b, h), args.k(b, h), args.rest(b, h), args.damped,
+                  args.damped ? args.c(b, h) : T(0), args.damped ? args.prev(b, h) : T(0), th, d1, d2);
+  T wi = w(b, h);
+  d1 *= wi; d2 *= wi;
+  theta[bh] = th;
+  Blocks<T, 1> blk;
+  hvp_tile<T, 1>(X, Vd, &d1, &d2, blk, O);
+  T* out = hv + 3 * V * b;
+  for (int v = 0; v < 4; ++v)
+    for (int m = 0; m < 3; ++m) atomicAdd(out + 3 * st[v] + m, O[3 * v + m][0]);
+}
+
+template <typename T>
+__global__ void blocks_kernel(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, HingeArgs<T> args,
+                              T* blocks, T* grads, T* d2out, T* theta) {
+  int64_t bh = thread_index();
+  if (bh >= B * H) return;
+  int64_t b = bh / H, h = bh - b * H;
+  T X[12][1], th, d1, d2;
+  load_hinge<T, 1>(x + 3 * V * b, hinges + 4 * h, X, 0);
+  hinge_psi<T, 1>(X, 0, args.model, args.a(b, h), args.k(b, h), args.rest(b, h), args.damped,
+                  args.damped ? args.c(b, h) : T(0), args.damped ? args.prev(b, h) : T(0), th, d1, d2);
+  Blocks<T, 1> blk;
+  block_tile<T, 1>(X, &d1, &d2, blk);
+  block_lane<T, 1>(blk, 0, blocks + 144 * bh);
+  for (int m = 0; m < 12; ++m) grads[12 * bh + m] = blk.G[m][0];
+  d2out[bh] = d2;
+  theta[bh] = th;
+}
+
+unsigned grid(int64_t n) { return unsigned((n + kThreads - 1) / kThreads); }
+
+template <typename T> int energy(const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                                 const tb_hinge_args& a, void* psi, void* theta, cudaStream_t s) {
+  if (B * H == 0) return 0;
+  energy_kernel<T><<<grid(B * H), kThreads, 0, s>>>(static_cast<const T*>(x), hinges, B, V, H, hinge_args<T>(a, H),
+                                                    static_cast<T*>(psi), static_cast<T*>(theta));
+  return int(cudaGetLastError());
+}
+
+template <typename T> int gradient(const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                                   const tb_hinge_args& a, tb_param w, void* gx, void* gp, void* theta, cudaStream_t s) {
+  if (B * H == 0) return 0;
+  gradient_kernel<T><<<grid(B * H), kThreads, 0, s>>>(static_cast<const T*>(x), hinges, B, V, H, hinge_args<T>(a, H),
+                                                      param<T>(w, H), static_cast<T*>(gx), static_cast<T*>(gp),
+                                                      static_cast<T*>(theta));
+  return int(cudaGetLastError());
+}
+
+template <typename T> int hvp(const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                              const tb_hinge_args& a, tb_param w, void* hv, void* theta, cudaStream_t s) {
+  if (B * H == 0) return 0;
+  hvp_kernel<T><<<grid(B * H), kThreads, 0, s>>>(static_cast<const T*>(x), static_cast<const T*>(v), hinges, B, V, H,
+                                                 hinge_args<T>(a, H), param<T>(w, H), static_cast<T*>(hv),
+                                                 static_cast<T*>(theta));
+  return int(cudaGetLastError());
+}
+
+template <typename T> int hessians(const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                                   const tb_hinge_args& a, void* blocks, void* grads, void* d2, void* theta,
+                                   cudaStream_t s) {
+  if (B * H == 0) return 0;
+  blocks_kernel<T><<<grid(B * H), kThreads, 0, s>>>(static_cast<const T*>(x), hinges, B, V, H, hinge_args<T>(a, H),
+                                                    static_cast<T*>(blocks), static_cast<T*>(grads),
+                                                    static_cast<T*>(d2), static_cast<T*>(theta));
+  return int(cudaGetLastError());
+}
+
+const char* const kKernels[] = {"energy_f32", "energy_f64", "gradient_f32", "gradient_f64",
+                                "hvp_f32", "hvp_f64", "hinge_hessians_f32", "hinge_hessians_f64"};
+
+}  // namespace
+
+extern "C" {
+
+int tb_cuda_energy(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                   tb_hinge_args args, void* psi, void* theta, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? energy<double>(x, hinges, B, V, H, args, psi, theta, s)
+               : energy<float>(x, hinges, B, V, H, args, psi, theta, s);
+}
+
+int tb_cuda_gradient(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* theta, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? gradient<double>(x, hinges, B, V, H, args, weight, gx, gp, theta, s)
+               : gradient<float>(x, hinges, B, V, H, args, weight, gx, gp, theta, s);
+}
+
+int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                tb_hinge_args args, tb_param weight, void* hv, void* theta, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? hvp<double>(x, v, hinges, B, V, H, args, weight, hv, theta, s)
+               : hvp<float>(x, v, hinges, B, V, H, args, weight, hv, theta, s);
+}
+
+int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                           tb_hinge_args args, void* blocks, void* grads, void* d2, void* theta, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? hessians<double>(x, hinges, B, V, H, args, blocks, grads, d2, theta, s)
+               : hessians<float>(x, hinges, B, V, H, args, blocks, grads, d2, theta, s);
+}
+
+const char* tb_cuda_error_string(int code) { return cudaGetErrorString(cudaError_t(code)); }
+
+int tb_cuda_kernel_count() { return int(sizeof(kKernels) / sizeof(kKernels[0])); }
+
+const char* tb_cuda_kernel_name(int i) { return i >= 0 && i < tb_cuda_kernel_count() ? kKernels[i] : nullptr; }
+}

@@ -1,0 +1,28 @@
+// C interface of torchbend's CUDA driver (bending_cuda.cu): plain pointers, no torch headers, so the
+// CUDA part compiles with nvcc alone and links into a binding built against any torch (CPU-only too).
+// Every function returns a cudaError_t code (0 = success); tb_cuda_error_string names it.
+#pragma once
+#include <cstdint>
+
+extern "C" {
+
+// a per-hinge parameter: n == 1 (scalar), H (per hinge) or B * H (per sample and hinge); p points to
+// float or double as the call's dtype says
+struct tb_param { const void* p; int64_t n; };
+struct tb_hinge_args { tb_param a, k, rest, c, prev; int damped, model; };
+
+// dtype: 0 float32, 1 float64; stream: a cudaStream_t (0 = the default stream).  Outputs of the
+// scattering operations (gx, hv) must be zeroed by the caller; gp may be null.
+int tb_cuda_energy(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                   tb_hinge_args args, void* psi, void* theta, void* stream);
+int tb_cuda_gradient(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* theta, void* stream);
+int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                tb_hinge_args args, tb_param weight, void* hv, void* theta, void* stream);
+int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
+                           tb_hinge_args args, void* blocks, void* grads, void* d2, void* theta, void* stream);
+const char* tb_cuda_error_string(int code);
+// the names of the kernels this build holds (one per operation and dtype), for the registration check
+int tb_cuda_kernel_count();
+const char* tb_cuda_kernel_name(int i);
+}

@@ -1,0 +1,142 @@
+// Torch binding of the CUDA driver (bending_cuda.cu, through its C interface bending_cuda.h).  It is
+// compiled by g++ against whatever torch is installed (a CPU-only torch too: then it builds, links and
+// imports, and no CUDA tensor ever reaches it) and linked with the nvcc-built driver and cudart.  The
+// caller passes the current CUDA stream of x's device as an integer.
+#include <torch/extension.h>
+#include <c10/core/DeviceGuard.h>
+
+#include "bending_cuda.h"
+
+namespace {
+
+tb_param tparam(const torch::Tensor& t) { return tb_param{t.data_ptr(), t.numel()}; }
+
+void check(int code, const char* what) {
+  TORCH_CHECK(code == 0, "torchbend CUDA ", what, ": ", tb_cuda_error_string(code));
+}
+
+struct Args {
+  torch::Tensor x, hinges, a, k, rest, c, prev;
+  int64_t B = 1, V = 0, H = 0;
+  tb_hinge_args args{};
+  std::vector<int64_t> batch;
+};
+
+Args prepare(const torch::Tensor& x, const torch::Tensor& hinges, const torch::Tensor& a, const torch::Tensor& k,
+             const torch::Tensor& rest, const c10::optional<torch::Tensor>& c, const c10::optional<torch::Tensor>& prev,
+             int64_t model) {
+  TORCH_CHECK(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CUDA (..., V, 3) tensor");
+  TORCH_CHECK(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, "x must be float32 or float64");
+  TORCH_CHECK(hinges.device() == x.device() && hinges.scalar_type() == torch::kLong && hinges.dim() == 2 &&
+              hinges.size(1) == 4, "hinges must be an int64 (H, 4) tensor on x's device");
+  Args r;
+  r.x = x.contiguous();
+  r.hinges = hinges.contiguous();
+  r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
+  for (auto s : r.batch) r.B *= s;
+  r.V = x.size(-2);
+  r.H = hinges.size(0);
+  auto prep = [&](const torch::Tensor& t) {
+    TORCH_CHECK(t.device() == x.device(), "parameters must be on x's device");
+    auto u = t.to(x.scalar_type()).contiguous();
+    TORCH_CHECK(u.numel() == 1 || u.numel() == r.H || u.numel() == r.B * r.H, "a per-hinge parameter has ",
+                u.numel(), " values; expected 1, H or B*H");
+    return u;
+  };
+  r.a = prep(a); r.k = prep(k); r.rest = prep(rest);
+  bool damped = c.has_value();
+  if (damped) { r.c = prep(*c); r.prev = prep(*prev); }
+  tb_param none{nullptr, 0};
+  r.args = tb_hinge_args{tparam(r.a), tparam(r.k), tparam(r.rest), damped ? tparam(r.c) : none,
+                         damped ? tparam(r.prev) : none, damped ? 1 : 0, int(model)};
+  return r;
+}
+
+std::vector<int64_t> with(std::vector<int64_t> s, std::initializer_list<int64_t> tail) {
+  s.insert(s.end(), tail);
+  return s;
+}
+
+void* as_stream(int64_t s) { return reinterpret_cast<void*>(static_cast<intptr_t>(s)); }
+int dtype_code(const torch::Tensor& x) { return x.scalar_type() == torch::kDouble ? 1 : 0; }
+
+std::tuple<torch::Tensor, torch::Tensor> energy(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                                                torch::Tensor rest, c10::optional<torch::Tensor> c,
+                                                c10::optional<torch::Tensor> prev, int64_t model, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  auto psi = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(psi);
+  check(tb_cuda_energy(dtype_code(r.x), r.x.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args,
+                       psi.data_ptr(), theta.data_ptr(), as_stream(stream)), "energy");
+  return {psi, theta};
+}
+
+torch::Tensor weight_of(const torch::Tensor& w, const Args& r) {
+  auto u = w.to(r.x.scalar_type()).contiguous();
+  TORCH_CHECK(u.device() == r.x.device() && (u.numel() == 1 || u.numel() == r.H || u.numel() == r.B * r.H),
+              "weight must be on x's device with 1, H or B*H values");
+  return u;
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> gradient(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
+    bool params, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  auto w = weight_of(weight, r);
+  auto gx = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
+  auto gp = params ? torch::empty(with(r.batch, {r.H, 4}), r.x.options()) : torch::empty({0}, r.x.options());
+  auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
+  check(tb_cuda_gradient(dtype_code(r.x), r.x.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args,
+                         tparam(w), gx.data_ptr(), params ? gp.data_ptr() : nullptr, theta.data_ptr(),
+                         as_stream(stream)), "gradient");
+  return {gx, gp, theta};
+}
+
+std::tuple<torch::Tensor, torch::Tensor> hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges, torch::Tensor a,
+                                             torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
+                                             c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
+                                             int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  TORCH_CHECK(v.sizes() == x.sizes() && v.scalar_type() == x.scalar_type() && v.device() == x.device(),
+              "v must have x's shape, dtype and device");
+  auto vc = v.contiguous();
+  auto w = weight_of(weight, r);
+  auto hv = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
+  auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
+  check(tb_cuda_hvp(dtype_code(r.x), r.x.data_ptr(), vc.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H,
+                    r.args, tparam(w), hv.data_ptr(), theta.data_ptr(), as_stream(stream)), "hvp");
+  return {hv, theta};
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> hinge_hessians(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  auto blocks = torch::empty(with(r.batch, {r.H, 12, 12}), r.x.options());
+  auto grads = torch::empty(with(r.batch, {r.H, 12}), r.x.options());
+  auto d2 = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(d2);
+  check(tb_cuda_hinge_hessians(dtype_code(r.x), r.x.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args,
+                               blocks.data_ptr(), grads.data_ptr(), d2.data_ptr(), theta.data_ptr(), as_stream(stream)),
+        "hinge_hessians");
+  return {blocks, grads, d2, theta};
+}
+
+std::vector<std::string> kernels() {
+  std::vector<std::string> out;
+  for (int i = 0; i < tb_cuda_kernel_count(); ++i) out.emplace_back(tb_cuda_kernel_name(i));
+  return out;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("bending_energy", &energy, "per-hinge energies and angles (CUDA)");
+  m.def("bending_gradient", &gradient, "weighted gradient and per-hinge parameter gradients (CUDA)");
+  m.def("bending_hvp", &hvp, "weighted Hessian-vector product (CUDA)");
+  m.def("bending_hessians", &hinge_hessians, "per-hinge 12x12 blocks, angle gradients, psi'', theta (CUDA)");
+  m.def("kernels", &kernels, "the names of the CUDA kernels in this build");
+}
