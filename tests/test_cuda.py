@@ -18,7 +18,7 @@ def test_cuda_driver_builds_links_and_registers_every_kernel():
     names = set(cuda.kernels())
     assert names == {f"{op}_{d}" for op in cuda.KERNELS for d in ("f32", "f64")}
     module = cuda.load()
-    for fn in ("bending_energy", "bending_gradient", "bending_hvp", "bending_hessians"):
+    for fn in ("bending_energy", "bending_gradient", "bending_hvp", "bending_hessians", "bending_second_order"):
         assert callable(getattr(module, fn))
 
 
@@ -102,3 +102,34 @@ def test_cuda_default_path_matches_eager_through_autograd(model):
     # the CUDA scatter adds with atomics (summation order varies run to run): round-off nondeterminism
     assert torch.autograd.gradcheck(lambda z: bend(z), (y,), nondet_tol=1e-9)
     assert torch.autograd.gradgradcheck(lambda z: bend(z), (y,), nondet_tol=1e-9)
+
+
+@pytest.mark.parametrize("per_hinge", [False, True])
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("model", ["tan", "quadratic", "sin"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.gpu
+@requires_gpu
+def test_cuda_second_order_matches_cpu(dtype, model, damped, per_hinge):
+    """The CUDA general double backward against the CPU kernel (itself checked against torch.func and the
+    eager double backward in tests/test_native_second_order.py): batched x, per-sample prev, per-hinge
+    weights, directions in x and in (k, rest, c, prev), each of them absent in turn."""
+    from torchbend.backends import native
+
+    from .test_native_second_order import _case
+
+    if native.load() is None:
+        pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
+    p = _case(model, damped, dtype, per_hinge)
+    inc = native.incidence(p["hinges"], p["V"])
+    names = ("x", "hinges", "a", "k", "rest", "c", "prev", "v", "t", "w")
+    q = {n: (None if p[n] is None else p[n].cuda()) for n in names}
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for use_v, use_t in ((True, True), (True, False), (False, True)):
+        ref = native.bending_second_order(p["x"], p["v"] if use_v else None, p["t"] if use_t else None, p["hinges"],
+                                          p["a"], p["k"], p["rest"], p["c"], p["prev"], model, p["w"], inc)
+        got = cuda.bending_second_order(q["x"], q["v"] if use_v else None, q["t"] if use_t else None, q["hinges"],
+                                        q["a"], q["k"], q["rest"], q["c"], q["prev"], model, q["w"])
+        for g, r in zip(got, ref):
+            assert g.device.type == "cuda" and g.dtype == dtype and g.shape == r.shape
+            assert float((g.cpu() - r).norm()) <= tol * float(r.norm()) + 1e-30

@@ -135,11 +135,14 @@ def test_opcheck_every_operator(damped):
         "bending_energy": (x, *base, True),
         "bending_gradient": (x, *base, w, ptr, idx, True, False),
         "bending_hvp": (x, v, *base, w, ptr, idx),
+        "bending_second_order": (x, v, torch.randn(x.shape[:-2] + (hinges.shape[0], 4), dtype=F64), *base, w, ptr,
+                                 idx),
         "hinge_hessians": (x, *base),
     }
     for name, args in cases.items():
         torch.library.opcheck(getattr(torch.ops.torchbend, name).default, args)
     torch.library.opcheck(torch.ops.torchbend.bending_gradient.default, (x, *base, w, ptr, idx, False, False))
+    torch.library.opcheck(torch.ops.torchbend.bending_second_order.default, (x, None, None, *base, w, ptr, idx))
     # the assembly: one mesh
     bend1, x1, (h1, a1, k1, r1, c1, p1, m1) = _op_args("tan", damped, ())
     from torchbend.energies.sparse import HessianPattern

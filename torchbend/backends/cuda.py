@@ -36,7 +36,7 @@ HEADERS = ("bending_cuda.h", "hinge_math.h", "hinge_ops.h")
 BINDING = "cuda_binding.cpp"
 NVCC_FLAGS = ("-O3", "-std=c++17", "-Xcompiler", "-fPIC")
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
-KERNELS = ("energy", "gradient", "hvp", "hinge_hessians")
+KERNELS = ("energy", "gradient", "hvp", "hinge_hessians", "second_order")
 """The operations the CUDA driver implements, each for float32 and float64."""
 
 
@@ -181,6 +181,17 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model
                                       _opt(prev), _code(model), weight.detach(), _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return hv
+
+
+def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: Tensor, a, k, rest, c, prev, model,
+                         weight: Tensor, inc=None) -> tuple[Tensor, Tensor, Tensor]:
+    """``(dx (..., V, 3), dp (..., H, 4), dg (..., H))``: the general double backward, as
+    :func:`torchbend.backends.native.bending_second_order` (``inc`` unused: atomic scatter)."""
+    dx, dp, dg, theta = _module().bending_second_order(x.detach(), _opt(v), _opt(t), hinges, a.detach(), k.detach(),
+                                                       rest.detach(), _opt(c), _opt(prev), _code(model),
+                                                       weight.detach(), _stream(x))
+    check_fold(BendingModel.parse(model), theta)
+    return dx, dp, dg
 
 
 def bending_hessians(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> tuple[Tensor, Tensor, Tensor]:

@@ -168,6 +168,24 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model
     return hv
 
 
+def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: Tensor, a, k, rest, c, prev, model,
+                         weight: Tensor, inc) -> tuple[Tensor, Tensor, Tensor]:
+    """The general double backward in one compiled pass: ``(dx (..., V, 3), dp (..., H, 4), dg (..., H))``.
+
+    Per hinge, with ``u = g . v`` (``g = d theta/d x``) and ``z = Hess_p(psi) (u, t_k, t_rest, t_c, t_prev)``
+    (``p = (theta, k, rest, c, prev)``): ``dx = sum_h w (z_theta g + psi' H_theta v)``, ``dp = w z_(k, rest, c, prev)``
+    and ``dg = grad_p(psi) . (u, t)`` (unweighted): what :func:`torchbend.energies._bending_fn._second_order`
+    computes without a tangent of the cotangent.  ``v``: directions in ``x`` or ``None``; ``t``: ``(..., H, 4)`` (or
+    ``(H, 4)``) directions in the per-hinge ``(k, rest, c, prev)`` or ``None``; ``weight``: the per-hinge cotangent
+    ``w`` (one value, ``(H,)`` or ``(..., H)``).  Without damping the ``c``, ``prev`` columns of ``dp`` are zero (and
+    those of ``t`` ignored).  A folded ``tan`` hinge is a ``ValueError``."""
+    dx, dp, dg, theta = _module().bending_second_order(
+        x.detach(), _opt(v), _opt(t), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev),
+        _model_code(model), weight.detach(), inc[0], inc[1])
+    check_fold(BendingModel.parse(model), theta)
+    return dx, dp, dg
+
+
 def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
     """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
     zero = x.new_zeros(1)

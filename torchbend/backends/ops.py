@@ -29,7 +29,7 @@ from torch import Tensor
 from .._checks import check_positions
 from . import kernels
 
-__all__ = ["bending_energy", "bending_gradient", "bending_hvp", "hinge_hessians", "assemble", "OPS"]
+__all__ = ["bending_energy", "bending_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS"]
 
 
 def _check(x: Tensor, check: bool) -> None:
@@ -83,6 +83,24 @@ def _(x, v, hinges, a, k, rest, c, prev, model, weight, ptr, idx):
     return torch.empty_like(x, memory_format=torch.contiguous_format)
 
 
+@torch.library.custom_op("torchbend::bending_second_order", mutates_args=())
+def bending_second_order(x: Tensor, v: Optional[Tensor], t: Optional[Tensor], hinges: Tensor, a: Tensor, k: Tensor,
+                         rest: Tensor, c: Optional[Tensor], prev: Optional[Tensor], model: str, weight: Tensor,
+                         ptr: Tensor, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The general double backward: ``(dx (..., V, 3), dp (..., H, 4), dg (..., H))`` for directions ``v`` in the
+    positions and ``t (..., H, 4)`` in the per-hinge ``(k, rest, c, prev)`` (either may be ``None``); see
+    :func:`torchbend.backends.native.bending_second_order`."""
+    return tuple(kernels.module(x).bending_second_order(x, v, t, hinges, a, k, rest, c, prev, model, weight,
+                                                        (ptr, idx)))  # type: ignore[return-value]
+
+
+@bending_second_order.register_fake
+def _(x, v, t, hinges, a, k, rest, c, prev, model, weight, ptr, idx):
+    H = hinges.shape[0]
+    return (torch.empty_like(x, memory_format=torch.contiguous_format), x.new_empty(_batch(x) + (H, 4)),
+            x.new_empty(_batch(x) + (H,)))
+
+
 @torch.library.custom_op("torchbend::hinge_hessians", mutates_args=())
 def hinge_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
                    prev: Optional[Tensor], model: str) -> tuple[Tensor, Tensor, Tensor]:
@@ -118,6 +136,7 @@ OPS = {
     "bending_energy": bending_energy,
     "bending_gradient": bending_gradient,
     "bending_hvp": bending_hvp,
+    "bending_second_order": bending_second_order,
     "hinge_hessians": hinge_hessians,
     "assemble": assemble,
 }

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cstring>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 #ifdef __AVX__
 #include <immintrin.h>
@@ -251,11 +252,12 @@ std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor
 }
 
 // ----------------------------------------------------------------------------------------------
-// Energy, gradient and Hessian-vector product (the hot paths of training and of matrix-free solvers).
-// Each is one parallel pass over tiles of hinges (gather, angle, psi, closed forms); the gradient and
-// the HVP write their per-hinge 12-vectors to a buffer that a second parallel pass sums per vertex
-// through the incidence lists (inc_ptr (V+1), inc_idx (4H): entries 4 h + slot, sorted by vertex), so
-// the result is deterministic and no two threads write the same vertex.
+// Energy, gradient, Hessian-vector product and the general second-order product (the hot paths of
+// training and of matrix-free solvers).  Each is one parallel pass over tiles of W hinges (gather, angle,
+// psi, closed forms; every lane loop branch-free and vectorized, the model and damping template
+// arguments); the gradient and the products write their per-hinge 12-vectors to a buffer that a second
+// parallel pass sums per vertex through the incidence lists (inc_ptr (V+1), inc_idx (4H): entries
+// 4 h + slot, sorted by vertex), so the result is deterministic and no two threads write the same vertex.
 
 template <typename T> static HingeArgs<T> hinge_args(const torch::Tensor& a, const torch::Tensor& k,
                                                      const torch::Tensor& rest, const torch::Tensor& c,
@@ -263,6 +265,66 @@ template <typename T> static HingeArgs<T> hinge_args(const torch::Tensor& a, con
   Param<T> none{nullptr, 0, H};
   return HingeArgs<T>{param<T>(a, H), param<T>(k, H), param<T>(rest, H), damped ? param<T>(c, H) : none,
                       damped ? param<T>(prev, H) : none, damped, model};
+}
+
+// f(model, damped) with both as compile-time constants (std::integral_constant)
+template <typename F> static void with_model(int model, bool damped, F&& f) {
+  using std::integral_constant;
+  switch (model * 2 + (damped ? 1 : 0)) {
+    case 0: f(integral_constant<int, 0>{}, integral_constant<bool, false>{}); break;
+    case 1: f(integral_constant<int, 0>{}, integral_constant<bool, true>{}); break;
+    case 2: f(integral_constant<int, 1>{}, integral_constant<bool, false>{}); break;
+    case 3: f(integral_constant<int, 1>{}, integral_constant<bool, true>{}); break;
+    case 4: f(integral_constant<int, 2>{}, integral_constant<bool, false>{}); break;
+    case 5: f(integral_constant<int, 2>{}, integral_constant<bool, true>{}); break;
+    default: TORCH_CHECK(false, "unknown bending model code ", model);
+  }
+}
+
+// The tiles [begin, end) of B samples of H hinges (flattened (sample, hinge) index bh = b H + h), each
+// handed to body(bh0, nl, bs, hs) with its first index, lane count and per-lane sample and hinge.
+template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body) {
+  int64_t BH = B * H, tiles = (BH + W - 1) / W;
+  at::parallel_for(0, tiles, 64, [&](int64_t begin, int64_t end) {
+    int64_t bs[W], hs[W];
+    for (int64_t t = begin; t < end; ++t) {
+      int64_t bh0 = t * W;
+      int nl = int(std::min<int64_t>(W, BH - bh0));
+      int64_t b = bh0 / H, h = bh0 - b * H;  // one division per tile
+      for (int l = 0; l < nl; ++l) {
+        bs[l] = b; hs[l] = h;
+        if (++h == H) { h = 0; ++b; }
+      }
+      body(bh0, nl, bs, hs);
+    }
+  });
+}
+
+// gather the stencils (and, if vp is given, the directions) and the parameters of a tile; lanes past
+// nl get zeros (finite: theta = atan2(0, 0) = 0)
+template <typename T>
+static inline void gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
+                               const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W], T (*Vd)[W],
+                               HingeTile<T, W>& P) {
+  for (int l = 0; l < W; ++l) {
+    if (l >= nl) {
+      for (int m = 0; m < 12; ++m) X[m][l] = T(0);
+      if (vp) for (int m = 0; m < 12; ++m) Vd[m][l] = T(0);
+      zero_params<T, W>(l, P);
+      continue;
+    }
+    int64_t b = bs[l], h = hs[l];
+    load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
+    if (vp) load_hinge<T, W>(vp + 3 * V * b, hp + 4 * h, Vd, l);
+    load_params<T, W>(args, b, h, l, P);
+    P.w[l] = w ? (*w)(b, h) : T(1);
+  }
+}
+
+// the first nl lanes of a tile's 12-vectors O to the per-hinge buffer rows bh0 ...
+template <typename T> static inline void store_rows(const T (*O)[W], int nl, T* dst) {
+  for (int l = 0; l < nl; ++l)
+    for (int m = 0; m < 12; ++m) dst[12 * l + m] = O[m][l];
 }
 
 // out[b, v, :] = sum over the incidences i of v of w[b, i / 4, 3 (i % 4) + :]
@@ -319,6 +381,13 @@ static std::vector<int64_t> shape_with(const std::vector<int64_t>& batch, std::i
   return s;
 }
 
+static torch::Tensor prepare_weight(torch::Tensor weight, const Prepared& P) {
+  weight = weight.to(P.x.scalar_type()).contiguous();
+  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
+              weight.numel(), " values; expected 1, H or B*H");
+  return weight;
+}
+
 // (psi (..., H), theta (..., H)): the per-hinge energies (summed by the caller per mesh or segment)
 std::tuple<torch::Tensor, torch::Tensor> bending_energy(torch::Tensor x, torch::Tensor hinges, torch::Tensor a,
                                                         torch::Tensor k, torch::Tensor rest,
@@ -332,16 +401,22 @@ std::tuple<torch::Tensor, torch::Tensor> bending_energy(torch::Tensor x, torch::
     const T* xp = P.x.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
     T* po = psi.data_ptr<T>(); T* to = theta.data_ptr<T>();
-    int64_t B = P.B, H = P.H, V = P.V;
-    at::parallel_for(0, B * H, 1024, [&](int64_t begin, int64_t end) {
-      T X[12][1];
-      for (int64_t bh = begin; bh < end; ++bh) {
-        int64_t b = bh / H, h = bh - b * H;
-        load_hinge<T, 1>(xp + 3 * V * b, hp + 4 * h, X, 0);
-        T th = hinge_theta<T, 1>(X, 0), d1;
-        psi_first<T>(args, b, h, th, po[bh], d1, nullptr);
-        to[bh] = th;
-      }
+    int64_t V = P.V;
+    with_model(int(model), P.damped, [&](auto M_, auto D_) {
+      constexpr int M = decltype(M_)::value;
+      constexpr bool D = decltype(D_)::value;
+      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+        alignas(64) T X[12][W];
+        alignas(64) T TH[W], PS[W];
+        HingeTile<T, W> Q;
+        gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q);
+        theta_tile<T, W>(X, TH);
+        TB_LANES_AGG(W) {
+          T d1, d2;
+          psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
+        }
+        for (int l = 0; l < nl; ++l) { po[bh0 + l] = PS[l]; to[bh0 + l] = TH[l]; }
+      });
     });
   });
   return {psi, theta};
@@ -354,9 +429,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
     torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params) {
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
-  weight = weight.to(P.x.scalar_type()).contiguous();
-  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
-              weight.numel(), " values; expected 1, H or B*H");
+  weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
   auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
   auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
@@ -369,36 +442,48 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
     const T* xp = P.x.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
     T* bp = buf.data_ptr<T>(); T* gpp = params ? gp.data_ptr<T>() : nullptr; T* to = theta.data_ptr<T>();
-    int64_t B = P.B, H = P.H, V = P.V;
-    int64_t tiles = (B * H + W - 1) / W;
-    at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
-      T X[12][W], G[12][W], S[W];
-      for (int64_t t = begin; t < end; ++t) {
-        int64_t bh0 = t * W;
-        int nl = int(std::min<int64_t>(W, B * H - bh0));
-        for (int l = 0; l < W; ++l) {
-          if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); S[l] = T(0); continue; }
-          int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
-          load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
-          T th = hinge_theta<T, W>(X, l), psi, d1, g4[4];
-          psi_first<T>(args, b, h, th, psi, d1, params ? g4 : nullptr);
-          T wi = w(b, h);
-          S[l] = wi * d1;
-          to[bh] = th;
-          if (params) for (int j = 0; j < 4; ++j) gpp[4 * bh + j] = wi * g4[j];
+    int64_t V = P.V;
+    with_model(int(model), P.damped, [&](auto M_, auto D_) {
+      constexpr int M = decltype(M_)::value;
+      constexpr bool D = decltype(D_)::value;
+      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+        alignas(64) T X[12][W], G[12][W], O[12][W];
+        alignas(64) T TH[W], S[W], GP[4][W];
+        HingeTile<T, W> Q;
+        Half<T, W> hA, hB;
+        gather_tile<T>(xp, nullptr, hp, V, args, &w, nl, bs, hs, X, nullptr, Q);
+        theta_tile<T, W>(X, TH);
+        if (gpp) {
+          TB_LANES_AGG(W) {
+            T psi, d1, d2, g4[4];
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, g4);
+            S[l] = Q.w[l] * d1;
+            GP[0][l] = Q.w[l] * g4[0]; GP[1][l] = Q.w[l] * g4[1]; GP[2][l] = Q.w[l] * g4[2]; GP[3][l] = Q.w[l] * g4[3];
+          }
+          for (int l = 0; l < nl; ++l)
+            for (int j = 0; j < 4; ++j) gpp[4 * (bh0 + l) + j] = GP[j][l];
+        } else {
+          TB_LANES_AGG(W) {
+            T psi, d1, d2;
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, static_cast<T*>(nullptr));
+            S[l] = Q.w[l] * d1;
+          }
         }
-        grad_tile<T, W>(X, G);
-        for (int l = 0; l < nl; ++l)
-          for (int m = 0; m < 12; ++m) bp[12 * (bh0 + l) + m] = S[l] * G[m][l];
-      }
+        halves_tile<T, W>(X, hA, hB);
+        grad_of_halves<T, W>(hA, hB, G);
+        for (int m = 0; m < 12; ++m) TB_LANES(W) O[m][l] = S[l] * G[m][l];
+        store_rows<T>(O, nl, bp + 12 * bh0);
+        for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
+      });
     });
-    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), B, V, H, gx.data_ptr<T>());
+    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, gx.data_ptr<T>());
   });
   return {gx, gp, theta};
 }
 
 // (w H v (..., V, 3), theta (..., H)): the Hessian of the energy applied to directions v (..., V, 3) of x's
-// shape, without forming any matrix in memory; w a per-hinge weight as in bending_gradient
+// shape, without forming any matrix (per hinge psi' H_theta v + psi'' (g . v) g, H_theta v in closed form);
+// w a per-hinge weight as in bending_gradient
 std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges,
                                                      torch::Tensor a, torch::Tensor k, torch::Tensor rest,
                                                      c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev,
@@ -408,9 +493,7 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
   TORCH_CHECK(v.sizes() == P.x.sizes() && v.scalar_type() == P.x.scalar_type() && v.device().is_cpu(),
               "v must be a CPU tensor of x's shape and dtype");
   v = v.contiguous();
-  weight = weight.to(P.x.scalar_type()).contiguous();
-  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
-              weight.numel(), " values; expected 1, H or B*H");
+  weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
   auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
   auto hv = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
@@ -422,37 +505,115 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
     const T* xp = P.x.data_ptr<T>(); const T* vp = v.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
     T* bp = buf.data_ptr<T>(); T* to = theta.data_ptr<T>();
-    int64_t B = P.B, H = P.H, V = P.V;
-    int64_t tiles = (B * H + W - 1) / W;
-    at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
-      T X[12][W], Vd[12][W], D1[W], D2[W], O[12][W], TH;
-      Blocks<T, W> tile;
-      for (int64_t t = begin; t < end; ++t) {
-        int64_t bh0 = t * W;
-        int nl = int(std::min<int64_t>(W, B * H - bh0));
-        for (int l = 0; l < W; ++l) {
-          if (l >= nl) {
-            for (int m = 0; m < 12; ++m) X[m][l] = Vd[m][l] = T(0);
-            D1[l] = D2[l] = T(0);
-            continue;
-          }
-          int64_t bh = bh0 + l, b = bh / H, h = bh - b * H;
-          load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
-          load_hinge<T, W>(vp + 3 * V * b, hp + 4 * h, Vd, l);
-          hinge_psi<T, W>(X, l, args.model, args.a(b, h), args.k(b, h), args.rest(b, h), args.damped,
-                          args.damped ? args.c(b, h) : T(0), args.damped ? args.prev(b, h) : T(0), TH, D1[l], D2[l]);
-          T wi = w(b, h);
-          D1[l] *= wi; D2[l] *= wi;
-          to[bh] = TH;
+    int64_t V = P.V;
+    with_model(int(model), P.damped, [&](auto M_, auto D_) {
+      constexpr int M = decltype(M_)::value;
+      constexpr bool D = decltype(D_)::value;
+      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+        alignas(64) T X[12][W], Vd[12][W], G[12][W], O[12][W];
+        alignas(64) T TH[W], D1[W], D2[W], U[W];
+        HingeTile<T, W> Q;
+        Half<T, W> hA, hB;
+        gather_tile<T>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
+        theta_tile<T, W>(X, TH);
+        TB_LANES_AGG(W) {
+          T psi, d1, d2;
+          psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, static_cast<T*>(nullptr));
+          D1[l] = Q.w[l] * d1; D2[l] = Q.w[l] * d2;
         }
-        hvp_tile<T, W>(X, Vd, D1, D2, tile, O);
-        for (int l = 0; l < nl; ++l)
-          for (int m = 0; m < 12; ++m) bp[12 * (bh0 + l) + m] = O[m][l];
-      }
+        halves_tile<T, W>(X, hA, hB);
+        grad_of_halves<T, W>(hA, hB, G);
+        dot_tile<T, W>(G, Vd, U);
+        TB_LANES(W) U[l] *= D2[l];
+        hvp_of_halves<T, W>(hA, hB, Vd, G, D1, U, true, O);
+        store_rows<T>(O, nl, bp + 12 * bh0);
+        for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
+      });
     });
-    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), B, V, H, hv.data_ptr<T>());
+    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, hv.data_ptr<T>());
   });
   return {hv, theta};
+}
+
+// The general double backward (torchbend.energies._bending_fn._second_order without a tangent of the
+// cotangent): with directions v (..., V, 3) in x (or None) and t (..., H, 4) or (H, 4) in the per-hinge
+// (k, rest, c, prev) (or None), per hinge u = g . v and z = Hess_p(psi) (u, t):
+// (dx = sum_h w (z_theta g + psi' H_theta v) (..., V, 3), dp = w z_(k, rest, c, prev) (..., H, 4),
+//  dg = grad_p(psi) . (u, t) (..., H), theta (..., H)); w the per-hinge weight (the cotangent gE).
+// Without damping the c and prev entries of dp are 0 and those of t are ignored.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_second_order(
+    torch::Tensor x, c10::optional<torch::Tensor> v_, c10::optional<torch::Tensor> t_, torch::Tensor hinges,
+    torch::Tensor a, torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
+    c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight, torch::Tensor inc_ptr,
+    torch::Tensor inc_idx) {
+  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  torch::Tensor v, tt;
+  if (v_.has_value()) {
+    TORCH_CHECK(v_->sizes() == P.x.sizes() && v_->scalar_type() == P.x.scalar_type() && v_->device().is_cpu(),
+                "v must be a CPU tensor of x's shape and dtype");
+    v = v_->contiguous();
+  }
+  if (t_.has_value()) {
+    tt = t_->to(P.x.scalar_type()).contiguous();
+    TORCH_CHECK(tt.device().is_cpu() && tt.dim() >= 2 && tt.size(-1) == 4 &&
+                (tt.numel() == 4 * P.H || tt.numel() == 4 * P.B * P.H),
+                "t must be a CPU (..., H, 4) tensor with H or B*H rows");
+  }
+  weight = prepare_weight(weight, P);
+  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
+  auto dx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
+  auto dp = torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options());
+  auto dg = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(dg);
+  AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_second_order", [&] {
+    using T = scalar_t;
+    HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
+    Param<T> w{weight.data_ptr<T>(), weight.numel(), P.H};
+    const T* xp = P.x.data_ptr<T>();
+    const T* vp = v.defined() ? v.data_ptr<T>() : nullptr;
+    const T* tp = tt.defined() ? tt.data_ptr<T>() : nullptr;
+    bool t_batched = tt.defined() && tt.numel() != 4 * P.H;
+    const int64_t* hp = P.hinges.data_ptr<int64_t>();
+    T* bp = buf.data_ptr<T>(); T* dpp = dp.data_ptr<T>(); T* dgp = dg.data_ptr<T>(); T* to = theta.data_ptr<T>();
+    int64_t V = P.V, H = P.H;
+    with_model(int(model), P.damped, [&](auto M_, auto D_) {
+      constexpr int M = decltype(M_)::value;
+      constexpr bool D = decltype(D_)::value;
+      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+        alignas(64) T X[12][W], Vd[12][W], G[12][W], O[12][W];
+        alignas(64) T TH[W], U[W], TG[4][W], S1[W], S2[W], Z[4][W], DG[W];
+        HingeTile<T, W> Q;
+        Half<T, W> hA, hB;
+        gather_tile<T>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
+        for (int l = 0; l < W; ++l) {
+          const T* src = (tp && l < nl) ? tp + 4 * (t_batched ? bs[l] * H + hs[l] : hs[l]) : nullptr;
+          for (int j = 0; j < 4; ++j) TG[j][l] = src ? src[j] : T(0);
+        }
+        theta_tile<T, W>(X, TH);
+        halves_tile<T, W>(X, hA, hB);
+        grad_of_halves<T, W>(hA, hB, G);
+        if (vp) dot_tile<T, W>(G, Vd, U); else TB_LANES(W) U[l] = T(0);
+        TB_LANES_AGG(W) {
+          T d1, zt, z4[4], dgl;
+          psi_second_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], U[l], TG[0][l], TG[1][l],
+                                TG[2][l], TG[3][l], d1, zt, z4, dgl);
+          T wl = Q.w[l];
+          S1[l] = wl * d1; S2[l] = wl * zt;
+          Z[0][l] = wl * z4[0]; Z[1][l] = wl * z4[1]; Z[2][l] = wl * z4[2]; Z[3][l] = wl * z4[3];
+          DG[l] = dgl;
+        }
+        hvp_of_halves<T, W>(hA, hB, Vd, G, S1, S2, vp != nullptr, O);
+        store_rows<T>(O, nl, bp + 12 * bh0);
+        for (int l = 0; l < nl; ++l) {
+          for (int j = 0; j < 4; ++j) dpp[4 * (bh0 + l) + j] = Z[j][l];
+          dgp[bh0 + l] = DG[l];
+          to[bh0 + l] = TH[l];
+        }
+      });
+    });
+    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, dx.data_ptr<T>());
+  });
+  return {dx, dp, dg, theta};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -461,4 +622,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_energy", &bending_energy, "per-hinge energies and angles");
   m.def("bending_gradient", &bending_gradient, "weighted gradient in positions and per-hinge parameter gradients");
   m.def("bending_hvp", &bending_hvp, "weighted Hessian-vector product in positions");
+  m.def("bending_second_order", &bending_second_order,
+        "the general double backward: position and parameter directions, per-hinge weight");
 }

@@ -71,9 +71,49 @@ __global__ void hvp_kernel(const T* x, const T* vd, const int64_t* hinges, int64
   T wi = w(b, h);
   d1 *= wi; d2 *= wi;
   theta[bh] = th;
-  Blocks<T, 1> blk;
-  hvp_tile<T, 1>(X, Vd, &d1, &d2, blk, O);
+  // psi' H_theta v + psi'' (g . v) g in closed form (torchbend.ops.hinge), no 12x12 block
+  Half<T, 1> hA, hB;
+  T G[12][1], u;
+  halves_tile<T, 1>(X, hA, hB);
+  grad_of_halves<T, 1>(hA, hB, G);
+  dot_tile<T, 1>(G, Vd, &u);
+  u *= d2;
+  hvp_of_halves<T, 1>(hA, hB, Vd, G, &d1, &u, true, O);
   T* out = hv + 3 * V * b;
+  for (int v = 0; v < 4; ++v)
+    for (int m = 0; m < 3; ++m) atomicAdd(out + 3 * st[v] + m, O[3 * v + m][0]);
+}
+
+template <typename T>
+__global__ void second_order_kernel(const T* x, const T* vd, const T* tg, bool t_batched, const int64_t* hinges,
+                                    int64_t B, int64_t V, int64_t H, HingeArgs<T> args, Param<T> w, T* dx, T* dp,
+                                    T* dg, T* theta) {
+  int64_t bh = thread_index();
+  if (bh >= B * H) return;
+  int64_t b = bh / H, h = bh - b * H;
+  const int64_t* st = hinges + 4 * h;
+  T X[12][1], Vd[12][1], G[12][1], O[12][1], t4[4] = {T(0), T(0), T(0), T(0)}, u = T(0);
+  load_hinge<T, 1>(x + 3 * V * b, st, X, 0);
+  if (tg) {
+    const T* src = tg + 4 * (t_batched ? bh : h);
+    for (int j = 0; j < 4; ++j) t4[j] = src[j];
+  }
+  T th = hinge_theta<T, 1>(X, 0);
+  Half<T, 1> hA, hB;
+  halves_tile<T, 1>(X, hA, hB);
+  grad_of_halves<T, 1>(hA, hB, G);
+  if (vd) {
+    load_hinge<T, 1>(vd + 3 * V * b, st, Vd, 0);
+    dot_tile<T, 1>(G, Vd, &u);
+  }
+  T d1, zt, z4[4], g;
+  psi_second<T>(args, b, h, th, u, t4, d1, zt, z4, g);
+  T wi = w(b, h), s1 = wi * d1, s2 = wi * zt;
+  hvp_of_halves<T, 1>(hA, hB, Vd, G, &s1, &s2, vd != nullptr, O);
+  for (int j = 0; j < 4; ++j) dp[4 * bh + j] = wi * z4[j];
+  dg[bh] = g;
+  theta[bh] = th;
+  T* out = dx + 3 * V * b;
   for (int v = 0; v < 4; ++v)
     for (int m = 0; m < 3; ++m) atomicAdd(out + 3 * st[v] + m, O[3 * v + m][0]);
 }
@@ -124,6 +164,17 @@ template <typename T> int hvp(const void* x, const void* v, const int64_t* hinge
   return int(cudaGetLastError());
 }
 
+template <typename T> int second_order(const void* x, const void* v, const void* t, int64_t t_rows,
+                                       const int64_t* hinges, int64_t B, int64_t V, int64_t H, const tb_hinge_args& a,
+                                       tb_param w, void* dx, void* dp, void* dg, void* theta, cudaStream_t s) {
+  if (B * H == 0) return 0;
+  second_order_kernel<T><<<grid(B * H), kThreads, 0, s>>>(
+      static_cast<const T*>(x), static_cast<const T*>(v), static_cast<const T*>(t), t_rows != H, hinges, B, V, H,
+      hinge_args<T>(a, H), param<T>(w, H), static_cast<T*>(dx), static_cast<T*>(dp), static_cast<T*>(dg),
+      static_cast<T*>(theta));
+  return int(cudaGetLastError());
+}
+
 template <typename T> int hessians(const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                                    const tb_hinge_args& a, void* blocks, void* grads, void* d2, void* theta,
                                    cudaStream_t s) {
@@ -135,7 +186,8 @@ template <typename T> int hessians(const void* x, const int64_t* hinges, int64_t
 }
 
 const char* const kKernels[] = {"energy_f32", "energy_f64", "gradient_f32", "gradient_f64",
-                                "hvp_f32", "hvp_f64", "hinge_hessians_f32", "hinge_hessians_f64"};
+                                "hvp_f32", "hvp_f64", "hinge_hessians_f32", "hinge_hessians_f64",
+                                "second_order_f32", "second_order_f64"};
 
 }  // namespace
 
@@ -160,6 +212,14 @@ int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, 
   auto s = static_cast<cudaStream_t>(stream);
   return dtype ? hvp<double>(x, v, hinges, B, V, H, args, weight, hv, theta, s)
                : hvp<float>(x, v, hinges, B, V, H, args, weight, hv, theta, s);
+}
+
+int tb_cuda_second_order(int dtype, const void* x, const void* v, const void* t, int64_t t_rows,
+                         const int64_t* hinges, int64_t B, int64_t V, int64_t H, tb_hinge_args args, tb_param weight,
+                         void* dx, void* dp, void* dg, void* theta, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? second_order<double>(x, v, t, t_rows, hinges, B, V, H, args, weight, dx, dp, dg, theta, s)
+               : second_order<float>(x, v, t, t_rows, hinges, B, V, H, args, weight, dx, dp, dg, theta, s);
 }
 
 int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,

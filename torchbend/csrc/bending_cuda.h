@@ -19,6 +19,11 @@ int tb_cuda_gradient(int dtype, const void* x, const int64_t* hinges, int64_t B,
                      tb_hinge_args args, tb_param weight, void* gx, void* gp, void* theta, void* stream);
 int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                 tb_hinge_args args, tb_param weight, void* hv, void* theta, void* stream);
+// the general double backward (torchbend.backends.native.bending_second_order): v (B, V, 3) or null, t
+// (t_rows, 4) with t_rows H or B * H, or null; dx (zeroed by the caller), dp (B, H, 4), dg (B, H), theta (B, H)
+int tb_cuda_second_order(int dtype, const void* x, const void* v, const void* t, int64_t t_rows,
+                         const int64_t* hinges, int64_t B, int64_t V, int64_t H, tb_hinge_args args, tb_param weight,
+                         void* dx, void* dp, void* dg, void* theta, void* stream);
 int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                            tb_hinge_args args, void* blocks, void* grads, void* d2, void* theta, void* stream);
 const char* tb_cuda_error_string(int code);

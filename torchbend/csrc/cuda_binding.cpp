@@ -111,6 +111,35 @@ std::tuple<torch::Tensor, torch::Tensor> hvp(torch::Tensor x, torch::Tensor v, t
   return {hv, theta};
 }
 
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> second_order(
+    torch::Tensor x, c10::optional<torch::Tensor> v, c10::optional<torch::Tensor> t, torch::Tensor hinges,
+    torch::Tensor a, torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
+    c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  torch::Tensor vc, tc;
+  if (v.has_value()) {
+    TORCH_CHECK(v->sizes() == x.sizes() && v->scalar_type() == x.scalar_type() && v->device() == x.device(),
+                "v must have x's shape, dtype and device");
+    vc = v->contiguous();
+  }
+  if (t.has_value()) {
+    tc = t->to(r.x.scalar_type()).contiguous();
+    TORCH_CHECK(tc.device() == x.device() && tc.dim() >= 2 && tc.size(-1) == 4 &&
+                (tc.numel() == 4 * r.H || tc.numel() == 4 * r.B * r.H),
+                "t must be a (..., H, 4) tensor on x's device with H or B*H rows");
+  }
+  auto w = weight_of(weight, r);
+  auto dx = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
+  auto dp = torch::empty(with(r.batch, {r.H, 4}), r.x.options());
+  auto dg = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(dg);
+  check(tb_cuda_second_order(dtype_code(r.x), r.x.data_ptr(), vc.defined() ? vc.data_ptr() : nullptr,
+                             tc.defined() ? tc.data_ptr() : nullptr, tc.defined() ? tc.numel() / 4 : 0,
+                             r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args, tparam(w), dx.data_ptr(),
+                             dp.data_ptr(), dg.data_ptr(), theta.data_ptr(), as_stream(stream)), "second_order");
+  return {dx, dp, dg, theta};
+}
+
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> hinge_hessians(
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, int64_t stream) {
@@ -138,5 +167,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_gradient", &gradient, "weighted gradient and per-hinge parameter gradients (CUDA)");
   m.def("bending_hvp", &hvp, "weighted Hessian-vector product (CUDA)");
   m.def("bending_hessians", &hinge_hessians, "per-hinge 12x12 blocks, angle gradients, psi'', theta (CUDA)");
+  m.def("bending_second_order", &second_order,
+        "the general double backward: position and parameter directions, per-hinge weight (CUDA)");
   m.def("kernels", &kernels, "the names of the CUDA kernels in this build");
 }

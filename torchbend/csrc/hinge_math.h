@@ -63,6 +63,107 @@ TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
 
+// ---- vectorizable sin/cos and atan2 (the CPU lane loops) -------------------------------------
+// The C library's sin, cos and atan2 are calls that no lane loop vectorizes, and in the energy and
+// gradient kernels they cost more than all the geometry.  tb_sincos and tb_atan2v are branch-free
+// (selects only), so that GCC vectorizes them across the lanes of a tile; on the GPU they are the
+// CUDA library's functions.  Double: fdlibm's kernels (__kernel_sin / __kernel_cos on [-pi/4, pi/4]
+// with a two-part Cody-Waite reduction by pi/2; atan's polynomial on |t| < 7/16 with the reductions
+// about 1/2 and 1, the division's rounding error carried, hi/lo constants per octant): max 0.77 ulp (sin,
+// cos) and 0.79 ulp (atan2) over 2e7 random arguments against long double.  Float: the double evaluation
+// rounded once (correctly rounded but for the double rounding).
+// tb_sincos: |x| < 2^19 (the kernels take half-angles; beyond it the reduction loses accuracy, and inf
+// or NaN give NaN).  tb_atan2v: IEEE's signed zeros and quadrants (atan2(+-0, -0) = +-pi), NaN in ->
+// NaN out; infinite arguments are not supported (the kernels' are finite).
+#if defined(__CUDACC__)
+TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) { sincosf(x, &s, &c); }
+TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { sincos(x, &s, &c); }
+TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return atan2f(y, x); }
+TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) { return atan2(y, x); }
+TB_HD static TB_FORCEINLINE float tb_floorv(float v) { return floorf(v); }
+TB_HD static TB_FORCEINLINE double tb_floorv(double v) { return floor(v); }
+TB_HD static TB_FORCEINLINE float tb_ceilv(float v) { return ceilf(v); }
+TB_HD static TB_FORCEINLINE double tb_ceilv(double v) { return ceil(v); }
+#else
+static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
+  const double two_over_pi = 6.36619772367581382433e-01;
+  const double pio2_1 = 1.57079632673412561417e+00;   // first 33 bits of pi/2 (q * pio2_1 exact)
+  const double pio2_1t = 6.07710050650619224932e-11;  // pi/2 - pio2_1
+  double q = __builtin_rint(x * two_over_pi);
+  double r = x - q * pio2_1, w = q * pio2_1t;
+  double y0 = r - w, y1 = (r - y0) - w;  // x - q pi/2 = y0 + y1
+  double z = y0 * y0, v = z * y0;
+  // __kernel_sin(y0, y1)
+  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
+              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
+  double ks = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01);
+  // __kernel_cos(y0, y1)
+  double zz = z * z;
+  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
+              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
+  double hz = 0.5 * z, w1 = 1.0 - hz;
+  double kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
+  // quadrant n = q mod 4: (sin, cos) = (ks, kc), (kc, -ks), (-ks, -kc), (-kc, ks)
+  int n = int(q) & 3;
+  bool odd = (n & 1) != 0;
+  double ss = odd ? kc : ks, cc = odd ? ks : kc;
+  s = n >= 2 ? -ss : ss;
+  c = (n == 1 || n == 2) ? -cc : cc;
+}
+
+static TB_FORCEINLINE double tb_atan2v(double y, double x) {
+  double ax = __builtin_fabs(x), ay = __builtin_fabs(y);
+  bool swap = ay > ax;  // atan2 = pi/2 - atan(ax / ay)
+  double num = swap ? ax : ay, den = swap ? ay : ax;
+  den = den == 0.0 ? 1.0 : den;  // atan2(+-0, +-0): z = 0
+  // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (z < 7/16),
+  // (2z - 1) / (2 + z) about A = atan(1/2) (z < 11/16), (z - 1) / (z + 1) about A = atan(1) (else)
+  bool r0 = 16.0 * num < 7.0 * den, r1 = !r0 && 16.0 * num < 11.0 * den;
+  double tn = r0 ? num : (r1 ? 2.0 * num - den : num - den);
+  double td = r0 ? den : (r1 ? 2.0 * den + num : num + den);
+  double t = tn / td;
+  double tl = __builtin_fma(-t, td, tn) / td;  // the division's rounding error: t + tl = tn / td
+  double z = t * t, w = z * z;
+  double s1 = z * (3.33333333333329318027e-01 + w * (1.42857142725034663711e-01 + w * (9.09088713343650656196e-02 +
+              w * (6.66107313738753120669e-02 + w * (4.97687799461593236017e-02 + w * 1.62858201153657823623e-02)))));
+  double s2 = w * (-1.99999999998764832476e-01 + w * (-1.11111104054623557880e-01 + w * (-7.69187620504482999495e-02 +
+              w * (-5.83357013379057348645e-02 + w * -3.65315727442169155270e-02))));
+  double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
+  // atan2(|y|, x) = K + sg atan(t + tl): K = A (sg = 1), pi/2 - A (swapped, sg = -1), pi - A (x < 0,
+  // sg = -1), pi/2 + A (both, sg = 1), each as hi + lo; x < 0 by its sign bit (atan2(+-0, -0) = +-pi)
+  bool xneg = __builtin_copysign(1.0, x) < 0.0;  // (x = -0, y != 0: swapped with t = 0, pi/2 either way)
+  // the constants by range as exact blends m0 c0 + m1 c1 + m2 c2 (one m is 1, the others 0): nested
+  // selects of constants become branches that GCC does not if-convert
+  double m0 = r0 ? 1.0 : 0.0, m1 = r1 ? 1.0 : 0.0, m2 = 1.0 - m0 - m1;
+  double k0h = m1 * 0.4636476090008061 + m2 * 0.7853981633974483;  // A
+  double k0l = m1 * 2.2698777452961687e-17 + m2 * 3.061616997868383e-17;
+  double k1h = m0 * 1.5707963267948966 + m1 * 1.1071487177940904 + m2 * 0.7853981633974483;  // pi/2 - A
+  double k1l = m0 * 6.123233995736766e-17 + m1 * 9.40447137356638e-17 + m2 * 3.061616997868383e-17;
+  double k2h = m0 * 3.141592653589793 + m1 * 2.677945044588987 + m2 * 2.356194490192345;  // pi - A
+  double k2l = m0 * 1.2246467991473532e-16 + m1 * 1.5527705369303147e-16 + m2 * 9.184850993605148e-17;
+  double k3h = m0 * 1.5707963267948966 + m1 * 2.0344439357957027 + m2 * 2.356194490192345;  // pi/2 + A
+  double k3l = m0 * 6.123233995736766e-17 + m1 * 2.841996617907152e-17 + m2 * 9.184850993605148e-17;
+  double khi = xneg ? (swap ? k3h : k2h) : (swap ? k1h : k0h);
+  double klo = xneg ? (swap ? k3l : k2l) : (swap ? k1l : k0l);
+  double sg = swap != xneg ? -1.0 : 1.0;
+  double res = khi + (sg * t + (sg * corr + klo));
+  return __builtin_copysign(res, y);
+}
+
+// floor and ceil from rint (exact for finite values): GCC vectorizes rint but not floor/ceil here
+static TB_FORCEINLINE double tb_floorv(double v) { double r = __builtin_rint(v); return r > v ? r - 1.0 : r; }
+static TB_FORCEINLINE double tb_ceilv(double v) { double r = __builtin_rint(v); return r < v ? r + 1.0 : r; }
+static TB_FORCEINLINE float tb_floorv(float v) { float r = __builtin_rintf(v); return r > v ? r - 1.0f : r; }
+static TB_FORCEINLINE float tb_ceilv(float v) { float r = __builtin_rintf(v); return r < v ? r + 1.0f : r; }
+
+static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) {
+  double sd, cd;
+  tb_sincos(double(x), sd, cd);
+  s = float(sd); c = float(cd);
+}
+static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
+#endif
+
 template <typename T> TB_HD static inline void cross(const T* u, const T* v, T* o) {
   o[0] = u[1] * v[2] - u[2] * v[1]; o[1] = u[2] * v[0] - u[0] * v[2]; o[2] = u[0] * v[1] - u[1] * v[0];
 }
@@ -154,21 +255,43 @@ template <typename T, int W> TB_HD static inline void halves_tile(const T (*X)[W
 // phi(theta') - phi(ref) and phi', phi'' at theta' (torchbend.ops.psi.phi_difference): model 0 quadratic,
 // 1 tan, 2 sin.  theta' = ref + wrap(theta - ref) (wrap into (-pi, pi]) for quadratic and sin, theta for tan;
 // the difference is written without cancellation (2 sin((t-r)/2) / (cos(t/2) cos(r/2)) for tan,
-// 4 cos((t+r)/4) sin((t-r)/4) for sin).
-template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {
+// 4 cos((t+r)/4) sin((t-r)/4) for sin).  Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.
+template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
   const T pi = T(3.14159265358979323846), two_pi = T(6.28318530717958647692);
   T delta = t - ref;
-  if (model == 1) {
-    T h = T(0.5) * t, ct = tb_cos(h), u = tb_sin(h) / ct, s2 = T(1) + u * u;
-    d = T(2) * tb_sin(T(0.5) * delta) / (ct * tb_cos(T(0.5) * ref)); f1 = s2; f2 = s2 * u;
+  if (M == 1) {
+    T sh, ch, sd, cd, sr, cr;
+    tb_sincos(T(0.5) * t, sh, ch);
+    tb_sincos(T(0.5) * delta, sd, cd);
+    tb_sincos(T(0.5) * ref, sr, cr);
+    T u = sh / ch, s2 = T(1) + u * u;
+    d = T(2) * sd / (ch * cr); f1 = s2; f2 = s2 * u;
     return;
   }
-  T turns = tb_ceil((delta - pi) / two_pi);  // theta' = theta - 2 pi turns
+  T turns = tb_ceilv((delta - pi) / two_pi);  // theta' = theta - 2 pi turns
   T dw = turns != T(0) ? delta - two_pi * turns : delta;
-  if (model == 0) { d = dw; f1 = T(1); f2 = T(0); return; }
-  T sign = T(1) - T(2) * (turns - T(2) * tb_floor(T(0.5) * turns));  // (-1)^turns
-  T h = T(0.5) * t, q = T(0.25) * dw;
-  d = T(4) * tb_cos(T(0.5) * ref + q) * tb_sin(q); f1 = sign * tb_cos(h); f2 = T(-0.5) * sign * tb_sin(h);
+  if (M == 0) { d = dw; f1 = T(1); f2 = T(0); return; }
+  T sign = T(1) - T(2) * (turns - T(2) * tb_floorv(T(0.5) * turns));  // (-1)^turns
+  T q = T(0.25) * dw, sq, cq, sa, ca, sh, ch;
+  tb_sincos(q, sq, cq);
+  tb_sincos(T(0.5) * ref + q, sa, ca);
+  tb_sincos(T(0.5) * t, sh, ch);
+  d = T(4) * ca * sq; f1 = sign * ch; f2 = T(-0.5) * sign * sh;
+}
+
+template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {
+  if (model == 0) phi_diff<0>(t, ref, d, f1, f2);
+  else if (model == 1) phi_diff<1>(t, ref, d, f1, f2);
+  else phi_diff<2>(t, ref, d, f1, f2);
+}
+
+// phi' and phi'' of the model at a reference angle r (the parameter derivatives need them)
+template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_ref(T r, T& p1, T& p2) {
+  if (M == 0) { p1 = T(1); p2 = T(0); return; }
+  T s, c;
+  tb_sincos(T(0.5) * r, s, c);
+  if (M == 1) { T u = s / c; p1 = T(1) + u * u; p2 = p1 * u; return; }
+  p1 = c; p2 = T(-0.5) * s;
 }
 
 // a per-hinge parameter given as a scalar (n == 1), one per hinge (n == H) or one per sample and hinge
@@ -199,7 +322,7 @@ TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, 
   cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
   T elen = tb_sqrt(dot(e, e));
   T inv = elen > T(0) ? T(1) / elen : T(0);
-  theta = tb_atan2(dot(e, NN) * inv, dot(NA, NB));
+  theta = tb_atan2v(dot(e, NN) * inv, dot(NA, NB));
   T dr, f1, f2;
   phi_difference(model, theta, rest, dr, f1, f2);
   T kd = k * dr, s = kd, h2 = k * f1 * f1 + kd * f2;

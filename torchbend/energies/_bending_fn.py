@@ -270,20 +270,12 @@ _FUNCTIONS = {m: _make(m) for m in BendingModel}
 
 def _kernel_second_order(model: BendingModel, saved: tuple, ggx, ggp):
     """The general double backward of the kernel path (cotangents of ``gx`` and of the parameter gradients
-    ``gp``): ``(dx, [d k, d rest, d c, d prev] per hinge, d gE per hinge)``."""
+    ``gp``) in one compiled pass: ``(dx, [d k, d rest(, d c, d prev)] per hinge, d gE per hinge)``."""
     gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
-    damped = c is not None and prev is not None
-    second = getattr(kernels.module(x), "bending_second_order", None)
-    if second is not None:
-        dx, dp, dg = second(x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
-                            _hinge_weight(gE, seg, hinges.shape[0]), (ptr, idx))
-        n = 4 if damped else 2
-        return dx, [dp[..., j] for j in range(n)], dg
-    # no compiled kernel for it: the eager closed form over the (expanded) parameters
-    params = HingeParams(a, k, rest, c, prev).expanded(x.shape[:-2])
-    t = () if ggp is None else tuple(ggp[..., j] for j in range(len(params)))
-    dx, dps, dg = _second_order(model, (gE, x, hinges, seg, a, *params), None, ggx, t)
-    return dx, dps, dg
+    dx, dp, dg = torch.ops.torchbend.bending_second_order(x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
+                                                          _hinge_weight(gE, seg, hinges.shape[0]), ptr, idx)
+    n = 4 if c is not None and prev is not None else 2
+    return dx, [dp[..., j] for j in range(n)], dg
 
 
 def _sum_to(g: Tensor, p: Tensor) -> Tensor:
