@@ -78,6 +78,114 @@ def _package_data() -> list[str]:
     return sorted(out)
 
 
+_local = threading.local()
+
+
+class _BuildMixin:
+    """Mixed into torch's BuildExtension (ninja, torch's flags) by :func:`_extensions_and_cmdclass`: nvcc for
+    the CUDA driver (started first, so that it runs while the CPU extension compiles), both extensions
+    compiled in parallel (each in its own build folder: torch writes one build.ninja per folder), the build
+    info compiled into each module, and optional extensions whose failure is a warning."""
+
+    nvcc: str | None = None
+    csrc: str = ""
+    torch_version: str = ""
+
+    @property
+    def build_temp(self) -> str:  # per extension while the parallel builds run
+        return getattr(_local, "build_temp", None) or self._build_temp
+
+    @build_temp.setter
+    def build_temp(self, value: str) -> None:
+        self._build_temp = value
+
+    def build_extensions(self) -> None:
+        self._nvcc: tuple[subprocess.Popen, str, list[str], float] | None = None
+        self._nvcc_error: str | None = None
+        try:  # torch's own first step (runs the C++ compiler): without a working compiler nothing builds
+            self._check_abi()
+        except Exception as e:
+            if any(not ext.optional for ext in self.extensions):
+                raise
+            _say(f"WARNING: no working C++ compiler ({type(e).__name__}: {str(e)[-500:]}): the package installs "
+                 "without its compiled kernels and runs its eager PyTorch path (or compiles them on first use "
+                 "where a compiler appears)")
+            self.extensions = []
+            return
+        if any(e.name == "torchbend._cuda" for e in self.extensions):
+            try:
+                self._start_nvcc()
+            except Exception as e:
+                self._nvcc_error = f"{type(e).__name__}: {e}"
+        if self.use_ninja and len(self.extensions) > 1:  # the non-ninja compile patches shared compiler state
+            self.parallel = len(self.extensions)
+        t0 = time.perf_counter()
+        super().build_extensions()
+        _say(f"extensions built in {time.perf_counter() - t0:.1f} s")
+
+    def _start_nvcc(self) -> None:
+        nvcc = self.nvcc
+        assert nvcc is not None
+        os.makedirs(self.build_temp, exist_ok=True)
+        obj = os.path.abspath(os.path.join(self.build_temp, "bending_cuda.o"))
+        archs = cfg.cuda_archs()
+        cmd = [nvcc, "-c", *cfg.NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=True), "-I", self.csrc,
+               os.path.join(self.csrc, cfg.CUDA_SOURCES[0]), "-o", obj]
+        _say(" ".join(cmd))
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._nvcc = (proc, obj, archs, time.perf_counter())
+
+    def _finish_nvcc(self, ext) -> dict:
+        if self._nvcc is None:
+            raise RuntimeError(self._nvcc_error or "nvcc did not start")
+        proc, obj, archs, t0 = self._nvcc
+        out, _ = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"nvcc failed ({proc.returncode}):\n{out[-3000:]}")
+        _say(f"nvcc: {time.perf_counter() - t0:.1f} s")
+        nvcc = self.nvcc
+        assert nvcc is not None
+        lib = cfg.cudart_dir(nvcc)
+        ext.extra_objects = [*ext.extra_objects, obj]
+        ext.library_dirs = [*ext.library_dirs, lib]
+        ext.libraries = [*ext.libraries, "cudart"]
+        ext.extra_link_args = [*ext.extra_link_args, f"-Wl,-rpath,{lib}"]
+        return {"archs": archs, "ptx": True, "nvcc_flags": list(cfg.NVCC_FLAGS), "nvcc": nvcc,
+                "source_hash": cfg.cuda_source_hash(self.csrc)}
+
+    def _add_info(self, ext, info: dict) -> None:
+        short = ext.name.rsplit(".", 1)[-1].lstrip("_")
+        info = {**info, "module": ext.name, "torch": self.torch_version,
+                "cflags": list(ext.extra_compile_args if isinstance(ext.extra_compile_args, list) else [])}
+        os.makedirs(self.build_temp, exist_ok=True)
+        path = os.path.join(self.build_temp, f"torchbend_{short}_build_info.cpp")
+        with open(path, "w") as fh:
+            fh.write(cfg.info_source(f"torchbend_{short}_build_info", info))
+        if path not in ext.sources:
+            ext.sources = [*ext.sources, path]
+
+    def build_extension(self, ext) -> None:
+        required = not ext.optional
+        t0 = time.perf_counter()
+        _local.build_temp = os.path.join(self._build_temp, ext.name.rsplit(".", 1)[-1])
+        try:
+            if ext.name == "torchbend._cuda":
+                info = self._finish_nvcc(ext)
+            else:
+                info = {"source_hash": cfg.native_source_hash(self.csrc)}
+            self._add_info(ext, info)
+            super().build_extension(ext)
+        except Exception as e:
+            if required:
+                raise
+            _say(f"WARNING: could not build {ext.name} ({type(e).__name__}: {str(e)[-2000:]}); the package "
+                 "installs without it and compiles the kernels on first use, or runs its eager path")
+            return
+        finally:
+            _local.build_temp = None
+        _say(f"built {ext.name} in {time.perf_counter() - t0:.1f} s")
+
+
 def _extensions_and_cmdclass() -> tuple[list, dict]:
     native_mode, cuda_mode = _mode("TORCHBEND_BUILD_NATIVE"), _mode("TORCHBEND_BUILD_CUDA")
     if native_mode == "off" and cuda_mode == "off":
@@ -113,107 +221,9 @@ def _extensions_and_cmdclass() -> tuple[list, dict]:
                 "torchbend._cuda", [os.path.join(CSRC_REL, cfg.CUDA_BINDING)], include_dirs=[csrc],
                 extra_compile_args=[*COMMON_CFLAGS, "-O2"], optional=cuda_mode != "required"))
 
-    local = threading.local()
-
-    class BuildTorchbend(BuildExtension):
-        """torch's BuildExtension (ninja, torch's flags) plus: nvcc for the CUDA driver (started first, so that it
-        runs while the CPU extension compiles), both extensions compiled in parallel (each in its own build
-        folder: torch writes one build.ninja per folder), the build info compiled into each module, and
-        optional extensions whose failure is a warning."""
-
-        @property
-        def build_temp(self) -> str:  # per extension while the parallel builds run
-            return getattr(local, "build_temp", None) or self._build_temp
-
-        @build_temp.setter
-        def build_temp(self, value: str) -> None:
-            self._build_temp = value
-
-        def build_extensions(self) -> None:
-            self._nvcc: tuple[subprocess.Popen, str, list[str], float] | None = None
-            self._nvcc_error: str | None = None
-            try:  # torch's own first step (runs the C++ compiler): without a working compiler nothing builds
-                self._check_abi()
-            except Exception as e:
-                if any(not ext.optional for ext in self.extensions):
-                    raise
-                _say(f"WARNING: no working C++ compiler ({type(e).__name__}: {str(e)[-500:]}): the package installs "
-                     "without its compiled kernels and runs its eager PyTorch path (or compiles them on first use "
-                     "where a compiler appears)")
-                self.extensions = []
-                return
-            if any(e.name == "torchbend._cuda" for e in self.extensions):
-                try:
-                    self._start_nvcc()
-                except Exception as e:
-                    self._nvcc_error = f"{type(e).__name__}: {e}"
-            if self.use_ninja and len(self.extensions) > 1:  # the non-ninja compile patches shared compiler state
-                self.parallel = len(self.extensions)
-            t0 = time.perf_counter()
-            super().build_extensions()
-            _say(f"extensions built in {time.perf_counter() - t0:.1f} s")
-
-        def _start_nvcc(self) -> None:
-            assert nvcc is not None
-            os.makedirs(self.build_temp, exist_ok=True)
-            obj = os.path.abspath(os.path.join(self.build_temp, "bending_cuda.o"))
-            archs = cfg.cuda_archs()
-            cmd = [nvcc, "-c", *cfg.NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=True), "-I", csrc,
-                   os.path.join(csrc, cfg.CUDA_SOURCES[0]), "-o", obj]
-            _say(" ".join(cmd))
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            self._nvcc = (proc, obj, archs, time.perf_counter())
-
-        def _finish_nvcc(self, ext) -> dict:
-            if self._nvcc is None:
-                raise RuntimeError(self._nvcc_error or "nvcc did not start")
-            proc, obj, archs, t0 = self._nvcc
-            out, _ = proc.communicate()
-            if proc.returncode != 0:
-                raise RuntimeError(f"nvcc failed ({proc.returncode}):\n{out[-3000:]}")
-            _say(f"nvcc: {time.perf_counter() - t0:.1f} s")
-            assert nvcc is not None
-            lib = cfg.cudart_dir(nvcc)
-            ext.extra_objects = [*ext.extra_objects, obj]
-            ext.library_dirs = [*ext.library_dirs, lib]
-            ext.libraries = [*ext.libraries, "cudart"]
-            ext.extra_link_args = [*ext.extra_link_args, f"-Wl,-rpath,{lib}"]
-            return {"archs": archs, "ptx": True, "nvcc_flags": list(cfg.NVCC_FLAGS), "nvcc": nvcc,
-                    "source_hash": cfg.cuda_source_hash(csrc)}
-
-        def _add_info(self, ext, info: dict) -> None:
-            short = ext.name.rsplit(".", 1)[-1].lstrip("_")
-            info = {**info, "module": ext.name, "torch": torch.__version__,
-                    "cflags": list(ext.extra_compile_args if isinstance(ext.extra_compile_args, list) else [])}
-            os.makedirs(self.build_temp, exist_ok=True)
-            path = os.path.join(self.build_temp, f"torchbend_{short}_build_info.cpp")
-            with open(path, "w") as fh:
-                fh.write(cfg.info_source(f"torchbend_{short}_build_info", info))
-            if path not in ext.sources:
-                ext.sources = [*ext.sources, path]
-
-        def build_extension(self, ext) -> None:
-            required = not ext.optional
-            t0 = time.perf_counter()
-            local.build_temp = os.path.join(self._build_temp, ext.name.rsplit(".", 1)[-1])
-            try:
-                if ext.name == "torchbend._cuda":
-                    info = self._finish_nvcc(ext)
-                else:
-                    info = {"source_hash": cfg.native_source_hash(csrc)}
-                self._add_info(ext, info)
-                super().build_extension(ext)
-            except Exception as e:
-                if required:
-                    raise
-                _say(f"WARNING: could not build {ext.name} ({type(e).__name__}: {str(e)[-2000:]}); the package "
-                     "installs without it and compiles the kernels on first use, or runs its eager path")
-                return
-            finally:
-                local.build_temp = None
-            _say(f"built {ext.name} in {time.perf_counter() - t0:.1f} s")
-
-    return exts, {"build_ext": BuildTorchbend}
+    cmd = type("BuildTorchbend", (_BuildMixin, BuildExtension),
+               {"nvcc": nvcc, "csrc": csrc, "torch_version": torch.__version__})
+    return exts, {"build_ext": cmd}
 
 
 ext_modules, cmdclass = _extensions_and_cmdclass()

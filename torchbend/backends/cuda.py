@@ -49,7 +49,7 @@ KERNELS = ("energy", "gradient", "hvp", "hinge_hessians")
 PREBUILT = "torchbend._cuda"
 """The module ``setup.py`` builds at install time."""
 
-_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None}
+_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
 
 
 def _nvcc() -> str | None:
@@ -76,22 +76,22 @@ def extension_name(archs: list[str]) -> str:
     return f"torchbend_cuda_{digest.hexdigest()[:12]}"
 
 
-def _load_prebuilt() -> tuple[Any, str]:
-    """``(torchbend._cuda, "")`` if it is installed, current and runs on the visible GPU (if any), else
-    ``(None, why not)``."""
+def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
+    """``(torchbend._cuda, "", found)`` if it is installed, current and runs on the visible GPU (if any), else
+    ``(None, why not, found)``; ``found``: the installed module's path and build info, if any."""
     path, info, why = cfg.find_prebuilt(PREBUILT, cfg.cuda_source_hash(), torch.__version__)
-    _INFO.update(path=path, build=info)
+    found = {"path": path, "build": info}
     if why:
-        return None, why
+        return None, why, found
     assert info is not None
     if torch.cuda.is_available():
         cap = torch.cuda.get_device_capability()
         if not cfg.arch_compatible(list(info.get("archs", [])), bool(info.get("ptx")), cap):
-            return None, f"built for sm_{info.get('archs')} (ptx: {info.get('ptx')}), the GPU is sm_{cap[0]}{cap[1]}"
+            return None, f"built for sm_{info.get('archs')} (ptx: {info.get('ptx')}), the GPU is sm_{cap[0]}{cap[1]}", found
     try:
-        return importlib.import_module(PREBUILT), ""
+        return importlib.import_module(PREBUILT), "", found
     except Exception as e:  # cudart missing, an ABI mismatch, ...
-        return None, f"import failed: {type(e).__name__}: {e}"
+        return None, f"import failed: {type(e).__name__}: {e}", found
 
 
 def _jit_build() -> Any:
@@ -122,8 +122,8 @@ def _build() -> tuple[Any, str | None]:
     """``(module, None)`` or ``(None, reason)``, once per process: the installed module if current, else
     the JIT build."""
     t0 = time.perf_counter()
-    module, why = _load_prebuilt()
-    _INFO["prebuilt"] = why or "used"
+    module, why, found = _load_prebuilt()
+    _INFO.update(found, prebuilt=why or "used")
     if module is not None:
         _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
         return module, None

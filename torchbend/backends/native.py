@@ -48,7 +48,7 @@ CFLAGS = cfg.NATIVE_CFLAGS
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
 
-_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None}
+_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
 
 
 def extension_name() -> str:
@@ -57,18 +57,19 @@ def extension_name() -> str:
     return f"torchbend_native_{cfg.native_source_hash()[:12]}"
 
 
-def _load_prebuilt() -> tuple[Any, str]:
-    """``(torchbend._native, "")`` if it is installed and current, else ``(None, why not)``."""
+def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
+    """``(torchbend._native, "", found)`` if it is installed and current, else ``(None, why not, found)``;
+    ``found``: the installed module's path and build info, if any."""
     import torch
 
     path, info, why = cfg.find_prebuilt(PREBUILT, cfg.native_source_hash(), torch.__version__)
-    _INFO.update(path=path, build=info)
+    found = {"path": path, "build": info}
     if why:
-        return None, why
+        return None, why, found
     try:
-        return importlib.import_module(PREBUILT), ""
+        return importlib.import_module(PREBUILT), "", found
     except Exception as e:  # an ABI mismatch, a missing library, ...
-        return None, f"import failed: {type(e).__name__}: {e}"
+        return None, f"import failed: {type(e).__name__}: {e}", found
 
 
 @functools.lru_cache(maxsize=1)
@@ -76,8 +77,8 @@ def _build() -> tuple[Any, str | None]:
     """``(module, None)`` or ``(None, reason)``; once per process: the installed module if current, else
     the JIT build (cached on disk by torch)."""
     t0 = time.perf_counter()
-    module, why = _load_prebuilt()
-    _INFO["prebuilt"] = why or "used"
+    module, why, found = _load_prebuilt()
+    _INFO.update(found, prebuilt=why or "used")
     if module is not None:
         _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
         return module, None
