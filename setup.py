@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -112,7 +113,8 @@ class _BuildMixin:
                  "where a compiler appears)")
             self.extensions = []
             return
-        if any(e.name == "torchbend._cuda" for e in self.extensions):
+        self._reuse = {ext.name: path for ext in self.extensions if (path := self._reusable(ext))}
+        if any(e.name == "torchbend._cuda" and e.name not in self._reuse for e in self.extensions):
             try:
                 self._start_nvcc()
             except Exception as e:
@@ -135,10 +137,10 @@ class _BuildMixin:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._nvcc = (proc, obj, archs, time.perf_counter())
 
-    def _finish_nvcc(self, ext) -> dict:
+    def _finish_nvcc(self, ext) -> None:
         if self._nvcc is None:
             raise RuntimeError(self._nvcc_error or "nvcc did not start")
-        proc, obj, archs, t0 = self._nvcc
+        proc, obj, _, t0 = self._nvcc
         out, _ = proc.communicate()
         if proc.returncode != 0:
             raise RuntimeError(f"nvcc failed ({proc.returncode}):\n{out[-3000:]}")
@@ -150,13 +152,26 @@ class _BuildMixin:
         ext.library_dirs = [*ext.library_dirs, lib]
         ext.libraries = [*ext.libraries, "cudart"]
         ext.extra_link_args = [*ext.extra_link_args, f"-Wl,-rpath,{lib}"]
-        return {"archs": archs, "ptx": True, "nvcc_flags": list(cfg.NVCC_FLAGS), "nvcc": nvcc,
-                "source_hash": cfg.cuda_source_hash(self.csrc)}
+
+    def _info(self, ext) -> dict:
+        """What goes into the module: everything that decides its code."""
+        info = {"module": ext.name, "torch": self.torch_version, "cflags": list(ext.torchbend_cflags),
+                "cpu": cfg.cpu_id()}
+        if ext.name == "torchbend._cuda":
+            return {**info, "source_hash": cfg.cuda_source_hash(self.csrc), "archs": cfg.cuda_archs(), "ptx": True,
+                    "nvcc_flags": list(cfg.NVCC_FLAGS), "nvcc": self.nvcc}
+        return {**info, "source_hash": cfg.native_source_hash(self.csrc)}
+
+    def _reusable(self, ext) -> str | None:
+        """The module already in the source tree (an earlier editable install) if it was built from the same
+        sources with the same flags, torch and CPU: a reinstall copies it instead of compiling again."""
+        if os.environ.get("TORCHBEND_FORCE_BUILD", "") == "1":
+            return None
+        path = os.path.join(ROOT, *ext.name.split(".")[:-1], os.path.basename(self.get_ext_filename(ext.name)))
+        return path if os.path.exists(path) and cfg.read_build_info(path) == self._info(ext) else None
 
     def _add_info(self, ext, info: dict) -> None:
         short = ext.name.rsplit(".", 1)[-1].lstrip("_")
-        info = {**info, "module": ext.name, "torch": self.torch_version,
-                "cflags": list(ext.extra_compile_args if isinstance(ext.extra_compile_args, list) else [])}
         os.makedirs(self.build_temp, exist_ok=True)
         path = os.path.join(self.build_temp, f"torchbend_{short}_build_info.cpp")
         with open(path, "w") as fh:
@@ -169,11 +184,16 @@ class _BuildMixin:
         t0 = time.perf_counter()
         _local.build_temp = os.path.join(self._build_temp, ext.name.rsplit(".", 1)[-1])
         try:
+            if ext.name in self._reuse:
+                target = self.get_ext_fullpath(ext.name)
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                shutil.copyfile(self._reuse[ext.name], target)
+                _say(f"{ext.name}: reusing {self._reuse[ext.name]} (same sources, flags, torch and CPU; "
+                     "TORCHBEND_FORCE_BUILD=1 compiles anyway)")
+                return
             if ext.name == "torchbend._cuda":
-                info = self._finish_nvcc(ext)
-            else:
-                info = {"source_hash": cfg.native_source_hash(self.csrc)}
-            self._add_info(ext, info)
+                self._finish_nvcc(ext)
+            self._add_info(ext, self._info(ext))
             super().build_extension(ext)
         except Exception as e:
             if required:
@@ -221,6 +241,8 @@ def _extensions_and_cmdclass() -> tuple[list, dict]:
                 "torchbend._cuda", [os.path.join(CSRC_REL, cfg.CUDA_BINDING)], include_dirs=[csrc],
                 extra_compile_args=[*COMMON_CFLAGS, "-O2"], optional=cuda_mode != "required"))
 
+    for ext in exts:  # our flags, before torch's BuildExtension adds its own (recorded in the build info)
+        ext.torchbend_cflags = list(ext.extra_compile_args)
     cmd = type("BuildTorchbend", (_BuildMixin, BuildExtension),
                {"nvcc": nvcc, "csrc": csrc, "torch_version": torch.__version__})
     return exts, {"build_ext": cmd}

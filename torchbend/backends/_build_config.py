@@ -144,6 +144,19 @@ def cudart_dir(nvcc: str, extra: tuple[str | None, ...] = ()) -> str:
     raise RuntimeError(f"libcudart.so not found near {nvcc} (tried {[c for c in candidates if c]})")
 
 
+def cpu_id() -> str:
+    """The machine and CPU model (``-march=native`` code runs on the CPU it was built on)."""
+    import platform
+
+    model = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            model = next((line.split(":", 1)[1].strip() for line in fh if line.startswith("model name")), "")
+    except OSError:  # pragma: no cover - not Linux
+        model = platform.processor()
+    return f"{platform.machine()} {model}".strip()
+
+
 def info_source(symbol: str, info: dict) -> str:
     """A C++ translation unit that puts ``info`` (JSON) into the binary after :data:`INFO_MARKER`."""
     text = (INFO_MARKER.decode() + json.dumps(info, sort_keys=True)).replace("\\", "\\\\").replace('"', '\\"')
@@ -189,4 +202,6 @@ def find_prebuilt(module: str, expected_hash: str, torch_version: str) -> tuple[
         return spec.origin, info, "stale: built from other sources than the ones installed next to it"
     if info.get("torch") != torch_version:
         return spec.origin, info, f"built against torch {info.get('torch')}, running torch {torch_version}"
+    if "-march=native" in info.get("cflags", []) and info.get("cpu") != cpu_id():
+        return spec.origin, info, f"built with -march=native for another CPU ({info.get('cpu')})"
     return spec.origin, info, ""
