@@ -29,9 +29,15 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from typing import Any
 
 from setuptools import setup
+
+# pyproject's `license = { text = ... }` keeps setuptools 64-76 working (the SPDX string form needs >= 77)
+warnings.filterwarnings("ignore", message=r".*project\.license.* as a TOML table is deprecated")
+# torch imported before pip installed numpy (the build runs before the dependencies are installed)
+warnings.filterwarnings("ignore", message=r"Failed to initialize NumPy")
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
