@@ -107,7 +107,7 @@ class _BuildMixin:
         self._build_temp = value
 
     def build_extensions(self) -> None:
-        self._nvcc: tuple[subprocess.Popen, str, list[str], float] | None = None
+        self._nvcc: tuple[list[tuple[subprocess.Popen, str]], float] | None = None
         self._nvcc_error: str | None = None
         try:  # torch's own first step (runs the C++ compiler): without a working compiler nothing builds
             self._check_abi()
@@ -132,29 +132,32 @@ class _BuildMixin:
         _say(f"extensions built in {time.perf_counter() - t0:.1f} s")
 
     def _start_nvcc(self) -> None:
+        """One nvcc process per CUDA source, in the background."""
         nvcc = self.nvcc
         assert nvcc is not None
         os.makedirs(self.build_temp, exist_ok=True)
-        obj = os.path.abspath(os.path.join(self.build_temp, "bending_cuda.o"))
-        archs = cfg.cuda_archs()
-        cmd = [nvcc, "-c", *cfg.NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=True), "-I", self.csrc,
-               os.path.join(self.csrc, cfg.CUDA_SOURCES[0]), "-o", obj]
-        _say(" ".join(cmd))
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self._nvcc = (proc, obj, archs, time.perf_counter())
+        jobs = []
+        for src in cfg.CUDA_SOURCES:
+            obj = os.path.abspath(os.path.join(self.build_temp, os.path.splitext(src)[0] + ".o"))
+            cmd = [nvcc, "-c", *cfg.NVCC_FLAGS, *cfg.gencode_flags(cfg.cuda_archs(), ptx=True), "-I", self.csrc,
+                   os.path.join(self.csrc, src), "-o", obj]
+            _say(" ".join(cmd))
+            jobs.append((subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True), obj))
+        self._nvcc = (jobs, time.perf_counter())
 
     def _finish_nvcc(self, ext) -> None:
         if self._nvcc is None:
             raise RuntimeError(self._nvcc_error or "nvcc did not start")
-        proc, obj, _, t0 = self._nvcc
-        out, _ = proc.communicate()
-        if proc.returncode != 0:
-            raise RuntimeError(f"nvcc failed ({proc.returncode}):\n{out[-3000:]}")
+        jobs, t0 = self._nvcc
+        for proc, _ in jobs:
+            out, _ = proc.communicate()
+            if proc.returncode != 0:
+                raise RuntimeError(f"nvcc failed ({proc.returncode}):\n{out[-3000:]}")
         _say(f"nvcc: {time.perf_counter() - t0:.1f} s")
         nvcc = self.nvcc
         assert nvcc is not None
         lib = cfg.cudart_dir(nvcc)
-        ext.extra_objects = [*ext.extra_objects, obj]
+        ext.extra_objects = [*ext.extra_objects, *(obj for _, obj in jobs)]
         ext.library_dirs = [*ext.library_dirs, lib]
         ext.libraries = [*ext.libraries, "cudart"]
         ext.extra_link_args = [*ext.extra_link_args, f"-Wl,-rpath,{lib}"]

@@ -40,9 +40,11 @@ def _bound_names(source: str) -> list[str]:
 
 
 def _global_kernels() -> list[tuple[str, bool]]:
-    """``(name, templated)`` of every ``__global__`` function of the CUDA driver."""
-    with open(os.path.join(cfg.CSRC, cfg.CUDA_SOURCES[0])) as fh:
-        text = fh.read()
+    """``(name, templated)`` of every ``__global__`` function of the CUDA driver (templates: float and double)."""
+    text = ""
+    for src in cfg.CUDA_SOURCES:
+        with open(os.path.join(cfg.CSRC, src)) as fh:
+            text += fh.read()
     pattern = r"(template\s*<[^>]*>\s*)?__global__\s+void\s+(\w+)\s*\("
     return [(m.group(2), m.group(1) is not None) for m in re.finditer(pattern, text)]
 

@@ -103,17 +103,20 @@ def _jit_build() -> Any:
     archs = _archs()
     name = extension_name(archs)
     build_dir = _get_build_directory(name, verbose=False)
-    obj = os.path.join(build_dir, "bending_cuda.o")
-    if not os.path.exists(obj):
-        cmd = [nvcc, "-c", *NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=False), "-I", CSRC,
-               os.path.join(CSRC, CU_SOURCES[0]), "-o", obj + ".tmp"]
-        done = subprocess.run(cmd, capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"nvcc failed: {(done.stderr or done.stdout or '')[-800:]}")
-        os.replace(obj + ".tmp", obj)
+    objs = []
+    for src in CU_SOURCES:
+        obj = os.path.join(build_dir, os.path.splitext(src)[0] + ".o")
+        if not os.path.exists(obj):
+            cmd = [nvcc, "-c", *NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=False), "-I", CSRC,
+                   os.path.join(CSRC, src), "-o", obj + ".tmp"]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"nvcc failed: {(done.stderr or done.stdout or '')[-800:]}")
+            os.replace(obj + ".tmp", obj)
+        objs.append(obj)
     lib = _cudart_dir(nvcc)
     return load(name=name, sources=[os.path.join(CSRC, BINDING)], extra_include_paths=[CSRC],
-                extra_cflags=["-O2"], extra_ldflags=[obj, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
+                extra_cflags=["-O2"], extra_ldflags=[*objs, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
                 build_directory=build_dir, verbose=False)
 
 
