@@ -7,18 +7,25 @@ it to torch and is compiled by ``torch.utils.cpp_extension.load`` against the in
 builds included, and linked with the object and ``cudart``.  So the CUDA part builds, links and imports on
 any machine with ``nvcc`` (CI checks exactly that), and runs where torch sees a GPU.
 
-Build options (environment): ``TORCHBEND_CUDA_ARCH`` (e.g. ``"90"`` or ``"80;90"``; default: the
+``pip install --no-build-isolation .`` (or ``-e .``) builds it as ``torchbend._cuda`` where ``nvcc`` is
+found (``setup.py``: SASS for sm_80 and sm_90 and PTX of sm_90 unless ``TORCHBEND_CUDA_ARCH`` says
+otherwise; ``TORCHBEND_BUILD_CUDA=0`` skips it, ``=1`` makes a failure fail the install).  :func:`load` uses
+that module if it was built from the sources installed next to it and, where a GPU is visible, for an
+architecture that runs on it; otherwise it builds on first use, as follows.
+
+Build options of the JIT build (environment): ``TORCHBEND_CUDA_ARCH`` (e.g. ``"90"`` or ``"80;90"``; default: the
 visible GPU's compute capability, else ``90``), ``TORCHBEND_NVCC`` (the compiler; default ``nvcc`` from
 ``CUDA_HOME`` or the ``PATH``).  Everything is cached under torch's extension directory, keyed by a hash
-of the sources, the flags and the architectures.
+of the sources, the flags and the architectures.  ``TORCHBEND_PREBUILT=0`` ignores the installed module.
 """
 from __future__ import annotations
 
 import functools
 import hashlib
+import importlib
 import os
-import shutil
 import subprocess
+import time
 import warnings
 from typing import Any
 
@@ -26,94 +33,115 @@ import torch
 from torch import Tensor
 
 from ..ops.psi import BendingModel, check_fold
+from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "available", "kernels", "bending_energy", "bending_gradient", "bending_hvp",
-           "bending_hessians"]
+__all__ = ["load", "build_error", "build_info", "available", "kernels", "bending_energy", "bending_gradient",
+           "bending_hvp", "bending_hessians"]
 
-CSRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "csrc")
-CU_SOURCES = ("bending_cuda.cu",)
-HEADERS = ("bending_cuda.h", "hinge_math.h", "hinge_ops.h")
-BINDING = "cuda_binding.cpp"
-NVCC_FLAGS = ("-O3", "-std=c++17", "-Xcompiler", "-fPIC")
+CSRC = cfg.CSRC
+CU_SOURCES = cfg.CUDA_SOURCES
+HEADERS = cfg.headers()
+BINDING = cfg.CUDA_BINDING
+NVCC_FLAGS = cfg.NVCC_FLAGS
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
 KERNELS = ("energy", "gradient", "hvp", "hinge_hessians", "second_order")
 """The operations the CUDA driver implements, each for float32 and float64."""
+PREBUILT = "torchbend._cuda"
+"""The module ``setup.py`` builds at install time."""
+
+_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
 
 
 def _nvcc() -> str | None:
-    explicit = os.environ.get("TORCHBEND_NVCC")
-    if explicit:
-        return explicit
-    from torch.utils.cpp_extension import CUDA_HOME
-
-    if CUDA_HOME and os.path.exists(os.path.join(CUDA_HOME, "bin", "nvcc")):
-        return os.path.join(CUDA_HOME, "bin", "nvcc")
-    return shutil.which("nvcc")
+    return cfg.find_nvcc()
 
 
 def _archs() -> list[str]:
-    env = os.environ.get("TORCHBEND_CUDA_ARCH")
-    if env:
-        return [a.strip().replace(".", "") for a in env.replace(",", ";").split(";") if a.strip()]
-    if torch.cuda.is_available():
+    if not os.environ.get("TORCHBEND_CUDA_ARCH") and torch.cuda.is_available():
         major, minor = torch.cuda.get_device_capability()
         return [f"{major}{minor}"]
-    return ["90"]
+    return cfg.cuda_archs(default=("90",))
 
 
 def _cudart_dir(nvcc: str) -> str:
-    """The folder with ``libcudart.so``: next to nvcc's toolkit, ``CUDA_HOME``'s, or ``/usr/local/cuda``'s."""
+    """The folder with ``libcudart.so`` (see :func:`torchbend.backends._build_config.cudart_dir`)."""
     from torch.utils.cpp_extension import CUDA_HOME
 
-    candidates = [os.path.dirname(os.path.dirname(os.path.realpath(nvcc))), CUDA_HOME, "/usr/local/cuda"]
-    try:  # nvcc may be a wrapper script: ask it where it lives
-        out = subprocess.run([nvcc, "--dryrun", "--version"], capture_output=True, text=True, timeout=60).stderr
-        candidates += [line.split("=", 1)[1].strip() for line in out.splitlines() if "TOP=" in line]
-    except Exception:  # pragma: no cover
-        pass
-    for home in candidates:
-        for sub in ("lib64", "lib", os.path.join("targets", "x86_64-linux", "lib")):
-            d = os.path.join(home, sub) if home else ""
-            if d and os.path.exists(os.path.join(d, "libcudart.so")):
-                return d
-    raise RuntimeError(f"libcudart.so not found near {nvcc} (tried {candidates})")
+    return cfg.cudart_dir(nvcc, (CUDA_HOME,))
 
 
 def extension_name(archs: list[str]) -> str:
-    digest = hashlib.sha256((" ".join(NVCC_FLAGS) + "|" + ";".join(archs)).encode())
-    for f in sorted(CU_SOURCES + HEADERS + (BINDING,)):
-        with open(os.path.join(CSRC, f), "rb") as fh:
-            digest.update(b"\0" + f.encode() + b"\0" + fh.read())
+    """``torchbend_cuda_<hash>`` of the sources, headers, flags and ``archs`` (the JIT build's name)."""
+    digest = hashlib.sha256((cfg.cuda_source_hash() + "|" + ";".join(archs)).encode())
     return f"torchbend_cuda_{digest.hexdigest()[:12]}"
+
+
+def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
+    """``(torchbend._cuda, "", found)`` if it is installed, current and runs on the visible GPU (if any), else
+    ``(None, why not, found)``; ``found``: the installed module's path and build info, if any."""
+    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.cuda_source_hash(), torch.__version__)
+    found = {"path": path, "build": info}
+    if why:
+        return None, why, found
+    assert info is not None
+    if torch.cuda.is_available():
+        cap = torch.cuda.get_device_capability()
+        if not cfg.arch_compatible(list(info.get("archs", [])), bool(info.get("ptx")), cap):
+            return None, f"built for sm_{info.get('archs')} (ptx: {info.get('ptx')}), the GPU is sm_{cap[0]}{cap[1]}", found
+    try:
+        return importlib.import_module(PREBUILT), "", found
+    except Exception as e:  # cudart missing, an ABI mismatch, ...
+        return None, f"import failed: {type(e).__name__}: {e}", found
+
+
+def _jit_build() -> Any:
+    nvcc = _nvcc()
+    if nvcc is None:
+        raise FileNotFoundError("nvcc not found (set TORCHBEND_NVCC or CUDA_HOME)")
+    from torch.utils.cpp_extension import _get_build_directory, load
+
+    archs = _archs()
+    name = extension_name(archs)
+    build_dir = _get_build_directory(name, verbose=False)
+    objs = []
+    for src in CU_SOURCES:
+        obj = os.path.join(build_dir, os.path.splitext(src)[0] + ".o")
+        if not os.path.exists(obj):
+            cmd = [nvcc, "-c", *NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=False), "-I", CSRC,
+                   os.path.join(CSRC, src), "-o", obj + ".tmp"]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"nvcc failed: {(done.stderr or done.stdout or '')[-800:]}")
+            os.replace(obj + ".tmp", obj)
+        objs.append(obj)
+    lib = _cudart_dir(nvcc)
+    return load(name=name, sources=[os.path.join(CSRC, BINDING)], extra_include_paths=[CSRC],
+                extra_cflags=["-O2"], extra_ldflags=[*objs, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
+                build_directory=build_dir, verbose=False)
 
 
 @functools.lru_cache(maxsize=1)
 def _build() -> tuple[Any, str | None]:
-    """``(module, None)`` or ``(None, reason)``, once per process."""
-    nvcc = _nvcc()
-    if nvcc is None:
-        return None, "nvcc not found (set TORCHBEND_NVCC or CUDA_HOME)"
-    try:
-        from torch.utils.cpp_extension import _get_build_directory, load
-
-        archs = _archs()
-        name = extension_name(archs)
-        build_dir = _get_build_directory(name, verbose=False)
-        obj = os.path.join(build_dir, "bending_cuda.o")
-        if not os.path.exists(obj):
-            gencode = [f"-gencode=arch=compute_{a},code=sm_{a}" for a in archs]
-            cmd = [nvcc, "-c", *NVCC_FLAGS, *gencode, "-I", CSRC, os.path.join(CSRC, CU_SOURCES[0]), "-o", obj + ".tmp"]
-            subprocess.run(cmd, check=True, capture_output=True, text=True)
-            os.replace(obj + ".tmp", obj)
-        lib = _cudart_dir(nvcc)
-        module = load(name=name, sources=[os.path.join(CSRC, BINDING)], extra_include_paths=[CSRC],
-                      extra_cflags=["-O2"], extra_ldflags=[obj, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
-                      build_directory=build_dir, verbose=False)
+    """``(module, None)`` or ``(None, reason)``, once per process: the installed module if current, else
+    the JIT build."""
+    t0 = time.perf_counter()
+    module, why, found = _load_prebuilt()
+    _INFO.update(found, prebuilt=why or "used")
+    if module is not None:
+        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
         return module, None
-    except subprocess.CalledProcessError as e:
-        return None, f"nvcc failed: {(e.stderr or '')[-800:]}"
-    except Exception as e:  # no compiler, no cudart, ...
-        return None, f"{type(e).__name__}: {str(e)[-800:]}"
+    try:
+        module = _jit_build()
+        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None))
+        return module, None
+    except RuntimeError as e:  # nvcc failed, no cudart, ...
+        reason = str(e)[-800:]
+    except FileNotFoundError as e:  # no nvcc
+        reason = str(e)
+    except Exception as e:  # no C++ compiler, ...
+        reason = f"{type(e).__name__}: {str(e)[-800:]}"
+    _INFO.update(source=None, seconds=time.perf_counter() - t0, path=None)
+    return None, reason
 
 
 def load() -> Any:
@@ -123,6 +151,13 @@ def load() -> Any:
 
 def build_error() -> str | None:
     return _build()[1]
+
+
+def build_info() -> dict[str, Any]:
+    """How :func:`load` got the module, as :func:`torchbend.backends.native.build_info` (``build`` also
+    lists the architectures of the installed module)."""
+    _build()
+    return dict(_INFO)
 
 
 def available() -> bool:

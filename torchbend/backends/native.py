@@ -12,58 +12,87 @@ streaming stores.
 
 The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` (torch-free,
 written to compile for a CUDA driver as well) and the CPU driver ``bending_cpu.cpp`` (loops over tiles,
-tensors, bindings).  They are compiled on first use with ``torch.utils.cpp_extension.load`` (about half
-a minute, then cached in ``TORCH_EXTENSIONS_DIR``); the extension's name carries a hash of every file
-in ``csrc`` and of the flags, so an edit of the header rebuilds it too (:func:`extension_name`).
-Without a working compiler a warning says why, once, and the eager path runs.  Which code runs is
+tensors, bindings).  ``pip install --no-build-isolation .`` (or ``-e .``) compiles them into
+``torchbend._native`` (``setup.py``); :func:`load` uses that module if it was built from the sources
+installed next to it (their hash is embedded in it, see :mod:`torchbend.backends._build_config`), and
+otherwise compiles them on first use with ``torch.utils.cpp_extension.load`` (about half a minute, then
+cached in ``TORCH_EXTENSIONS_DIR``; the name carries the hash of the sources, every header in ``csrc``
+and the flags, so an edit of a header rebuilds too, :func:`extension_name`).  :func:`build_info` says which
+happened.  ``TORCHBEND_PREBUILT=0`` ignores the installed module.  Without a working compiler a warning
+says why, once, and the eager path runs.  Which code runs is
 decided by :func:`torchbend.backends.select_backend`, never here; the functions below assume it
 said ``native``.
 """
 from __future__ import annotations
 
 import functools
-import hashlib
+import importlib
 import os
+import time
 import warnings
 from typing import Any
 
 from torch import Tensor
 
 from ..ops.psi import BendingModel, check_fold
+from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "extension_name", "bending_hessians", "assemble", "MODEL_CODE"]
+__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble", "MODEL_CODE"]
 
-CSRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "csrc")
-SOURCES = ("bending_cpu.cpp",)
-HEADERS = ("hinge_math.h", "hinge_ops.h")
+CSRC = cfg.CSRC
+SOURCES = cfg.NATIVE_SOURCES
+HEADERS = cfg.headers()
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
-CFLAGS = ("-O3", "-march=native", "-fopenmp", "-fno-math-errno")
-"""-fno-math-errno: sqrt without its errno branch, so that the half-hinge lane loops vectorize (about 8%
-faster; the results stay correctly rounded)."""
+CFLAGS = cfg.NATIVE_CFLAGS
+"""The JIT build's flags (see :data:`torchbend.backends._build_config.NATIVE_CFLAGS`)."""
+PREBUILT = "torchbend._native"
+"""The module ``setup.py`` builds at install time."""
+
+_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
 
 
 def extension_name() -> str:
-    """``torchbend_native_<hash>``: a short hash of the sources, headers and flags, so that any edit
-    rebuilds (``torch.utils.cpp_extension.load`` itself tracks only the ``.cpp`` sources)."""
-    digest = hashlib.sha256(" ".join(CFLAGS).encode())
-    for f in sorted(SOURCES + HEADERS):
-        with open(os.path.join(CSRC, f), "rb") as fh:
-            digest.update(b"\0" + f.encode() + b"\0" + fh.read())
-    return f"torchbend_native_{digest.hexdigest()[:12]}"
+    """``torchbend_native_<hash>``: a short hash of the sources, every header in ``csrc`` and the flags, so
+    that any edit rebuilds (``torch.utils.cpp_extension.load`` itself tracks only the ``.cpp`` sources)."""
+    return f"torchbend_native_{cfg.native_source_hash()[:12]}"
+
+
+def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
+    """``(torchbend._native, "", found)`` if it is installed and current, else ``(None, why not, found)``;
+    ``found``: the installed module's path and build info, if any."""
+    import torch
+
+    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.native_source_hash(), torch.__version__)
+    found = {"path": path, "build": info}
+    if why:
+        return None, why, found
+    try:
+        return importlib.import_module(PREBUILT), "", found
+    except Exception as e:  # an ABI mismatch, a missing library, ...
+        return None, f"import failed: {type(e).__name__}: {e}", found
 
 
 @functools.lru_cache(maxsize=1)
 def _build() -> tuple[Any, str | None]:
-    """``(module, None)`` or ``(None, reason)``; built once per process (cached on disk by torch)."""
+    """``(module, None)`` or ``(None, reason)``; once per process: the installed module if current, else
+    the JIT build (cached on disk by torch)."""
+    t0 = time.perf_counter()
+    module, why, found = _load_prebuilt()
+    _INFO.update(found, prebuilt=why or "used")
+    if module is not None:
+        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
+        return module, None
     try:
         from torch.utils.cpp_extension import load as load_extension
 
         module = load_extension(
             name=extension_name(), sources=[os.path.join(CSRC, f) for f in SOURCES], extra_include_paths=[CSRC],
-            extra_cflags=list(CFLAGS), extra_ldflags=["-fopenmp"], verbose=False)
+            extra_cflags=list(CFLAGS), extra_ldflags=list(cfg.NATIVE_LDFLAGS), verbose=False)
+        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None))
         return module, None
     except Exception as e:  # no compiler, no ninja, ...
         reason = f"{type(e).__name__}: {e}"
+        _INFO.update(source=None, seconds=time.perf_counter() - t0, path=None)
         warnings.warn(f"torchbend: could not build the C++ kernels ({reason[:300]}); using the eager path",
                       RuntimeWarning, stacklevel=4)
         return None, reason
@@ -84,6 +113,16 @@ def _module() -> Any:
 def build_error() -> str | None:
     """Why the extension could not be built (``None`` if it was)."""
     return _build()[1]
+
+
+def build_info() -> dict[str, Any]:
+    """How :func:`load` got the module: ``source`` (``"install"``: the module built by ``pip install``;
+    ``"jit"``: compiled or taken from torch's extension cache on first use; ``None``: not available),
+    ``seconds`` (the time :func:`load` took in this process), ``path`` (the library), ``prebuilt`` (``"used"``
+    or why the installed module was not used) and ``build`` (what the installed module says of its build:
+    source hash, flags, torch version).  Loads the module if that has not happened yet."""
+    _build()
+    return dict(_INFO)
 
 
 def _model_code(model) -> int:
