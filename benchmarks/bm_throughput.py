@@ -28,19 +28,21 @@ Methods:
                         into the same CSR pattern
 ``torch.compile``       the same plain energy compiled by inductor (``dynamic=False``): energy; a function
                         returning ``autograd.grad`` (dynamo ``trace_autograd_ops``), else the compiled backward;
-                        double ``autograd.grad``, else ``jvp(grad)``; ``vmap(hessian)``, else
-                        ``vmap(jacrev(jacrev))``.  The first call (compile + run, cold cache when run through
-                        :func:`run_isolated`) is recorded as the compile time; strategies that fail are recorded
-                        with their error, never raised
+                        double ``autograd.grad``, else ``jvp(grad)``; ``vmap(jacrev(jacrev))``.  The first call
+                        (compile + run, cold cache when run through :func:`run_isolated`) is recorded as the
+                        compile time; strategies that fail are recorded with their error, never raised; at the
+                        end, ``vmap(hessian)`` and the double backward of ``compile(E)`` are tried (probes)
 ``jax``                 ``jax.jit`` of the same plain energy (x64 enabled for float64): ``grad``, ``jvp(grad)``,
                         ``vmap(hessian)``, that + scatter into the same CSR pattern; first call = compile time
 
-Honesty: every method's first call is checked against plain-autodiff references computed beforehand
-(energy, gradient and HVP by autograd; the blocks as ``H_h u_h`` for a random ``u`` per hinge, by
-``jvp(grad)`` of the per-hinge energies; the assembled matrix as its product with ``v`` against the
-autograd HVP), normwise relative error recorded and flagged above 1e-8 (float64) or 1e-3 (float32);
-then one warm-up call (none after a checked call over 1 s), then the median of repeats (adaptive count,
-about ``--budget`` seconds, at least ``--min-repeat`` unless a call takes over 2 s).  No assertions: this measures and records.
+Honesty: every method's first call is checked against plain-autodiff references computed beforehand,
+in float64 at the same (rounded) inputs: energy, gradient and HVP by autograd; the blocks as
+``H_h u_h`` for a random ``u`` per hinge, by ``jvp(grad)`` of the per-hinge energies; the assembled
+matrix as its product with ``v`` against the autograd HVP.  The normwise relative error is recorded
+(``inf`` for a non-finite output) and flagged above 1e-8 (float64) or 1e-3 (float32).  Then one
+warm-up call (none after a checked call over 1 s), then the median of repeats (adaptive count, about
+``--budget`` seconds, at least ``--min-repeat`` unless a call takes over 2 s).  No assertions: this
+measures and records.
 """
 from __future__ import annotations
 
@@ -104,34 +106,40 @@ class Checker:
     """Plain-autodiff references and the normwise relative error of a method's output against them."""
 
     def __init__(self, bend, x, v, pattern: HessianPattern):
-        plain, _, stencil_sum, _, _ = plain_energy(bend, x.dtype)
+        """References in float64 whatever the dtype (at the same, rounded inputs): in float32 the plain
+        autodiff's second derivatives underflow on fine meshes (the atan2 derivative divides by
+        ``((nA . nB)^2 + ...)^2 ~ |e|^16``), so a float32 reference can itself be non-finite."""
+        plain, _, stencil_sum, _, _ = plain_energy(bend, torch.float64)
         self.bend, self.x, self.v, self.pattern = bend, x, v, pattern
         gen = torch.Generator().manual_seed(1)
-        self.u = torch.randn(bend.hinge_count, 4, 3, generator=gen, dtype=torch.float64).to(x)
+        self.u = torch.randn(bend.hinge_count, 4, 3, generator=gen, dtype=torch.float64).to(x.device)
+        xd, vd = x.double(), v.double()
         with torch.no_grad():
-            e = plain(x)
-        hvp = autograd_hvp(plain, x, v)
-        x4 = x[bend.hinges]
+            e = plain(xd)
+        hvp = autograd_hvp(plain, xd, vd)
+        x4 = xd[bend.hinges]
         blocks_u = torch.func.jvp(torch.func.grad(stencil_sum), (x4,), (self.u,))[1]
-        self.ref = {"energy": e.double().reshape(1), "gradient": autograd_gradient(plain, x).double().reshape(-1),
-                    "hvp": hvp.double().reshape(-1), "hinge_hessians": blocks_u.double().reshape(-1),
-                    "assembly": hvp.double().reshape(-1)}
+        self.ref = {"energy": e.reshape(1), "gradient": autograd_gradient(plain, xd).reshape(-1),
+                    "hvp": hvp.reshape(-1), "hinge_hessians": blocks_u.reshape(-1), "assembly": hvp.reshape(-1)}
 
     def signature(self, op: str, out) -> torch.Tensor:
         """What is compared: the output itself; the blocks applied to ``u``; the matrix applied to ``v``."""
         if op == "assembly":
             if not out.is_sparse_csr:  # CSR values in the pattern's order (JAX)
                 out = self.pattern.csr(out.to(self.x))
-            return (out @ self.v.reshape(-1)).double()
+            return out.to(torch.float64) @ self.v.double().reshape(-1)
         out = out.double()
         if op == "hinge_hessians":
             H = self.bend.hinge_count
-            return (out.reshape(H, 12, 12) @ self.u.double().reshape(H, 12, 1)).reshape(-1)
+            return (out.reshape(H, 12, 12) @ self.u.reshape(H, 12, 1)).reshape(-1)
         return out.reshape(-1)
 
     def error(self, op: str, out) -> float:
+        """Normwise relative error (``inf`` if the output has a non-finite entry)."""
         ref = self.ref[op]
         sig = self.signature(op, out)
+        if not bool(torch.isfinite(sig).all()):
+            return float("inf")
         return float((sig - ref).norm() / ref.norm().clamp_min(1e-300))
 
 
@@ -205,9 +213,13 @@ def torch_methods(bend, x, v, pattern: HessianPattern) -> dict:
     }
 
 
-def compile_strategies(bend, x, v, pattern: HessianPattern) -> dict:
-    """``{op: [(strategy, builder)]}``: ways to get each op from ``torch.compile`` of the plain energy, tried
-    in order; a builder returns the callable to time (its first call compiles)."""
+def compile_strategies(bend, x, v, pattern: HessianPattern) -> tuple[dict, dict]:
+    """``(timed, probes)``, each ``{op: [(strategy, builder)]}``: ways to get each op from ``torch.compile`` of
+    the plain energy; a builder returns the callable (its first call compiles).  ``timed``: tried in order,
+    the first that works is timed.  ``probes``: the natural formulations known to fail in torch 2.13
+    (``vmap(hessian)``: dynamo's fake tensors meet forward-mode AD inside vmap; double backward: AOTAutograd
+    does not support it), tried after every timing, because a failed trace can leave functorch's
+    transform stack in a state that breaks later compiles; their outcome is recorded, not timed."""
     plain, hinge_e, _, a, rest = plain_energy(bend, x.dtype)
     hinges = bend.hinges
     pos = pattern.hinge_pos.to(x.device).reshape(-1)
@@ -259,18 +271,21 @@ def compile_strategies(bend, x, v, pattern: HessianPattern) -> dict:
         cf = C(f)
         return lambda: cf(*args)
 
-    return {
+    timed = {
         "energy": [("compile(E)", lambda: compiled(plain, x))],
         "gradient": [("compile(autograd.grad)", lambda: compiled(grad_fn, x)),
                      ("compiled backward", compiled_backward)],
         "hvp": [("compile(double autograd.grad)", lambda: compiled(hvp_fn, x, v)),
-                ("double backward of compile(E)", compiled_double_backward),
                 ("compile(jvp(grad))", jvp_grad)],
-        "hinge_hessians": [("compile(vmap(hessian))", lambda: blocks("hessian")),
-                           ("compile(vmap(jacrev(jacrev)))", lambda: blocks("jacrev"))],
-        "assembly": [("compile(vmap(hessian) + index_add)", lambda: assembly("hessian")),
-                     ("compile(vmap(jacrev(jacrev)) + index_add)", lambda: assembly("jacrev"))],
+        "hinge_hessians": [("compile(vmap(jacrev(jacrev)))", lambda: blocks("jacrev"))],
+        "assembly": [("compile(vmap(jacrev(jacrev)) + index_add)", lambda: assembly("jacrev"))],
     }
+    probes = {
+        "hvp": [("double backward of compile(E)", compiled_double_backward)],
+        "hinge_hessians": [("compile(vmap(hessian))", lambda: blocks("hessian"))],
+        "assembly": [("compile(vmap(hessian) + index_add)", lambda: assembly("hessian"))],
+    }
+    return timed, probes
 
 
 def jax_methods(bend, x, v, pattern: HessianPattern):
@@ -383,8 +398,7 @@ class Measurement:
             err = self.check.error(op, to_torch(out))
             del out
             with torch.no_grad() if op == "energy" else torch.enable_grad():  # the checked call warmed up slow ones
-                r = bench(fn, self.sync, budget=self.budget, min_repeat=self.min_repeat,
-                          warmup=0 if t_first > 1.0 else 1, t_est=t_first)
+                r = bench(fn, self.sync, budget=self.budget, min_repeat=self.min_repeat, warmup=0 if t_first > 1.0 else 1)
         except Exception as e:  # an out-of-memory, a method that cannot do the op
             row.update(ns=None, note=_short(e))
             self.rec["rows"].append(row)
@@ -404,7 +418,8 @@ class Measurement:
         if hasattr(torch._dynamo.config, "trace_autograd_ops"):
             torch._dynamo.config.trace_autograd_ops = True  # lets dynamo trace autograd.grad
         method = "torch.compile"
-        for op, strategies in compile_strategies(self.bend, self.x, self.v, self.pattern).items():
+        timed, self._probes = compile_strategies(self.bend, self.x, self.v, self.pattern)
+        for op, strategies in timed.items():
             failures = []
             for name, build in strategies:
                 t0 = time.perf_counter()
@@ -426,6 +441,21 @@ class Measurement:
                 self.rec["compile"].append({"method": method, "op": op, "strategy": None, "seconds": None,
                                             "failures": failures})
                 self.rec["rows"].append({"method": method, "op": op, "ns": None, "note": "; ".join(failures)})
+
+    def compile_probes(self) -> None:
+        """The strategies of :func:`compile_strategies`'s ``probes``: does each compile and run? (Recorded.)"""
+        for op, strategies in getattr(self, "_probes", {}).items():
+            for name, build in strategies:
+                torch._dynamo.reset()
+                t0 = time.perf_counter()
+                try:
+                    self.first_call(op, build())
+                    outcome = None
+                except Exception as e:
+                    outcome = _short(e)
+                self.rec.setdefault("compile_probes", []).append(
+                    {"op": op, "strategy": name, "seconds": time.perf_counter() - t0, "error": outcome})
+                self.say("torch.compile", op, f"  probe {name}: " + ("works" if outcome is None else f"fails: {outcome}"))
 
     def jax(self) -> None:
         """jax.jit, built only now: JAX copies its inputs in background threads, which must not overlap the
@@ -461,6 +491,7 @@ def measure(target: int, dtype_name: str, device: str = "cpu", methods=None, bud
             m.compiled()
         elif method == "jax" and m.dev.type == "cpu":
             m.jax()
+    m.compile_probes()  # last: a failed trace may leave state behind
     return m.rec
 
 

@@ -60,32 +60,29 @@ def sheet_for_hinges(hinges: int) -> int:
     return max(3, round((hinges / 3) ** 0.5) + 1)
 
 
-def bench(fn, sync=None, budget: float = 1.0, min_repeat: int = 3, max_repeat: int = 50, warmup: int = 1,
-          t_est: float | None = None) -> dict:
+def bench(fn, sync=None, budget: float = 1.0, min_repeat: int = 3, max_repeat: int = 50, warmup: int = 1) -> dict:
     """Median wall-clock seconds of ``fn()`` after ``warmup`` calls.
 
-    The number of timed calls adapts to the cost of one (the last warm-up call, or ``t_est`` without
-    warm-up): about ``budget`` seconds in all, at least ``min_repeat`` (one when a call takes more than
-    2 s), at most ``max_repeat``.  ``sync`` (e.g. ``torch.cuda.synchronize``) runs after every call, inside
-    the timed interval.  The garbage collector is off while timing.  Returns ``{"median", "min", "repeats"}``
-    (seconds)."""
+    Timed calls continue until they add up to about ``budget`` seconds and number at least
+    ``min_repeat`` (one once the median exceeds 2 s), at most ``max_repeat``.  ``sync`` (e.g.
+    ``torch.cuda.synchronize``) runs after every call, inside the timed interval.  The garbage collector
+    is off while timing.  Returns ``{"median", "min", "repeats"}`` (seconds)."""
     sync = sync or (lambda: None)
-    t = t_est if t_est is not None else 0.0
     for _ in range(warmup):
-        t0 = time.perf_counter()
         fn()
         sync()
-        t = time.perf_counter() - t0
-    reps = max(1 if t > 2.0 else min_repeat, min(max_repeat, int(budget / max(t, 1e-9))))
     gc.collect()
     gc.disable()
     try:
         times = []
-        for _ in range(reps):
+        while len(times) < max_repeat:
             t0 = time.perf_counter()
             fn()
             sync()
             times.append(time.perf_counter() - t0)
+            need = 1 if statistics.median(times) > 2.0 else min_repeat
+            if len(times) >= need and sum(times) >= budget:
+                break
     finally:
         gc.enable()
-    return {"median": statistics.median(times), "min": min(times), "repeats": reps}
+    return {"median": statistics.median(times), "min": min(times), "repeats": len(times)}

@@ -212,13 +212,18 @@ def discussion(result: dict) -> list:
     for c in result["configs"]:
         for e in c.get("compile", []):
             for f in e["failures"]:
-                fails.setdefault(f.split(":")[0], f)
+                fails.setdefault(f.split(":")[0], f.split(":", 1)[1].strip())
+        for p in c.get("compile_probes", []):
+            if p["error"]:
+                fails.setdefault(p["strategy"], p["error"])
     for name, f in fails.items():
-        out.append(f"- torch.compile strategy `{name}` fails ({f.split(':', 1)[1].strip()[:260]}...); the next "
-                   "strategy in the compile table is timed instead.")
-    bad = [k for k, r in rows.items() if r.get("ns") is not None and not r.get("ok", True)]
+        out.append(f"- torch.compile of `{name}` fails ({f[:260]}...); see the compile tables for what is timed instead.")
+    bad = [(k, r["err"]) for k, r in rows.items() if r.get("ns") is not None and not r.get("ok", True)]
     if bad:
-        out.append(f"- {len(bad)} timed results disagree with the autodiff reference beyond the tolerance (marked (!)).")
+        out.append(f"- {len(bad)} timed results disagree with the float64 autodiff reference beyond the tolerance "
+                   "(marked (!); their timings compare with a wrong result): " + "; ".join(
+                       f"{m} {op} {dt} {h:,} ({'non-finite' if err == float('inf') else f'rel. err {err:.1e}'})"
+                       for (m, op, dt, h), err in bad[:8]) + ("; ..." if len(bad) > 8 else "") + ".")
     return out
 
 
@@ -266,6 +271,10 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            + ("inductor's warm on-disk cache, torch.compile in the first configuration only)" if quick else
               "cold caches)")]
     md += tables.compile_table(result)
+    probes = tables.probe_table(result)
+    if probes:
+        md += ["", "Other formulations, tried after all timings (a failed trace can leave functorch state behind that "
+               "breaks later compiles in the same process):"] + probes
     md += gpu_section()
     md += ["", "## Accuracy against a 40-digit reference", ""]
     if acc_lines is None:

@@ -155,6 +155,21 @@ def compile_table(result: dict) -> list:
     return lines
 
 
+def probe_table(result: dict) -> list:
+    """Other torch.compile formulations tried after the timings: do they compile and run?"""
+    seen = {}
+    for c in result["configs"]:
+        for p in c.get("compile_probes", []):
+            seen.setdefault((p["op"], p["strategy"], p["error"]), []).append(f"{c['dtype']} {c['hinges']:,}")
+    if not seen:
+        return []
+    lines = ["\n| op | strategy | outcome | where |", "|---|---|---|---|"]
+    for (op, name, err), where in seen.items():
+        outcome = "compiles and runs" if err is None else "fails: " + err.replace("|", "\\|")[:300]
+        lines.append(f"| {op} | {name} | {outcome} | {', '.join(where)} |")
+    return lines
+
+
 def backends_line(result: dict) -> list:
     seen = {}
     for c in result["configs"]:
