@@ -1,131 +1,76 @@
-"""GPU benchmark of the compiled bending operations (CUDA driver) against the autodiff a user would write.
+"""GPU benchmark: torchbend's default path (the CUDA kernels) against the autodiff a user would write, on the
+same GPU, in the same format as the CPU tables of BENCHMARKS.md.
 
-``python benchmarks/bm_cuda.py [--sizes 1e5 1e6] [--out FILE]`` on a machine with a CUDA device: ns per
-hinge of energy, gradient, HVP and per-hinge 12x12 blocks through the CUDA kernels, eager autograd of the
-plain energy (double backward for the HVP, ``torch.func.hessian`` per hinge for the blocks), on the same GPU,
-float32 and float64; and each kernel's bandwidth floor (the bytes it must move per hinge divided by the
-measured device-to-device copy bandwidth).
+    python benchmarks/bm_cuda.py                       # 1e3..1e6 hinges, float32 and float64 (a few minutes)
+    python benchmarks/bm_cuda.py --sizes 1e6 --compile # only 1e6, with torch.compile (inductor/triton) as well
+
+It runs :func:`bm_throughput.run_all` with ``device="cuda"`` (each size and dtype in a fresh process, every
+result checked against plain autodiff before it is timed, timings with ``torch.cuda.synchronize()``):
+methods ``torchbend`` (default path), ``torchbend.backward``, ``torchbend.eager``, ``autograd`` (eager
+PyTorch of the plain energy: forward, backward, double backward), ``torch.func`` (``grad``,
+``jvp(grad)``, ``vmap(hessian)``, + ``index_add``) and, with ``--compile``, ``torch.compile``; floors from
+the device's STREAM copy/triad bandwidth and matmul flop rate (:mod:`floors`).  Writes
+``benchmarks/results/cuda_<device>.json`` (read by ``benchmarks/report.py``, which puts it in the GPU
+section of BENCHMARKS.md) and prints the tables and the GPU targets (float32 and float64 at 1e6 hinges:
+every op >= 20x the plain autodiff on the same GPU and within 3x of the bandwidth floor).
+With ``--merge``, configurations already in the file and not re-measured are kept (a run split into
+several commands).
 """
 from __future__ import annotations
 
 import argparse
-import math
+import json
+import os
+import re
 
+import bm_throughput
+import tables
 import torch
 
-import torchbend as tb
-from torchbend.backends import cuda
-from torchbend.testing import plain_bending_energy
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 
 
-def timed(fn, repeat: int = 10) -> float:
-    """Median seconds of ``fn()`` on the GPU (CUDA events), after two warm-up calls."""
-    for _ in range(2):
-        fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(repeat):
-        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        a.record()
-        fn()
-        b.record()
-        torch.cuda.synchronize()
-        times.append(a.elapsed_time(b) / 1e3)
-    return sorted(times)[len(times) // 2]
+def slug(name: str) -> str:
+    """``NVIDIA H100 80GB HBM3`` -> ``h100_80gb_hbm3``."""
+    name = re.sub(r"^nvidia\s+", "", name.strip(), flags=re.I)
+    return re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_")
 
 
-def copy_bandwidth() -> float:
-    """Device-to-device copy bandwidth [bytes/s] (bytes read + written)."""
-    src = torch.empty(2**28, dtype=torch.uint8, device="cuda")
-    dst = torch.empty_like(src)
-    t = timed(lambda: dst.copy_(src))
-    return 2 * src.numel() / t
-
-
-def bytes_per_hinge(op: str, s: int) -> int:
-    """Bytes an operation must move per hinge (dtype size ``s``): 4 indices, 12 coordinates gathered, the
-    weight a, and its outputs (theta for the fold check; the scatter of 12 values as read + write)."""
-    base = 4 * 8 + 12 * s + s + s
-    return base + {"energy": s, "gradient": 24 * s, "hvp": 12 * s + 24 * s, "blocks": (144 + 12 + 1) * s}[op]
-
-
-def case(verts, faces, dtype, bw: float) -> list[str]:
-    """The table rows of one mesh and dtype."""
-    dev = torch.device("cuda")
-    rest = verts.to(dtype)
-    gen = torch.Generator().manual_seed(0)
-    x = (rest + 0.01 * torch.randn(rest.shape, dtype=dtype, generator=gen)).to(dev)
-    v = torch.randn(rest.shape, dtype=dtype, generator=gen).to(dev)
-    bend = tb.BendingEnergy(faces, rest, model="tan").to(dev)
-    H, hinges = bend.hinge_count, bend.hinges
-    p, _ = bend._bind(x, "", "eager")
-    w = torch.ones(1, dtype=dtype, device=dev)
-
-    def plain(y):
-        return plain_bending_energy(y, hinges, bend.weights, bend.stiffness, bend.rest_angles, "tan")
-
-    def ag_energy():
-        with torch.no_grad():
-            return plain(x)
-
-    def ag_gradient():
-        y = x.detach().requires_grad_()
-        return torch.autograd.grad(plain(y), y)[0]
-
-    def ag_hvp():
-        y = x.detach().requires_grad_()
-        (g,) = torch.autograd.grad(plain(y), y, create_graph=True)
-        return torch.autograd.grad(g, y, v)[0]
-
-    def one(x4, a, k, r):
-        return plain_bending_energy(x4, torch.arange(4, device=x4.device)[None], a[None], k, r[None], "tan")
-
-    def ag_blocks():
-        hess = torch.vmap(torch.func.hessian(one), in_dims=(0, 0, None, 0))
-        return hess(x[hinges], bend.weights, bend.stiffness, bend.rest_angles)
-
-    ops = {
-        "energy": (lambda: cuda.bending_energy(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model).sum(), ag_energy),
-        "gradient": (lambda: cuda.bending_gradient(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model, w, None, False), ag_gradient),
-        "hvp": (lambda: cuda.bending_hvp(x, v, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model, w), ag_hvp),
-        "blocks": (lambda: cuda.bending_hessians(x, hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model), ag_blocks),
-    }
-    s = torch.finfo(dtype).bits // 8
-    rows = []
-    for name, (fast, ref) in ops.items():
-        t_fast = timed(fast)
-        try:
-            t_ref = timed(ref, repeat=3)
-        except torch.OutOfMemoryError:
-            t_ref = float("nan")
-            torch.cuda.empty_cache()
-        floor = bytes_per_hinge(name, s) / bw
-        rows.append(f"{H:9d} {str(dtype).split('.')[-1]:>7s} {name:>9s} {t_fast / H * 1e9:10.3f} "
-                    f"{t_ref / H * 1e9:14.3f} {t_ref / t_fast:7.1f} {floor * 1e9:10.3f} {t_fast / H / floor:8.2f}")
-    return rows
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--sizes", type=float, nargs="+", default=[1e5, 1e6])
-    ap.add_argument("--out", default=None)
-    args = ap.parse_args()
-    lines = [f"device: {torch.cuda.get_device_name()}; torch {torch.__version__}"]
-    bw = copy_bandwidth()
-    lines.append(f"device-to-device copy bandwidth: {bw / 1e12:.2f} TB/s (read + write)")
-    lines.append(f"{'hinges':>9s} {'dtype':>7s} {'op':>9s} {'cuda ns/h':>10s} {'autograd ns/h':>14s} {'ratio':>7s} "
-                 f"{'floor ns/h':>10s} {'x floor':>8s}")
-    for size in args.sizes:
-        n = int(math.sqrt(size / 3.0)) + 1
-        verts, faces = tb.scenes.grid(n, n)
-        for dtype in (torch.float32, torch.float64):
-            lines += case(verts, faces, dtype, bw)
-            torch.cuda.empty_cache()
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
+    ap.add_argument("--sizes", type=bm_throughput.parse_size, nargs="+", default=[1000, 10_000, 100_000, 1_000_000])
+    ap.add_argument("--dtypes", nargs="+", default=["float32", "float64"])
+    ap.add_argument("--compile", action="store_true", help="also torch.compile of the plain energy (slow to compile)")
+    ap.add_argument("--budget", type=float, default=0.5)
+    ap.add_argument("--out", default=None, help="default: benchmarks/results/cuda_<device>.json")
+    ap.add_argument("--merge", action="store_true", help="keep the file's other configurations")
+    a = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        raise SystemExit("bm_cuda.py needs a CUDA device")
+    methods = ["torchbend", "torchbend.backward", "torchbend.eager", "autograd", "torch.func"]
+    methods += ["torch.compile"] if a.compile else []
+    out = a.out or os.path.join(RESULTS, f"cuda_{slug(torch.cuda.get_device_name())}.json")
+    print(f"device: {torch.cuda.get_device_name()}; torch {torch.__version__}", flush=True)
+    result = bm_throughput.run_all(a.sizes, a.dtypes, "cuda", methods, a.budget, 5, log=lambda s: print(s, flush=True))
+    if a.merge and os.path.exists(out):
+        with open(out) as f:
+            old = json.load(f)
+        new = {(c["dtype"], c.get("target")) for c in result["configs"]}
+        result["configs"] = [c for c in old["configs"] if (c["dtype"], c.get("target")) not in new] + result["configs"]
+        result["sizes"] = sorted(set(old["sizes"]) | set(result["sizes"]))
+        result["dtypes"] = [d for d in ("float32", "float64") if d in set(old["dtypes"]) | set(result["dtypes"])]
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    with open(out, "w") as f:
+        json.dump(result, f, indent=0)
+    lines = [f"device: {tables.machine_line(result)}", ""] + tables.targets_table(tables.gpu_targets(result))
+    lines += tables.throughput_tables(result) + tables.speedup_tables(result) + tables.floor_table(result)
+    if a.compile:
+        lines += tables.compile_table(result)
     text = "\n".join(lines)
     print(text)
-    if args.out:
-        with open(args.out, "w") as fh:
-            fh.write(text + "\n")
+    with open(os.path.splitext(out)[0] + ".md", "w") as f:
+        f.write(text + "\n")
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

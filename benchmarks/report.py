@@ -1,89 +1,71 @@
 """Regenerate BENCHMARKS.md and the plots in benchmarks/plots/ on this machine (one command).
 
-    python benchmarks/report.py              # full: 1e3..1e6 hinges, float64 and float32 (~15 min on 2 cores)
-    python benchmarks/report.py --quick      # 1e3..1e5 hinges (a few minutes)
+    python benchmarks/report.py            # full (30-45 min): 1e3..1e6 hinges, float64+float32, all methods, accuracy, solver
+    python benchmarks/report.py --quick    # harness check: 1e3 and 1e4 hinges, short repeats, no accuracy/solver
+    python benchmarks/report.py --from-json benchmarks/results/throughput_cpu.json   # re-render a saved run
 
-Sections: throughput (ns per hinge, torchbend vs autograd, torch.func and JAX jit), scaling fits
-``t(n) = a n^k``, accuracy in ulps against a 40-digit mpmath reference, the solver-level trade
-(Hessian options on the drape scene), and the targets of the benchmark issue, each marked met or
-missed.  No assertions anywhere: this only measures and reports.
+Throughput (:mod:`bm_throughput`: torchbend's default path against eager autograd, torch.func,
+torch.compile and JAX jit; ns per hinge), the machine's floors (:mod:`floors`: STREAM bandwidth, matmul
+flop rate, bytes and flops per hinge) and the ratio to them, compile times, the acceptance targets
+(each computed from the measured numbers, marked met or not), a GPU section read from
+``benchmarks/results/cuda_*.json`` (written by ``benchmarks/bm_cuda.py`` on a GPU machine), accuracy in
+ulps against a 40-digit mpmath reference and the solver-level trade.  No assertions: this only measures
+and reports.  The measured record is saved as JSON next to the results (``--raw``).
 """
 from __future__ import annotations
 
 import argparse
-import datetime
+import glob
 import importlib.util
+import json
 import os
+import sys
+import time
 
 import bm_throughput
 import numpy as np
-import torch
-from common import machine
+import tables
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "benchmarks", "results")
 PLOTS = os.path.join(ROOT, "benchmarks", "plots")
-METHODS = ["torchbend", "autograd", "torch.func", "jax"]
-COLORS = {"torchbend": "tab:blue", "autograd": "tab:orange", "torch.func": "tab:green", "jax": "tab:red"}
+COLORS = {"torchbend": "tab:blue", "torchbend.backward": "tab:cyan", "torchbend.eager": "tab:purple",
+          "autograd": "tab:orange", "torch.func": "tab:green", "torch.compile": "tab:brown", "jax": "tab:red"}
+FULL_SIZES = [1000, 10_000, 100_000, 1_000_000]
+QUICK_SIZES = [1000, 10_000]
 
 
-def fit(ns, ts):
-    """Least-squares fit of ``t = a n^k`` in log-log; returns ``(a, k)``."""
-    k, loga = np.polyfit(np.log(ns), np.log(ts), 1)
-    return float(np.exp(loga)), float(k)
-
-
-def throughput_tables(rows, dtypes):
-    lines = []
-    for dt in dtypes:
-        sizes = sorted({h for (_, _, d, h) in rows if d == dt})
-        lines.append(f"\n### {dt}: ns per hinge (median wall clock; lower is better)\n")
-        head = "| operation | method | " + " | ".join(f"{h:,}" for h in sizes) + " |"
-        lines += [head, "|" + "---|" * (2 + len(sizes))]
-        for op in bm_throughput.OPS:
-            for m in METHODS:
-                vals = [rows.get((m, op, dt, h)) for h in sizes]
-                if all(v is None for v in vals):
-                    continue
-                cells = " | ".join("—" if v is None else f"{v:,.0f}" for v in vals)
-                lines.append(f"| {op} | {m} | {cells} |")
-    return lines
-
-
-def scaling_table(rows, dtype="float64"):
-    lines = ["\n| operation | method | a [ns] | k | sizes fitted |", "|---|---|---|---|---|"]
-    fits = {}
-    for op in bm_throughput.OPS:
-        for m in METHODS:
-            pts = sorted((h, rows[(m, op, dtype, h)] * h) for (mm, o, d, h) in rows
-                         if mm == m and o == op and d == dtype and h >= 5000)
-            if len(pts) < 2:
-                continue
-            a, k = fit([p[0] for p in pts], [p[1] for p in pts])
-            fits[(m, op)] = (a, k)
-            lines.append(f"| {op} | {m} | {a:.3g} | {k:.3f} | {', '.join(f'{p[0]:,}' for p in pts)} |")
-    return lines, fits
-
-
-def plot_throughput(rows, dtype, path):
+# --------------------------------------------------------------------------- plots
+def plot_throughput(result: dict, dtype: str, path: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(1, len(bm_throughput.OPS), figsize=(4 * len(bm_throughput.OPS), 3.4), sharey=False)
-    for ax, op in zip(axes, bm_throughput.OPS, strict=True):
-        for m in METHODS:
-            pts = sorted((h, v) for (mm, o, d, h), v in rows.items() if mm == m and o == op and d == dtype)
+    rows = tables.index(result)
+    ops = tables.OPS
+    fig, axes = plt.subplots(1, len(ops), figsize=(4 * len(ops), 3.6))
+    for ax, op in zip(axes, ops, strict=True):
+        for m in tables.METHODS:
+            pts = sorted((h, r["ns"]) for (mm, o, d, h), r in rows.items()
+                         if mm == m and o == op and d == dtype and r.get("ns") is not None)
             if pts:
-                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m, color=COLORS[m])
+                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m, color=COLORS[m],
+                          lw=2.5 if m == "torchbend" else 1.2)
+        cs = tables.configs(result, dtype)
+        if cs:
+            fl = [max(tables.floor_ns(result, c, op)[2:]) for c in cs]
+            ax.loglog([c["hinges"] for c in cs], fl, "k--", lw=1, label="floor")
         ax.set_title(f"{op} ({dtype})")
         ax.set_xlabel("hinges")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("ns per hinge")
-    handles = [Line2D([], [], color=COLORS[m], marker="o", label=m) for m in METHODS]
-    axes[-1].legend(handles=handles, fontsize=8)
-    fig.tight_layout()
+    handles = {}
+    for ax in axes:
+        for hd, lb in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lb, hd)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=8)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
@@ -111,7 +93,30 @@ def plot_accuracy(errs, path):
     plt.close(fig)
 
 
-def solver_table(sizes, steps):
+# --------------------------------------------------------------------------- other sections
+def accuracy_section() -> tuple[list, dict]:
+    if importlib.util.find_spec("mpmath") is None:
+        return ["\nmpmath is not installed (`pip install mpmath`): accuracy section skipped.\n"], {}
+    import accuracy
+
+    lines, errs_all = [], {}
+    for model in ("tan", "quadratic"):
+        errs, names = accuracy.errors(model)
+        names = np.array(names)
+        errs_all[model] = errs
+        lines += [f"\n#### model `{model}` ({len(names)} hinges: "
+                  + ", ".join(f"{c} {int((names == c).sum())}" for c in dict.fromkeys(names)) + ")\n",
+                  "| method | dtype | quantity | median | 90% | max | max per case |", "|---|---|---|---|---|---|---|"]
+        for key, v in sorted(errs.items()):
+            v = np.array(v)
+            per = ", ".join(f"{c} {v[names == c].max():.1f}" for c in dict.fromkeys(names))
+            lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {np.median(v):.2f} | {np.quantile(v, 0.9):.2f} | "
+                         f"{v.max():.1f} | {per} |")
+    plot_accuracy(errs_all["tan"], os.path.join(PLOTS, "accuracy_float64.png"))
+    return lines, errs_all
+
+
+def solver_section(sizes, steps) -> list:
     import bm_solver
 
     lines = ["\n| mesh | hessian | Newton its/step | max | time/step | final energy [J] | penetration/edge | all converged |",
@@ -119,164 +124,236 @@ def solver_table(sizes, steps):
     for n in sizes:
         for h in ["exact", "clamp", "abs", "gauss_newton"]:
             parts = bm_solver.drape(n, h, steps).split()
-            lines.append("| " + " | ".join([parts[0], parts[1], parts[2], parts[3], parts[4], parts[5], parts[6], parts[7]]) + " |")
+            lines.append("| " + " | ".join(parts[:8]) + " |")
             print(lines[-1], flush=True)
     return lines
 
 
-def why_text(rows, errs_all) -> list:
-    """The explanation under the targets, written from the measured rows."""
-    hs = sorted({h for (_, _, d, h) in rows if d == "float64"})
-    big = hs[-1]
-    faster_jax = [op for op in bm_throughput.OPS if ("jax", op, "float64", big) in rows
-                  and rows[("jax", op, "float64", big)] < rows[("torchbend", op, "float64", big)]]
-    slower_jax = [op for op in bm_throughput.OPS if ("jax", op, "float64", big) in rows and op not in faster_jax]
-    out = [
-        "Why speed targets are missed, and what would reach them: torchbend's kernels run as eager PyTorch,",
-        "one pass over memory per elementwise operation (a few hundred per hinge for the HVP); the closed",
-        "forms save operations and autograd bookkeeping, not passes, so on 2 CPU cores both torchbend and",
-        "autograd are memory-bound and the ratios stay small. The kernels process hinges in cache-sized",
-        "chunks (`torchbend.ops.stencil.CHUNK`), which keeps their cost per hinge nearly flat.",
-        f"At {big:,} hinges (float64) `jax.jit`, which fuses the whole per-hinge computation into one loop, is "
-        f"faster than torchbend for: {', '.join(faster_jax) or 'none'}; torchbend is faster for: {', '.join(slower_jax) or 'none'}.",
-        "Reaching 10x/50x needs the same fusion for torchbend: compiling the pure per-hinge kernels",
-        "(`torchbend/ops/hinge.py`, structure-of-arrays, written for it). The compiled C++ kernels",
-        "(`torchbend/csrc`, the default `backend=\"auto\"` on the CPU) do this for the per-hinge Hessians and",
-        "the sparse assembly; the `torchbend` rows here are the eager path (`backend=\"eager\"`), the compiled",
-        "one is measured by `benchmarks/bm_hessian.py`.",
-    ]
-    if errs_all:
-        out += [
-            "Accuracy: the maxima come from the random hinges, several of which are ill-conditioned (nearly",
-            "degenerate triangles, theta close to the rest angle); autograd of the plain energy shows maxima of the",
-            "same size on the same hinges (per-case column below), so they measure the problem's conditioning,",
-            "not the formulas. The adversarial families (flat, near pi, slivers, curved rest) stay within a few ulps.",
-        ]
+def gpu_section(results: str = RESULTS) -> list:
+    """Every ``cuda_*.json`` in ``results`` (bm_cuda.py's format); without one, older ``cuda_*.txt`` files verbatim."""
+    lines = ["", "## GPU", ""]
+    jsons = sorted(glob.glob(os.path.join(results, "cuda_*.json")))
+    txts = [] if jsons else sorted(glob.glob(os.path.join(results, "cuda_*.txt")))
+    if not jsons and not txts:
+        return lines + ["No GPU results yet: on a machine with a CUDA device run `python benchmarks/bm_cuda.py`, "
+                        "which writes `benchmarks/results/cuda_<device>.json`, then this report."]
+    lines.append("Written by `python benchmarks/bm_cuda.py` (same harness, methods and floors as the CPU tables, "
+                 "timed with `torch.cuda.synchronize()`; bandwidth by the same STREAM copy/triad on the device).")
+    for path in jsons:
+        with open(path) as f:
+            res = json.load(f)
+        name = os.path.relpath(path, ROOT)
+        lines += ["", f"### {res['machine']['device']} (`{name}`, {res.get('date', '?')})", "",
+                  f"- {tables.machine_line(res)}", "- default path: " + ", ".join(
+                      f"{op} {b}" for op, b in (res["configs"][0].get("backends", {}) if res["configs"] else {}).items()),
+                  "", "Targets (float32 and float64 at 1e6 hinges): every op >= 20x the plain autodiff on the same GPU "
+                  "and within 3x of the bandwidth floor.", ""]
+        lines += tables.targets_table(tables.gpu_targets(res))
+        lines += tables.throughput_tables(res) + tables.speedup_tables(res)
+        lines += ["", "#### Floors"] + tables.floor_table(res)
+        if any(c.get("compile") for c in res["configs"]):
+            lines += ["", "#### Compile times"] + tables.compile_table(res)
+    for path in txts:
+        with open(path) as f:
+            text = f.read().rstrip()
+        lines += ["", f"### Earlier run, older format (`{os.path.relpath(path, ROOT)}`)", "", "```", text, "```"]
+    return lines
+
+
+# --------------------------------------------------------------------------- discussion
+def _against_floor_and_fastest(result: dict, rows: dict) -> list:
+    out = []
+    for dt in result["dtypes"]:
+        cs = tables.configs(result, dt)
+        if not cs:
+            continue
+        big = cs[-1]
+        h = big["hinges"]
+        parts, best = [], []
+        for op in tables.OPS:
+            t = tables.ns(rows, "torchbend", op, dt, h)
+            if t is None:
+                continue
+            parts.append(f"{op} {t / max(tables.floor_ns(result, big, op)[2:]):.1f}x")
+            alts = [(tables.ns(rows, m, op, dt, h), m) for m in ("autograd", "torch.func", "torch.compile", "jax")]
+            alts = [(ta, m) for ta, m in alts if ta is not None]
+            if alts:
+                tm, m = min(alts)
+                best.append(f"{op} {tm / t:.1f}x over {m}")
+        out.append(f"- Default path against its floor at {h:,} hinges ({dt}): " + ", ".join(parts) + ".")
+        if best:
+            out.append(f"- Against the fastest autodiff for each op at {h:,} hinges ({dt}): " + ", ".join(best) + ".")
     return out
+
+
+def discussion(result: dict) -> list:
+    """Short findings written from the numbers."""
+    rows = tables.index(result)
+    out = []
+    load = result.get("load_before")
+    cores = result["machine"].get("cores") or 1
+    if load and load[0] > 0.25 * cores:
+        out.append(f"- The machine was busy when the run started (load average {load[0]:.1f} over 1 min, {load[2]:.1f} "
+                   f"over 15 min, {cores} cores): other processes shared the cores, and multi-threaded eager PyTorch "
+                   "(one OpenMP barrier per op) suffers most from that; the numbers are not reference numbers.")
+    fl = result["floors"]
+    b0, b1 = fl["before"]["bandwidth"], fl["after"]["bandwidth"]
+    if abs(b0 - b1) / max(b0, b1) > 0.15:
+        out.append(f"- The bandwidth measured before and after the run differs by {abs(b0 - b1) / max(b0, b1):.0%} "
+                   f"({b0 / 1e9:.1f} vs {b1 / 1e9:.1f} GB/s): the machine was not quiet; treat the ratios with care.")
+    out += _against_floor_and_fastest(result, rows)
+    dt = result["dtypes"][0]
+    for h in [c["hinges"] for c in tables.configs(result, dt)][-1:]:
+        a, b = tables.ns(rows, "torchbend", "hvp", dt, h), tables.ns(rows, "torchbend.backward", "hvp", dt, h)
+        if a is not None and b is not None and b > 2 * a:
+            out.append(f"- The HVP through torch.autograd (double backward of `bend(x)`) costs {b / a:.1f}x "
+                       f"`bend.hvp` at {h:,} hinges ({dt}): code that wants the fast HVP should call `hvp`.")
+    fails = {}
+    for c in result["configs"]:
+        for e in c.get("compile", []):
+            for f in e["failures"]:
+                fails.setdefault(f.split(":")[0], f.split(":", 1)[1].strip())
+        for p in c.get("compile_probes", []):
+            if p["error"]:
+                fails.setdefault(p["strategy"], p["error"])
+    for name, f in fails.items():
+        out.append(f"- torch.compile of `{name}` fails ({f[:260]}...); see the compile tables for what is timed instead.")
+    bad = [(k, r["err"]) for k, r in rows.items() if r.get("ns") is not None and not r.get("ok", True)]
+    if bad:
+        out.append(f"- {len(bad)} timed results disagree with the float64 autodiff reference beyond the tolerance "
+                   "(marked (!); their timings compare with a wrong result): " + "; ".join(
+                       f"{m} {op} {dt} {h:,} ({'non-finite' if err == float('inf') else f'rel. err {err:.1e}'})"
+                       for (m, op, dt, h), err in bad[:8]) + ("; ..." if len(bad) > 8 else "") + ".")
+    return out
+
+
+# --------------------------------------------------------------------------- the document
+def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | None, command: str) -> list:
+    cpu = tables.cpu_targets(result, at=(10_000,) if quick else (100_000, 1_000_000))
+    met = sum(1 for t in cpu if t[2])
+    known = sum(1 for t in cpu if t[2] is not None)
+    threads = result["machine"]["threads"]
+    md = ["# torchbend benchmarks", ""]
+    if quick:
+        md += ["> **Quick validation run** (`--quick`: 1e3 and 1e4 hinges, short repeats, no accuracy or solver",
+               "> sections). Not the reference numbers: regenerate with `python benchmarks/report.py` on a quiet machine.", ""]
+    measured = result.get("command", command)
+    md += [f"Generated by `{measured}` on {result.get('date', '?')} (throughput run: {result.get('wall_s', 0) / 60:.1f} min)"
+           + ("." if measured == command else f"; rendered by `{command}`."), "",
+           f"- machine: {tables.machine_line(result)}",
+           f"- bandwidth (STREAM, threads: {threads}, 256 MiB arrays): copy {result['floors']['used']['copy'] / 1e9:.1f} GB/s, "
+           f"triad {result['floors']['used']['triad'] / 1e9:.1f} GB/s; matmul flop rate "
+           + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in result["floors"]["used"]["flops"].items()),
+           f"- sizes: {', '.join(f'{s:,}' for s in result['sizes'])} target hinges (random curved sheets, `tan` model), "
+           f"{', '.join(result['dtypes'])}; median of repeats (about {result['budget']} s of timed calls per "
+           f"measurement, at least {result['min_repeat']}, one for calls over 2 s) after a checked call and a warm-up "
+           "call (the checked call is the warm-up of calls over 1 s)",
+           "- what the default path (`backend=\"auto\"`) ran:"] + [f"  {line}" for line in tables.backends_line(result)]
+    md += ["", "Methods: `torchbend` = the default path's methods (`bend(x)`, `.gradient`, `.hvp`, `.hinge_hessians`, "
+           "`.hessian`); `torchbend.backward` = the default path through `torch.autograd` (backward, double backward); "
+           "`torchbend.eager` = `backend=\"eager\"`; `autograd` = eager PyTorch of the plain atan2 energy (forward, "
+           "backward, double backward); `torch.func` = `grad`, `jvp(grad)`, `vmap(hessian)` (+ `index_add` into the "
+           "CSR pattern); `torch.compile` = inductor on the plain energy (strategy per op in the compile table); "
+           "`jax` = `jax.jit` of the same energy (`grad`, `jvp(grad)`, `vmap(hessian)`, scatter). Every result is "
+           "checked against plain autodiff before it is timed (`benchmarks/bm_throughput.py`).", "",
+           "## Acceptance targets (CPU, default path, float64)", "",
+           f"{met} of {known} measured targets met. Ratios are the other method's ns per hinge over the default path's, "
+           "from the tables below; 'flat' compares each size's ns per hinge with the 1e5 figure."
+           + (" **Quick run: the speed-up targets are evaluated at 1e4 hinges, to check the harness only.**"
+              if quick else ""), ""]
+    md += tables.targets_table(cpu)
+    md += ["", "## Findings", ""] + discussion(result)
+    md += ["", "## Throughput", "", "![float64](benchmarks/plots/throughput_float64.png)",
+           "![float32](benchmarks/plots/throughput_float32.png)"]
+    md += tables.throughput_tables(result) + tables.speedup_tables(result)
+    md += ["", "## Floors", "", (floors_doc()), ""] + tables.floor_table(result)
+    md += ["", "## Compile times (first call: trace, compile, run; one process per size and dtype, "
+           + ("inductor's warm on-disk cache, torch.compile in the first configuration only)" if quick else
+              "cold caches)")]
+    md += tables.compile_table(result)
+    probes = tables.probe_table(result)
+    if probes:
+        md += ["", "Other formulations, tried after all timings (a failed trace can leave functorch state behind that "
+               "breaks later compiles in the same process):"] + probes
+    md += gpu_section()
+    md += ["", "## Accuracy against a 40-digit reference", ""]
+    if acc_lines is None:
+        md += ["Not part of this run (`--quick` or `--from-json`); `python benchmarks/accuracy.py` measures it, recorded "
+               "runs are in `benchmarks/results/accuracy_*.txt`."]
+    else:
+        md += ["Normwise relative error `|a - r| / |r|` in units of the dtype's epsilon; the reference (mpmath,",
+               "second-order Taylor arithmetic, `benchmarks/accuracy.py`) is evaluated at the inputs as rounded to",
+               "each dtype, so the numbers measure the evaluation, not the rounding of the data.", "",
+               "![accuracy](benchmarks/plots/accuracy_float64.png)"] + acc_lines
+    md += ["", "## Solver-level trade (drape, 0.005 s implicit Euler steps, direct solver)", ""]
+    md += (["Not part of this run (`--quick` or `--from-json`); `python benchmarks/bm_solver.py`."]
+           if sol_lines is None else sol_lines)
+    md += ["", "## Regenerating", "",
+           "- `python benchmarks/report.py`: everything above (CPU throughput 1e3..1e6 hinges, float64 and float32, all",
+           "  methods; accuracy; solver), roughly 30 to 45 minutes on the 2-core machine when it is quiet (the header",
+           "  gives the measured time; the 1e6 configurations, where torch.func and JAX take seconds per call,",
+           "  dominate); `--quick` checks the harness in 2 to 5 minutes; `--from-json FILE` re-renders a saved run.",
+           "- `python benchmarks/bm_throughput.py --sizes 1e5 --dtypes float64 --methods torchbend autograd`: any subset.",
+           "- `python benchmarks/bm_cuda.py` on a GPU machine: the GPU section (`benchmarks/results/cuda_<device>.json`).",
+           "- `python benchmarks/bm_hessian.py`, `bm_membrane.py`, `bm_solver.py`: more detail; recorded runs in "
+           "`benchmarks/results/`."]
+    return md
+
+
+def floors_doc() -> str:
+    """The model of :mod:`floors` (its docstring), in Markdown."""
+    import re
+
+    import floors
+
+    doc = (floors.__doc__ or "").split("\n\n", 1)[-1].strip()
+    doc = re.sub(r":(?:func|mod):`([^`]+)`", r"`floors.\1`", doc)
+    return doc.replace("``", "`")
 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    p.add_argument("--quick", action="store_true", help="sizes 1e3..1e5 only, fewer solver steps")
-    p.add_argument("--no-jax", action="store_true")
+    p.add_argument("--quick", action="store_true", help="1e3 and 1e4 hinges, short repeats, throughput only")
+    p.add_argument("--sizes", type=bm_throughput.parse_size, nargs="+", default=None)
+    p.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
+    p.add_argument("--methods", nargs="+", choices=bm_throughput.METHODS, default=None)
+    p.add_argument("--threads", type=int, default=None, help="torch/OpenMP/XLA threads (default: all cores)")
+    p.add_argument("--budget", type=float, default=None, help="seconds of timed calls per measurement")
     p.add_argument("--out", default=os.path.join(ROOT, "BENCHMARKS.md"))
-    p.add_argument("--raw", default=os.path.join(ROOT, "benchmarks", "results", "throughput_raw.json"),
-                   help="where the measured throughput rows are saved")
-    p.add_argument("--replot", action="store_true", help="only redraw the throughput plots from --raw")
+    p.add_argument("--raw", default=None, help="where the measured record is saved (default: "
+                   "benchmarks/results/throughput_cpu.json, or throughput_cpu_quick.json with --quick)")
+    p.add_argument("--from-json", help="render this saved record instead of measuring")
+    p.add_argument("--no-accuracy", action="store_true")
+    p.add_argument("--no-solver", action="store_true")
     a = p.parse_args(argv)
     os.makedirs(PLOTS, exist_ok=True)
-    if a.replot:
-        import json
-
-        with open(a.raw) as f:
-            rows = {(m, op, d, h): v for m, op, d, h, v in json.load(f)}
-        for dt in sorted({d for (_, _, d, _) in rows}):
-            plot_throughput(rows, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
-        return
-    sizes = [1000, 10000, 100000] if a.quick else [1000, 10000, 100000, 1000000]
-    dtypes = ["float64", "float32"]
-    print("machine:", machine(), flush=True)
-    rows = bm_throughput.run_isolated(sizes, dtypes, repeat=3, with_jax=not a.no_jax,
-                                      log=lambda s: print(s, flush=True))
-    import json
-
-    os.makedirs(os.path.dirname(a.raw), exist_ok=True)
-    with open(a.raw, "w") as f:
-        json.dump([[m, op, d, h, v] for (m, op, d, h), v in rows.items()], f)
-    scal, fits = scaling_table(rows)
-    for dt in dtypes:
-        plot_throughput(rows, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
-    acc_lines = []
-    errs_all = {}
-    if importlib.util.find_spec("mpmath") is not None:
-        import accuracy
-
-        for model in ("tan", "quadratic"):
-            errs, names = accuracy.errors(model)
-            names = np.array(names)
-            errs_all[model] = errs
-            acc_lines += [f"\n#### model `{model}` ({len(names)} hinges: "
-                          + ", ".join(f"{c} {int((names == c).sum())}" for c in dict.fromkeys(names)) + ")\n",
-                          "| method | dtype | quantity | median | 90% | max | max per case |", "|---|---|---|---|---|---|---|"]
-            for key, v in sorted(errs.items()):
-                v = np.array(v)
-                per = ", ".join(f"{c} {v[names == c].max():.1f}" for c in dict.fromkeys(names))
-                acc_lines.append(f"| {key[0]} | {key[1]} | {key[2]} | {np.median(v):.2f} | {np.quantile(v, 0.9):.2f} | "
-                                 f"{v.max():.1f} | {per} |")
-        plot_accuracy(errs_all["tan"], os.path.join(PLOTS, "accuracy_float64.png"))
+    command = " ".join(["python benchmarks/report.py", *(sys.argv[1:] if argv is None else argv)])
+    if a.from_json:
+        with open(a.from_json) as f:
+            result = json.load(f)
+        quick = bool(result.get("quick"))
     else:
-        acc_lines.append("\nmpmath is not installed (`pip install mpmath`): accuracy section skipped.\n")
-    sol = solver_table([11, 21], 60 if a.quick else 120)
-
-    # ---------------------------------------------------------------- targets
-    big = max(h for (_, _, d, h) in rows if d == "float64" and h <= 1_000_000)
-    h5 = min((h for (_, _, d, h) in rows if d == "float64" and h >= 100000), default=big)
-
-    def r(m, op, h=h5, dt="float64") -> float:
-        return rows[(m, op, dt, h)]
-
-    targets = []
-    hvp_ratio = r("autograd", "hvp") / r("torchbend", "hvp")
-    targets.append(("HVP >= 10x faster than autograd double backward (>= 1e5 hinges, float64)", hvp_ratio >= 10,
-                    f"{hvp_ratio:.2f}x at {h5:,} hinges"))
-    hh_ratio = r("torch.func", "hinge_hessians") / r("torchbend", "hinge_hessians")
-    targets.append(("per-hinge Hessians >= 50x faster than torch.func", hh_ratio >= 50, f"{hh_ratio:.1f}x at {h5:,} hinges"))
-    g_ratio = r("autograd", "gradient") / r("torchbend", "gradient")
-    targets.append(("gradient no slower than autograd", g_ratio >= 1.0, f"{g_ratio:.2f}x at {h5:,} hinges"))
-    flat = []
-    for op in bm_throughput.OPS:
-        vals = [rows[("torchbend", op, "float64", h)] for h in sorted({h for (_, _, d, h) in rows if d == "float64"})
-                if h >= 5000 and ("torchbend", op, "float64", h) in rows]
-        if len(vals) >= 2:
-            flat.append((op, max(vals) / min(vals)))
-    worst = max(flat, key=lambda t: t[1]) if flat else ("-", 1.0)
-    targets.append(("cost per hinge flat within +-20% from 1e4 to 1e6", worst[1] <= 1.2 / 0.8,
-                    "max/min ns per hinge over sizes: " + ", ".join(f"{o} {v:.2f}" for o, v in flat)))
-    if errs_all:
-        hv = np.array(errs_all["tan"][("torchbend", "float64", "hessian")])
-        targets.append(("float64 Hessian error median <= 2 ulp", float(np.median(hv)) <= 2, f"median {np.median(hv):.2f} ulp"))
-        targets.append(("float64 Hessian error max <= 8 ulp", float(hv.max()) <= 8, f"max {hv.max():.1f} ulp"))
-
-    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    md = [
-        "# torchbend benchmarks",
-        "",
-        f"Generated by `python benchmarks/report.py{' --quick' if a.quick else ''}` on {now}.",
-        "",
-        f"- machine: {machine()}",
-        f"- torch {torch.__version__}, threads {torch.get_num_threads()}, CUDA: {'yes' if torch.cuda.is_available() else 'no (CPU rows only)'}",
-        f"- sizes: {', '.join(f'{s:,}' for s in sizes)} target hinges (random curved sheets, `tan` model)",
-        "- methods: `torchbend` (closed forms, eager PyTorch), `autograd` (eager PyTorch of the plain atan2 energy;",
-        "  gradient = backward, HVP = double backward), `torch.func` (`grad`, `jvp(grad)`, `vmap(hessian)`),",
-        "  `jax` (`jit` of the same plain energy; `jvp(grad)`, `vmap(hessian)`, scatter into the same CSR pattern).",
-        "",
-        "## Targets",
-        "",
-        "| target | met | measured |",
-        "|---|---|---|",
-    ]
-    md += [f"| {t} | {'yes' if ok else '**no**'} | {m} |" for t, ok, m in targets]
-    md += [
-        "",
-    ] + why_text(rows, errs_all) + [
-        "",
-        "## Throughput",
-        "",
-        "![float64](benchmarks/plots/throughput_float64.png)",
-        "![float32](benchmarks/plots/throughput_float32.png)",
-    ]
-    md += throughput_tables(rows, dtypes)
-    md += ["", "## Scaling fits `t(n) = a n^k` (float64, total time in ns, sizes >= 5k hinges)"] + scal
-    md += ["", "## Accuracy against a 40-digit reference",
-           "",
-           "Normwise relative error `|a - r| / |r|` in units of the dtype's epsilon; the reference (mpmath,",
-           "second-order Taylor arithmetic, `benchmarks/accuracy.py`) is evaluated at the inputs as rounded to",
-           "each dtype, so the numbers measure the evaluation, not the rounding of the data.",
-           "",
-           "![accuracy](benchmarks/plots/accuracy_float64.png)"] + acc_lines
-    md += ["", "## Solver-level trade (drape, 0.005 s implicit Euler steps, direct solver)"] + sol
-    md += ["", "Beams (cantilever tip deflection vs Kirchhoff plate theory) and more sizes: `python benchmarks/bm_solver.py`;",
-           "results of a full run are in `benchmarks/results/`."]
+        quick = a.quick
+        sizes = a.sizes or (QUICK_SIZES if quick else FULL_SIZES)
+        budget = a.budget or (0.1 if quick else 1.0)
+        print("machine:", tables.machine_line({"machine": __import__("common").machine_info()}), flush=True)
+        result = bm_throughput.run_all(sizes, a.dtypes, "cpu", a.methods, budget, 3 if quick else 5,
+                                       log=lambda s: print(s, flush=True), threads=a.threads, quick=quick)
+        result["command"] = command
+        raw = a.raw or os.path.join(RESULTS, "throughput_cpu_quick.json" if quick else "throughput_cpu.json")
+        os.makedirs(os.path.dirname(raw), exist_ok=True)
+        with open(raw, "w") as f:
+            json.dump(result, f, indent=0)
+        print(f"wrote {raw}", flush=True)
+    for dt in result["dtypes"]:
+        plot_throughput(result, dt, os.path.join(PLOTS, f"throughput_{dt}.png"))
+    acc = sol = None
+    if not quick and not a.from_json:
+        t0 = time.perf_counter()
+        acc = None if a.no_accuracy else accuracy_section()[0]
+        sol = None if a.no_solver else solver_section([11, 21], 120)
+        print(f"accuracy and solver sections: {time.perf_counter() - t0:.0f} s", flush=True)
+    md = render(result, quick, acc, sol, command)
     with open(a.out, "w") as f:
         f.write("\n".join(md) + "\n")
     print(f"wrote {a.out} and plots in {PLOTS}")

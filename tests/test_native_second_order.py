@@ -2,6 +2,8 @@
 backward with directions in the positions and in the per-hinge parameters (k, rest, c, prev), against the
 eager ``_second_order`` of the autograd Function and against torch.func of the plain autograd energy.
 Skipped only where no C++ toolchain exists."""
+from typing import Any
+
 import pytest
 import torch
 
@@ -22,7 +24,7 @@ def kernel():
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
 
 
-def _case(model: str, damped: bool, dtype, per_hinge: bool, batch: tuple = (2,), seed: int = 0):
+def _case(model: str, damped: bool, dtype, per_hinge: bool, batch: tuple = (2,), seed: int = 0) -> dict[str, Any]:
     """A random curved sheet, positions ``(*batch, V, 3)`` and parameters: scalars or per hinge (``k``),
     per-hinge rest angles, per-sample ``prev``; directions ``v`` and ``t (*batch, H, 4)``; weights ``w (*batch, H)``."""
     rest_x, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=seed + 1, dtype=F64)
@@ -71,7 +73,7 @@ def _reference(p: dict, use_v: bool = True, use_t: bool = True):
     t = p["t"].to(F64) if use_t else torch.zeros(batch + (hinges.shape[0], 4), dtype=F64)
     tangents = (v, torch.zeros_like(w)) + tuple(t[..., i] for i in range(n))
     grad = torch.func.grad(energy, argnums=tuple(range(2 + n)))
-    _, hvp = torch.func.jvp(lambda *args: grad(*args), (x, w) + tuple(params), tangents)
+    hvp = torch.func.jvp(lambda *args: grad(*args), (x, w) + tuple(params), tangents)[1]
     dx = hvp[0]
     dp = torch.zeros(batch + (hinges.shape[0], 4), dtype=F64)
     for i in range(n):
@@ -83,7 +85,7 @@ def _reference(p: dict, use_v: bool = True, use_t: bool = True):
     def psi_per_hinge(y, *ps):
         return torch.func.grad(energy, argnums=1)(y, ones, *ps)
 
-    _, dg = torch.func.jvp(psi_per_hinge, (x,) + tuple(params), (v,) + tuple(t[..., i] for i in range(n)))
+    dg = torch.func.jvp(psi_per_hinge, (x,) + tuple(params), (v,) + tuple(t[..., i] for i in range(n)))[1]
     return dx, dp, dg
 
 

@@ -1,0 +1,173 @@
+"""Machine floors of the benchmarked operations: measured memory bandwidth and flop rate, bytes and
+flops per hinge, so that every timing can be compared with what the hardware allows.
+
+* **Bandwidth**: a STREAM-like copy (``b <- a``) and triad (``a <- b + s c``) in torch on the device,
+  all threads (``torch.get_num_threads()`` on the CPU), arrays of 2^25 float64 (256 MiB each, far
+  above any cache), best of several runs.  Bytes counted as STREAM does: 2 arrays per element for the
+  copy, 3 for the triad (no write-allocate traffic).  The floors use the larger of the two.
+* **Flop rate**: a square ``torch.mm`` (n = 2048 on the CPU, 8192 on a GPU) in the dtype, ``2 n^3`` flops:
+  the fused multiply-add peak of the vector units, which no elementwise kernel reaches (divisions,
+  square roots and atan2 are several instructions each), so the flop floor is optimistic.
+* **Bytes per hinge** (:func:`bytes_per_hinge`): the compulsory traffic of one call, every array
+  read or written once, from the actual sizes of the mesh: the hinge index array ``(H, 4)`` int64,
+  the positions ``(V, 3)`` (a sheet has V ~ H/3, so about one coordinate per hinge: the 12 coordinates
+  a hinge gathers come from the caches, the hinges being ordered along the mesh), the per-hinge
+  parameters (weight ``a`` and rest angle; the stiffness is one scalar), and the op's own traffic:
+  nothing more for the energy (a scalar), the gradient ``(V, 3)`` written, the HVP's direction
+  ``(V, 3)`` read and product ``(V, 3)`` written, the blocks ``(H, 12, 12)`` written, the CSR values
+  (``nnz``) written for the assembly (its index arrays are built once and reused).
+* **Flops per hinge** (:func:`flops_per_hinge`): an operation count of torchbend's closed forms,
+  counted by running the eager path (``backend="eager"``: the same formulas the C++ kernels compile)
+  under a dispatch mode that adds up the output elements of every pointwise aten op (each
+  ``+ - * /``, sqrt, atan2, comparison or select counts one, a fused ``a + b c`` two), the input
+  elements of every reduction and scatter-add, and ``2 m n k`` per matrix product; gathers, copies
+  and views count nothing.
+
+``floor = max(bytes / bandwidth, flops / flop rate)`` per hinge; the tables give ``measured / floor``.
+"""
+from __future__ import annotations
+
+import time
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+OPS = ["energy", "gradient", "hvp", "hinge_hessians", "assembly"]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _best(fn, device: torch.device, repeat: int) -> float:
+    fn()
+    _sync(device)
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _release(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.empty_cache()  # the measurement processes that follow need the memory
+
+
+def _stream_times(device: torch.device, n: int, repeat: int) -> tuple[float, float]:
+    a = torch.ones(n, dtype=torch.float64, device=device)
+    b = torch.full_like(a, 2.0)
+    c = torch.full_like(a, 0.5)
+    return (_best(lambda: b.copy_(a), device, repeat),
+            _best(lambda: torch.add(b, c, alpha=3.0, out=a), device, repeat))
+
+
+def stream_bandwidth(device="cpu", n: int = 2**25, repeat: int = 10) -> dict:
+    """``{"copy": B/s, "triad": B/s, "bandwidth": max of both, "array_mib": ..., "threads": ...}``."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        n = max(n, 2**28)  # 2 GiB per array: far above the L2 cache
+    t_copy, t_triad = _stream_times(device, n, repeat)
+    _release(device)
+    s = 8
+    copy, triad = 2 * n * s / t_copy, 3 * n * s / t_triad
+    return {"copy": copy, "triad": triad, "bandwidth": max(copy, triad), "array_mib": n * s / 2**20,
+            "threads": torch.get_num_threads() if device.type == "cpu" else None}
+
+
+def _mm_time(dtype: torch.dtype, device: torch.device, n: int, repeat: int) -> float:
+    gen = torch.Generator(device=device).manual_seed(0)
+    a = torch.rand(n, n, dtype=dtype, device=device, generator=gen)
+    b = torch.rand(n, n, dtype=dtype, device=device, generator=gen)
+    out = torch.empty_like(a)
+    return _best(lambda: torch.mm(a, b, out=out), device, repeat)
+
+
+def matmul_flops(dtype: torch.dtype, device="cpu", n: int | None = None, repeat: int = 5) -> float:
+    """Flop rate [flop/s] of a square matrix product in ``dtype``: the FMA peak proxy."""
+    device = torch.device(device)
+    n = n or (8192 if device.type == "cuda" else 2048)
+    t = _mm_time(dtype, device, n, repeat)
+    _release(device)
+    return 2.0 * n**3 / t
+
+
+def bytes_per_hinge(op: str, itemsize: int, hinges: int, vertices: int, nnz: int, param_elems: int) -> float:
+    """Compulsory bytes of one call of ``op`` per hinge (see the module docstring).
+
+    ``param_elems``: elements of the per-hinge parameter arrays the kernel reads (weights, rest angles,
+    stiffness), ``nnz``: values of the assembled CSR matrix."""
+    H, s = hinges, itemsize
+    inputs = 4 * 8 * H + 3 * vertices * s + param_elems * s
+    own = {
+        "energy": 0,
+        "gradient": 3 * vertices * s,
+        "hvp": 2 * 3 * vertices * s,
+        "hinge_hessians": 144 * H * s,
+        "assembly": nnz * s,
+    }[op]
+    return (inputs + own) / H
+
+
+class FlopCounter(TorchDispatchMode):
+    """Counts arithmetic of the aten ops run inside it (see the module docstring); per op name in ``by_op``."""
+
+    MATMUL = {"mm", "bmm", "addmm", "baddbmm"}
+    FREE = {"copy_", "_to_copy", "clone", "index", "index_select", "gather", "cat", "stack", "expand", "view",
+            "reshape", "permute", "transpose", "select", "slice", "unsqueeze", "squeeze", "t", "contiguous",
+            "empty", "empty_like", "zeros", "zeros_like", "new_zeros", "new_empty", "full", "fill_", "zero_",
+            "_unsafe_view", "as_strided", "detach", "lift_fresh", "alias", "unbind", "split", "split_with_sizes",
+            "resize_", "_reshape_alias", "arange", "lift_fresh_copy", "set_", "scalar_tensor", "ones_like"}
+
+    def __init__(self):
+        super().__init__()
+        self.total = 0
+        self.by_op: dict[str, int] = {}
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        name = func.overloadpacket.__name__
+        n = 0
+        if name in self.FREE:
+            pass
+        elif name in self.MATMUL:
+            a, b = [t for t in args if isinstance(t, torch.Tensor)][-2:]
+            n = 2 * a.numel() * b.shape[-1]
+        elif name in ("index_add", "index_add_", "scatter_add", "scatter_add_", "index_put", "index_put_"):
+            src = [t for t in args if isinstance(t, torch.Tensor)][-1]
+            n = src.numel()
+        elif torch.Tag.pointwise in func.tags:
+            outs = out if isinstance(out, (tuple, list)) else (out,)
+            n = sum(t.numel() for t in outs if isinstance(t, torch.Tensor))
+            n *= 2 if name in ("addcmul", "addcmul_", "addcdiv", "addcdiv_", "lerp", "lerp_") else 1
+        elif torch.Tag.reduction in func.tags or name in ("sum", "mean", "linalg_vector_norm", "norm", "amax", "amin"):
+            n = sum(t.numel() for t in args if isinstance(t, torch.Tensor))
+        if n:
+            self.total += n
+            self.by_op[name] = self.by_op.get(name, 0) + n
+        return out
+
+
+def flops_per_hinge(bend, x: torch.Tensor, v: torch.Tensor) -> dict:
+    """``{op: flops per hinge}`` of torchbend's closed forms (eager path) at ``x``, direction ``v``."""
+    calls = {
+        "energy": lambda: bend(x, backend="eager"),
+        "gradient": lambda: bend.gradient(x, backend="eager"),
+        "hvp": lambda: bend.hvp(x, v, backend="eager"),
+        "hinge_hessians": lambda: bend.hinge_hessians(x, backend="eager"),
+        "assembly": lambda: bend.hessian(x, backend="eager"),
+    }
+    out = {}
+    H = bend.hinge_count
+    bend.hessian(x, backend="eager")  # builds the CSR pattern outside the count
+    with torch.no_grad():
+        for op, fn in calls.items():
+            counter = FlopCounter()
+            with counter:
+                fn()
+            out[op] = counter.total / H
+    return out

@@ -1,0 +1,270 @@
+"""Markdown tables from a throughput record (:func:`bm_throughput.run_all`): ns per hinge, speed-ups,
+floors, compile times and the acceptance targets, every number computed from the record."""
+from __future__ import annotations
+
+import math
+
+import floors
+
+OPS = floors.OPS
+METHODS = ["torchbend", "torchbend.backward", "torchbend.eager", "autograd", "torch.func", "torch.compile", "jax"]
+REFERENCE = {"energy": "autograd", "gradient": "autograd", "hvp": "autograd", "hinge_hessians": "torch.func",
+             "assembly": "torch.func"}
+"""The plain-autodiff method a user would otherwise run for each op (the GPU targets' baseline)."""
+
+
+def index(result: dict) -> dict:
+    """``{(method, op, dtype, hinges): row}`` of the measured rows (failed ones included, ``ns`` None)."""
+    out = {}
+    for c in result["configs"]:
+        if not c.get("hinges"):
+            continue
+        for r in c["rows"]:
+            out[(r["method"], r["op"], c["dtype"], c["hinges"])] = r
+    return out
+
+
+def configs(result: dict, dtype: str) -> list:
+    return sorted((c for c in result["configs"] if c["dtype"] == dtype and c.get("hinges")), key=lambda c: c["hinges"])
+
+
+def ns(rows: dict, method: str, op: str, dtype: str, h: int) -> float | None:
+    r = rows.get((method, op, dtype, h))
+    return None if r is None else r.get("ns")
+
+
+def nearest(result: dict, dtype: str, target: int) -> int | None:
+    """The measured hinge count nearest (in log) to ``target``, if within a factor 2."""
+    hs = [c["hinges"] for c in configs(result, dtype)]
+    if not hs:
+        return None
+    h = min(hs, key=lambda h: abs(math.log(h / target)))
+    return h if abs(math.log(h / target)) < math.log(2) else None
+
+
+def _cell(r: dict | None) -> str:
+    if r is None:
+        return "—"
+    if r.get("ns") is None:
+        return "fail"
+    v = r["ns"]
+    s = f"{v:,.0f}" if v >= 100 else f"{v:.1f}" if v >= 1 else f"{v:.3f}"
+    return s if r.get("ok", True) else s + " (!)"
+
+
+def throughput_tables(result: dict) -> list:
+    rows = index(result)
+    lines = []
+    for dt in result["dtypes"]:
+        cs = configs(result, dt)
+        if not cs:
+            continue
+        hs = [c["hinges"] for c in cs]
+        lines += [f"\n### {dt}: ns per hinge (median wall clock, lower is better)\n",
+                  "| op | method | " + " | ".join(f"{h:,}" for h in hs) + " |", "|" + "---|" * (2 + len(hs))]
+        for op in OPS:
+            for m in METHODS:
+                cells = [rows.get((m, op, dt, h)) for h in hs]
+                if all(c is None for c in cells):
+                    continue
+                name = f"**{m}**" if m == "torchbend" else m
+                lines.append(f"| {op} | {name} | " + " | ".join(_cell(c) for c in cells) + " |")
+    bad = [(k, r) for k, r in rows.items() if r.get("ns") is not None and not r.get("ok", True)]
+    if bad:
+        lines += ["", "(!) disagrees with the plain-autodiff reference beyond the tolerance: "
+                  + "; ".join(f"{m} {op} {dt} {h:,}: {r['err']:.1e}" for (m, op, dt, h), r in bad)]
+    dead = [c for c in result["configs"] if c.get("failed")]
+    if dead:
+        lines += ["", "Measurement processes that died (their earlier measurements are kept): "
+                  + "; ".join(f"{c['dtype']} ~{c.get('target', 0):,} hinges: {c['failed'][:300]}" for c in dead)]
+    failed = [(k, r) for k, r in rows.items() if r.get("ns") is None]
+    if failed:
+        lines += ["", "fail: " + "; ".join(f"{m} {op} {dt} {h:,}: {r.get('note', '')[:160]}"
+                                            for (m, op, dt, h), r in failed)]
+    return lines
+
+
+def speedup_tables(result: dict) -> list:
+    """Default path's speed-up over every other method (their ns / its ns)."""
+    rows = index(result)
+    lines = []
+    for dt in result["dtypes"]:
+        cs = configs(result, dt)
+        if not cs:
+            continue
+        hs = [c["hinges"] for c in cs]
+        lines += [f"\n### {dt}: speed-up of the default path (`torchbend`) over each method (x, higher is better)\n",
+                  "| op | over | " + " | ".join(f"{h:,}" for h in hs) + " |", "|" + "---|" * (2 + len(hs))]
+        for op in OPS:
+            for m in METHODS[1:]:
+                vals = [(ns(rows, m, op, dt, h), ns(rows, "torchbend", op, dt, h)) for h in hs]
+                if all(a is None for a, _ in vals):
+                    continue
+                cells = ["—" if a is None or b is None else f"{a / b:,.1f}" for a, b in vals]
+                lines.append(f"| {op} | {m} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def floor_ns(result: dict, c: dict, op: str) -> tuple[float, float, float, float]:
+    """``(bytes per hinge, flops per hinge, bandwidth floor ns, flop floor ns)`` of ``op`` in config ``c``."""
+    used = result["floors"]["used"]
+    s = 8 if c["dtype"] == "float64" else 4
+    b = floors.bytes_per_hinge(op, s, c["hinges"], c["vertices"], c["nnz"], c["param_elems"])
+    f = c["flops_per_hinge"][op]
+    return b, f, b / used["bandwidth"] * 1e9, f / used["flops"][c["dtype"]] * 1e9
+
+
+def floor_table(result: dict) -> list:
+    rows = index(result)
+    used = result["floors"]["used"]
+    lines = ["\n| dtype | op | bytes/hinge | flops/hinge | bandwidth floor [ns] | flop floor [ns] | "
+             + " | ".join(f"`torchbend` / floor at {c['hinges']:,}" for c in configs(result, result["dtypes"][0]))
+             + " |", "|" + "---|" * (6 + len(configs(result, result["dtypes"][0])))]
+    for dt in result["dtypes"]:
+        cs = configs(result, dt)
+        if not cs:
+            continue
+        big = cs[-1]
+        for op in OPS:
+            b, f, tb_, tf = floor_ns(result, big, op)
+            ratios = []
+            for c in cs:
+                t = ns(rows, "torchbend", op, dt, c["hinges"])
+                fl = max(floor_ns(result, c, op)[2:])
+                ratios.append("—" if t is None else f"{t / fl:,.1f}")
+            lines.append(f"| {dt} | {op} | {b:,.0f} | {f:,.0f} | {tb_:.2f} | {tf:.2f} | " + " | ".join(ratios) + " |")
+    lines += ["", f"Bandwidth used: {used['bandwidth'] / 1e9:.1f} GB/s (best of STREAM copy and triad, measured before "
+              f"and after the run: {result['floors']['before']['bandwidth'] / 1e9:.1f} and "
+              f"{result['floors']['after']['bandwidth'] / 1e9:.1f} GB/s); flop rate (matmul): "
+              + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in used["flops"].items())
+              + ". Bytes and flops per hinge are those of the largest mesh; the ratios use each mesh's own floor "
+              "`max(bandwidth floor, flop floor)`."]
+    return lines
+
+
+def compile_table(result: dict) -> list:
+    lines = ["\n| method | op | dtype | hinges | strategy | first call [s] | strategies that failed |",
+             "|---|---|---|---|---|---|---|"]
+    order = {d: i for i, d in enumerate(result["dtypes"])}
+    for c in sorted(result["configs"], key=lambda c: (order.get(c["dtype"], 9), c.get("hinges") or 0)):
+        for e in c.get("compile", []):
+            sec = "—" if e["seconds"] is None else f"{e['seconds']:.1f}"
+            fails = "<br>".join(f.replace("|", "\\|")[:200] for f in e["failures"]) or ""
+            lines.append(f"| {e['method']} | {e['op']} | {c['dtype']} | {c['hinges'] or 0:,} | {e['strategy'] or '**none**'} "
+                         f"| {sec} | {fails} |")
+    return lines
+
+
+def probe_table(result: dict) -> list:
+    """Other torch.compile formulations tried after the timings: do they compile and run?"""
+    seen = {}
+    for c in result["configs"]:
+        for p in c.get("compile_probes", []):
+            seen.setdefault((p["op"], p["strategy"], p["error"]), []).append(f"{c['dtype']} {c['hinges']:,}")
+    if not seen:
+        return []
+    lines = ["\n| op | strategy | outcome | where |", "|---|---|---|---|"]
+    for (op, name, err), where in seen.items():
+        outcome = "compiles and runs" if err is None else "fails: " + err.replace("|", "\\|")[:300]
+        lines.append(f"| {op} | {name} | {outcome} | {', '.join(where)} |")
+    return lines
+
+
+def backends_line(result: dict) -> list:
+    seen = {}
+    for c in result["configs"]:
+        for op, b in c.get("backends", {}).items():
+            seen.setdefault((op, b), []).append(f"{c['dtype']} {c['hinges']:,}")
+    return [f"- `{op}`: {b}" + ("" if len(v) == len(result["configs"]) else f" ({', '.join(v)})")
+            for (op, b), v in seen.items()]
+
+
+# --------------------------------------------------------------------------- targets
+def _ratio(rows, slow: str, op: str, dt: str, h: int | None, fast: str = "torchbend") -> float | None:
+    if h is None:
+        return None
+    a, b = ns(rows, slow, op, dt, h), ns(rows, fast, op, dt, h)
+    return None if a is None or b is None else a / b
+
+
+def cpu_targets(result: dict, at=(100_000, 1_000_000)) -> list:
+    """``(target, size label, met: bool | None, measured text)`` for the CPU acceptance criteria (float64);
+    the speed-up targets at the sizes ``at``."""
+    rows = index(result)
+    dt = "float64"
+    out = []
+    checks = [("HVP >= 10x eager autograd double backward", "hvp", "autograd", 10.0),
+              ("HVP >= 5x JAX jit", "hvp", "jax", 5.0),
+              ("gradient >= 4x autograd", "gradient", "autograd", 4.0),
+              ("energy >= 3x autograd", "energy", "autograd", 3.0),
+              ("per-hinge blocks >= 50x torch.func", "hinge_hessians", "torch.func", 50.0),
+              ("sparse assembly >= 10x torch.func + scatter", "assembly", "torch.func", 10.0)]
+    for label, op, slow, need in checks:
+        for target in at:
+            h = nearest(result, dt, target)
+            r = _ratio(rows, slow, op, dt, h)
+            extra = ""
+            if op in ("gradient", "hvp"):
+                rb = _ratio(rows, slow, op, dt, h, fast="torchbend.backward")
+                if rb is not None:
+                    extra = f" (through torch.autograd: {rb:.1f}x)"
+            text = "not measured" if r is None else f"{r:.1f}x{extra}"
+            out.append((label, f"{h:,}" if h else f"~{target:,}", None if r is None else r >= need, text))
+    h3, h4, h5, h6 = (nearest(result, dt, t) for t in (1000, 10_000, 100_000, 1_000_000))
+    for op in OPS:
+        ref = ns(rows, "torchbend", op, dt, h5) if h5 else None
+        vals = [(h, ns(rows, "torchbend", op, dt, h)) for h in (h4, h5, h6) if h]
+        vals = [(h, t) for h, t in vals if t is not None]
+        if ref is None or len(vals) < 2:
+            out.append((f"{op}: ns per hinge flat within +-20% from 1e4 to 1e6", "", None, "not measured"))
+        else:
+            rel = [t / ref for _, t in vals]
+            out.append((f"{op}: ns per hinge flat within +-20% from 1e4 to 1e6", ", ".join(f"{h:,}" for h, _ in vals),
+                        all(0.8 <= q <= 1.2 for q in rel) and len(vals) == 3,
+                        "relative to 1e5: " + ", ".join(f"{q:.2f}" for q in rel)))
+        t3 = ns(rows, "torchbend", op, dt, h3) if h3 else None
+        if ref is None or t3 is None:
+            out.append((f"{op}: at 1e3 at most 2x the 1e5 figure", "", None, "not measured"))
+        else:
+            out.append((f"{op}: at 1e3 at most 2x the 1e5 figure", f"{h3:,}", t3 / ref <= 2.0,
+                        f"{t3:.1f} vs {ref:.1f} ns/hinge: {t3 / ref:.2f}x"))
+    return out
+
+
+def gpu_targets(result: dict) -> list:
+    """GPU criteria at 1e6 hinges, float32 and float64: every op >= 20x the plain autodiff on the same GPU
+    (eager autograd; torch.func for the blocks and the assembly) and within 3x of the bandwidth floor."""
+    rows = index(result)
+    out = []
+    for dt in ("float32", "float64"):
+        h = nearest(result, dt, 1_000_000)
+        c = next((c for c in configs(result, dt) if c["hinges"] == h), None)
+        for op in OPS:
+            r = _ratio(rows, REFERENCE[op], op, dt, h)
+            out.append((f"{op} >= 20x {REFERENCE[op]}", f"{dt} {h:,}" if h else dt, None if r is None else r >= 20,
+                        "not measured" if r is None else f"{r:.1f}x"))
+            t = ns(rows, "torchbend", op, dt, h) if h else None
+            if c is None or t is None:
+                out.append((f"{op} within 3x of the bandwidth floor", dt, None, "not measured"))
+            else:
+                fl = floor_ns(result, c, op)[2]
+                out.append((f"{op} within 3x of the bandwidth floor", f"{dt} {h:,}", t / fl <= 3.0,
+                            f"{t:.3f} ns vs floor {fl:.3f} ns: {t / fl:.1f}x"))
+    return out
+
+
+def targets_table(targets: list) -> list:
+    lines = ["| target | hinges | met | measured |", "|---|---|---|---|"]
+    for label, where, ok, text in targets:
+        met = "n/a" if ok is None else "yes" if ok else "**no**"
+        lines.append(f"| {label} | {where} | {met} | {text} |")
+    return lines
+
+
+def machine_line(result: dict) -> str:
+    m = result["machine"]
+    s = (f"{m['cpu']}, {m['cores']} cores, torch threads: {m['threads']}; torch {m['torch']}, "
+         f"jax {m.get('jax') or 'not installed'}, numpy {m.get('numpy', '?')}, python {m['python']}")
+    if m.get("device", "cpu") != "cpu":
+        s = f"device: {m['device']} (CUDA {m.get('cuda')}); host " + s
+    return s
