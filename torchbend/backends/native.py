@@ -172,8 +172,9 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
 
 def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
     """Vertex -> stencil-slot incidence lists of ``hinges (H, 4)``: ``(ptr (V+1,), idx (4H,))`` with the entries
-    ``4 h + slot`` of vertex ``v`` in ``idx[ptr[v]:ptr[v+1]]`` (the compiled gradient and HVP sum per vertex
-    through them: deterministic, no two threads writing one vertex)."""
+    ``4 h + slot`` of vertex ``v`` in ``idx[ptr[v]:ptr[v+1]]`` (the compiled gradient and products sum per
+    vertex through them when the hinges are in no compact order; hinges in topology order are summed in
+    blocks of consecutive hinges instead: deterministic either way, no two threads writing one vertex)."""
     import torch
 
     flat = hinges.reshape(-1)

@@ -255,9 +255,10 @@ std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor
 // Energy, gradient, Hessian-vector product and the general second-order product (the hot paths of
 // training and of matrix-free solvers).  Each is one parallel pass over tiles of W hinges (gather, angle,
 // psi, closed forms; every lane loop branch-free and vectorized, the model and damping template
-// arguments); the gradient and the products write their per-hinge 12-vectors to a buffer that a second
-// parallel pass sums per vertex through the incidence lists (inc_ptr (V+1), inc_idx (4H): entries
-// 4 h + slot, sorted by vertex), so the result is deterministic and no two threads write the same vertex.
+// arguments); the gradient and the products sum their per-hinge 12-vectors per vertex in blocks of
+// consecutive hinges (scatter_tiles: bit-identical for any number of threads, no two threads writing one
+// value), or, for hinges in no compact order, through a per-hinge buffer and the incidence lists (inc_ptr
+// (V+1), inc_idx (4H): entries 4 h + slot, sorted by vertex).
 
 template <typename T> static HingeArgs<T> hinge_args(const torch::Tensor& a, const torch::Tensor& k,
                                                      const torch::Tensor& rest, const torch::Tensor& c,
@@ -341,6 +342,133 @@ static void gather_vertices(const T* w, const int64_t* ptr, const int64_t* idx, 
         s0 += src[0]; s1 += src[1]; s2 += src[2];
       }
       out[3 * bv] = s0; out[3 * bv + 1] = s1; out[3 * bv + 2] = s2;
+    }
+  });
+}
+
+// Scratch memory of the calling thread, kept between calls (up to kScratchKeep bytes): fresh memory
+// page-faults on first touch, which costs about as much as the kernels' own work per hinge.
+constexpr size_t kScratchKeep = size_t(64) << 20;
+
+struct Scratch {
+  torch::Tensor hold;  // a one-off allocation past kScratchKeep
+  void* p = nullptr;
+};
+
+static Scratch scratch(size_t bytes) {
+  thread_local struct Kept {
+    void* p = nullptr;
+    size_t n = 0;
+    ~Kept() { std::free(p); }
+  } kept;
+  Scratch s;
+  if (bytes > kScratchKeep) {
+    s.hold = torch::empty({int64_t(bytes)}, torch::kUInt8);
+    s.p = s.hold.data_ptr();
+    return s;
+  }
+  if (bytes > kept.n) {
+    std::free(kept.p);
+    kept.p = std::malloc(std::max<size_t>(bytes, 64));
+    kept.n = kept.p ? bytes : 0;
+    TORCH_CHECK(kept.p, "out of memory (", bytes, " bytes of scratch)");
+  }
+  s.p = kept.p;
+  return s;
+}
+
+// Summation of per-hinge 12-vectors per vertex in blocks of consecutive hinges.  Block j (hinges
+// [j S, j S + S) of one sample; S a function of H alone) computes its tiles and adds each hinge's
+// four 3-vectors at once into its own dense accumulator over the block's vertex range [lo_j, lo_j + n_j)
+// (cache resident: hinges of a mesh built by torchbend.topology are ordered so that a block touches a
+// compact range of vertices); a second pass sums, per vertex, the accumulators of the blocks covering it
+// in block order.  Every vertex's sum is thus one fixed expression (in hinge order within a block, in
+// block order across blocks): bit-identical run to run and for any number of threads.  When the blocks'
+// ranges are not compact (hinges in no particular order: the accumulators would outweigh a per-hinge
+// buffer), the 12-vectors go to a (B, H, 12) buffer summed through the incidence lists (gather_vertices).
+struct ScatterPlan {
+  int64_t S = 0, nb = 0, total = 0;   // block size, blocks per sample, sum of the ranges
+  std::vector<int64_t> lo, off;       // per block: first vertex, offset of its accumulator (vertices)
+  bool blocked = false;
+};
+
+static ScatterPlan scatter_plan(const int64_t* hp, int64_t H) {
+  ScatterPlan P;
+  // about 32 blocks for mid-sized meshes (parallel slack), 512 .. 4096 hinges (a multiple of W)
+  P.S = std::min<int64_t>(4096, std::max<int64_t>(512, ((H / 32 + W - 1) / W) * W));
+  P.nb = (H + P.S - 1) / P.S;
+  std::vector<int64_t> hi(P.nb);
+  P.lo.assign(P.nb, 0);
+  P.off.assign(P.nb + 1, 0);
+  at::parallel_for(0, P.nb, 4, [&](int64_t begin, int64_t end) {
+    for (int64_t j = begin; j < end; ++j) {
+      const int64_t* q = hp + 4 * j * P.S;
+      int64_t n = 4 * (std::min(H, (j + 1) * P.S) - j * P.S), mn = q[0], mx = q[0];
+      for (int64_t i = 1; i < n; ++i) { mn = std::min(mn, q[i]); mx = std::max(mx, q[i]); }
+      P.lo[j] = mn; hi[j] = mx;
+    }
+  });
+  for (int64_t j = 0; j < P.nb; ++j) P.off[j + 1] = P.off[j] + (hi[j] - P.lo[j] + 1);
+  P.total = P.off[P.nb];
+  P.blocked = P.total <= 2 * H;  // accumulators (3 values a vertex) at most half a 12-value-a-hinge buffer
+  return P;
+}
+
+// out (B, V, 3) = per vertex, the sum of the 12-vectors O that body(bh0, nl, bs, hs, O) computes for the
+// tiles of hinges (see for_tiles; O[3 s + c][l]: component c of stencil slot s of lane l)
+template <typename T, typename Body>
+static void scatter_tiles(int64_t B, int64_t H, int64_t V, const int64_t* hp, const int64_t* inc_ptr,
+                          const int64_t* inc_idx, T* out, Body&& body) {
+  ScatterPlan P = scatter_plan(hp, H);
+  if (!P.blocked) {
+    torch::Tensor buf = torch::empty({B, H, 12}, c10::CppTypeToScalarType<T>::value);
+    T* bp = buf.data_ptr<T>();
+    for_tiles(B, H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+      alignas(64) T O[12][W];
+      body(bh0, nl, bs, hs, O);
+      store_rows<T>(O, nl, bp + 12 * bh0);
+    });
+    gather_vertices<T>(bp, inc_ptr, inc_idx, B, V, H, out);
+    return;
+  }
+  Scratch sc = scratch(sizeof(T) * 3 * size_t(B * P.total));
+  T* part = static_cast<T*>(sc.p);
+  at::parallel_for(0, B * P.nb, 1, [&](int64_t begin, int64_t end) {
+    int64_t bs[W], hs[W];
+    alignas(64) T O[12][W];
+    for (int64_t blk = begin; blk < end; ++blk) {
+      int64_t b = blk / P.nb, j = blk - b * P.nb, lo = P.lo[j];
+      T* acc = part + 3 * (b * P.total + P.off[j]);
+      std::fill(acc, acc + 3 * (P.off[j + 1] - P.off[j]), T(0));
+      int64_t h1 = std::min(H, (j + 1) * P.S);
+      for (int64_t h0 = j * P.S; h0 < h1; h0 += W) {
+        int nl = int(std::min<int64_t>(W, h1 - h0));
+        for (int l = 0; l < nl; ++l) { bs[l] = b; hs[l] = h0 + l; }
+        body(b * H + h0, nl, bs, hs, O);
+        for (int l = 0; l < nl; ++l) {
+          const int64_t* q = hp + 4 * (h0 + l);
+          for (int s = 0; s < 4; ++s) {
+            T* a = acc + 3 * (q[s] - lo);
+            a[0] += O[3 * s][l]; a[1] += O[3 * s + 1][l]; a[2] += O[3 * s + 2][l];
+          }
+        }
+      }
+    }
+  });
+  constexpr int64_t C = 2048;  // vertices per chunk of the second pass
+  int64_t nc = (V + C - 1) / C;
+  at::parallel_for(0, B * nc, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t bc = begin; bc < end; ++bc) {
+      int64_t b = bc / nc, c0 = (bc - b * nc) * C, c1 = std::min(V, c0 + C);
+      T* o = out + 3 * (b * V + c0);
+      std::fill(o, o + 3 * (c1 - c0), T(0));
+      for (int64_t j = 0; j < P.nb; ++j) {
+        int64_t lo = P.lo[j], v0 = std::max(c0, lo), v1 = std::min(c1, lo + P.off[j + 1] - P.off[j]);
+        if (v0 >= v1) continue;
+        const T* src = part + 3 * (b * P.total + P.off[j] + (v0 - lo));
+        T* dst = out + 3 * (b * V + v0);
+        for (int64_t i = 0; i < 3 * (v1 - v0); ++i) dst[i] += src[i];
+      }
     }
   });
 }
@@ -431,7 +559,6 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
   weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
-  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
   auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto gp = params ? torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options()) : torch::empty({0}, P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
@@ -441,13 +568,14 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
     Param<T> w{weight.data_ptr<T>(), weight.numel(), P.H};
     const T* xp = P.x.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
-    T* bp = buf.data_ptr<T>(); T* gpp = params ? gp.data_ptr<T>() : nullptr; T* to = theta.data_ptr<T>();
+    T* gpp = params ? gp.data_ptr<T>() : nullptr; T* to = theta.data_ptr<T>();
     int64_t V = P.V;
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
-        alignas(64) T X[12][W], G[12][W], O[12][W];
+      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
+        alignas(64) T X[12][W], G[12][W];
         alignas(64) T TH[W], S[W], GP[4][W];
         HingeTile<T, W> Q;
         Half<T, W> hA, hB;
@@ -472,11 +600,9 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
         halves_tile<T, W>(X, hA, hB);
         grad_of_halves<T, W>(hA, hB, G);
         for (int m = 0; m < 12; ++m) TB_LANES(W) O[m][l] = S[l] * G[m][l];
-        store_rows<T>(O, nl, bp + 12 * bh0);
         for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
       });
     });
-    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, gx.data_ptr<T>());
   });
   return {gx, gp, theta};
 }
@@ -495,7 +621,6 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
   v = v.contiguous();
   weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
-  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
   auto hv = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_hvp", [&] {
@@ -504,13 +629,14 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
     Param<T> w{weight.data_ptr<T>(), weight.numel(), P.H};
     const T* xp = P.x.data_ptr<T>(); const T* vp = v.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
-    T* bp = buf.data_ptr<T>(); T* to = theta.data_ptr<T>();
+    T* to = theta.data_ptr<T>();
     int64_t V = P.V;
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
-        alignas(64) T X[12][W], Vd[12][W], G[12][W], O[12][W];
+      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), hv.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
+        alignas(64) T X[12][W], Vd[12][W], G[12][W];
         alignas(64) T TH[W], D1[W], D2[W], U[W];
         HingeTile<T, W> Q;
         Half<T, W> hA, hB;
@@ -526,11 +652,9 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
         dot_tile<T, W>(G, Vd, U);
         TB_LANES(W) U[l] *= D2[l];
         hvp_of_halves<T, W>(hA, hB, Vd, G, D1, U, true, O);
-        store_rows<T>(O, nl, bp + 12 * bh0);
         for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
       });
     });
-    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, hv.data_ptr<T>());
   });
   return {hv, theta};
 }
@@ -561,7 +685,6 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
   }
   weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
-  auto buf = torch::empty({P.B, P.H, 12}, P.x.options());
   auto dx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto dp = torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options());
   auto dg = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(dg);
@@ -574,13 +697,14 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
     const T* tp = tt.defined() ? tt.data_ptr<T>() : nullptr;
     bool t_batched = tt.defined() && tt.numel() != 4 * P.H;
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
-    T* bp = buf.data_ptr<T>(); T* dpp = dp.data_ptr<T>(); T* dgp = dg.data_ptr<T>(); T* to = theta.data_ptr<T>();
+    T* dpp = dp.data_ptr<T>(); T* dgp = dg.data_ptr<T>(); T* to = theta.data_ptr<T>();
     int64_t V = P.V, H = P.H;
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
-        alignas(64) T X[12][W], Vd[12][W], G[12][W], O[12][W];
+      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), dx.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
+        alignas(64) T X[12][W], Vd[12][W], G[12][W];
         alignas(64) T TH[W], U[W], TG[4][W], S1[W], S2[W], Z[4][W], DG[W];
         HingeTile<T, W> Q;
         Half<T, W> hA, hB;
@@ -603,7 +727,6 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
           DG[l] = dgl;
         }
         hvp_of_halves<T, W>(hA, hB, Vd, G, S1, S2, vp != nullptr, O);
-        store_rows<T>(O, nl, bp + 12 * bh0);
         for (int l = 0; l < nl; ++l) {
           for (int j = 0; j < 4; ++j) dpp[4 * (bh0 + l) + j] = Z[j][l];
           dgp[bh0 + l] = DG[l];
@@ -611,7 +734,6 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
         }
       });
     });
-    gather_vertices<T>(bp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), P.B, V, P.H, dx.data_ptr<T>());
   });
   return {dx, dp, dg, theta};
 }
