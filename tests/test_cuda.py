@@ -1,5 +1,7 @@
 """The CUDA driver: with a GPU (``-m gpu``) every CUDA operation is compared with the eager reference on the
 same device.  That it builds, links, imports and registers every kernel (CI, no GPU): tests/test_build.py."""
+from typing import Any
+
 import pytest
 import torch
 
@@ -113,7 +115,7 @@ def test_cuda_second_order_matches_cpu(dtype, model, damped, per_hinge):
     p = _case(model, damped, dtype, per_hinge)
     inc = native.incidence(p["hinges"], p["V"])
     names = ("x", "hinges", "a", "k", "rest", "c", "prev", "v", "t", "w")
-    q = {n: (None if p[n] is None else p[n].cuda()) for n in names}
+    q: dict[str, Any] = {n: (None if p[n] is None else p[n].cuda()) for n in names}
     tol = 1e-12 if dtype == torch.float64 else 1e-5
     for use_v, use_t in ((True, True), (True, False), (False, True)):
         ref = native.bending_second_order(p["x"], p["v"] if use_v else None, p["t"] if use_t else None, p["hinges"],

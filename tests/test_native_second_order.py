@@ -140,11 +140,13 @@ def test_second_order_matches_eager_double_backward(kernel, model, damped):
     n = len(params)
     t_params = tuple(p["t"][..., i] for i in range(n))
     rx, rps, rg = _second_order(BendingModel.parse(model), saved, None, p["v"], t_params)
+    assert rx is not None and rg is not None
     p["w"] = gE.reshape(1)
     dx, dp, dg = _native(p)
     assert rel(dx, rx) <= 1e-13
     for i in range(n):
-        assert rel(dp[..., i], rps[i]) <= 1e-13
+        ri = rps[i]
+        assert ri is not None and rel(dp[..., i], ri) <= 1e-13
     assert rel(dg, rg) <= 1e-13
 
 
