@@ -346,7 +346,7 @@ def _short(e: BaseException) -> str:
 
 def default_backends(bend, x) -> dict:
     """``{op: "native" | "eager (reason)"}``: what the default path runs for each op here."""
-    p, _ = bend._bind(x, "", None)
+    p, _ = bend._bind(x, None)
     out = {}
     for op, name in NATIVE_OP.items():
         why = backends.native_unavailable_reason(name, x, *p.tensors())

@@ -30,7 +30,7 @@ def test_cuda_ops_match_eager(dtype, model, damped):
                             **kw).to(dev)
     x, d = x.to(dev), torch.randn(x.shape, dtype=dtype, generator=gen).to(dev)
     ex = {"theta_prev": bend.angles(x) + 0.01, "dt": 0.1} if damped else {}
-    p, _ = bend._bind(x, "", "eager", ex.get("theta_prev"), ex.get("dt"))
+    p, _ = bend._bind(x, "eager", ex.get("theta_prev"), ex.get("dt"))
     tol = 1e-12 if dtype == torch.float64 else 1e-5
 
     def close(a, r):
@@ -62,7 +62,7 @@ def test_cuda_fold_raises():
     x = rest.clone()
     x[3] = torch.tensor([0.3, 0.8, 0.0], dtype=torch.float64)
     bend = tb.BendingEnergy(faces, rest, model="tan").cuda()
-    p, _ = bend._bind(x.cuda(), "", "eager")
+    p, _ = bend._bind(x.cuda(), "eager")
     with pytest.raises(ValueError, match="folded through"):
         cuda.bending_energy(x.cuda(), bend.hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model)
 

@@ -37,7 +37,7 @@ from torch import Tensor
 from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble", "MODEL_CODE"]
+__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "MODEL_CODE"]
 
 CSRC = cfg.CSRC
 SOURCES = cfg.NATIVE_SOURCES
@@ -151,18 +151,14 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     return Hb, g, d2
 
 
-def assemble(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, pattern, topo, per_triangle: bool) -> Tensor:
-    """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per
-    hinge or per triangle in C++ (serial: the scatter targets overlap); a folded ``tan`` hinge is a
-    ``ValueError`` as in :func:`bending_hessians`."""
-    return assemble_arrays(x, hinges, a, k, rest, c, prev, model, pattern.hinge_pos, topo.faces,
-                           topo.face_edge_hinges, topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle)
-
-
 def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_pos: Tensor, faces: Tensor,
                     face_edge_hinges: Tensor, face_edge_signs: Tensor, face_pos: Tensor, nnz: int,
                     per_triangle: bool) -> Tensor:
-    """:func:`assemble` with the pattern's and topology's arrays passed one by one."""
+    """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per hinge or per
+    triangle in C++ (serial: the scatter targets overlap) into the pattern of
+    :class:`torchbend.energies.sparse.HessianPattern` (its ``hinge_pos``, ``face_pos``, ``nnz``) over the
+    topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
+    ``ValueError`` as in :func:`bending_hessians`."""
     values, theta = _module().assemble(
         x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev), _model_code(model),
         hinge_pos, faces, face_edge_hinges, face_edge_signs, face_pos, nnz, per_triangle)

@@ -214,7 +214,7 @@ def _make(model: BendingModel):
 
         @staticmethod
         def backward(ctx, ggx, *ggp):
-            gE, x, hinges, seg, a, *params = ctx.saved_tensors
+            gE, seg = ctx.saved_tensors[0], ctx.saved_tensors[3]
             dx, dps, dg = _second_order(model, ctx.saved_tensors, None, ggx, tuple(ggp))
             dgE = None
             if ctx.needs_input_grad[0] and dg is not None:

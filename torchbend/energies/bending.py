@@ -121,7 +121,6 @@ class BendingEnergy(nn.Module):
         self.register_buffer("segments", None)
         self.segment_count = 0
         self._pattern: HessianPattern | None = None  # CSR pattern, built by the first hessian()
-        self._impl: str | None = None  # the kernel chosen by the last _bind
 
     def _set(self, name: str, t: Tensor) -> None:
         if isinstance(t, nn.Parameter):
@@ -147,20 +146,22 @@ class BendingEnergy(nn.Module):
     def vertex_count(self) -> int:
         return self.topology.vertex_count
 
-    def _bind(self, x: Tensor, op: str, backend, theta_prev=None, dt=None) -> tuple[HingeParams, Backend | str]:
-        """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's); with an
-        ``op``, the backend chosen for it is in ``self._impl`` (``"native"`` or ``None``)."""
+    def _bind(self, x: Tensor, backend, theta_prev=None, dt=None) -> tuple[HingeParams, Backend | str]:
+        """Validated parameters for ``x`` and the backend asked for (``backend`` or the module's)."""
         # under torch.compile/export the finiteness check runs inside the compiled operators (data-dependent
         # Python control flow would break the graph); eagerly it runs here, before any work
         check_positions(x, self.vertex_count, check_finite=self.check_finite and not torch.compiler.is_compiling())
         if x.device != self.hinges.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
         p = HingeParams.bind(self, x, theta_prev, dt)
-        backend = self.backend if backend is None else backend
-        self._impl = None
-        if op and backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
-            self._impl = "native"
-        return p, backend
+        return p, self.backend if backend is None else backend
+
+    def _kernel(self, op: str, x: Tensor, theta_prev, dt, backend) -> tuple[HingeParams, str | None]:
+        """:meth:`_bind`, then the implementation chosen for ``op``: ``"native"`` (the compiled operators) or
+        ``None`` (the eager closed forms)."""
+        p, backend = self._bind(x, backend, theta_prev, dt)
+        native = backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE
+        return p, "native" if native else None
 
     def _incidence(self) -> tuple[Tensor, Tensor]:
         return self._inc_ptr, self._inc_idx
@@ -169,15 +170,15 @@ class BendingEnergy(nn.Module):
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
         and ``dt`` [s] switch on the viscous term.  Differentiable twice (analytic backward and double backward)
         in ``x``, stiffness, rest angles and ``theta_prev``."""
-        p, _ = self._bind(x, "energy", backend, theta_prev, dt)
+        p, impl = self._kernel("energy", x, theta_prev, dt, backend)
         return fn.bending_energy_raw(x, self.hinges, *p.astuple(), model=self.model, seg=self.segments,
-                                     seg_count=self.segment_count, impl=self._impl, inc=self._incidence(),
+                                     seg_count=self.segment_count, impl=impl, inc=self._incidence(),
                                      check=self.check_finite and torch.compiler.is_compiling())
 
     def gradient(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N] (summed over meshes when packed), closed form; differentiable (analytic HVP)."""
-        p, _ = self._bind(x, "gradient", backend, theta_prev, dt)
-        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+        p, impl = self._kernel("gradient", x, theta_prev, dt, backend)
+        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=impl,
                                        inc=self._incidence())
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
@@ -187,18 +188,20 @@ class BendingEnergy(nn.Module):
         Unprojected, per hinge ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix;
         ``project`` (:class:`~torchbend.options.Projection`) applies the projection of :meth:`hessian`."""
         projection = Projection.parse(project)
-        p, backend = self._bind(x, "" if projection is not Projection.NONE else "hvp", backend, theta_prev, dt)
-        v = check_direction(v, x, self.check_finite)
         if projection is Projection.NONE:
-            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=self._impl,
+            p, impl = self._kernel("hvp", x, theta_prev, dt, backend)
+            v = check_direction(v, x, self.check_finite)
+            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=impl,
                                       inc=self._incidence())
+        p, backend = self._bind(x, backend, theta_prev, dt)
+        v = check_direction(v, x, self.check_finite)
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
 
     def hinge_hessians(self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
                        backend=None) -> Tensor:
         """Per-hinge energy Hessians ``(..., H, 12, 12)`` [J/m^2] in stencil order (flat ``3*k + j``):
         ``psi'' g g^T + psi' Hess(theta)`` (paper eqs. 3, 5, 6), optionally projected per block."""
-        p, backend = self._bind(x, "", backend, theta_prev, dt)
+        p, backend = self._bind(x, backend, theta_prev, dt)
         return hs.hinge_hessians(x, self.hinges, p, self.model, Projection.parse(project), backend)
 
     def hessian(self, x: Tensor, *, project=None, assembly: str | Assembly = "triangle",
@@ -210,7 +213,7 @@ class BendingEnergy(nn.Module):
         :func:`torchbend.energies.bending_hessian.assemble` for the projections; :func:`torchbend.to_scipy`
         converts."""
         projection, how = Projection.parse(project), Assembly.parse(assembly)
-        p, backend = self._bind(x, "", backend, theta_prev, dt)
+        p, backend = self._bind(x, backend, theta_prev, dt)
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
         if self._pattern is None:
