@@ -1,17 +1,32 @@
-"""Linear solves for Newton directions on the free degrees of freedom.
+r"""Linear solves for Newton directions on the free degrees of freedom.
 
-* :func:`direct_solve`: sparse LU (``scipy.sparse.linalg.splu``) with a Levenberg fallback.
-* :func:`truncated_pcg`: preconditioned conjugate gradients, truncated at negative curvature
-  (Steihaug), on a matrix-free operator.
-* :func:`block_jacobi`: the block-Jacobi preconditioner from per-vertex 3x3 Hessian blocks.
+* :class:`FreeHessian`: the Hessian of a :class:`~torchbend.sim.model.ClothModel` restricted to the
+  free DOFs (plus an optional diagonal, the inertia ``M/dt^2``), assembled once per Newton iteration
+  into one torch sparse CSR matrix on the positions' device (its pattern is built once per model and
+  pinned set); :meth:`FreeHessian.to_scipy` gives the same matrix as ``scipy.sparse`` on the CPU.
+* :func:`direct_solve`: sparse LU (``scipy.sparse.linalg.splu`` in symmetric mode: minimum degree on
+  ``A + A^T``, diagonal pivots), or on request a sparse Cholesky (CHOLMOD through the optional
+  ``cholespy``, ``pip install torchbend[fast]``) with the LU as fallback for indefinite matrices;
+  Levenberg shifts when the direction is not a descent direction.  It reports whether the matrix was
+  found positive definite (the inertia of the diagonally pivoted LU, or the Cholesky's success).
+* :func:`pcg`: preconditioned conjugate gradients in torch on any device, truncated at negative
+  curvature (Steihaug), bounded, with no host round trip per iteration on a GPU.
+* Preconditioners (:class:`Preconditioner`): block-Jacobi (torch, any device, SPD by construction),
+  incomplete LU (``scipy.sparse.linalg.spilu``, CPU) and smoothed-aggregation AMG (the optional
+  ``pyamg``, CPU); ``"auto"`` is incomplete LU for CPU tensors and block-Jacobi on other devices.
 
-Vectors here are float64 NumPy arrays over the free DOFs (flat ``3V`` coordinates with the pinned
-ones removed by a ``(3V,)`` bool mask ``free``); the tensors they come from are moved to the CPU
-explicitly and back to their own device by the caller.
+The direct solver works on the CPU (the matrix is copied there); CG runs on the device of the
+positions, and only the CPU preconditioners (``ilu``, ``amg``) copy vectors to the host, once per
+CG iteration (so ``"auto"`` never does on a GPU).  Benchmarks: ``benchmarks/bm_linear.py``.
 """
 from __future__ import annotations
 
-from typing import Callable
+import contextlib
+import math
+import os
+import sys
+import weakref
+from typing import Callable, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -19,74 +34,441 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
-__all__ = ["direct_solve", "truncated_pcg", "block_jacobi"]
+from ..options import Option, Projection
 
-Operator = Callable[[np.ndarray], np.ndarray]
+__all__ = ["Preconditioner", "DirectResult", "CGResult", "FreeHessian", "direct_solve", "pcg", "block_jacobi",
+           "ilu", "amg", "make_preconditioner", "cg_iteration_bound", "has_cholespy", "has_pyamg"]
+
+Apply = Callable[[Tensor], Tensor]
 
 
-def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12) -> tuple[np.ndarray, int]:
-    """Solve ``A p = rhs`` for a descent direction (``rhs . p > 0``, ``rhs = -gradient``) by sparse LU.
+# -------------------------------------------------------------------- optional dependencies
+def _optional(name: str):
+    try:
+        return __import__(name)
+    except ImportError:
+        return None
 
-    ``A``: ``scipy.sparse`` ``(n, n)`` (CSC) symmetric, ``rhs``: ``(n,)``.  A singular factorisation,
-    a non-finite solution or one that is not a descent direction is retried with the Levenberg shift
-    ``A + mu I``, ``mu = 1e-8 max|diag A|`` growing tenfold (at most ``max_shifts`` tries; then the
-    steepest-descent direction ``rhs`` itself).  Returns ``(p, shifts)``: the number of regularised tries."""
+
+_cholespy = _optional("cholespy")
+_pyamg = _optional("pyamg")
+
+
+def has_cholespy() -> bool:
+    """Whether the sparse Cholesky (``cholespy``, extra ``torchbend[fast]``) is installed."""
+    return _cholespy is not None
+
+
+def has_pyamg() -> bool:
+    """Whether the AMG preconditioner (``pyamg``, extra ``torchbend[fast]``) is installed."""
+    return _pyamg is not None
+
+
+class Preconditioner(Option):
+    """CG preconditioner: ``auto`` (incomplete LU for CPU tensors, block-Jacobi on other devices),
+    ``block_jacobi`` (3x3 vertex blocks, torch, any device), ``ilu`` (``scipy`` ``spilu``, CPU) or
+    ``amg`` (``pyamg`` smoothed aggregation, CPU; needs ``pyamg``)."""
+
+    __label__ = "preconditioner"
+
+    AUTO = "auto"
+    BLOCK_JACOBI = "block_jacobi"
+    ILU = "ilu"
+    AMG = "amg"
+
+
+# -------------------------------------------------------------------- assembled free Hessian
+class _Pattern:
+    """The CSR pattern of a free Hessian and where each term's values go (built once, on the CPU,
+    then moved to ``device``)."""
+
+    def __init__(self, free: np.ndarray, terms: list[tuple[np.ndarray, np.ndarray]], device: torch.device):
+        n_full = free.shape[0]
+        index = np.full(n_full, -1, dtype=np.int64)
+        index[free] = np.arange(int(free.sum()))
+        nf = int(free.sum())
+        vf = nf // 3
+        # every free vertex's 3x3 diagonal block is in the pattern (colliders, inertia, block-Jacobi)
+        bi = np.repeat(np.arange(nf), 3)
+        bj = (3 * (np.arange(nf) // 3))[:, None].repeat(3, 1) + np.arange(3)[None, :]
+        term_keys, term_keep = [], []
+        for rows, cols in terms:
+            keep = free[rows] & free[cols]
+            term_keep.append(np.flatnonzero(keep))
+            term_keys.append(index[rows[keep]] * nf + index[cols[keep]])
+        block_keys = bi * nf + bj.reshape(-1)
+        keys = np.unique(np.concatenate([block_keys, *term_keys]))
+        rows = keys // nf
+        crow = np.zeros(nf + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=nf), out=crow[1:])
+        as_dev = lambda a: torch.as_tensor(a, dtype=torch.int64, device=device)
+        self.n, self.nnz, self.device = nf, int(keys.shape[0]), device
+        self.crow, self.col = as_dev(crow), as_dev(keys % nf)
+        self.term_keep = [as_dev(k) for k in term_keep]
+        self.term_pos = [as_dev(np.searchsorted(keys, k)) for k in term_keys]
+        self.block_pos = as_dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
+        self.free_vertices = as_dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
+        self.scipy_indices = (keys % nf, crow)
+
+
+def _csr_indices(H: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column index of every stored value of a torch sparse CSR matrix (NumPy, CPU)."""
+    crow = H.crow_indices().cpu().numpy()
+    return np.repeat(np.arange(crow.shape[0] - 1), np.diff(crow)), H.col_indices().cpu().numpy()
+
+
+_FREE_HESSIANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+class FreeHessian:
+    """The Hessian of a model's potential on its free DOFs, one torch sparse CSR ``(nf, nf)`` [N/m].
+
+    ``free_mask``: ``(3V,)`` bool, whole vertices (pinned vertices drop their three DOFs).  The terms
+    are those of :meth:`ClothModel.hessian` (membrane and bending CSR matrices, collider 3x3 blocks)
+    plus an optional ``(3V,)`` diagonal; the summed pattern (every free vertex keeps its diagonal
+    block) and the scatter positions of each term are built on first use and rebuilt only when a
+    term's pattern changes.  Use :meth:`for_model` to share one per model and pinned set."""
+
+    def __init__(self, model, free_mask: Tensor):
+        self.model = model
+        self.free_mask = free_mask
+        self._free = free_mask.cpu().numpy().astype(bool)
+        self._pattern: _Pattern | None = None
+        self._term_nnz: tuple = ()
+
+    @classmethod
+    def for_model(cls, model, free_mask: Tensor) -> FreeHessian:
+        """The cached instance of ``model`` for this ``free_mask`` and device (a new one otherwise)."""
+        cached = _FREE_HESSIANS.get(model)
+        if (cached is not None and cached.free_mask.device == free_mask.device
+                and cached.free_mask.shape == free_mask.shape and bool((cached.free_mask == free_mask).all())):
+            return cached
+        fh = cls(model, free_mask)
+        _FREE_HESSIANS[model] = fh
+        return fh
+
+    @property
+    def size(self) -> int:
+        """The number of free DOFs ``nf``."""
+        return int(self._free.sum())
+
+    def _terms(self, x: Tensor, option: Projection, bend_kw: dict) -> list[Tensor]:
+        from ..energies.membrane import MEMBRANE_PROJECTIONS
+
+        m = self.model
+        out = []
+        if m.membrane is not None:
+            out.append(m.membrane.hessian(x, project=option.restricted(MEMBRANE_PROJECTIONS)))
+        if m.bending is not None:
+            out.append(m.bending.hessian(x, project=option, **bend_kw))
+        return out
+
+    def assemble(self, x: Tensor, option: Projection, bend_kw: dict | None = None,
+                 diagonal: Tensor | None = None) -> Tensor:
+        """The free Hessian at ``x (V, 3)`` [m] plus ``diag(diagonal)`` (``(3V,)``, e.g. ``m/dt^2``), a
+        torch sparse CSR ``(nf, nf)`` on ``x``'s device in ``x``'s dtype."""
+        terms = self._terms(x, option, bend_kw or {})
+        nnz = tuple(int(H.values().shape[0]) for H in terms)
+        if self._pattern is None or nnz != self._term_nnz or self._pattern.device != x.device:
+            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in terms], x.device)
+            self._term_nnz = nnz
+        pat = self._pattern
+        values = x.new_zeros(pat.nnz)
+        for H, keep, pos in zip(terms, pat.term_keep, pat.term_pos):
+            values.index_add_(0, pos, H.values().detach().to(x.dtype)[keep])
+        blocks = None
+        for c in self.model.colliders:
+            b = c.hessian_blocks(x, project=option)
+            blocks = b if blocks is None else blocks + b
+        if diagonal is not None:
+            d = torch.diag_embed(diagonal.reshape(-1, 3).to(x.dtype))
+            blocks = d if blocks is None else blocks + d
+        if blocks is not None:
+            values.index_add_(0, pat.block_pos.reshape(-1), blocks.detach()[pat.free_vertices].reshape(-1))
+        return _csr(pat.crow, pat.col, values, pat.n)
+
+    def diagonal_blocks(self, A: Tensor) -> Tensor:
+        """The ``(Vf, 3, 3)`` diagonal blocks of an assembled free Hessian ``A`` (on its device)."""
+        assert self._pattern is not None, "assemble() first"
+        return A.values()[self._pattern.block_pos]
+
+    def to_scipy(self, A: Tensor) -> sp.csr_matrix:
+        """An assembled free Hessian as ``scipy.sparse`` CSR float64 (copied to the CPU)."""
+        assert self._pattern is not None, "assemble() first"
+        col, crow = self._pattern.scipy_indices
+        n = self._pattern.n
+        return sp.csr_matrix((A.values().detach().cpu().double().numpy(), col, crow), shape=(n, n))
+
+
+def _csr(crow: Tensor, col: Tensor, values: Tensor, n: int) -> Tensor:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, col, values, size=(n, n), check_invariants=False)
+
+
+# -------------------------------------------------------------------- direct solves
+class DirectResult(NamedTuple):
+    """A direct solve: the direction ``p (n,)``, the Levenberg ``shifts`` it took (0: the matrix as
+    given), whether the unshifted matrix was found positive definite (``None``: not determined, e.g.
+    an LU with off-diagonal pivots) and the factorisation used (``"cholesky"`` / ``"lu"``, or
+    ``"steepest"`` when every shift failed)."""
+
+    p: np.ndarray
+    shifts: int
+    positive_definite: bool | None
+    method: str
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence file descriptor 1 (CHOLMOD prints "not positive definite" warnings with C stdio).
+
+    Python's and C's buffers are flushed on both sides; output other threads write meanwhile is lost."""
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    libc = _libc()
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        if libc is not None:
+            libc.fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _libc():
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None)
+    except (OSError, TypeError):  # e.g. Windows: no process-wide C library handle
+        return None
+
+
+def cholesky_solve(A: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None:
+    """``A^{-1} rhs`` by a sparse Cholesky factorisation (``cholespy``; ``A`` symmetric, its lower
+    triangle is used), or ``None`` when ``A`` is not positive definite or ``cholespy`` is absent."""
+    if _cholespy is None:
+        return None
+    A = sp.csr_matrix(A)
+    n = int(rhs.shape[0])
+    try:
+        with _quiet_stdout():
+            solver = _cholespy.CholeskySolverD(n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
+                                               np.ascontiguousarray(A.data, dtype=np.float64),
+                                               _cholespy.MatrixType.CSR)
+    except ValueError:  # "Matrix is not positive definite!"
+        return None
+    out = np.zeros(n)
+    solver.solve(np.ascontiguousarray(rhs, dtype=np.float64), out)
+    return out
+
+
+def lu_solve(A: sp.spmatrix, rhs: np.ndarray) -> tuple[np.ndarray | None, bool | None]:
+    """``(A^{-1} rhs, positive definite?)`` by sparse LU; ``(None, definite)`` when ``A`` is singular.
+
+    First SuperLU in symmetric mode: minimum degree on ``A + A^T`` and diagonal pivots only
+    (``diag_pivot_thresh=0``), i.e. ``P^T L D L^T P`` whose pivot signs are ``A``'s inertia (Sylvester):
+    2-3x faster than SciPy's default (COLAMD, partial pivoting) on these matrices
+    (benchmarks/results/linear_cpu_2core.txt).  A zero pivot (then ``A`` is not positive definite) or a
+    non-finite solution (pivot growth on an indefinite matrix) is retried with the default partial
+    pivoting.  ``definite``: all pivots positive, or ``None`` if the symmetric factorisation failed."""
+    A = sp.csc_matrix(A)
+    try:
+        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError:  # a zero pivot
+        p, definite = None, False
+    else:
+        p = lu.solve(rhs)
+        definite = bool((lu.U.diagonal() > 0).all()) if np.array_equal(lu.perm_r, lu.perm_c) else None
+        if np.all(np.isfinite(p)):
+            return p, definite
+    try:
+        return spla.splu(A).solve(rhs), definite
+    except RuntimeError:  # exactly singular
+        return None, definite
+
+
+def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = False) -> DirectResult:
+    """Solve ``A p = rhs`` for a descent direction (``rhs . p > 0``, ``rhs = -gradient``).
+
+    ``A``: ``scipy.sparse`` ``(n, n)`` symmetric, ``rhs``: ``(n,)``.  By :func:`lu_solve` (symmetric
+    sparse LU, which also gives the inertia), or with ``cholesky=True`` and ``cholespy`` installed by a
+    sparse Cholesky first (CHOLMOD; on these matrices no faster than the symmetric LU, see
+    benchmarks/bm_linear.py), the LU when ``A`` is not positive definite.  The direction of an
+    indefinite matrix is kept if it is a descent direction.  A singular matrix, a non-finite solution
+    or one that is not a descent direction is retried with the Levenberg shift ``A + mu I``,
+    ``mu = 1e-8 max|diag A|`` growing tenfold (at most ``max_shifts`` tries; then the steepest-descent
+    direction ``rhs`` itself).  Returns a :class:`DirectResult`; its ``positive_definite`` is that of
+    the unshifted ``A``."""
     n = A.shape[0]
+    use_chol = bool(cholesky) and has_cholespy()
     diag_scale = float(abs(A.diagonal()).max()) if n else 1.0
-    shift = 0.0
+    diag_scale = diag_scale if diag_scale > 0 and math.isfinite(diag_scale) else 1.0
+    shift, definite = 0.0, None
     for tries in range(max_shifts):
-        try:
-            M = A if shift == 0 else A + sp.identity(n, format="csc") * shift
-            p = spla.splu(M).solve(rhs)
-        except RuntimeError:  # singular
-            p = None
+        M = A if shift == 0 else A + sp.identity(n, format="csr") * shift
+        p, method, pd = (cholesky_solve(M, rhs), "cholesky", True) if use_chol else (None, "lu", None)
+        if p is None:
+            p, lu_pd = lu_solve(M, rhs)
+            method, pd = "lu", (False if use_chol else lu_pd)
+        if tries == 0:
+            definite = pd
         if p is not None and np.all(np.isfinite(p)) and float(rhs @ p) > 0:
-            return p, tries
+            return DirectResult(p, tries, definite, method)
         shift = max(shift * 10, 1e-8 * diag_scale)
-    return rhs.copy(), max_shifts
+    return DirectResult(rhs.copy(), max_shifts, definite, "steepest")
 
 
-def truncated_pcg(apply: Operator, b: np.ndarray, precond: Operator, tol: float, maxiter: int) -> tuple[np.ndarray, int]:
-    """Preconditioned CG for ``A p = b`` (``apply(d) = A d``, ``precond(r) ~ A^{-1} r``), stopped at
-    ``|r| <= tol |b|`` or truncated at the first direction of non-positive curvature (Steihaug: the
-    iterate so far, or ``b`` at the first iteration).  Returns ``(p, iterations)``."""
-    x = np.zeros_like(b)
-    r = b.copy()
+# -------------------------------------------------------------------- conjugate gradients
+class CGResult(NamedTuple):
+    """A CG solve: the iterate ``x``, the ``iterations`` (operator applications), whether the
+    relative residual reached the tolerance, and ``negative_curvature``: the search direction
+    ``d`` with ``d . A d <= 0`` that truncated it (``None`` if none did)."""
+
+    x: Tensor
+    iterations: int
+    converged: bool
+    negative_curvature: Tensor | None
+
+
+def pcg(apply: Apply, b: Tensor, precond: Apply, *, tol: float, maxiter: int, check_every: int | None = None) -> CGResult:
+    """Preconditioned CG for ``A x = b`` (``apply(d) = A d``, ``precond(r) ~ A^{-1} r``, SPD), all in
+    torch on ``b``'s device; stopped at ``|r| <= tol |b|``, after ``maxiter`` iterations, or
+    truncated at the first direction of non-positive curvature (Steihaug: the iterate so far, or
+    ``precond(b)`` at the first iteration) or when ``r . precond(r) <= 0`` (a preconditioner that is not
+    positive definite).  From ``x = 0`` every iterate before a truncation is a descent direction for
+    ``1/2 x.Ax - b.x`` (``b . x > 0``) in exact arithmetic, whatever ``A``'s inertia.
+
+    The stopping tests are evaluated on the device and read by the host only every ``check_every``
+    iterations (default: 1 on the CPU, 8 elsewhere); iterations past a stop change nothing."""
+    if check_every is None:
+        check_every = 1 if b.device.type == "cpu" else 8
+    x = torch.zeros_like(b)
+    r = b.clone()
     z = precond(r)
-    d = z.copy()
-    rz = r @ z
-    bnorm = np.linalg.norm(b)
-    for it in range(1, maxiter + 1):
+    d = z.clone()
+    rz = torch.dot(r, z)
+    bnorm = torch.linalg.vector_norm(b)
+    done = rz <= 0  # a zero right-hand side, or a preconditioner that is not positive definite
+    converged = bnorm == 0
+    negative = torch.zeros_like(done)
+    neg_d = torch.zeros_like(b)
+    iterations = torch.zeros((), dtype=torch.int64, device=b.device)
+    limit = tol * bnorm
+    for k in range(maxiter):
+        if k % check_every == 0 and bool(done):
+            break
         Ad = apply(d)
-        curv = d @ Ad
-        if curv <= 0:
-            return (x if it > 1 else b.copy()), it
-        alpha = rz / curv
-        x += alpha * d
-        r -= alpha * Ad
-        if np.linalg.norm(r) <= tol * bnorm:
-            return x, it
+        curv = torch.dot(d, Ad)
+        active = ~done
+        iterations = iterations + active.to(torch.int64)
+        neg = active & (curv <= 0)
+        negative = negative | neg
+        neg_d = torch.where(neg, d, neg_d)
+        if k == 0:  # negative curvature at once: the preconditioned steepest-descent direction
+            x = torch.where(neg, d, x)
+        step = active & ~neg
+        alpha = torch.where(step, rz / torch.where(step, curv, torch.ones_like(curv)), torch.zeros_like(curv))
+        x = x + alpha * d
+        r = r - alpha * Ad
+        conv = step & (torch.linalg.vector_norm(r) <= limit)
+        converged = converged | conv
+        done = done | neg | conv
         z = precond(r)
-        rz_new = r @ z
-        d = z + (rz_new / rz) * d
-        rz = rz_new
-    return x, maxiter
+        rz_new = torch.dot(r, z)
+        go = ~done & (rz_new > 0)
+        done = done | ~go
+        beta = torch.where(go, rz_new / torch.where(go, rz, torch.ones_like(rz)), torch.zeros_like(rz))
+        d = torch.where(go, z + beta * d, d)
+        rz = torch.where(go, rz_new, rz)
+    return CGResult(x, int(iterations), bool(converged), neg_d if bool(negative) else None)
 
 
-def block_jacobi(blocks: Tensor, free: np.ndarray) -> Operator:
-    """Block-Jacobi preconditioner on the free DOFs from the per-vertex Hessian blocks ``(V, 3, 3)``.
+def cg_iteration_bound(n: int, max_cg_iters: int | None = None) -> int:
+    """The CG iteration bound: ``max_cg_iters`` if given (>= 1), else ``min(2 n, max(100, 20 sqrt(n)))``
+    (CG is exact after ``n`` steps in exact arithmetic; a truncated CG still returns a descent
+    direction, so the bound trades Newton iterations for CG iterations)."""
+    if max_cg_iters is not None:
+        return max(1, int(max_cg_iters))
+    return max(1, min(2 * n, max(100, int(20 * math.sqrt(n)))))
 
-    Each block gets ``1e-12 max|diag|`` added to its diagonal (identity on the blocks' device) and is
-    pseudo-inverted; rows and columns of pinned DOFs are dropped (``free``: ``(3V,)`` bool)."""
-    eye = torch.eye(3, dtype=blocks.dtype, device=blocks.device)
-    blocks = blocks + 1e-12 * blocks.diagonal(dim1=-2, dim2=-1).abs().amax() * eye
-    inv = torch.linalg.pinv(blocks.cpu().double()).numpy()
-    mask3 = free.reshape(-1, 3)
 
-    def precond(r: np.ndarray) -> np.ndarray:
-        full = np.zeros(free.shape[0])
-        full[free] = r
-        out = np.einsum("vij,vj->vi", inv, full.reshape(-1, 3)) * mask3
-        return out.reshape(-1)[free]
+# -------------------------------------------------------------------- preconditioners
+def block_jacobi(blocks: Tensor) -> Apply:
+    """Block-Jacobi preconditioner from the ``(Vf, 3, 3)`` diagonal blocks of the free Hessian (torch,
+    on the blocks' device): each block is replaced by ``Q |L| Q^T`` (eigenvalues in absolute value,
+    floored at ``1e-12`` times the largest) so that the preconditioner is SPD even for an indefinite
+    Hessian; applies to flat ``(3 Vf,)`` vectors."""
+    blocks = 0.5 * (blocks + blocks.transpose(-1, -2))
+    lam, Q = torch.linalg.eigh(blocks)
+    mag = lam.abs()
+    floor = 1e-12 * mag.amax().clamp_min(torch.finfo(blocks.dtype).tiny)
+    inv = (Q / torch.maximum(mag, floor)[..., None, :]) @ Q.transpose(-1, -2)
+
+    def precond(r: Tensor) -> Tensor:
+        return (inv @ r.reshape(-1, 3, 1)).reshape(-1)
 
     return precond
+
+
+def _host(fn: Callable[[np.ndarray], np.ndarray], like: Tensor) -> Apply:
+    """A NumPy operator applied to torch vectors (a host copy unless ``like`` is on the CPU)."""
+
+    def apply(r: Tensor) -> Tensor:
+        out = fn(r.detach().cpu().double().numpy())
+        return torch.as_tensor(out, device=like.device).to(like.dtype)
+
+    return apply
+
+
+def ilu(A: sp.spmatrix, like: Tensor, *, drop_tol: float = 1e-4, fill_factor: float = 10.0) -> Apply | None:
+    """Incomplete LU (``scipy.sparse.linalg.spilu``, symmetric ordering) of the free Hessian ``A`` as a
+    preconditioner on torch vectors like ``like`` (CPU work); ``None`` if the factorisation fails."""
+    try:
+        fac = spla.spilu(sp.csc_matrix(A), drop_tol=drop_tol, fill_factor=fill_factor,
+                         permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError:
+        return None
+    return _host(fac.solve, like)
+
+
+def amg(A: sp.spmatrix, like: Tensor) -> Apply | None:
+    """Smoothed-aggregation AMG (``pyamg``; one V-cycle per application, 3x3 vertex blocks) of the free
+    Hessian ``A`` as a preconditioner on torch vectors like ``like`` (CPU work); ``None`` without
+    ``pyamg`` or if the setup fails."""
+    if _pyamg is None:
+        return None
+    try:
+        ml = _pyamg.smoothed_aggregation_solver(sp.bsr_matrix(sp.csr_matrix(A), blocksize=(3, 3)), symmetry="symmetric")
+    except (ValueError, RuntimeError, np.linalg.LinAlgError):
+        return None
+    M = ml.aspreconditioner(cycle="V")
+    return _host(lambda r: M @ r, like)
+
+
+def make_preconditioner(kind: Preconditioner | str, A: Tensor, fh: FreeHessian) -> tuple[Apply, Preconditioner]:
+    """The preconditioner ``kind`` (:class:`Preconditioner`) for the assembled free Hessian ``A`` (torch
+    sparse CSR) of ``fh``; falls back to block-Jacobi when ``ilu``/``amg`` are unavailable or fail.
+    Returns ``(apply, the kind used)``."""
+    kind = Preconditioner.parse(kind)
+    if kind is Preconditioner.AUTO:
+        kind = Preconditioner.ILU if A.device.type == "cpu" else Preconditioner.BLOCK_JACOBI
+    like = A.values()
+    if kind is Preconditioner.ILU:
+        M = ilu(fh.to_scipy(A), like)
+        if M is not None:
+            return M, kind
+    elif kind is Preconditioner.AMG:
+        M = amg(fh.to_scipy(A), like)
+        if M is not None:
+            return M, kind
+    return block_jacobi(fh.diagonal_blocks(A)), Preconditioner.BLOCK_JACOBI

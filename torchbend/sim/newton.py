@@ -14,9 +14,10 @@ Newton iteration: pinned degrees of freedom are eliminated; the direction solves
 the free ones with the Hessian option ``hessian=``, a :class:`torchbend.options.Projection`
 (``"exact"`` = ``none``, ``"clamp"``, ``"abs"``, ``"gauss_newton"``, ``"reduced"``: the bending
 projection; membranes get the nearest one they support, colliders drop their concave curvature term
-whenever a projection is asked for), by a sparse direct solve (scipy) or matrix-free CG on
-Hessian-vector products with a block-Jacobi preconditioner, truncated at negative curvature
-(:mod:`torchbend.sim.linear`).  A direction that is not a descent direction (possible with the
+whenever a projection is asked for), assembled once per iteration on the positions' device, by a
+sparse direct solve on the CPU (symmetric-mode LU, which also tells whether the matrix is positive
+definite) or by preconditioned CG on the positions' device (incomplete LU on the CPU, block-Jacobi
+elsewhere), bounded and truncated at negative curvature (:mod:`torchbend.sim.linear`).  A direction that is not a descent direction (possible with the
 indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo backtracking
 (:mod:`torchbend.sim.line_search`) guarantees that the potential never increases.
 
@@ -37,14 +38,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from torch import Tensor
 
 from .._checks import check_positions, positive
 from ..options import Option, Projection
 from .line_search import armijo_backtracking
-from .linear import block_jacobi, direct_solve, truncated_pcg
+from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
@@ -107,6 +107,13 @@ class _Potential:
         if inertia is not None:
             self.x_hat, dt = inertia
             self.w = model.mass.to(device=x.device, dtype=x.dtype).repeat_interleave(3) / (dt * dt)
+        # linear algebra: the free Hessian's assembler (pattern shared per model) and what the last
+        # direction found: positive definite (None: unknown), a direction of negative curvature (CG,
+        # (nf,) on x's device), the factorisation / preconditioner used
+        self.hessian_op = FreeHessian.for_model(model, self.free_mask)
+        self.positive_definite: bool | None = None
+        self.negative_curvature: Tensor | None = None
+        self.linear_method = ""
 
     def value(self, y: Tensor) -> tuple[float, dict]:
         """``(Phi(y) [J], per-term energies)``; the inertial term is ``"inertia"``."""
@@ -141,34 +148,44 @@ class _Potential:
         out[self.free_mask] = torch.from_numpy(np.ascontiguousarray(p)).to(device=like.device, dtype=like.dtype)
         return out.reshape(-1, 3)
 
+    def free_hessian(self, x: Tensor) -> Tensor:
+        """The free Hessian of the potential at ``x`` (with the inertia ``m/dt^2``), torch sparse CSR
+        ``(nf, nf)`` [N/m] on ``x``'s device."""
+        return self.hessian_op.assemble(x, self.option, self.bend_kw, self.w)
+
     def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
-        """Newton direction by a sparse direct solve; ``(p, Levenberg shifts)``."""
-        H = self.model.hessian(x, self.option, self.bend_kw)
-        if self.w is not None:
-            H = H + sp.diags(self.w.cpu().numpy())
-        Hf = H.tocsr()[self.free][:, self.free].tocsc()
-        return direct_solve(Hf, -gf)
+        """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
+        sparse Cholesky first if the ``cholesky`` attribute is true); ``(p, Levenberg shifts)``; sets
+        ``positive_definite`` and ``linear_method``."""
+        res = direct_solve(self.hessian_op.to_scipy(self.free_hessian(x)), -gf,
+                           cholesky=bool(getattr(self, "cholesky", False)))
+        self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
+        return res.p, res.shifts
 
     def cg_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float) -> tuple[np.ndarray, int]:
-        """Newton direction by truncated block-Jacobi PCG on Hessian-vector products, to the forcing
-        term ``min(0.1, sqrt(|g| / scale)) / 100``; ``(p, CG iterations)``."""
-        blocks = self.model.block_diagonal(x, self.option, self.bend_kw)
-        if self.w is not None:
-            blocks = blocks + torch.diag_embed(self.w.reshape(-1, 3))
-        precond = block_jacobi(blocks, self.free)
-        zero = np.zeros(self.free.shape[0])
-
-        def apply(d: np.ndarray) -> np.ndarray:
-            full = zero.copy()
-            full[self.free] = d
-            v = torch.from_numpy(full).to(device=x.device, dtype=x.dtype).reshape(-1, 3)
-            out = self.model.hvp(x, v, self.option, self.bend_kw).reshape(-1)
-            if self.w is not None:
-                out = out + self.w * v.reshape(-1)
-            return out.cpu().double().numpy()[self.free]
-
-        forcing = min(0.1, math.sqrt(relative_residual)) * 1e-2
-        return truncated_pcg(apply, -gf, precond, tol=max(forcing, 1e-14), maxiter=10 * len(gf))
+        """Newton direction by truncated preconditioned CG (:func:`~torchbend.sim.linear.pcg`) on the
+        assembled free Hessian, on ``x``'s device, to the forcing term ``min(0.1, sqrt(|g| / scale)) / 100``
+        (at least 1e-10),
+        at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
+        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its direction is not a
+        descent direction, block-Jacobi (SPD) is tried.  ``(p, CG iterations)``; sets ``negative_curvature``,
+        ``positive_definite`` (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
+        A = self.free_hessian(x)
+        b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
+        tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10)
+        maxiter = cg_iteration_bound(len(gf), getattr(self, "max_cg_iters", None))
+        kind = getattr(self, "preconditioner", None) or Preconditioner.AUTO
+        M, used = make_preconditioner(kind, A, self.hessian_op)
+        res = pcg(lambda d: A @ d, b, M, tol=tol, maxiter=maxiter)
+        iterations = res.iterations
+        if used is not Preconditioner.BLOCK_JACOBI and not float(torch.dot(b, res.x)) > 0:
+            used = Preconditioner.BLOCK_JACOBI
+            res = pcg(lambda d: A @ d, b, make_preconditioner(used, A, self.hessian_op)[0], tol=tol, maxiter=maxiter)
+            iterations += res.iterations
+        self.negative_curvature = res.negative_curvature
+        self.positive_definite = False if res.negative_curvature is not None else None
+        self.linear_method = f"cg/{used.value}"
+        return res.x.detach().cpu().double().numpy(), iterations
 
 
 def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver, relative_residual: float,

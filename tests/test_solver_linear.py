@@ -1,0 +1,324 @@
+"""Linear solves of the Newton directions (torchbend/sim/linear.py): against dense NumPy solves, the
+Cholesky / LU choice and the inertia they report, truncated CG on indefinite matrices, the assembled free
+Hessian against ClothModel.hessian, and the CG path's device-following (no host round trip per iteration)."""
+import os
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+from torch.overrides import TorchFunctionMode
+
+from torchbend import ClothModel, ClothState, implicit_euler_step, solve_static
+from torchbend.options import Projection
+from torchbend.scenes.config import build_scene, load_config
+from torchbend.sim import linear, newton
+
+from .test_solver import CONFIGS, DevicelessFactories, cantilever
+
+F64 = torch.float64
+requires_gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+requires_cholespy = pytest.mark.skipif(not linear.has_cholespy(), reason="cholespy not installed")
+
+
+def random_symmetric(n, eigenvalues, seed=0):
+    """A symmetric ``(n, n)`` matrix (``scipy.sparse`` CSR, dense pattern) with the given eigenvalues, so
+    that its inertia and condition are known."""
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A = (Q * np.asarray(eigenvalues, dtype=float)) @ Q.T
+    return sp.csr_matrix(0.5 * (A + A.T))
+
+
+def inertia(A):
+    lam = np.linalg.eigvalsh(A.toarray())
+    return int((lam < 0).sum())
+
+
+# -------------------------------------------------------------------- direct solves
+@pytest.mark.parametrize("cholesky", [False, pytest.param(True, marks=requires_cholespy)])
+def test_direct_solve_positive_definite_matches_dense(cholesky):
+    n = 30
+    A = random_symmetric(n, np.geomspace(1e-3, 1e3, n), seed=1)
+    b = np.random.default_rng(2).standard_normal(n)
+    res = linear.direct_solve(A, b, cholesky=cholesky)
+    ref = np.linalg.solve(A.toarray(), b)
+    assert res.shifts == 0 and res.positive_definite is True
+    assert res.method == ("cholesky" if cholesky else "lu")
+    assert np.linalg.norm(res.p - ref) <= 1e-10 * np.linalg.norm(ref)
+
+
+@pytest.mark.parametrize("cholesky", [False, pytest.param(True, marks=requires_cholespy)])
+def test_direct_solve_indefinite_falls_back_to_lu_and_shifts(cholesky):
+    n = 24
+    lam = np.r_[-2.0, -0.5, np.linspace(1.0, 10.0, n - 2)]
+    A = random_symmetric(n, lam, seed=3)
+    assert inertia(A) == 2
+    rng = np.random.default_rng(4)
+    ref_solve = lambda M, b: np.linalg.solve(M.toarray() if sp.issparse(M) else M, b)
+    descent = non_descent = 0
+    for _ in range(20):
+        b = rng.standard_normal(n)
+        res = linear.direct_solve(A, b, cholesky=cholesky)
+        assert res.positive_definite is False and res.method == "lu"  # the Cholesky (if asked) failed
+        assert float(b @ res.p) > 0  # always a descent direction for the gradient -b
+        if res.shifts == 0:  # the indefinite Newton direction happened to be a descent direction: kept
+            descent += 1
+            ref = ref_solve(A, b)
+        else:  # the Levenberg-shifted system, mu = 1e-8 max|diag| 10^(shifts - 1)
+            non_descent += 1
+            mu = 1e-8 * float(abs(A.diagonal()).max()) * 10.0 ** (res.shifts - 1)
+            ref = ref_solve(A.toarray() + mu * np.eye(n), b)
+        assert np.linalg.norm(res.p - ref) <= 1e-8 * np.linalg.norm(ref)
+    assert descent and non_descent  # both branches were exercised
+
+
+def test_lu_inertia_flag_matches_eigenvalues():
+    rng = np.random.default_rng(5)
+    for seed in range(12):
+        n = 20
+        negatives = seed % 4  # 0 (PD), 1, 2, 3 negative eigenvalues
+        lam = np.r_[-rng.uniform(0.1, 5, negatives), rng.uniform(0.1, 5, n - negatives)]
+        A = random_symmetric(n, lam, seed=seed)
+        b = rng.standard_normal(n)
+        p, definite = linear.lu_solve(A, b)
+        assert p is not None and np.linalg.norm(A @ p - b) <= 1e-10 * np.linalg.norm(b) * np.linalg.cond(A.toarray())
+        assert definite is (negatives == 0)
+
+
+def test_singular_matrix_gets_a_shift_or_steepest_descent():
+    A = sp.csr_matrix(np.diag([1.0, 2.0, 0.0]))
+    b = np.array([1.0, 1.0, 1.0])
+    res = linear.direct_solve(A, b)
+    assert res.shifts >= 1 and res.positive_definite is False and float(b @ res.p) > 0
+    zero = linear.direct_solve(sp.csr_matrix((3, 3)), b)  # a zero matrix: the shift 1e-8 (unit scale)
+    assert zero.shifts == 1 and np.allclose(zero.p, b / 1e-8, rtol=1e-12)
+    zero = linear.direct_solve(sp.csr_matrix((3, 3)), b, max_shifts=1)  # no shift allowed: steepest descent
+    assert zero.method == "steepest" and np.array_equal(zero.p, b)
+
+
+@requires_cholespy
+def test_cholesky_failure_prints_nothing(capfd):
+    A = sp.csr_matrix(np.diag([1.0, -1.0, 2.0]))
+    assert linear.cholesky_solve(A, np.ones(3)) is None
+    out, err = capfd.readouterr()
+    assert "positive definite" not in out + err
+
+
+# -------------------------------------------------------------------- CG
+def spd_problem(n=60, seed=0, cond=1e4):
+    A = random_symmetric(n, np.geomspace(1.0, cond, n), seed=seed)
+    b = np.random.default_rng(seed + 1).standard_normal(n)
+    return A, b
+
+
+def torch_csr(A):
+    A = sp.csr_matrix(A)
+    return torch.sparse_csr_tensor(torch.as_tensor(A.indptr, dtype=torch.int64), torch.as_tensor(A.indices, dtype=torch.int64),
+                                   torch.as_tensor(A.data, dtype=F64), size=A.shape)
+
+
+@pytest.mark.parametrize("kind", ["none", "block_jacobi", "ilu", "amg"])
+def test_pcg_matches_dense_solve(kind):
+    if kind == "amg" and not linear.has_pyamg():
+        pytest.skip("pyamg not installed")
+    A, b = spd_problem()
+    At, bt = torch_csr(A), torch.as_tensor(b)
+    if kind == "none":
+        M = lambda r: r
+    elif kind == "block_jacobi":
+        Ad = A.toarray()
+        blocks = torch.as_tensor(np.stack([Ad[i:i + 3, i:i + 3] for i in range(0, Ad.shape[0], 3)]))
+        M = linear.block_jacobi(blocks)
+    elif kind == "ilu":
+        M = linear.ilu(A, bt)
+    else:
+        M = linear.amg(A, bt)
+    assert M is not None
+    res = linear.pcg(lambda d: At @ d, bt, M, tol=1e-12, maxiter=1000)
+    ref = np.linalg.solve(A.toarray(), b)
+    assert res.converged and res.negative_curvature is None
+    assert np.linalg.norm(res.x.numpy() - ref) <= 1e-8 * np.linalg.norm(ref)
+    if kind == "ilu":
+        assert res.iterations <= 5  # the incomplete factor is nearly exact here
+
+
+def test_truncated_pcg_returns_descent_directions_on_indefinite_matrices():
+    n = 42
+    lam = np.r_[-3.0, -1.0, np.geomspace(0.1, 100.0, n - 2)]
+    A = random_symmetric(n, lam, seed=7)
+    At = torch_csr(A)
+    Ad = A.toarray()
+    blocks = torch.as_tensor(np.stack([Ad[i:i + 3, i:i + 3] for i in range(0, n, 3)]))
+    preconds = [lambda r: r, linear.block_jacobi(blocks)]  # SPD: block eigenvalues in absolute value
+    rng = np.random.default_rng(8)
+    truncated = 0
+    for M in preconds:
+        for trial in range(10):
+            b = torch.as_tensor(rng.standard_normal(n))
+            for maxiter in (1, 3, 10, 200):
+                res = linear.pcg(lambda d: At @ d, b, M, tol=1e-12, maxiter=maxiter)
+                assert float(b @ res.x) > 0, (trial, maxiter)  # a descent direction for the gradient -b
+                if res.negative_curvature is not None:
+                    truncated += 1
+                    d = res.negative_curvature.numpy()
+                    assert d @ Ad @ d <= 0
+                assert res.iterations <= maxiter
+    assert truncated > 0
+
+
+def test_pcg_device_checks_every_few_iterations_give_the_same_result():
+    A, b = spd_problem(cond=1e3)
+    At, bt = torch_csr(A), torch.as_tensor(b)
+    one = linear.pcg(lambda d: At @ d, bt, lambda r: r, tol=1e-10, maxiter=500, check_every=1)
+    eight = linear.pcg(lambda d: At @ d, bt, lambda r: r, tol=1e-10, maxiter=500, check_every=8)
+    assert one.converged and eight.converged and one.iterations == eight.iterations
+    assert torch.equal(one.x, eight.x)  # iterations past the stop change nothing
+
+
+def test_cg_iteration_bound():
+    assert linear.cg_iteration_bound(10) == 20  # 2n for small systems
+    assert linear.cg_iteration_bound(5043) == int(20 * np.sqrt(5043))
+    assert linear.cg_iteration_bound(5043, 7) == 7 and linear.cg_iteration_bound(10, 0) == 1
+
+
+# -------------------------------------------------------------------- the assembled free Hessian
+def drape_model(n=7):
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    scene, x0, faces = build_scene(cfg, resolution=(n, n))
+    model = ClothModel(faces, x0, bending=scene.bending, membrane=scene.membrane, pinned=[0, n - 1],
+                       colliders=scene.colliders)
+    return model, x0
+
+
+@pytest.mark.parametrize("option", [Projection.NONE, Projection.CLAMP, Projection.GAUSS_NEWTON])
+def test_free_hessian_matches_model_hessian(option):
+    model, x0 = drape_model()
+    x = x0 + 0.05 * torch.randn_like(x0)
+    x[:, 2] -= 0.05  # some vertices inside the sphere's margin: collider blocks
+    assert float(model.colliders[0].depth(x).max()) > 0
+    free = (~model.pinned).repeat_interleave(3)
+    w = torch.rand(free.shape[0], dtype=F64)
+    assert model.bending is not None
+    bend_kw = {"theta_prev": model.bending.angles(x0), "dt": 0.01}
+    fh = linear.FreeHessian(model, free)
+    A = fh.assemble(x, option, bend_kw, w)
+    assert A.layout == torch.sparse_csr and A.device == x.device and A.dtype == x.dtype
+    ref = model.hessian(x, option, bend_kw) + sp.diags(w.numpy())
+    ref = ref.tocsr()[free.numpy()][:, free.numpy()].toarray()
+    got = fh.to_scipy(A).toarray()
+    assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert np.array_equal(got, got.T) or np.abs(got - got.T).max() <= 1e-12 * np.abs(ref).max()
+    # the diagonal blocks for block-Jacobi
+    blocks = fh.diagonal_blocks(A).numpy()
+    assert np.array_equal(blocks[1], got[3:6, 3:6])
+    # the pattern is kept: a second assembly at another state scatters into it
+    A2 = fh.assemble(x0, option, bend_kw, None)
+    ref2 = model.hessian(x0, option, bend_kw).tocsr()[free.numpy()][:, free.numpy()].toarray()
+    assert np.abs(fh.to_scipy(A2).toarray() - ref2).max() <= 1e-12 * np.abs(ref2).max()
+
+
+def test_cg_direction_matches_direct_direction():
+    model, rest, _ = cantilever(6, 3)
+    x = rest + 1e-3 * torch.randn_like(rest) * (~model.pinned)[:, None]
+    for option in (Projection.CLAMP, Projection.NONE):
+        phi = newton._Potential(model, x, option, None, {})
+        gf = phi.free_gradient(x)
+        p_direct, shifts = phi.direct_direction(x, gf)
+        assert shifts == 0 and phi.positive_definite is True and phi.linear_method == "lu"
+        for pre in ("auto", "block_jacobi", "ilu"):
+            phi.preconditioner = pre  # type: ignore[attr-defined]
+            p_cg, its = phi.cg_direction(x, gf, relative_residual=0.0)  # the tightest forcing term
+            assert its >= 1 and phi.linear_method.startswith("cg/")
+            assert np.linalg.norm(p_cg - p_direct) <= 1e-6 * np.linalg.norm(p_direct), (option, pre)
+        phi.max_cg_iters = 2  # type: ignore[attr-defined]
+        phi.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
+        p2, its = phi.cg_direction(x, gf, relative_residual=0.0)
+        assert its <= 2 and float(gf @ p2) < 0  # truncated, still a descent direction
+
+
+def test_unknown_preconditioner_is_a_value_error():
+    model, rest, _ = cantilever(4, 3)
+    phi = newton._Potential(model, rest, Projection.NONE, None, {})
+    A = phi.free_hessian(rest)
+    with pytest.raises(ValueError, match="preconditioner must be one of"):
+        linear.make_preconditioner("jacobi", A, phi.hessian_op)
+
+
+# -------------------------------------------------------------------- device-following
+class HostTransfers(TorchFunctionMode):
+    """Counts the calls that copy a tensor to the host or read a value from it."""
+
+    NAMES = {"cpu", "numpy", "item", "tolist", "__bool__", "__float__", "__int__"}
+
+    def __init__(self):
+        super().__init__()
+        self.counts: dict = {}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", "")
+        if name in self.NAMES:
+            self.counts[name] = self.counts.get(name, 0) + 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_cg_path_follows_the_device_and_reads_the_host_only_every_few_iterations():
+    """The GPU code path (torch CG, assembled torch CSR operator, torch block-Jacobi) run on the CPU: no
+    tensor factory without an explicit device, host copies independent of the CG iteration count, and
+    the stopping test read once every ``check_every`` iterations."""
+    model, rest, _ = cantilever(8, 3, young=1e9, t=1e-3)  # stiff: many block-Jacobi iterations
+    x = rest + 1e-4 * torch.randn_like(rest) * (~model.pinned)[:, None]
+    phi = newton._Potential(model, x, Projection.CLAMP, None, {})
+    phi.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
+    gf = phi.free_gradient(x)
+    copies = {}
+    for cap in (4, 16):
+        phi.max_cg_iters = cap  # type: ignore[attr-defined]
+        recorder, transfers = DevicelessFactories(), HostTransfers()
+        with recorder:  # (one mode at a time: a nested mode would hide the calling frame)
+            p, its = phi.cg_direction(x, gf, relative_residual=0.0)
+        assert its == cap and recorder.seen > 0 and recorder.calls == [], recorder.calls
+        with transfers:
+            p2, _ = phi.cg_direction(x, gf, relative_residual=0.0)
+        assert np.array_equal(p, p2)
+        copies[cap] = {k: v for k, v in transfers.counts.items() if k not in ("__bool__",)}
+    assert copies[4] == copies[16]  # no host copy per CG iteration
+    A = phi.free_hessian(x)
+    b = -torch.as_tensor(gf)
+    M = linear.block_jacobi(phi.hessian_op.diagonal_blocks(A))
+    transfers = HostTransfers()
+    with transfers:
+        res = linear.pcg(lambda d: A @ d, b, M, tol=1e-30, maxiter=64, check_every=8)
+    assert res.iterations == 64
+    assert transfers.counts.get("__bool__", 0) <= 64 // 8 + 3  # the device-side stopping test, read every 8
+    # and whole solves through that path leave nothing on a default device
+    recorder = DevicelessFactories()
+    try:
+        newton._Potential.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
+        with recorder:
+            m5, r5, _ = cantilever(5, 3)
+            x5, info = solve_static(m5, r5, linear_solver="cg", tol=1e-8)
+            assert info.converged, info.message
+            scene, x0 = drape_model(5)
+            state, info = implicit_euler_step(scene, ClothState(x0, torch.zeros_like(x0)), 0.01, linear_solver="cg")
+            assert info.converged, info.message
+    finally:
+        del newton._Potential.preconditioner  # type: ignore[attr-defined]
+    assert recorder.seen > 0 and recorder.calls == [], recorder.calls
+
+
+@pytest.mark.gpu
+@requires_gpu
+@pytest.mark.parametrize("hessian", ["exact", "clamp"])
+def test_cg_solve_on_cuda_matches_cpu(hessian):
+    model, rest, _ = cantilever(11, 3)
+    x_cpu, info_cpu = solve_static(model, rest, hessian=hessian, linear_solver="cg", tol=1e-9)
+    dev = torch.device("cuda")
+    bend, mem = model.bending, model.membrane
+    assert bend is not None and mem is not None
+    gpu = ClothModel(model.topology.faces, rest.to(dev), bending=bend.to(dev), membrane=mem.to(dev),
+                     density=model.density, pinned=model.pinned.to(dev))
+    x_gpu, info_gpu = solve_static(gpu, rest.to(dev), hessian=hessian, linear_solver="cg", tol=1e-9)
+    assert info_cpu.converged and info_gpu.converged, (info_cpu.message, info_gpu.message)
+    assert x_gpu.device.type == "cuda"
+    assert float((x_gpu.cpu() - x_cpu).norm() / (x_cpu - rest).norm()) <= 1e-7
