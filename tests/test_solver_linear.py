@@ -2,6 +2,7 @@
 Cholesky / LU choice and the inertia they report, truncated CG on indefinite matrices, the assembled free
 Hessian against ClothModel.hessian, and the CG path's device-following (no host round trip per iteration)."""
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -114,8 +115,11 @@ def spd_problem(n=60, seed=0, cond=1e4):
 
 def torch_csr(A):
     A = sp.csr_matrix(A)
-    return torch.sparse_csr_tensor(torch.as_tensor(A.indptr, dtype=torch.int64), torch.as_tensor(A.indices, dtype=torch.int64),
-                                   torch.as_tensor(A.data, dtype=F64), size=A.shape)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(torch.as_tensor(A.indptr, dtype=torch.int64),
+                                       torch.as_tensor(A.indices, dtype=torch.int64),
+                                       torch.as_tensor(A.data, dtype=F64), size=A.shape, check_invariants=True)
 
 
 @pytest.mark.parametrize("kind", ["none", "block_jacobi", "ilu", "amg"])
@@ -243,6 +247,10 @@ def test_unknown_preconditioner_is_a_value_error():
     A = phi.free_hessian(rest)
     with pytest.raises(ValueError, match="preconditioner must be one of"):
         linear.make_preconditioner("jacobi", A, phi.hessian_op)
+    partial = torch.ones(3 * model.vertex_count, dtype=torch.bool)
+    partial[1] = False  # one coordinate of a vertex: the free DOFs must be whole vertices
+    with pytest.raises(ValueError, match="free_mask must be a"):
+        linear.FreeHessian(model, partial)
 
 
 # -------------------------------------------------------------------- device-following

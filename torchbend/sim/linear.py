@@ -6,7 +6,7 @@ r"""Linear solves for Newton directions on the free degrees of freedom.
   pinned set); :meth:`FreeHessian.to_scipy` gives the same matrix as ``scipy.sparse`` on the CPU.
 * :func:`direct_solve`: sparse LU (``scipy.sparse.linalg.splu`` in symmetric mode: minimum degree on
   ``A + A^T``, diagonal pivots), or on request a sparse Cholesky (CHOLMOD through the optional
-  ``cholespy``, ``pip install torchbend[fast]``) with the LU as fallback for indefinite matrices;
+  ``cholespy``, ``pip install torchbend[solvers]``) with the LU as fallback for indefinite matrices;
   Levenberg shifts when the direction is not a descent direction.  It reports whether the matrix was
   found positive definite (the inertia of the diagonally pivoted LU, or the Cholesky's success).
 * :func:`pcg`: preconditioned conjugate gradients in torch on any device, truncated at negative
@@ -36,8 +36,8 @@ from torch import Tensor
 
 from ..options import Option, Projection
 
-__all__ = ["Preconditioner", "DirectResult", "CGResult", "FreeHessian", "direct_solve", "pcg", "block_jacobi",
-           "ilu", "amg", "make_preconditioner", "cg_iteration_bound", "has_cholespy", "has_pyamg"]
+__all__ = ["Preconditioner", "DirectResult", "CGResult", "FreeHessian", "direct_solve", "lu_solve", "cholesky_solve",
+           "pcg", "block_jacobi", "ilu", "amg", "make_preconditioner", "cg_iteration_bound", "has_cholespy", "has_pyamg"]
 
 Apply = Callable[[Tensor], Tensor]
 
@@ -55,12 +55,12 @@ _pyamg = _optional("pyamg")
 
 
 def has_cholespy() -> bool:
-    """Whether the sparse Cholesky (``cholespy``, extra ``torchbend[fast]``) is installed."""
+    """Whether the sparse Cholesky (``cholespy``, extra ``torchbend[solvers]``) is installed."""
     return _cholespy is not None
 
 
 def has_pyamg() -> bool:
-    """Whether the AMG preconditioner (``pyamg``, extra ``torchbend[fast]``) is installed."""
+    """Whether the AMG preconditioner (``pyamg``, extra ``torchbend[solvers]``) is installed."""
     return _pyamg is not None
 
 
@@ -126,13 +126,16 @@ class FreeHessian:
     ``free_mask``: ``(3V,)`` bool, whole vertices (pinned vertices drop their three DOFs).  The terms
     are those of :meth:`ClothModel.hessian` (membrane and bending CSR matrices, collider 3x3 blocks)
     plus an optional ``(3V,)`` diagonal; the summed pattern (every free vertex keeps its diagonal
-    block) and the scatter positions of each term are built on first use and rebuilt only when a
-    term's pattern changes.  Use :meth:`for_model` to share one per model and pinned set."""
+    block) and the scatter positions of each term are built on first use and rebuilt when the number
+    of values a term stores changes (the energies keep their CSR patterns per topology).  Use :meth:`for_model` to share one per model and pinned set."""
 
     def __init__(self, model, free_mask: Tensor):
-        self.model = model
+        self._model = weakref.ref(model)  # weak: the per-model cache must not keep its key alive
         self.free_mask = free_mask
         self._free = free_mask.cpu().numpy().astype(bool)
+        if self._free.ndim != 1 or self._free.shape[0] % 3 or (self._free.reshape(-1, 3) != self._free[::3, None]).any():
+            raise ValueError(f"FreeHessian: free_mask must be a (3V,) bool mask of whole vertices, got shape "
+                             f"{tuple(free_mask.shape)}")
         self._pattern: _Pattern | None = None
         self._term_nnz: tuple = ()
 
@@ -146,6 +149,14 @@ class FreeHessian:
         fh = cls(model, free_mask)
         _FREE_HESSIANS[model] = fh
         return fh
+
+    @property
+    def model(self):
+        """The :class:`~torchbend.sim.model.ClothModel` (held weakly)."""
+        model = self._model()
+        if model is None:
+            raise ReferenceError("the model of this FreeHessian no longer exists")
+        return model
 
     @property
     def size(self) -> int:
@@ -277,8 +288,8 @@ def lu_solve(A: sp.spmatrix, rhs: np.ndarray) -> tuple[np.ndarray | None, bool |
 
     First SuperLU in symmetric mode: minimum degree on ``A + A^T`` and diagonal pivots only
     (``diag_pivot_thresh=0``), i.e. ``P^T L D L^T P`` whose pivot signs are ``A``'s inertia (Sylvester):
-    2-3x faster than SciPy's default (COLAMD, partial pivoting) on these matrices
-    (benchmarks/results/linear_cpu_2core.txt).  A zero pivot (then ``A`` is not positive definite) or a
+    1.4-2.3x faster than SciPy's default (COLAMD, partial pivoting) on these matrices
+    (benchmarks/results/linear_cpu_1thread.txt).  A zero pivot (then ``A`` is not positive definite) or a
     non-finite solution (pivot growth on an indefinite matrix) is retried with the default partial
     pivoting.  ``definite``: all pivots positive, or ``None`` if the symmetric factorisation failed."""
     A = sp.csc_matrix(A)
