@@ -241,6 +241,27 @@ def test_cg_direction_matches_direct_direction():
         assert its <= 2 and float(gf @ p2) < 0  # truncated, still a descent direction
 
 
+def test_without_the_optional_back_ends(monkeypatch):
+    """Without cholespy the Cholesky request falls back to the LU; without pyamg "amg" to block-Jacobi."""
+    monkeypatch.setattr(linear, "_cholespy", None)
+    monkeypatch.setattr(linear, "_pyamg", None)
+    assert not linear.has_cholespy() and not linear.has_pyamg()
+    A, b = spd_problem(n=30)
+    res = linear.direct_solve(A, b, cholesky=True)
+    assert res.method == "lu" and res.positive_definite is True
+    assert np.linalg.norm(res.p - np.linalg.solve(A.toarray(), b)) <= 1e-10 * np.linalg.norm(res.p)
+    assert linear.cholesky_solve(A, b) is None and linear.amg(A, torch.as_tensor(b)) is None
+    model, rest, _ = cantilever(5, 3)
+    phi = newton._Potential(model, rest, Projection.CLAMP, None, {})
+    M, used = linear.make_preconditioner("amg", phi.free_hessian(rest), phi.hessian_op)
+    assert used is linear.Preconditioner.BLOCK_JACOBI
+    monkeypatch.setattr(newton._Potential, "preconditioner", "amg", raising=False)
+    monkeypatch.setattr(newton._Potential, "cholesky", True, raising=False)
+    for solver in ("cg", "direct"):
+        x, info = solve_static(model, rest, linear_solver=solver, tol=1e-8)
+        assert info.converged, (solver, info.message)
+
+
 def test_unknown_preconditioner_is_a_value_error():
     model, rest, _ = cantilever(4, 3)
     phi = newton._Potential(model, rest, Projection.NONE, None, {})
