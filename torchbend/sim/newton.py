@@ -165,14 +165,14 @@ class _Potential:
     def cg_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float) -> tuple[np.ndarray, int]:
         """Newton direction by truncated preconditioned CG (:func:`~torchbend.sim.linear.pcg`) on the
         assembled free Hessian, on ``x``'s device, to the forcing term ``min(0.1, sqrt(|g| / scale)) / 100``
-        (at least 1e-10),
+        (at least 1e-10 and 100 eps of ``x``'s dtype),
         at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
         The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its direction is not a
         descent direction, block-Jacobi (SPD) is tried.  ``(p, CG iterations)``; sets ``negative_curvature``,
         ``positive_definite`` (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
         A = self.free_hessian(x)
         b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
-        tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10)
+        tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10, 100 * torch.finfo(x.dtype).eps)
         maxiter = cg_iteration_bound(len(gf), getattr(self, "max_cg_iters", None))
         kind = getattr(self, "preconditioner", None) or Preconditioner.AUTO
         M, used = make_preconditioner(kind, A, self.hessian_op)
