@@ -21,7 +21,6 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from .._checks import is_traced
 from ..options import Backend
 
 __all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
@@ -64,24 +63,30 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
     """Why the compiled kernel cannot run ``op`` on these inputs (``None`` if it can)."""
     if op not in NATIVE_OPS:
         return f"there is no compiled kernel for {op!r}"
-    if x.device.type not in ("cpu", "cuda") or (x.device.type == "cuda" and op not in CUDA_OPS):
-        return f"there is no compiled {op!r} kernel for {x.device.type} tensors"
-    if x.dtype not in (torch.float32, torch.float64):
+    device = x.device.type
+    if device != "cpu" and (device != "cuda" or op not in CUDA_OPS):
+        return f"there is no compiled {op!r} kernel for {device} tensors"
+    if x.dtype is not torch.float32 and x.dtype is not torch.float64:
         return f"the compiled kernels take float32 or float64, x is {x.dtype}"
-    tensors = (x, *params)
-    compiling = torch.compiler.is_compiling()
-    if not compiling and any(is_traced(t) for t in tensors):
-        return "the inputs are traced by a torch.func transform"
-    if not compiling and forward_ad._current_level >= 0:
-        return "forward-mode AD is active (the eager Functions define jvp)"
-    if op not in _FUNCTION_OPS and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+    if not torch.compiler.is_compiling():
+        if _wrapped(x) or any(_wrapped(t) for t in params):
+            return "the inputs are traced by a torch.func transform"
+        if forward_ad._current_level >= 0:
+            return "forward-mode AD is active (the eager Functions define jvp)"
+    if op not in _FUNCTION_OPS and torch.is_grad_enabled() and (x.requires_grad or any(t.requires_grad for t in params)):
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
-    batch = tuple(x.shape[:-2])
-    if op in _ONE_MESH_OPS and (batch or any(t.ndim > 1 for t in params)):
-        return "the compiled assembly takes one mesh"
-    if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
-        return "per-sample parameters whose batch shape differs from x's"
-    return _unavailable(x.device.type)
+    if x.ndim > 2 or any(t.ndim > 1 for t in params):
+        batch = tuple(x.shape[:-2])
+        if op in _ONE_MESH_OPS:
+            return "the compiled assembly takes one mesh"
+        if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
+            return "per-sample parameters whose batch shape differs from x's"
+    return _unavailable(device)
+
+
+_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[reportAttributeAccessIssue]
+"""Whether a tensor is wrapped by a ``torch.func`` transform (:func:`torchbend._checks.is_traced` outside
+compilation)."""
 
 
 @torch.compiler.assume_constant_result
@@ -105,9 +110,9 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
     :func:`native_unavailable_reason`) and ``EAGER`` elsewhere; ``"eager"`` always ``EAGER``;
     ``"native"`` gives ``NATIVE`` where a kernel exists for ``op`` and raises a ``ValueError`` saying
     why when it cannot run on these inputs (operations without a kernel run eagerly)."""
-    requested = Backend.parse(backend)
-    if requested is Backend.AUTO:
-        requested = Backend(_auto_value())
+    requested = backend if type(backend) is Backend else Backend.parse(backend)
+    if requested is Backend.AUTO:  # eagerly the context variable itself; a constant for torch.compile
+        requested = Backend(_auto_value()) if torch.compiler.is_compiling() else _auto.get()
     if requested is Backend.EAGER:
         return Backend.EAGER
     reason = native_unavailable_reason(op, x, *params)
