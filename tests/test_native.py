@@ -212,3 +212,57 @@ def test_native_vertex_sums_deterministic_across_threads(kernel, perm, batch):
     assert rel(one[0], g) <= 1e-12
     assert rel(one[1], hv) <= 1e-12
     assert rel(one[3], hv) <= 1e-12
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_native_blocks_same_bits_aligned_or_not(kernel, dtype):
+    """A full tile of blocks is transposed in registers into a 64-byte aligned output, a partial tile or an
+    unaligned out= buffer is copied lane by lane: the same bits either way."""
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=3, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="sin", stiffness=0.3).to(dtype)
+    H = bend.hinge_count
+    assert H % 8  # the last tile is partial
+    x = (rest + 0.05 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(2), dtype=F64)).to(dtype)
+    args = (x, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, None, None, "sin")
+    Hb, g, d2 = native.bending_hessians(*args)
+    assert Hb.data_ptr() % 64 == 0
+    hb = torch.empty(H * 144 + 1, dtype=dtype)[1:].view(H, 12, 12)  # 4 or 8 bytes off the alignment
+    gs = torch.empty(H * 12 + 1, dtype=dtype)[1:].view(H, 12)
+    Hb1, g1, d21 = native.bending_hessians(*args, out=(hb, gs))
+    assert Hb1.data_ptr() == hb.data_ptr()
+    assert torch.equal(Hb1, Hb) and torch.equal(g1, g) and torch.equal(d21, d2)
+    with tb.use_backend("eager"):
+        ref = bend.hinge_hessians(x)
+    assert rel(Hb, ref) <= 50 * torch.finfo(dtype).eps
+
+
+def test_large_outputs_reuse_released_memory(kernel):
+    """Blocks of 4 MB or more take memory released by earlier outputs (warm pages, no page faults): never that
+    of a live tensor; native.empty_output_cache() frees it, a limit of 0 turns the cache off."""
+    rest, faces = tb.scenes.random_curved_sheet(40, 40, amplitude=0.3, seed=3, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan")
+    assert bend.hinge_count * 144 * 8 >= 4 << 20
+    gen = torch.Generator().manual_seed(4)
+    x1, x2 = (rest + 0.01 * torch.randn(rest.shape, generator=gen, dtype=F64) for _ in range(2))
+    native.empty_output_cache()
+    a = bend.hinge_hessians(x1)
+    ref = a.clone()
+    b = bend.hinge_hessians(x2)  # a is alive: other memory
+    assert a.data_ptr() != b.data_ptr() and torch.equal(a, ref)
+    ptr, hits = a.data_ptr(), native.output_cache_info()["hits"]
+    del a
+    assert native.output_cache_info()["blocks"] >= 1
+    c = bend.hinge_hessians(x1)
+    assert c.data_ptr() == ptr and torch.equal(c, ref)
+    assert native.output_cache_info()["hits"] == hits + 1
+    del b, c
+    native.empty_output_cache()
+    assert native.output_cache_info()["blocks"] == 0 and native.output_cache_info()["bytes"] == 0
+    try:
+        native.set_output_cache_limit(0)
+        d = bend.hinge_hessians(x1)
+        assert torch.equal(d, ref)
+        del d
+        assert native.output_cache_info()["blocks"] == 0
+    finally:
+        native.set_output_cache_limit(1024)

@@ -268,3 +268,30 @@ def test_unsupported_dtype_falls_back_with_one_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         bend(x)  # once only
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_checks_inside_the_kernels(dtype):
+    """Eagerly too, the compiled operators check x (and v) themselves, before any work: the ValueErrors of the
+    Python checks, also for a vertex in no hinge and for one sample of a batch; check_finite=False skips them."""
+    rest, faces = tb.scenes.random_curved_sheet(5, 4, amplitude=0.3, seed=3, dtype=F64)
+    rest = torch.cat([rest, torch.zeros(1, 3, dtype=F64)])  # a vertex in no face
+    V = rest.shape[0]
+    bend = BendingEnergy(faces, rest, model="tan").to(dtype)
+    x = rest.to(dtype).expand(2, V, 3).clone()
+    assert tb.backends.select_backend("energy", "auto", x) is tb.Backend.NATIVE
+    for vert in (3, V - 1):
+        bad = x.clone()
+        bad[1, vert, 2] = math.nan
+        for call in (bend, bend.gradient, lambda y: bend.hvp(y, x), bend.hinge_hessians):
+            with pytest.raises(ValueError, match=rf"x holds non-finite .* vertices \[{vert}\]"):
+                call(bad)
+    bad_v = x.clone()
+    bad_v[0, 2, 0] = math.inf
+    with pytest.raises(ValueError, match="v holds non-finite"):
+        bend.hvp(x, bad_v)
+    bend.check_finite = False
+    bad = x.clone()
+    bad[1, 3, 2] = math.nan
+    e = bend(bad)
+    assert torch.isfinite(e[0]) and torch.isnan(e[1])

@@ -35,6 +35,8 @@ def parse_option(cls: type[E], value, *, what: str | None = None, supported: Ite
     """Parse ``value`` into a member of the option enum ``cls`` (see :class:`Option`).
 
     ``supported`` restricts the accepted members (a ``ValueError`` names the ones that are)."""
+    if supported is None and type(value) is cls:  # a member already (the hot paths pass their stored members)
+        return value
     what = what or getattr(cls, "__label__", cls.__name__)
     allowed = list(cls) if supported is None else list(supported)
     aliases = cls.aliases()

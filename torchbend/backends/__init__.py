@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from .._checks import is_traced
 from ..options import Backend
+from . import native
 
 __all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
 
@@ -40,6 +40,7 @@ _FUNCTION_OPS = frozenset({"energy", "gradient"})
 """Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph
 does not keep them from running."""
 
+_AUTO, _EAGER, _NATIVE = Backend.AUTO, Backend.EAGER, Backend.NATIVE  # (plain names: no enum lookups per call)
 _auto: contextvars.ContextVar[Backend] = contextvars.ContextVar("torchbend_auto_backend", default=Backend.AUTO)
 
 
@@ -64,24 +65,35 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
     """Why the compiled kernel cannot run ``op`` on these inputs (``None`` if it can)."""
     if op not in NATIVE_OPS:
         return f"there is no compiled kernel for {op!r}"
-    if x.device.type not in ("cpu", "cuda") or (x.device.type == "cuda" and op not in CUDA_OPS):
-        return f"there is no compiled {op!r} kernel for {x.device.type} tensors"
-    if x.dtype not in (torch.float32, torch.float64):
+    device = x.device.type
+    if device != "cpu" and (device != "cuda" or op not in CUDA_OPS):
+        return f"there is no compiled {op!r} kernel for {device} tensors"
+    if x.dtype is not torch.float32 and x.dtype is not torch.float64:
         return f"the compiled kernels take float32 or float64, x is {x.dtype}"
-    tensors = (x, *params)
     compiling = torch.compiler.is_compiling()
-    if not compiling and any(is_traced(t) for t in tensors):
+    wrapped, grad, batched = not compiling and _wrapped(x), x.requires_grad, x.ndim > 2
+    for t in params:  # one pass (this runs on every call of the hot paths)
+        wrapped = wrapped or (not compiling and _wrapped(t))
+        grad = grad or t.requires_grad
+        batched = batched or t.ndim > 1
+    if wrapped:
         return "the inputs are traced by a torch.func transform"
     if not compiling and forward_ad._current_level >= 0:
         return "forward-mode AD is active (the eager Functions define jvp)"
-    if op not in _FUNCTION_OPS and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+    if grad and op not in _FUNCTION_OPS and torch.is_grad_enabled():
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
-    batch = tuple(x.shape[:-2])
-    if op in _ONE_MESH_OPS and (batch or any(t.ndim > 1 for t in params)):
-        return "the compiled assembly takes one mesh"
-    if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
-        return "per-sample parameters whose batch shape differs from x's"
-    return _unavailable(x.device.type)
+    if batched:
+        batch = tuple(x.shape[:-2])
+        if op in _ONE_MESH_OPS:
+            return "the compiled assembly takes one mesh"
+        if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
+            return "per-sample parameters whose batch shape differs from x's"
+    return _unavailable(device)
+
+
+_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[reportAttributeAccessIssue]
+"""Whether a tensor is wrapped by a ``torch.func`` transform (:func:`torchbend._checks.is_traced` outside
+compilation)."""
 
 
 @torch.compiler.assume_constant_result
@@ -92,8 +104,6 @@ def _unavailable(device_type: str) -> str | None:
         from . import cuda
 
         return None if cuda.load() is not None else f"the CUDA kernels are not available ({cuda.build_error()})"
-    from . import native
-
     return None if native.load() is not None else f"the C++ extension is not available ({native.build_error()})"
 
 
@@ -105,14 +115,14 @@ def select_backend(op: str, backend, x: Tensor, *params: Tensor) -> Backend:
     :func:`native_unavailable_reason`) and ``EAGER`` elsewhere; ``"eager"`` always ``EAGER``;
     ``"native"`` gives ``NATIVE`` where a kernel exists for ``op`` and raises a ``ValueError`` saying
     why when it cannot run on these inputs (operations without a kernel run eagerly)."""
-    requested = Backend.parse(backend)
-    if requested is Backend.AUTO:
-        requested = Backend(_auto_value())
-    if requested is Backend.EAGER:
-        return Backend.EAGER
+    requested = backend if type(backend) is Backend else Backend.parse(backend)
+    if requested is _AUTO:  # eagerly the context variable itself; a constant for torch.compile
+        requested = Backend(_auto_value()) if torch.compiler.is_compiling() else _auto.get()
+    if requested is _EAGER:
+        return _EAGER
     reason = native_unavailable_reason(op, x, *params)
     if reason is None:
-        return Backend.NATIVE
+        return _NATIVE
     if requested is Backend.NATIVE and op in NATIVE_OPS:
         raise ValueError(f"backend='native' cannot run {op}: {reason}")
     if op in NATIVE_OPS and reason.startswith(_WARN_REASONS) and not torch.compiler.is_compiling():

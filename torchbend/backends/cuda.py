@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._checks import check_finite_tensor, check_positions
 from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
@@ -194,24 +195,38 @@ def _warn_once(msg: str) -> None:  # pragma: no cover - used by the dispatcher
     warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
-def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> Tensor:
-    """Per-hinge energies ``psi (..., H)`` (folded ``tan`` hinges: ``ValueError``)."""
+def _check(check: bool, x: Tensor, v: Tensor | None = None) -> None:
+    """With ``check``: the ``ValueError`` of non-finite positions (and directions ``v``), before any work."""
+    if check:
+        check_positions(x, x.shape[-2])
+        if v is not None:
+            check_finite_tensor(v, "v")
+
+
+def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check: bool = False) -> Tensor:
+    """Per-hinge energies ``psi (..., H)`` (folded ``tan`` hinges: ``ValueError``; with ``check`` also non-finite
+    positions)."""
+    _check(check, x)
     psi, theta = _module().bending_energy(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                           _opt(prev), _code(model), _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return psi
 
 
-def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool):
+def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool,
+                     check: bool = False):
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` (``inc`` unused: atomic scatter)."""
+    _check(check, x)
     gx, gp, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                                _opt(prev), _code(model), weight.detach(), params, _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return gx, (gp if params else None)
 
 
-def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc=None) -> Tensor:
-    """``w H v (..., V, 3)``."""
+def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc=None,
+                check: bool = False) -> Tensor:
+    """``w H v (..., V, 3)`` (with ``check``: non-finite ``x`` or ``v`` are a ``ValueError``)."""
+    _check(check, x, v)
     hv, theta = _module().bending_hvp(x.detach(), v.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                       _opt(prev), _code(model), weight.detach(), _stream(x))
     check_fold(BendingModel.parse(model), theta)
@@ -229,8 +244,10 @@ def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: 
     return dx, dp, dg
 
 
-def bending_hessians(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> tuple[Tensor, Tensor, Tensor]:
+def bending_hessians(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check: bool = False
+                     ) -> tuple[Tensor, Tensor, Tensor]:
     """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` as :func:`torchbend.backends.native.bending_hessians`."""
+    _check(check, x)
     Hb, g, d2, theta = _module().bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
                                                   _opt(prev), _code(model), _stream(x))
     check_fold(BendingModel.parse(model), theta)

@@ -7,16 +7,17 @@ from typing import Any
 
 from torch import Tensor
 
+from . import native
+
 __all__ = ["module", "incidence"]
+
 
 def module(x: Tensor) -> Any:
     """The kernel module for ``x``'s device."""
-    if x.device.type == "cuda":
+    if x.is_cuda:
         from . import cuda
 
         return cuda
-    from . import native
-
     return native
 
 
@@ -27,8 +28,6 @@ def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
     hit = getattr(hinges, "_torchbend_incidence", None)
     if hit is not None and hit[0] == key:
         return hit[1]
-    from . import native
-
     inc = native.incidence(hinges, vertex_count)
     hinges._torchbend_incidence = (key, inc)  # pyright: ignore[reportAttributeAccessIssue]
     return inc

@@ -34,10 +34,12 @@ from typing import Any
 
 from torch import Tensor
 
+from .._checks import check_finite_tensor, check_positions
 from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "MODEL_CODE"]
+__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "MODEL_CODE",
+           "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 CSRC = cfg.CSRC
 SOURCES = cfg.NATIVE_SOURCES
@@ -104,7 +106,7 @@ def load() -> Any:
 
 
 def _module() -> Any:
-    module = load()
+    module = _build()[0]
     if module is None:
         raise RuntimeError(f"torchbend: the C++ extension is not available ({build_error()})")
     return module
@@ -129,25 +131,35 @@ def _model_code(model) -> int:
     return MODEL_CODE[getattr(model, "value", model)]
 
 
-def _opt(t: Tensor | None) -> Tensor | None:
-    return None if t is None else t.detach()
+def _raise(status: int, model, x: Tensor, theta: Tensor, v: Tensor | None = None) -> None:
+    """The ``ValueError`` of a kernel's non-zero status word (bit 1: ``x`` non-finite, 2: ``v`` non-finite, 4: a
+    folded ``tan`` hinge), worded by the checks of :mod:`torchbend._checks` and :func:`check_fold`."""
+    if status & 1:
+        check_positions(x, x.shape[-2])
+    if status & 2 and v is not None:
+        check_finite_tensor(v, "v")
+    if status & 4:
+        check_fold(BendingModel.parse(model), theta)
+    raise ValueError(f"torchbend: the compiled kernel reported invalid input (status {status})")
 
 
 def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model,
-                     out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Fused gather + angle + ``psi'``/``psi''`` + blocks for finite positions ``x: (..., V, 3)`` (the caller
-    checks): ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))``; a folded ``tan`` hinge is the
-    ``ValueError`` of :func:`torchbend.ops.psi.check_fold` (the kernel returns the angles for the check).  Parameters: scalars or ``(H,)``
+                     out: tuple[Tensor, Tensor] | None = None, check: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    """Fused gather + angle + ``psi'``/``psi''`` + blocks for positions ``x: (..., V, 3)``:
+    ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))``; a folded ``tan`` hinge is the ``ValueError`` of
+    :func:`torchbend.ops.psi.check_fold` and, with ``check``, non-finite positions that of
+    :func:`torchbend._checks.check_positions` (both detected inside the kernel).  Parameters: scalars or ``(H,)``
     (``prev`` also ``(..., H)`` with x's batch shape); ``c``, ``prev`` ``None`` without damping.
 
-    ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of fresh tensors
-    (contiguous, x's dtype, exactly those shapes, not overlapping x).  Fresh memory page-faults on first
-    touch, which for large meshes costs more than the kernel itself: a loop that calls this repeatedly
-    (a Newton solver) can keep the buffers (see ``benchmarks/results/hessian_native_cpu_2core.txt``)."""
+    ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of new tensors
+    (contiguous, x's dtype, exactly those shapes, not overlapping x).  Without them, large outputs take warm
+    memory released by earlier outputs (:func:`output_cache_info`): fresh memory page-faults on first touch,
+    which for large meshes costs more than the kernel itself."""
     hb, g = (None, None) if out is None else out
-    Hb, g, d2, theta = _module().bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                                  _opt(prev), _model_code(model), _opt(hb), _opt(g))
-    check_fold(BendingModel.parse(model), theta)
+    Hb, g, d2, theta, status = _module().bending_hessians(x, hinges, a, k, rest, c, prev, _model_code(model), hb, g,
+                                                          check)
+    if status:
+        _raise(status, model, x, theta)
     return Hb, g, d2
 
 
@@ -159,11 +171,33 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
     :class:`torchbend.energies.sparse.HessianPattern` (its ``hinge_pos``, ``face_pos``, ``nnz``) over the
     topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
     ``ValueError`` as in :func:`bending_hessians`."""
-    values, theta = _module().assemble(
-        x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev), _model_code(model),
-        hinge_pos, faces, face_edge_hinges, face_edge_signs, face_pos, nnz, per_triangle)
-    check_fold(BendingModel.parse(model), theta)
+    values, theta, status = _module().assemble(
+        x, hinges, a, k, rest, c, prev, _model_code(model), hinge_pos, faces, face_edge_hinges, face_edge_signs,
+        face_pos, nnz, per_triangle)
+    if status:
+        _raise(status, model, x, theta)
     return values
+
+
+def output_cache_info() -> dict[str, int]:
+    """The cache of large outputs (the per-hinge blocks of big meshes): memory of released outputs kept for the
+    next ones of the same size, so that repeated calls write into warm pages instead of page-faulting fresh
+    memory.  ``{"blocks", "bytes", "hits", "misses"}``; at most 4 blocks and ``TORCHBEND_OUTPUT_CACHE_MB``
+    (default 1024) megabytes are kept, see :func:`empty_output_cache` and :func:`set_output_cache_limit`."""
+    blocks, nbytes, hits, misses = _module().output_cache_info()
+    return {"blocks": blocks, "bytes": nbytes, "hits": hits, "misses": misses}
+
+
+def empty_output_cache() -> None:
+    """Free the memory held by the cache of large outputs (:func:`output_cache_info`)."""
+    module = load()
+    if module is not None:
+        module.empty_output_cache()
+
+
+def set_output_cache_limit(megabytes: float) -> None:
+    """The most memory the cache of large outputs keeps (0: none; outputs then always take fresh memory)."""
+    _module().set_output_cache_limit(int(megabytes * 2**20))
 
 
 def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
@@ -180,27 +214,34 @@ def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
     return ptr, idx
 
 
-def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model) -> Tensor:
-    """Per-hinge energies ``psi (..., H)`` in one compiled pass (folded ``tan`` hinges: ``ValueError``)."""
-    psi, theta = _module().bending_energy(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                          _opt(prev), _model_code(model))
-    check_fold(BendingModel.parse(model), theta)
+def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check: bool = False) -> Tensor:
+    """Per-hinge energies ``psi (..., H)`` in one compiled pass (folded ``tan`` hinges: ``ValueError``; with
+    ``check`` also non-finite positions, both detected inside the kernel)."""
+    psi, theta, status = _module().bending_energy(x, hinges, a, k, rest, c, prev, _model_code(model), check)
+    if status:
+        _raise(status, model, x, theta)
     return psi
 
 
-def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool):
-    """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` with the per-hinge weight ``w``."""
-    gx, gp, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                               _opt(prev), _model_code(model), weight.detach(), inc[0], inc[1], params)
-    check_fold(BendingModel.parse(model), theta)
+def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc, params: bool,
+                     check: bool = False):
+    """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` with the per-hinge weight ``w``
+    (checks as :func:`bending_energy`)."""
+    gx, gp, theta, status = _module().bending_gradient(x, hinges, a, k, rest, c, prev, _model_code(model), weight,
+                                                       inc[0], inc[1], params, check)
+    if status:
+        _raise(status, model, x, theta)
     return gx, (gp if params else None)
 
 
-def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc) -> Tensor:
-    """``w H v (..., V, 3)``: the closed-form Hessian of the energy applied to ``v`` (no matrix stored)."""
-    hv, theta = _module().bending_hvp(x.detach(), v.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                      _opt(prev), _model_code(model), weight.detach(), inc[0], inc[1])
-    check_fold(BendingModel.parse(model), theta)
+def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc,
+                check: bool = False) -> Tensor:
+    """``w H v (..., V, 3)``: the closed-form Hessian of the energy applied to ``v`` (no matrix stored); with
+    ``check``, non-finite ``x`` or ``v`` are the ``ValueError`` of :mod:`torchbend._checks`."""
+    hv, theta, status = _module().bending_hvp(x, v, hinges, a, k, rest, c, prev, _model_code(model), weight, inc[0],
+                                              inc[1], check)
+    if status:
+        _raise(status, model, x, theta, v)
     return hv
 
 
@@ -215,14 +256,14 @@ def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: 
     ``(H, 4)``) directions in the per-hinge ``(k, rest, c, prev)`` or ``None``; ``weight``: the per-hinge cotangent
     ``w`` (one value, ``(H,)`` or ``(..., H)``).  Without damping the ``c``, ``prev`` columns of ``dp`` are zero (and
     those of ``t`` ignored).  A folded ``tan`` hinge is a ``ValueError``."""
-    dx, dp, dg, theta = _module().bending_second_order(
-        x.detach(), _opt(v), _opt(t), hinges, a.detach(), k.detach(), rest.detach(), _opt(c), _opt(prev),
-        _model_code(model), weight.detach(), inc[0], inc[1])
-    check_fold(BendingModel.parse(model), theta)
+    dx, dp, dg, theta, status = _module().bending_second_order(x, v, t, hinges, a, k, rest, c, prev,
+                                                               _model_code(model), weight, inc[0], inc[1])
+    if status:
+        _raise(status, model, x, theta)
     return dx, dp, dg
 
 
 def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
     """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
     zero = x.new_zeros(1)
-    return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0)[1]
+    return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0, False)[1]

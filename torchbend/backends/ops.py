@@ -1,17 +1,22 @@
 r"""The compiled bending kernels as PyTorch operators: ``torch.ops.torchbend.*``.
 
 Each operator wraps one kernel of :mod:`torchbend.backends.native` (CPU) or :mod:`torchbend.backends.cuda`
-(by the device of ``x``) with :func:`torch.library.custom_op` and a fake implementation (output shapes and
-dtypes from the input shapes alone), so that ``torch.compile`` (also ``fullgraph=True``) and ``torch.export``
-trace through them without a graph break, and ``torch.library.opcheck`` can check them.
+(by the device of ``x``), registered with ``torch.library`` (a schema, the kernel for the ``CPU`` and ``CUDA``
+dispatch keys, and a fake implementation: output shapes and dtypes from the input shapes alone), so that
+``torch.compile`` (also ``fullgraph=True``) and ``torch.export`` trace through them without a graph break, and
+``torch.library.opcheck`` can check them.  They are defined with ``Library.define``/``impl`` rather than
+``torch.library.custom_op``, whose Python wrapper (argument binding through ``inspect`` on every call) cost
+more than the kernels themselves on meshes of a thousand hinges; the schemas are the ones ``custom_op`` would
+infer from the annotated functions below (:func:`torch.library.infer_schema`).
 
 The operators are not differentiable themselves: derivatives come from torchbend's autograd Functions
 (:mod:`torchbend.energies._bending_fn`), which call ``bending_energy`` in the forward, ``bending_gradient``
 in its backward and ``bending_hvp``/``bending_second_order`` in the double backward.  The checks stay on in
-compiled code because they run inside the operators: a folded ``tan`` hinge is the ``ValueError`` of
-:func:`torchbend.ops.psi.check_fold`; with ``check=True`` non-finite positions are the ``ValueError`` of
-:func:`torchbend._checks.check_positions` (the modules pass ``check=True`` only under ``torch.compile``/
-``torch.export``, where their own Python-level check cannot run; eagerly they check before the call).
+compiled code because they run inside the operators (on the CPU inside the C++ kernels, which return a status
+word): a folded ``tan`` hinge is the ``ValueError`` of :func:`torchbend.ops.psi.check_fold`; with ``check=True``
+non-finite positions (and directions ``v`` of ``bending_hvp``) are the ``ValueError`` of
+:func:`torchbend._checks.check_positions` (``check_finite_tensor``).  The modules pass ``check=True`` (their
+``check_finite``) instead of checking in Python before the call.
 
 Arguments shared by all: ``x (..., V, 3)``; ``hinges (H, 4)`` int64; ``a (H,)``; ``k``, ``rest``, ``c``,
 ``prev`` one value or ``(H,)`` (``prev`` also ``(..., H)``, x's batch shape); ``c``/``prev`` both given
@@ -26,64 +31,98 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .._checks import check_positions
 from . import kernels
 
-__all__ = ["bending_energy", "bending_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS"]
+__all__ = ["bending_energy", "bending_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS",
+           "run"]
 
-
-def _check(x: Tensor, check: bool) -> None:
-    if check:
-        check_positions(x, x.shape[-2])
+_LIB = torch.library.Library("torchbend", "DEF")
+_KERNELS: dict = {}
+"""The Python kernel of every operator by name (what the dispatcher calls for CPU and CUDA tensors)."""
 
 
 def _batch(x: Tensor) -> tuple[int, ...]:
     return tuple(x.shape[:-2])
 
 
-@torch.library.custom_op("torchbend::bending_energy", mutates_args=())
-def bending_energy(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
-                   prev: Optional[Tensor], model: str, check: bool) -> Tensor:
-    """Per-hinge energies ``psi (..., H)``."""
-    _check(x, check)
-    return kernels.module(x).bending_energy(x, hinges, a, k, rest, c, prev, model)
+def _operator(fake):
+    """Register the annotated kernel ``fn`` as ``torch.ops.torchbend.<fn.__name__>`` (schema inferred from its
+    annotations, kernel for CPU and CUDA tensors, ``fake`` for tracing) and return the operator."""
+
+    def register(fn):
+        name = fn.__name__
+        _LIB.define(name + torch.library.infer_schema(fn, mutates_args=()))
+        _LIB.impl(name, fn, "CPU")
+        _LIB.impl(name, fn, "CUDA")
+        torch.library.register_fake(f"torchbend::{name}", fake, lib=_LIB)
+        _KERNELS[name] = fn
+        return getattr(torch.ops.torchbend, name)
+
+    return register
 
 
-@bending_energy.register_fake
-def _(x, hinges, a, k, rest, c, prev, model, check):
+_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[reportAttributeAccessIssue]
+
+
+def run(name: str, x: Tensor, *args):
+    """``torch.ops.torchbend.<name>(x, *args)``.  In plain eager mode (not compiling or exporting, ``x`` a plain
+    tensor, no torch function or dispatch mode active, no ``torch.func`` transform) the operator's kernel is
+    called directly: the dispatcher round trip into a Python kernel costs a few microseconds a call, a tenth
+    of the work on a thousand hinges.  Everything that traces (``torch.compile``, ``torch.export``, ``make_fx``,
+    fake tensors) sees the operator."""
+    if (not torch.compiler.is_compiling() and type(x) is Tensor and torch._C._len_torch_dispatch_stack() == 0
+            and not torch._C._is_torch_function_mode_enabled() and not _wrapped(x)):
+        return _KERNELS[name](x, *args)
+    return getattr(torch.ops.torchbend, name)(x, *args)
+
+
+def _energy_fake(x, hinges, a, k, rest, c, prev, model, check):
     return x.new_empty(_batch(x) + (hinges.shape[0],))
 
 
-@torch.library.custom_op("torchbend::bending_gradient", mutates_args=())
+@_operator(_energy_fake)
+def bending_energy(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
+                   prev: Optional[Tensor], model: str, check: bool) -> Tensor:
+    """Per-hinge energies ``psi (..., H)``."""
+    return kernels.module(x).bending_energy(x, hinges, a, k, rest, c, prev, model, check)
+
+
+def _gradient_fake(x, hinges, a, k, rest, c, prev, model, weight, ptr, idx, params, check):
+    gp = x.new_empty(_batch(x) + (hinges.shape[0], 4)) if params else x.new_empty(0)
+    return torch.empty_like(x, memory_format=torch.contiguous_format), gp
+
+
+@_operator(_gradient_fake)
 def bending_gradient(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
                      prev: Optional[Tensor], model: str, weight: Tensor, ptr: Tensor, idx: Tensor, params: bool,
                      check: bool) -> tuple[Tensor, Tensor]:
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4))``; the second is empty (``(0,)``)
     without ``params``."""
-    _check(x, check)
-    gx, gp = kernels.module(x).bending_gradient(x, hinges, a, k, rest, c, prev, model, weight, (ptr, idx), params)
+    gx, gp = kernels.module(x).bending_gradient(x, hinges, a, k, rest, c, prev, model, weight, (ptr, idx), params,
+                                                check)
     return gx, (gp if gp is not None else x.new_empty(0))
 
 
-@bending_gradient.register_fake
-def _(x, hinges, a, k, rest, c, prev, model, weight, ptr, idx, params, check):
-    gp = x.new_empty(_batch(x) + (hinges.shape[0], 4)) if params else x.new_empty(0)
-    return torch.empty_like(x, memory_format=torch.contiguous_format), gp
-
-
-@torch.library.custom_op("torchbend::bending_hvp", mutates_args=())
-def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
-                prev: Optional[Tensor], model: str, weight: Tensor, ptr: Tensor, idx: Tensor) -> Tensor:
-    """``w H v (..., V, 3)``: the Hessian of the energy in the positions applied to ``v`` (x's shape)."""
-    return kernels.module(x).bending_hvp(x, v, hinges, a, k, rest, c, prev, model, weight, (ptr, idx))
-
-
-@bending_hvp.register_fake
-def _(x, v, hinges, a, k, rest, c, prev, model, weight, ptr, idx):
+def _hvp_fake(x, v, hinges, a, k, rest, c, prev, model, weight, ptr, idx, check=False):
     return torch.empty_like(x, memory_format=torch.contiguous_format)
 
 
-@torch.library.custom_op("torchbend::bending_second_order", mutates_args=())
+@_operator(_hvp_fake)
+def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
+                prev: Optional[Tensor], model: str, weight: Tensor, ptr: Tensor, idx: Tensor,
+                check: bool = False) -> Tensor:
+    """``w H v (..., V, 3)``: the Hessian of the energy in the positions applied to ``v`` (x's shape); with
+    ``check`` non-finite ``x`` or ``v`` are a ``ValueError``."""
+    return kernels.module(x).bending_hvp(x, v, hinges, a, k, rest, c, prev, model, weight, (ptr, idx), check)
+
+
+def _second_order_fake(x, v, t, hinges, a, k, rest, c, prev, model, weight, ptr, idx):
+    H = hinges.shape[0]
+    return (torch.empty_like(x, memory_format=torch.contiguous_format), x.new_empty(_batch(x) + (H, 4)),
+            x.new_empty(_batch(x) + (H,)))
+
+
+@_operator(_second_order_fake)
 def bending_second_order(x: Tensor, v: Optional[Tensor], t: Optional[Tensor], hinges: Tensor, a: Tensor, k: Tensor,
                          rest: Tensor, c: Optional[Tensor], prev: Optional[Tensor], model: str, weight: Tensor,
                          ptr: Tensor, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -94,27 +133,28 @@ def bending_second_order(x: Tensor, v: Optional[Tensor], t: Optional[Tensor], hi
                                                         (ptr, idx)))  # type: ignore[return-value]
 
 
-@bending_second_order.register_fake
-def _(x, v, t, hinges, a, k, rest, c, prev, model, weight, ptr, idx):
-    H = hinges.shape[0]
-    return (torch.empty_like(x, memory_format=torch.contiguous_format), x.new_empty(_batch(x) + (H, 4)),
-            x.new_empty(_batch(x) + (H,)))
-
-
-@torch.library.custom_op("torchbend::hinge_hessians", mutates_args=())
-def hinge_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
-                   prev: Optional[Tensor], model: str) -> tuple[Tensor, Tensor, Tensor]:
-    """``(blocks (..., H, 12, 12), angle gradients g (..., H, 12), psi'' (..., H))`` (unprojected)."""
-    return tuple(kernels.module(x).bending_hessians(x, hinges, a, k, rest, c, prev, model)[:3])  # type: ignore[return-value]
-
-
-@hinge_hessians.register_fake
-def _(x, hinges, a, k, rest, c, prev, model):
+def _hessians_fake(x, hinges, a, k, rest, c, prev, model, check=False):
     H = hinges.shape[0]
     return x.new_empty(_batch(x) + (H, 12, 12)), x.new_empty(_batch(x) + (H, 12)), x.new_empty(_batch(x) + (H,))
 
 
-@torch.library.custom_op("torchbend::assemble", mutates_args=())
+@_operator(_hessians_fake)
+def hinge_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
+                   prev: Optional[Tensor], model: str, check: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    """``(blocks (..., H, 12, 12), angle gradients g (..., H, 12), psi'' (..., H))`` (unprojected); with ``check``
+    non-finite positions are a ``ValueError``."""
+    blocks = kernels.module(x).bending_hessians
+    out = blocks(x, hinges, a, k, rest, c, prev, model, check=True) if check else blocks(x, hinges, a, k, rest, c,
+                                                                                        prev, model)
+    return tuple(out[:3])  # type: ignore[return-value]
+
+
+def _assemble_fake(x, hinges, a, k, rest, c, prev, model, hinge_pos, faces, face_edge_hinges, face_edge_signs,
+                   face_pos, nnz, per_triangle):
+    return x.new_empty(nnz)
+
+
+@_operator(_assemble_fake)
 def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
              prev: Optional[Tensor], model: str, hinge_pos: Tensor, faces: Tensor, face_edge_hinges: Tensor,
              face_edge_signs: Tensor, face_pos: Tensor, nnz: int, per_triangle: bool) -> Tensor:
@@ -124,12 +164,6 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
 
     return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_pos, faces, face_edge_hinges,
                                   face_edge_signs, face_pos, nnz, per_triangle)
-
-
-@assemble.register_fake
-def _(x, hinges, a, k, rest, c, prev, model, hinge_pos, faces, face_edge_hinges, face_edge_signs, face_pos, nnz,
-      per_triangle):
-    return x.new_empty(nnz)
 
 
 OPS = {

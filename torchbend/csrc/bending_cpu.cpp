@@ -1,14 +1,21 @@
-// CPU driver of torchbend's compiled bending Hessians (built by torchbend/backends/native.py): the
-// loops over tiles of hinges (at::parallel_for), the streaming stores of the blocks, torch tensor
-// handling and the Python bindings.  The per-hinge mathematics is in hinge_math.h, shared with a
-// future CUDA driver; the tests compare both against the eager reference in torchbend/ops.
+// CPU driver of torchbend's compiled bending operations (built by torchbend/backends/native.py): the
+// loops over tiles of hinges (at::parallel_for), the streaming stores of the blocks, the input checks,
+// torch tensor handling and the Python bindings.  The per-hinge mathematics is in hinge_math.h and
+// hinge_ops.h, shared with the CUDA driver; the tests compare both against the eager reference in
+// torchbend/ops.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <algorithm>
+#include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <cstdint>
+#include <limits>
+#include <mutex>
 #include <type_traits>
+#include <utility>
 #include <vector>
+#include <sys/mman.h>
 #ifdef __AVX__
 #include <immintrin.h>
 #endif
@@ -42,6 +49,148 @@ static inline void store_fence() {
 #endif
 }
 
+// ---- input checks ----------------------------------------------------------------------------------
+// Every operation returns a status word with its results: kBadX (x holds a non-finite value; checked
+// before any work when `check` is set), kBadV (likewise the direction v), kFolded (a tan hinge has folded
+// through: |theta| >= pi in x's dtype, where psi' and psi'' are meaningless).  The Python wrappers
+// (torchbend.backends.native) raise the ValueErrors of torchbend._checks and torchbend.ops.psi.check_fold
+// for a non-zero word (one wording, kept there); the scans cost a few nanoseconds a hinge, against the
+// microseconds of separate torch calls at small sizes.
+constexpr int64_t kBadX = 1, kBadV = 2, kFolded = 4;
+
+template <typename T> static bool all_finite(const T* p, int64_t n) {
+  const T big = std::numeric_limits<T>::max();
+  int bad = 0;  // no early exit: the loop vectorizes (NaN fails the comparison)
+  for (int64_t i = 0; i < n; ++i) bad |= !(std::abs(p[i]) <= big);
+  return bad == 0;
+}
+
+static int64_t finite_status(const torch::Tensor& t, int64_t flag) {
+  bool ok = true;
+  AT_DISPATCH_FLOATING_TYPES(t.scalar_type(), "finite_status", [&] { ok = all_finite(t.data_ptr<scalar_t>(), t.numel()); });
+  return ok ? 0 : flag;
+}
+
+// kFolded if a tan hinge (model 1) has |theta| >= pi (pi rounded to theta's dtype, as check_fold compares)
+static int64_t fold_status(const torch::Tensor& theta, int64_t model) {
+  if (model != 1) return 0;
+  int bad = 0;
+  AT_DISPATCH_FLOATING_TYPES(theta.scalar_type(), "fold_status", [&] {
+    const scalar_t* th = theta.data_ptr<scalar_t>();
+    const scalar_t pi = scalar_t(3.14159265358979323846);
+    for (int64_t i = 0, n = theta.numel(); i < n; ++i) bad |= std::abs(th[i]) >= pi;
+  });
+  return bad ? kFolded : 0;
+}
+
+// ---- large outputs ---------------------------------------------------------------------------------
+// Fresh memory page-faults on first touch: for the per-hinge blocks (1152 bytes a hinge in float64) the
+// faults cost several times the kernel itself (benchmarks/results/hessian_native_cpu_2core.txt).  Outputs
+// of at least kPoolMin bytes therefore take their memory from a small cache of blocks that earlier outputs
+// released: a loop that calls an operation repeatedly (a Newton solver, a benchmark) writes into warm
+// pages, as with the caller-provided out= buffers, without having to manage them.  At most kPoolBlocks
+// released blocks and `limit` bytes are kept (TORCHBEND_OUTPUT_CACHE_MB, default 1024; 0: no cache);
+// torchbend.backends.native.empty_output_cache() frees them.  Blocks are matched by exact size.
+constexpr size_t kPoolMin = size_t(4) << 20, kPoolAlign = size_t(2) << 20;
+constexpr int kPoolBlocks = 4;
+
+struct OutputPool {
+  std::mutex mu;
+  std::vector<std::pair<void*, size_t>> blocks;  // released, most recent last
+  size_t held = 0, limit = 0;
+  int64_t hits = 0, misses = 0;
+};
+
+static OutputPool& output_pool() {
+  static OutputPool* pool = [] {  // never destroyed: tensors may be released at interpreter exit
+    auto* p = new OutputPool;
+    const char* env = std::getenv("TORCHBEND_OUTPUT_CACHE_MB");
+    p->limit = size_t(env ? std::max(0L, std::atol(env)) : 1024L) << 20;
+    return p;
+  }();
+  return *pool;
+}
+
+static void pool_release(void* ptr, size_t bytes) {
+  OutputPool& P = output_pool();
+  std::vector<void*> drop;
+  {
+    std::lock_guard<std::mutex> lock(P.mu);
+    if (bytes <= P.limit) {
+      P.blocks.emplace_back(ptr, bytes);
+      P.held += bytes;
+      ptr = nullptr;
+      while (P.held > P.limit || int(P.blocks.size()) > kPoolBlocks) {  // the oldest go first
+        drop.push_back(P.blocks.front().first);
+        P.held -= P.blocks.front().second;
+        P.blocks.erase(P.blocks.begin());
+      }
+    }
+  }
+  if (ptr) drop.push_back(ptr);
+  for (void* q : drop) std::free(q);
+}
+
+static void* pool_acquire(size_t bytes) {
+  OutputPool& P = output_pool();
+  {
+    std::lock_guard<std::mutex> lock(P.mu);
+    for (size_t i = P.blocks.size(); i-- > 0;)
+      if (P.blocks[i].second == bytes) {
+        void* ptr = P.blocks[i].first;
+        P.held -= bytes;
+        P.blocks.erase(P.blocks.begin() + int64_t(i));
+        ++P.hits;
+        return ptr;
+      }
+    ++P.misses;
+  }
+  void* ptr = std::aligned_alloc(kPoolAlign, bytes);  // bytes: a multiple of kPoolAlign
+  TORCH_CHECK(ptr, "out of memory (", bytes, " bytes)");
+#ifdef MADV_HUGEPAGE
+  madvise(ptr, bytes, MADV_HUGEPAGE);  // fewer, larger first-touch faults where transparent huge pages are on
+#endif
+  return ptr;
+}
+
+// torch::empty(shape) for small outputs, a pooled block (64-byte aligned) for large ones
+static torch::Tensor pooled_empty(const std::vector<int64_t>& shape, const torch::TensorOptions& options) {
+  int64_t n = 1;
+  for (auto s : shape) n *= s;
+  size_t bytes = size_t(n) * options.dtype().itemsize();
+  if (bytes < kPoolMin || output_pool().limit == 0) return torch::empty(shape, options);
+  size_t rounded = (bytes + kPoolAlign - 1) / kPoolAlign * kPoolAlign;
+  void* ptr = pool_acquire(rounded);
+  return torch::from_blob(ptr, shape, [rounded](void* q) { pool_release(q, rounded); }, options);
+}
+
+// (blocks held, bytes held, hits, misses) of the output cache
+static std::tuple<int64_t, int64_t, int64_t, int64_t> output_cache_info() {
+  OutputPool& P = output_pool();
+  std::lock_guard<std::mutex> lock(P.mu);
+  return {int64_t(P.blocks.size()), int64_t(P.held), P.hits, P.misses};
+}
+
+static void empty_output_cache() {
+  OutputPool& P = output_pool();
+  std::vector<std::pair<void*, size_t>> drop;
+  {
+    std::lock_guard<std::mutex> lock(P.mu);
+    drop.swap(P.blocks);
+    P.held = 0;
+  }
+  for (auto& b : drop) std::free(b.first);
+}
+
+static void set_output_cache_limit(int64_t bytes) {
+  OutputPool& P = output_pool();
+  {
+    std::lock_guard<std::mutex> lock(P.mu);
+    P.limit = size_t(std::max<int64_t>(0, bytes));
+  }
+  if (P.held > P.limit) empty_output_cache();
+}
+
 // The blocks of the first nl lanes of a tile to out[l] (144 values, streaming stores unless `stream`
 // is false) and their angle gradients to gout[l] (12 values).
 template <typename T, bool stream = true>
@@ -54,40 +203,10 @@ static inline void write_tile(const Blocks<T, W>& b, int nl, T* const* out, T* c
   }
 }
 
-// Everything in one pass: gather the stencil from x, theta, psi' and psi'' (hinge_psi), the block and
-// the angle gradient; B samples of H hinges, tiles over the flattened (sample, hinge) index.
-template <typename T>
-static void fused(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, Param<T> a, Param<T> k,
-                  Param<T> rest, Param<T> c, Param<T> prev, bool damped, int model, T* out, T* gout, T* d2out, T* thout) {
-  int64_t tiles = (B * H + W - 1) / W;
-  at::parallel_for(0, tiles, 32, [&](int64_t begin, int64_t end) {
-    T X[12][W], D1[W], D2[W], TH;
-    Blocks<T, W> tile;
-    T* op[W]; T* gp[W];
-    for (int64_t t = begin; t < end; ++t) {
-      int64_t bh0 = t * W;
-      int nl = int(std::min<int64_t>(W, B * H - bh0));
-      int64_t b = bh0 / H, h = bh0 - b * H - 1;  // sample and hinge of lane 0 (one division per tile)
-      for (int l = 0; l < W; ++l) {
-        if (l >= nl) {
-          for (int m = 0; m < 12; ++m) X[m][l] = T(0);
-          D1[l] = D2[l] = T(0);
-          continue;
-        }
-        if (++h == H) { h = 0; ++b; }
-        int64_t bh = bh0 + l;
-        load_hinge<T, W>(x + 3 * V * b, hinges + 4 * h, X, l);
-        T c0 = damped ? c(b, h) : T(0), p0 = damped ? prev(b, h) : T(0);
-        hinge_psi<T, W>(X, l, model, a(b, h), k(b, h), rest(b, h), damped, c0, p0, TH, D1[l], D2[l]);
-        d2out[bh] = D2[l];
-        thout[bh] = TH;
-        op[l] = out + 144 * bh; gp[l] = gout + 12 * bh;
-      }
-      block_tile<T, W>(X, D1, D2, tile);
-      write_tile<T>(tile, nl, op, gp);
-    }
-    store_fence();
-  });
+// t in dtype st, contiguous (no dispatch when it is already: these run on every call)
+static torch::Tensor as_dtype(torch::Tensor t, c10::ScalarType st) {
+  if (t.scalar_type() != st) t = t.to(st);
+  return t.is_contiguous() ? t : t.contiguous();
 }
 
 template <typename T> static Param<T> param(const torch::Tensor& t, int64_t H) {
@@ -100,11 +219,10 @@ static bool disjoint(const torch::Tensor& t, const torch::Tensor& u) {
 }
 
 // A caller-provided output buffer (out=): a contiguous CPU tensor of x's dtype and exactly the output's
-// shape, not overlapping x; a fresh tensor without one.  Fresh memory page-faults on first touch, which
-// for large outputs costs more than the kernel (benchmarks/results/hessian_native_cpu_2core.txt).
+// shape, not overlapping x; without one a new tensor (pooled_empty: large ones in warm memory).
 static torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::vector<int64_t>& shape,
                             const torch::Tensor& x, const char* what) {
-  if (!buf.has_value()) return torch::empty(shape, x.options());
+  if (!buf.has_value()) return pooled_empty(shape, x.options());
   const torch::Tensor& t = *buf;
   TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == x.scalar_type() && t.is_contiguous(), what,
               " must be a contiguous CPU tensor of x's dtype (", x.scalar_type(), ")");
@@ -112,48 +230,6 @@ static torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::
               t.sizes());
   TORCH_CHECK(disjoint(t, x), what, " overlaps x");
   return t;
-}
-
-// Positions x (..., V, 3); per-hinge parameters given as scalars, (H,) or (..., H) like x's batch;
-// c and prev None without damping; out and gout optional buffers for the first two results.
-// Returns (blocks (..., H, 12, 12), angle gradients (..., H, 12), psi'' (..., H), theta (..., H)).  The
-// caller checks that x is finite and, with theta, that no tan hinge has folded through.
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_hessians(
-    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
-    c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
-    c10::optional<torch::Tensor> out_, c10::optional<torch::Tensor> gout_) {
-  TORCH_CHECK(x.device().is_cpu() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CPU (..., V, 3) tensor");
-  TORCH_CHECK(hinges.dim() == 2 && hinges.size(1) == 4 && hinges.scalar_type() == torch::kLong,
-              "hinges must be an int64 (H, 4) tensor");
-  x = x.contiguous();
-  hinges = hinges.contiguous();
-  std::vector<int64_t> batch(x.sizes().begin(), x.sizes().end() - 2);
-  int64_t V = x.size(-2), H = hinges.size(0), B = 1;
-  for (auto s : batch) B *= s;
-  bool damped = c_.has_value();
-  auto prep = [&](torch::Tensor t) {
-    t = t.to(x.scalar_type()).contiguous();
-    int64_t n = t.numel();
-    TORCH_CHECK(n == 1 || n == H || n == B * H, "a per-hinge parameter has ", n, " values; expected 1, H or B*H");
-    return t;
-  };
-  a = prep(a); k = prep(k); rest = prep(rest);
-  torch::Tensor c, prev;
-  if (damped) { c = prep(*c_); prev = prep(*prev_); }
-  std::vector<int64_t> sb = batch, sg = batch, sd = batch;
-  sb.insert(sb.end(), {H, 12, 12}); sg.insert(sg.end(), {H, 12}); sd.push_back(H);
-  auto out = output(out_, sb, x, "out (blocks)");
-  auto g = output(gout_, sg, x, "out (gradients)");
-  TORCH_CHECK(disjoint(out, g), "the two out buffers overlap");
-  auto d2 = torch::empty(sd, x.options()), theta = torch::empty(sd, x.options());
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "bending_hessians", [&] {
-    Param<scalar_t> none{nullptr, 0, H};
-    fused<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), B, V, H, param<scalar_t>(a, H),
-                    param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
-                    damped ? param<scalar_t>(prev, H) : none, damped, int(model), out.data_ptr<scalar_t>(),
-                    g.data_ptr<scalar_t>(), d2.data_ptr<scalar_t>(), theta.data_ptr<scalar_t>());
-  });
-  return {out, g, d2, theta};
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -216,8 +292,9 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
   }
 }
 
-// (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,)); parameters as in bending_hessians
-std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+// (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,), status); parameters as in
+// bending_hessians, x finite (the caller checks)
+std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
                        c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
                        torch::Tensor hinge_pos, torch::Tensor faces, torch::Tensor face_edge_hinges,
                        torch::Tensor face_edge_signs, torch::Tensor face_pos, int64_t nnz, bool per_triangle) {
@@ -225,7 +302,7 @@ std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor
   x = x.contiguous();
   int64_t H = hinges.size(0), F = faces.size(0);
   auto prep = [&](torch::Tensor t) {
-    t = t.to(x.scalar_type()).contiguous();
+    t = as_dtype(t, x.scalar_type());
     TORCH_CHECK(t.numel() == 1 || t.numel() == H, "a per-hinge parameter has ", t.numel(), " values; expected 1 or H");
     return t;
   };
@@ -248,7 +325,7 @@ std::tuple<torch::Tensor, torch::Tensor> assemble(torch::Tensor x, torch::Tensor
                             face_pos.data_ptr<int64_t>(), F, per_triangle, values.data_ptr<scalar_t>(),
                             theta.data_ptr<scalar_t>());
   });
-  return {values, theta};
+  return {values, theta, fold_status(theta, model)};
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -493,7 +570,7 @@ static Prepared prepare(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, 
   for (auto s : p.batch) p.B *= s;
   p.damped = c_.has_value();
   auto prep = [&](torch::Tensor t) {
-    t = t.to(x.scalar_type()).contiguous();
+    t = as_dtype(t, x.scalar_type());
     int64_t n = t.numel();
     TORCH_CHECK(n == 1 || n == p.H || n == p.B * p.H, "a per-hinge parameter has ", n, " values; expected 1, H or B*H");
     return t;
@@ -510,19 +587,22 @@ static std::vector<int64_t> shape_with(const std::vector<int64_t>& batch, std::i
 }
 
 static torch::Tensor prepare_weight(torch::Tensor weight, const Prepared& P) {
-  weight = weight.to(P.x.scalar_type()).contiguous();
+  weight = as_dtype(weight, P.x.scalar_type());
   TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
               weight.numel(), " values; expected 1, H or B*H");
   return weight;
 }
 
-// (psi (..., H), theta (..., H)): the per-hinge energies (summed by the caller per mesh or segment)
-std::tuple<torch::Tensor, torch::Tensor> bending_energy(torch::Tensor x, torch::Tensor hinges, torch::Tensor a,
-                                                        torch::Tensor k, torch::Tensor rest,
-                                                        c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev,
-                                                        int64_t model) {
+// (psi (..., H), theta (..., H), status): the per-hinge energies (summed by the caller per mesh or segment);
+// check: x's finiteness first (kBadX: no other work)
+std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x, torch::Tensor hinges,
+                                                                 torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                                                                 c10::optional<torch::Tensor> c,
+                                                                 c10::optional<torch::Tensor> prev, int64_t model,
+                                                                 bool check) {
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
   auto psi = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(psi);
+  if (check && finite_status(P.x, kBadX)) return {psi, theta, kBadX};
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_energy", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
@@ -547,21 +627,22 @@ std::tuple<torch::Tensor, torch::Tensor> bending_energy(torch::Tensor x, torch::
       });
     });
   });
-  return {psi, theta};
+  return {psi, theta, fold_status(theta, model)};
 }
 
-// (w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H)); w a
-// per-hinge weight (the cotangent of the energy: scalar, (H,) or (B, H))
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
+// (w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H), status); w a
+// per-hinge weight (the cotangent of the energy: scalar, (H,) or (B, H)); check as in bending_energy
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradient(
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
-    torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params) {
+    torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params, bool check) {
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
   weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
   auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto gp = params ? torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options()) : torch::empty({0}, P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
+  if (check && finite_status(P.x, kBadX)) return {gx, gp, theta, kBadX};
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_gradient", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
@@ -604,17 +685,18 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> bending_gradient(
       });
     });
   });
-  return {gx, gp, theta};
+  return {gx, gp, theta, fold_status(theta, model)};
 }
 
 // (w H v (..., V, 3), theta (..., H)): the Hessian of the energy applied to directions v (..., V, 3) of x's
 // shape, without forming any matrix (per hinge psi' H_theta v + psi'' (g . v) g, H_theta v in closed form);
-// w a per-hinge weight as in bending_gradient
-std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges,
-                                                     torch::Tensor a, torch::Tensor k, torch::Tensor rest,
-                                                     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev,
-                                                     int64_t model, torch::Tensor weight, torch::Tensor inc_ptr,
-                                                     torch::Tensor inc_idx) {
+// w a per-hinge weight as in bending_gradient; status as in bending_energy (check: x, then v)
+std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges,
+                                                              torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                                                              c10::optional<torch::Tensor> c,
+                                                              c10::optional<torch::Tensor> prev, int64_t model,
+                                                              torch::Tensor weight, torch::Tensor inc_ptr,
+                                                              torch::Tensor inc_idx, bool check) {
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
   TORCH_CHECK(v.sizes() == P.x.sizes() && v.scalar_type() == P.x.scalar_type() && v.device().is_cpu(),
               "v must be a CPU tensor of x's shape and dtype");
@@ -623,6 +705,10 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
   auto hv = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
+  if (check) {
+    int64_t bad = finite_status(P.x, kBadX) | finite_status(v, kBadV);
+    if (bad) return {hv, theta, bad};
+  }
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_hvp", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
@@ -656,7 +742,7 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
       });
     });
   });
-  return {hv, theta};
+  return {hv, theta, fold_status(theta, model)};
 }
 
 // The general double backward (torchbend.energies._bending_fn._second_order without a tangent of the
@@ -664,8 +750,9 @@ std::tuple<torch::Tensor, torch::Tensor> bending_hvp(torch::Tensor x, torch::Ten
 // (k, rest, c, prev) (or None), per hinge u = g . v and z = Hess_p(psi) (u, t):
 // (dx = sum_h w (z_theta g + psi' H_theta v) (..., V, 3), dp = w z_(k, rest, c, prev) (..., H, 4),
 //  dg = grad_p(psi) . (u, t) (..., H), theta (..., H)); w the per-hinge weight (the cotangent gE).
-// Without damping the c and prev entries of dp are 0 and those of t are ignored.
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_second_order(
+// Without damping the c and prev entries of dp are 0 and those of t are ignored.  Last: the status word
+// (fold check only: the inputs come from a backward pass).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_second_order(
     torch::Tensor x, c10::optional<torch::Tensor> v_, c10::optional<torch::Tensor> t_, torch::Tensor hinges,
     torch::Tensor a, torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
     c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight, torch::Tensor inc_ptr,
@@ -678,7 +765,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
     v = v_->contiguous();
   }
   if (t_.has_value()) {
-    tt = t_->to(P.x.scalar_type()).contiguous();
+    tt = as_dtype(*t_, P.x.scalar_type());
     TORCH_CHECK(tt.device().is_cpu() && tt.dim() >= 2 && tt.size(-1) == 4 &&
                 (tt.numel() == 4 * P.H || tt.numel() == 4 * P.B * P.H),
                 "t must be a CPU (..., H, 4) tensor with H or B*H rows");
@@ -735,7 +822,174 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> bending_s
       });
     });
   });
-  return {dx, dp, dg, theta};
+  return {dx, dp, dg, theta, fold_status(theta, model)};
+}
+
+// ----------------------------------------------------------------------------------------------
+// Per-hinge 12x12 blocks: gather, angle, psi' and psi'' (psi_lane, vectorized across the lanes of a tile
+// like the operations above), the closed-form blocks (block_tile) and their output.  A block is written
+// once and not read again here, so it goes out with streaming stores (no read-for-ownership of the output
+// lines).  For a full tile with AVX-512 (float64) or AVX (float32), the tile is completed in place across
+// its lanes (mirrored lower triangle, B terms: complete_tile) and transposed in registers 8 entries at a
+// time, each lane's 8 consecutive entries one aligned streaming store (stream_tile: every block of a
+// 64-byte aligned output starts 64-byte aligned, 1152 = 18 x 64 and 576 = 9 x 64 bytes); elsewhere (a
+// partial tile, an unaligned out= buffer) block_lane copies lane by lane (write_tile).  Both give the same
+// values: the same operations on the same numbers, only the copies differ.
+
+template <typename T> static inline void complete_tile(Blocks<T, W>& b) {
+  for (int r = 1; r < 12; ++r)
+    for (int c = 0; c < r; ++c) TB_LANES(W) b.O[12 * r + c][l] = b.O[12 * c + r][l];
+  for (int p = 0; p < 3; ++p)
+    for (int q = 0; q < 3; ++q) TB_LANES(W) {
+      T B = b.Bm[p][q][l];
+      b.O[12 * p + q][l] -= B;
+      b.O[12 * p + 3 + q][l] += B;
+      b.O[12 * (3 + q) + p][l] += B;
+      b.O[12 * (3 + p) + 3 + q][l] -= B;
+    }
+}
+
+// whether stream_tile is compiled for T
+template <typename T> constexpr bool tile_streams() {
+#if defined(__AVX512F__)
+  if (std::is_same<T, double>::value) return true;
+#endif
+#if defined(__AVX__)
+  if (std::is_same<T, float>::value) return true;
+#endif
+  return false;
+}
+
+// the completed blocks of the 8 lanes of a tile to out + 144 l (64-byte aligned), 8 entries at a time
+static inline void stream_tile(const Blocks<double, W>& b, double* out) {
+#if defined(__AVX512F__)
+  for (int j = 0; j < 18; ++j) {
+    const double* src = &b.O[8 * j][0];
+    __m512d r0 = _mm512_loadu_pd(src), r1 = _mm512_loadu_pd(src + 8), r2 = _mm512_loadu_pd(src + 16),
+            r3 = _mm512_loadu_pd(src + 24), r4 = _mm512_loadu_pd(src + 32), r5 = _mm512_loadu_pd(src + 40),
+            r6 = _mm512_loadu_pd(src + 48), r7 = _mm512_loadu_pd(src + 56);
+    // 8x8 transpose: pairs within 128-bit lanes, then 128-bit lanes (two steps)
+    __m512d t0 = _mm512_unpacklo_pd(r0, r1), t1 = _mm512_unpackhi_pd(r0, r1), t2 = _mm512_unpacklo_pd(r2, r3),
+            t3 = _mm512_unpackhi_pd(r2, r3), t4 = _mm512_unpacklo_pd(r4, r5), t5 = _mm512_unpackhi_pd(r4, r5),
+            t6 = _mm512_unpacklo_pd(r6, r7), t7 = _mm512_unpackhi_pd(r6, r7);
+    __m512d u0 = _mm512_shuffle_f64x2(t0, t2, 0x88), u1 = _mm512_shuffle_f64x2(t1, t3, 0x88),
+            u2 = _mm512_shuffle_f64x2(t0, t2, 0xdd), u3 = _mm512_shuffle_f64x2(t1, t3, 0xdd),
+            u4 = _mm512_shuffle_f64x2(t4, t6, 0x88), u5 = _mm512_shuffle_f64x2(t5, t7, 0x88),
+            u6 = _mm512_shuffle_f64x2(t4, t6, 0xdd), u7 = _mm512_shuffle_f64x2(t5, t7, 0xdd);
+    double* dst = out + 8 * j;
+    _mm512_stream_pd(dst, _mm512_shuffle_f64x2(u0, u4, 0x88));
+    _mm512_stream_pd(dst + 144, _mm512_shuffle_f64x2(u1, u5, 0x88));
+    _mm512_stream_pd(dst + 288, _mm512_shuffle_f64x2(u2, u6, 0x88));
+    _mm512_stream_pd(dst + 432, _mm512_shuffle_f64x2(u3, u7, 0x88));
+    _mm512_stream_pd(dst + 576, _mm512_shuffle_f64x2(u0, u4, 0xdd));
+    _mm512_stream_pd(dst + 720, _mm512_shuffle_f64x2(u1, u5, 0xdd));
+    _mm512_stream_pd(dst + 864, _mm512_shuffle_f64x2(u2, u6, 0xdd));
+    _mm512_stream_pd(dst + 1008, _mm512_shuffle_f64x2(u3, u7, 0xdd));
+  }
+#else
+  (void)b; (void)out;
+#endif
+}
+
+static inline void stream_tile(const Blocks<float, W>& b, float* out) {
+#if defined(__AVX__)
+  for (int j = 0; j < 18; ++j) {
+    const float* src = &b.O[8 * j][0];
+    __m256 r0 = _mm256_loadu_ps(src), r1 = _mm256_loadu_ps(src + 8), r2 = _mm256_loadu_ps(src + 16),
+           r3 = _mm256_loadu_ps(src + 24), r4 = _mm256_loadu_ps(src + 32), r5 = _mm256_loadu_ps(src + 40),
+           r6 = _mm256_loadu_ps(src + 48), r7 = _mm256_loadu_ps(src + 56);
+    __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1), t2 = _mm256_unpacklo_ps(r2, r3),
+           t3 = _mm256_unpackhi_ps(r2, r3), t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5),
+           t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
+    __m256 u0 = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(1, 0, 1, 0)), u1 = _mm256_shuffle_ps(t0, t2, _MM_SHUFFLE(3, 2, 3, 2)),
+           u2 = _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(1, 0, 1, 0)), u3 = _mm256_shuffle_ps(t1, t3, _MM_SHUFFLE(3, 2, 3, 2)),
+           u4 = _mm256_shuffle_ps(t4, t6, _MM_SHUFFLE(1, 0, 1, 0)), u5 = _mm256_shuffle_ps(t4, t6, _MM_SHUFFLE(3, 2, 3, 2)),
+           u6 = _mm256_shuffle_ps(t5, t7, _MM_SHUFFLE(1, 0, 1, 0)), u7 = _mm256_shuffle_ps(t5, t7, _MM_SHUFFLE(3, 2, 3, 2));
+    float* dst = out + 8 * j;
+    _mm256_stream_ps(dst, _mm256_permute2f128_ps(u0, u4, 0x20));
+    _mm256_stream_ps(dst + 144, _mm256_permute2f128_ps(u1, u5, 0x20));
+    _mm256_stream_ps(dst + 288, _mm256_permute2f128_ps(u2, u6, 0x20));
+    _mm256_stream_ps(dst + 432, _mm256_permute2f128_ps(u3, u7, 0x20));
+    _mm256_stream_ps(dst + 576, _mm256_permute2f128_ps(u0, u4, 0x31));
+    _mm256_stream_ps(dst + 720, _mm256_permute2f128_ps(u1, u5, 0x31));
+    _mm256_stream_ps(dst + 864, _mm256_permute2f128_ps(u2, u6, 0x31));
+    _mm256_stream_ps(dst + 1008, _mm256_permute2f128_ps(u3, u7, 0x31));
+  }
+#else
+  (void)b; (void)out;
+#endif
+}
+
+// the blocks, angle gradients, psi'' and theta of B samples of H hinges (tiles over the flattened index)
+template <typename T, int M, bool D>
+static void hessian_tiles(const T* xp, const int64_t* hp, int64_t B, int64_t V, int64_t H, const HingeArgs<T>& args,
+                          T* out, T* gout, T* d2out, T* thout) {
+  int64_t BH = B * H, tiles = (BH + W - 1) / W;
+  bool aligned = tile_streams<T>() && (reinterpret_cast<uintptr_t>(out) & 63) == 0;
+  at::parallel_for(0, tiles, 16, [&](int64_t begin, int64_t end) {
+    int64_t bs[W], hs[W];
+    alignas(64) T X[12][W];
+    alignas(64) T TH[W], D1[W], D2[W];
+    HingeTile<T, W> Q;
+    alignas(64) Blocks<T, W> tile;
+    T* op[W]; T* gp[W];
+    for (int64_t t = begin; t < end; ++t) {
+      int64_t bh0 = t * W;
+      int nl = int(std::min<int64_t>(W, BH - bh0));
+      int64_t b = bh0 / H, h = bh0 - b * H;  // one division per tile
+      for (int l = 0; l < nl; ++l) {
+        bs[l] = b; hs[l] = h;
+        if (++h == H) { h = 0; ++b; }
+      }
+      gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q);
+      theta_tile<T, W>(X, TH);
+      TB_LANES_AGG(W) {
+        T psi;
+        psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, D1[l], D2[l], static_cast<T*>(nullptr));
+      }
+      block_tile<T, W>(X, D1, D2, tile);
+      if (aligned && nl == W) {
+        complete_tile<T>(tile);
+        stream_tile(tile, out + 144 * bh0);
+        T* g = gout + 12 * bh0;
+        for (int l = 0; l < W; ++l)
+          for (int m = 0; m < 12; ++m) g[12 * l + m] = tile.G[m][l];
+      } else {
+        for (int l = 0; l < nl; ++l) { op[l] = out + 144 * (bh0 + l); gp[l] = gout + 12 * (bh0 + l); }
+        write_tile<T>(tile, nl, op, gp);
+      }
+      for (int l = 0; l < nl; ++l) { d2out[bh0 + l] = D2[l]; thout[bh0 + l] = TH[l]; }
+    }
+    store_fence();  // the streaming stores of this thread
+  });
+}
+
+// Positions x (..., V, 3); per-hinge parameters as scalars, (H,) or (..., H) like x's batch; c and prev None
+// without damping; out and gout optional buffers for the first two results.  Returns (blocks (..., H, 12, 12),
+// angle gradients (..., H, 12), psi'' (..., H), theta (..., H), status); check as in bending_energy.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_hessians(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model,
+    c10::optional<torch::Tensor> out_, c10::optional<torch::Tensor> gout_, bool check) {
+  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  auto out = output(out_, shape_with(P.batch, {P.H, 12, 12}), P.x, "out (blocks)");
+  auto g = output(gout_, shape_with(P.batch, {P.H, 12}), P.x, "out (gradients)");
+  TORCH_CHECK(disjoint(out, g), "the two out buffers overlap");
+  auto d2 = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(d2);
+  if (check && finite_status(P.x, kBadX)) return {out, g, d2, theta, kBadX};
+  AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_hessians", [&] {
+    using T = scalar_t;
+    HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
+    const T* xp = P.x.data_ptr<T>();
+    const int64_t* hp = P.hinges.data_ptr<int64_t>();
+    T* op = out.data_ptr<T>(); T* gp = g.data_ptr<T>(); T* dp = d2.data_ptr<T>(); T* tp = theta.data_ptr<T>();
+    with_model(int(model), P.damped, [&](auto M_, auto D_) {
+      constexpr int M = decltype(M_)::value;
+      constexpr bool D = decltype(D_)::value;
+      hessian_tiles<T, M, D>(xp, hp, P.B, P.V, P.H, args, op, gp, dp, tp);
+    });
+  });
+  return {out, g, d2, theta, fold_status(theta, model)};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -746,4 +1000,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_hvp", &bending_hvp, "weighted Hessian-vector product in positions");
   m.def("bending_second_order", &bending_second_order,
         "the general double backward: position and parameter directions, per-hinge weight");
+  m.def("output_cache_info", &output_cache_info, "(blocks, bytes, hits, misses) of the cache of large outputs");
+  m.def("empty_output_cache", &empty_output_cache, "free the memory the cache of large outputs holds");
+  m.def("set_output_cache_limit", &set_output_cache_limit, "the most bytes the cache of large outputs keeps");
 }

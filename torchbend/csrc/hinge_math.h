@@ -365,6 +365,7 @@ TB_HD static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, B
       b.G[3 * i + p][l] = (sa < 0 ? T(0) : hA.t[sa][l] * hA.N[p][l]) - (sb < 0 ? T(0) : hB.t[sb][l] * hB.N[p][l]);
     }
   }
+#if defined(__CUDACC__)
   for (int r = 0; r < 12; ++r) {
     int i = r / 3, p = r % 3;
     for (int c = r; c < 12; ++c) {
@@ -374,6 +375,28 @@ TB_HD static inline void block_tile(const T (*X)[W], const T* d1, const T* d2, B
                                      + d2[l] * b.G[r][l] * b.G[c][l];
     }
   }
+#else
+  // the same expression with its repeated first factors RA_i mhA_j[p] (and B's) and psi'' g_r taken once per
+  // tile (the same operations on the same numbers: the same bits); on the GPU (one hinge a thread) the
+  // tables would not fit in registers
+  T PA[4][4][3][W], PB[4][4][3][W], S[W];
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j)
+      for (int p = 0; p < 3; ++p) TB_LANES(W) {
+        PA[i][j][p][l] = RA[i][l] * MA[j][p][l];
+        PB[i][j][p][l] = RB[i][l] * MB[j][p][l];
+      }
+  for (int r = 0; r < 12; ++r) {
+    int i = r / 3, p = r % 3;
+    TB_LANES(W) S[l] = d2[l] * b.G[r][l];
+    for (int c = r; c < 12; ++c) {
+      int j = c / 3, q = c % 3;
+      TB_LANES(W) b.O[12 * r + c][l] = PA[i][j][p][l] * hA.N[q][l] + PA[j][i][q][l] * hA.N[p][l]
+                                     - PB[i][j][p][l] * hB.N[q][l] - PB[j][i][q][l] * hB.N[p][l]
+                                     + S[l] * b.G[c][l];
+    }
+  }
+#endif
   // B is symmetric only when both halves are valid, so it is applied as is (as torchbend.ops.hinge
   // does) rather than mirrored
   for (int p = 0; p < 3; ++p)

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ..backends import kernels
-from ..backends import ops as _ops  # noqa: F401  (registers torch.ops.torchbend)
+from ..backends import ops as _ops  # registers torch.ops.torchbend
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -272,7 +272,7 @@ def _kernel_second_order(model: BendingModel, saved: tuple, ggx, ggp):
     """The general double backward of the kernel path (cotangents of ``gx`` and of the parameter gradients
     ``gp``) in one compiled pass: ``(dx, [d k, d rest(, d c, d prev)] per hinge, d gE per hinge)``."""
     gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
-    dx, dp, dg = torch.ops.torchbend.bending_second_order(x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
+    dx, dp, dg = _ops.run("bending_second_order", x, ggx, ggp, hinges, a, k, rest, c, prev, model.value,
                                                           _hinge_weight(gE, seg, hinges.shape[0]), ptr, idx)
     n = 4 if c is not None and prev is not None else 2
     return dx, [dp[..., j] for j in range(n)], dg
@@ -289,13 +289,13 @@ def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) 
     gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx = saved
     if ggp is not None and ggp.numel() == 0:
         ggp = None
-    out: list = [None] * 12
+    out: list = [None] * 13
     if ggx is None and ggp is None:
         return tuple(out)
     if ggp is None and not needs[0] and not any(needs[5:9]):
         # the double backward of a Newton step or of hvp(): the compiled Hessian-vector product
         w = _hinge_weight(gE, seg, hinges.shape[0])
-        out[1] = torch.ops.torchbend.bending_hvp(x, ggx, hinges, a, k, rest, c, prev, model.value, w, ptr, idx)
+        out[1] = _ops.run("bending_hvp", x, ggx, hinges, a, k, rest, c, prev, model.value, w, ptr, idx)
         return tuple(out)
     dx, dps, dg = _kernel_second_order(model, saved, ggx, ggp)
     out[1] = dx if needs[1] else None
@@ -308,24 +308,35 @@ def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) 
     return tuple(out)
 
 
+def _kernel_energy(code: str, x, hinges, seg, seg_count, a, k, rest, c, prev, check) -> Tensor:
+    """The energy of the kernel path: the operator's per-hinge energies, summed per mesh (or segment)."""
+    psi = _ops.run("bending_energy", x, hinges, a, k, rest, c, prev, code, check)
+    return _reduce(psi, seg, seg_count)
+
+
+def _kernel_gradient(code: str, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check) -> tuple:
+    """``(gE dE/dx, gE dpsi/d(k, rest, c, prev) per hinge (empty without params))`` by the gradient operator."""
+    w = _hinge_weight(gE, seg, hinges.shape[0])
+    return _ops.run("bending_gradient", x, hinges, a, k, rest, c, prev, code, w, ptr, idx, params, check)
+
+
 def _make_kernel(model: BendingModel):
     """The pair of Functions of the compiled path (``torch.ops.torchbend``): no ``jvp`` and no vmap rule, so
     that ``torch.compile(fullgraph=True)`` traces them (the backends choose the eager Functions above under
     ``torch.func`` transforms and forward-mode AD).  Parameters are passed as they are stored (one value,
-    ``(H,)`` or ``(..., H)``), not expanded; the parameter gradients are reduced to their shapes."""
+    ``(H,)`` or ``(..., H)``), not expanded; the parameter gradients are reduced to their shapes.
+
+    They take ``ctx`` in ``forward`` (no ``setup_context``): ``Function.apply`` binds the arguments of a
+    ``setup_context`` Function through ``inspect.signature`` on every call, which on a thousand hinges costs
+    more than the kernels (``setup_context`` is what ``torch.func`` needs, and these never run under it)."""
     code = model.value
 
     class _GradientImpl(torch.autograd.Function):
         @staticmethod
-        def forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params):
-            w = _hinge_weight(gE, seg, hinges.shape[0])
-            return torch.ops.torchbend.bending_gradient(x, hinges, a, k, rest, c, prev, code, w, ptr, idx, params,
-                                                        False)
-
-        @staticmethod
-        def setup_context(ctx, inputs, output):
-            ctx.save_for_backward(*inputs[:11])
+        def forward(ctx, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check):
+            ctx.save_for_backward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx)
             ctx.set_materialize_grads(False)
+            return _kernel_gradient(code, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check)
 
         @staticmethod
         def backward(ctx, ggx, ggp):
@@ -333,24 +344,20 @@ def _make_kernel(model: BendingModel):
 
     class _EnergyImpl(torch.autograd.Function):
         @staticmethod
-        def forward(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check):
-            psi = torch.ops.torchbend.bending_energy(x, hinges, a, k, rest, c, prev, code, check)
-            return _reduce(psi, seg, seg_count)
-
-        @staticmethod
-        def setup_context(ctx, inputs, output):
-            x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check = inputs
+        def forward(ctx, x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check):
             ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx)
+            return _kernel_energy(code, x, hinges, seg, seg_count, a, k, rest, c, prev, check)
 
         @staticmethod
         def backward(ctx, gE):
             x, hinges, seg, a, k, rest, c, prev, ptr, idx = ctx.saved_tensors
             needs = ctx.needs_input_grad
             params = any(needs[5:9])
+            # the positions were checked by the forward
             if torch.is_grad_enabled():  # create_graph=True: the gradient is differentiable (analytic HVP)
-                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, False)
             else:  # a plain backward (and torch.compile's trace of it): the operator alone
-                gx, gp = _GradientImpl.forward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params)
+                gx, gp = _kernel_gradient(code, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, False)
             out: list = [None] * 12
             out[0] = gx if needs[0] else None
             for j, p in enumerate((k, rest, c, prev)):
@@ -369,6 +376,12 @@ _KERNEL_FUNCTIONS = {m: _make_kernel(m) for m in BendingModel}
 
 def _incidence(hinges: Tensor, V: int, inc) -> tuple[Tensor, Tensor]:
     return kernels.incidence(hinges, V) if inc is None else inc
+
+
+def _records(*tensors: Tensor | None) -> bool:
+    """Whether autograd records a graph of a call on ``tensors``: otherwise the kernel path runs its Functions'
+    ``forward`` directly (``Function.apply`` costs about as much as the kernels on a thousand hinges)."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
 def energy_function(model: BendingModel) -> type[torch.autograd.Function]:
@@ -400,34 +413,42 @@ def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Te
     """
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
-        return _KERNEL_FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check)
+        if _records(x, k, rest, c, prev):
+            return _KERNEL_FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check)
+        return _kernel_energy(model.value, x, hinges, seg, seg_count, a, k, rest, c, prev, check)
     params = _expand_params(x, a, k, rest, c, prev)
     return _FUNCTIONS[model][0].apply(x, hinges, seg, seg_count, a, *params)
 
 
 def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                          prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
-                         impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP)."""
+                         impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
+                         check: bool = False) -> Tensor:
+    """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP);
+    ``check``: the compiled operator checks that x is finite."""
     ones = x.new_ones(x.shape[:-2])
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
-        params = any(t is not None and t.requires_grad for t in (k, rest, c, prev)) and torch.is_grad_enabled()
-        return _KERNEL_FUNCTIONS[model][1].apply(ones, x, hinges, None, a, k, rest, c, prev, ptr, idx, params)[0]
+        if _records(x, k, rest, c, prev):
+            params = any(t is not None and t.requires_grad for t in (k, rest, c, prev))
+            return _KERNEL_FUNCTIONS[model][1].apply(ones, x, hinges, None, a, k, rest, c, prev, ptr, idx, params,
+                                                     check)[0]
+        return _kernel_gradient(model.value, ones, x, hinges, None, a, k, rest, c, prev, ptr, idx, False, check)[0]
     params = _expand_params(x, a, k, rest, c, prev)
     return _FUNCTIONS[model][1].apply(ones, x, hinges, None, a, *params)[0]
 
 
 def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
                     prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
-                    impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                    impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None, check: bool = False) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``; ``impl="native"``:
-    the compiled kernel (CPU or CUDA, by x's device)."""
+    the compiled kernel (CPU or CUDA, by x's device; ``check``: it checks that x and v are finite)."""
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
-        return torch.ops.torchbend.bending_hvp(x, v, hinges, a, k, rest, c, prev, model.value, x.new_ones(1), ptr, idx)
+        return _ops.run("bending_hvp", x, v, hinges, a, k, rest, c, prev, model.value, x.new_ones(1), ptr, idx,
+                                               check)
     out = None
     for sl in chunks(hinges.shape[0]):
         h = hinges[sl]

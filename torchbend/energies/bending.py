@@ -41,7 +41,7 @@ from ..ops.stencil import gather
 from ..options import Assembly, Backend, Projection
 from . import _bending_fn as fn
 from . import bending_hessian as hs
-from .params import HingeParams, hinge_parameter, rest_hinge_weights
+from .params import HingeParams, hinge_parameter, module_tensor, rest_hinge_weights
 from .sparse import HessianPattern
 
 __all__ = ["BendingEnergy", "hinge_angles"]
@@ -157,29 +157,38 @@ class BendingEnergy(nn.Module):
         return p, self.backend if backend is None else backend
 
     def _kernel(self, op: str, x: Tensor, theta_prev, dt, backend) -> tuple[HingeParams, str | None]:
-        """:meth:`_bind`, then the implementation chosen for ``op``: ``"native"`` (the compiled operators) or
-        ``None`` (the eager closed forms)."""
-        p, backend = self._bind(x, backend, theta_prev, dt)
-        native = backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE
+        """:meth:`_bind` for the energy, gradient and HVP, then the implementation chosen for ``op``: ``"native"``
+        (the compiled operators, which check that x is finite themselves: pass them ``check=self.check_finite``)
+        or ``None`` (the eager closed forms, x checked here)."""
+        check_positions(x, self.vertex_count, check_finite=False)
+        hinges = module_tensor(self, "hinges")
+        if not (x.is_cpu and hinges.is_cpu) and x.device != hinges.device:  # (comparing devices costs a microsecond)
+            raise ValueError(f"x is on {x.device} but the module is on {self.hinges.device}; move one with .to()")
+        p = HingeParams.bind(self, x, theta_prev, dt)
+        native = backends.select_backend(op, self.backend if backend is None else backend, x,
+                                         *p.tensors()) is Backend.NATIVE
+        if not native and self.check_finite:
+            check_positions(x, self.vertex_count)
         return p, "native" if native else None
 
     def _incidence(self) -> tuple[Tensor, Tensor]:
-        return self._inc_ptr, self._inc_idx
+        return module_tensor(self, "_inc_ptr"), module_tensor(self, "_inc_idx")
 
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
         and ``dt`` [s] switch on the viscous term.  Differentiable twice (analytic backward and double backward)
         in ``x``, stiffness, rest angles and ``theta_prev``."""
         p, impl = self._kernel("energy", x, theta_prev, dt, backend)
-        return fn.bending_energy_raw(x, self.hinges, *p.astuple(), model=self.model, seg=self.segments,
+        return fn.bending_energy_raw(x, module_tensor(self, "hinges"), *p.astuple(), model=self.model,
+                                     seg=module_tensor(self, "segments"),
                                      seg_count=self.segment_count, impl=impl, inc=self._incidence(),
-                                     check=self.check_finite and torch.compiler.is_compiling())
+                                     check=self.check_finite)
 
     def gradient(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N] (summed over meshes when packed), closed form; differentiable (analytic HVP)."""
         p, impl = self._kernel("gradient", x, theta_prev, dt, backend)
-        return fn.bending_gradient_raw(x, self.hinges, *p.astuple(), model=self.model, impl=impl,
-                                       inc=self._incidence())
+        return fn.bending_gradient_raw(x, module_tensor(self, "hinges"), *p.astuple(), model=self.model, impl=impl,
+                                       inc=self._incidence(), check=self.check_finite)
 
     def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
             backend=None) -> Tensor:
@@ -187,12 +196,12 @@ class BendingEnergy(nn.Module):
 
         Unprojected, per hinge ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix;
         ``project`` (:class:`~torchbend.options.Projection`) applies the projection of :meth:`hessian`."""
-        projection = Projection.parse(project)
+        projection = Projection.NONE if project is None else Projection.parse(project)
         if projection is Projection.NONE:
             p, impl = self._kernel("hvp", x, theta_prev, dt, backend)
-            v = check_direction(v, x, self.check_finite)
-            return fn.bending_hvp_raw(x, v, self.hinges, *p.astuple(), model=self.model, impl=impl,
-                                      inc=self._incidence())
+            v = check_direction(v, x, self.check_finite and impl is None)  # the compiled operator checks v itself
+            return fn.bending_hvp_raw(x, v, module_tensor(self, "hinges"), *p.astuple(), model=self.model, impl=impl,
+                                      inc=self._incidence(), check=self.check_finite)
         p, backend = self._bind(x, backend, theta_prev, dt)
         v = check_direction(v, x, self.check_finite)
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)

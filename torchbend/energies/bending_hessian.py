@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from .. import backends
-from ..backends import ops as _ops  # noqa: F401  (registers torch.ops.torchbend)
+from ..backends import ops as _ops  # registers torch.ops.torchbend
 from ..mesh.topology import HingeTopology
 from ..ops import hinge as geometry
 from ..ops.projection import project_blocks
@@ -59,7 +59,7 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Te
 def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend) -> tuple:
     """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``."""
     if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
-        return torch.ops.torchbend.hinge_hessians(x, hinges, *p.astuple(), model.value)
+        return _ops.run("hinge_hessians", x, hinges, *p.astuple(), model.value)
     x4 = gather(x, hinges)
     d1, d2 = psi_theta_derivatives(model, geometry.hinge_angle(x4), *p.astuple())
     Hb, g = hinge_hessian_blocks(x4, d1, d2)

@@ -18,7 +18,7 @@ from .._checks import check_finite_tensor
 from ..mesh.topology import HingeTopology
 from ..ops.stencil import nondegenerate, sliced
 
-__all__ = ["HingeParams", "hinge_parameter", "rest_hinge_weights"]
+__all__ = ["HingeParams", "hinge_parameter", "rest_hinge_weights", "module_tensor"]
 
 
 def rest_hinge_weights(rest_positions: Tensor, topo: HingeTopology) -> Tensor:
@@ -83,6 +83,23 @@ def hinge_parameter(value, name: str, H: int, dtype, device, *, nonneg: bool = T
     return t
 
 
+def module_tensor(module: nn.Module, name: str):
+    """``getattr(module, name)`` for a buffer or parameter, without ``nn.Module.__getattr__`` (its fallback
+    lookup costs about half a microsecond, and the hot paths read several tensors a call)."""
+    d = module.__dict__  # (torch.compile traces this lookup as well)
+    buffers = d["_buffers"]
+    if name in buffers:
+        return buffers[name]
+    params = d["_parameters"]
+    if name in params:
+        return params[name]
+    return getattr(module, name)
+
+
+def _cast(t: Tensor, dtype: torch.dtype) -> Tensor:
+    return t if t.dtype is dtype else t.to(dtype)
+
+
 @dataclass(frozen=True)
 class HingeParams:
     """The scalars of ``psi`` for one evaluation, in the dtype of the positions.
@@ -109,7 +126,8 @@ class HingeParams:
         dtype = x.dtype
         c = prev = None
         if theta_prev is not None or dt is not None:
-            if module.damping is None:
+            damping = module_tensor(module, "damping")
+            if damping is None:
                 raise ValueError("theta_prev/dt given but the module has no damping (pass damping=k_d)")
             if theta_prev is None or dt is None:
                 raise ValueError("viscous damping needs both theta_prev and dt")
@@ -122,8 +140,9 @@ class HingeParams:
                 raise ValueError(f"theta_prev must have shape (..., {H}) (one angle per hinge), got {tuple(prev.shape)}")
             check_finite_tensor(prev, "theta_prev", module.check_finite)
             prev = prev.to(dtype)
-            c = module.damping.to(dtype) / dt
-        return cls(module.weights.to(dtype), module.stiffness.to(dtype), module.rest_angles.to(dtype), c, prev)
+            c = damping.to(dtype) / dt
+        return cls(_cast(module_tensor(module, "weights"), dtype), _cast(module_tensor(module, "stiffness"), dtype),
+                   _cast(module_tensor(module, "rest_angles"), dtype), c, prev)
 
     def astuple(self) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
         """``(a, k, rest, c, prev)``."""
