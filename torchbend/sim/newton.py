@@ -32,14 +32,16 @@ indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo ba
   residual comes within ``1e3 tol F`` of it.
 * ``"round-off floor"``: the residual of a stiff shell cannot fall below the round-off of its
   forces (coordinates carry an absolute error ``eps |x|``; membrane forces of size ``Y t h`` turn it
-  into a residual floor ``~ eps Y t |x|``).  The iteration stops when, for the last three Newton
-  directions, the predicted decrease ``-g . p`` (the Newton decrement) was below the potential's
-  round-off ``64 eps (sum_terms |E_term| + sum_i F_i |x_i|)``, the potential changed by no more than
-  that round-off, the residual made no progress (no halving of its best value) and it lies within
-  ``1e3`` times the estimate ``eps |B| |x|`` of its round-off (``B`` the per-vertex Hessian blocks).
-  The same holds at once when the line search finds no decrease along a Newton direction whose
-  decrement is below the round-off.  When the decrement of a step is below the round-off the full
-  step is taken if it lowers the residual (the potential cannot tell better from worse there).
+  into a residual floor ``~ eps Y t |x|``), estimated as ``r_eps = eps |(|B| |x|)_free|`` (``B`` the
+  per-vertex 3x3 Hessian blocks).  The iteration stops there when the predicted decrease ``-g . p``
+  of the Newton direction (the Newton decrement) is below the potential's round-off
+  ``64 eps (sum_terms |E_term| + sum_i F_i |x_i|)`` and ``|g_free| <= 4 r_eps``; or when, for the
+  last three Newton directions, the decrement was below that round-off, the potential changed by no
+  more than it, the residual made no progress (no halving of its best value) and ``|g_free| <=
+  100 r_eps``; or when the line search finds no decrease along a direction whose decrement is below
+  the round-off and ``|g_free| <= 100 r_eps``.  When the decrement of a step is below the round-off
+  (and the residual above ``4 r_eps``) the full step is taken if it lowers the residual (the
+  potential cannot tell better from worse there).
 
 **Minima, not saddles.**  With the exact Hessian (``hessian="exact"``) and ``check_minimum``, a point
 that passes a stopping test is checked for negative curvature: the smallest eigenvalue of the exact
@@ -503,7 +505,7 @@ class _NewtonRun:
         reason = None
         if cur.residual <= cur.tolerance:
             reason = "residual"
-        elif _stalled(info, self.decrements, noise) and cur.residual <= 1e3 * self.phi.gradient_roundoff(x):
+        elif _stalled(info, self.decrements, noise) and cur.residual <= 100 * self.phi.gradient_roundoff(x):
             reason = "round-off floor"
         stop = bool(self.callback(it, x, info)) if (self.callback is not None and it > 0) else False
         if reason is not None:
@@ -540,6 +542,8 @@ class _NewtonRun:
         regularized = info.regularized_steps > shifts_before
         self.decrements.append(-slope)
         if -slope <= noise:
+            if res <= 4 * phi.gradient_roundoff(x):
+                return self._converged("round-off floor", x, gf, energy, noise)
             found = _roundoff_step(phi, x, p, energy, res, noise)
             if found is not None:
                 step, self.gf_next = found
@@ -550,7 +554,7 @@ class _NewtonRun:
         if step is not None:
             return step
         info.line_search_failures += 1
-        if -slope <= noise and res <= 1e3 * phi.gradient_roundoff(x):
+        if -slope <= noise and res <= 100 * phi.gradient_roundoff(x):
             return self._converged("round-off floor", x, gf, energy, noise)
         what = ("a regularised direction (the Hessian on the free DOFs is indefinite or singular)" if regularized
                 else "the Newton direction")
