@@ -262,6 +262,10 @@ def test_upright_strip_beyond_its_buckling_length_buckles():
     assert info_s.converged and info_s.minimum is None and float(x_s[:, 1].abs().max()) == 0.0
     H_s = torch.from_numpy(model.hessian(x_s, Projection.NONE).toarray())[free][:, free]
     assert float(torch.linalg.eigvalsh(H_s)[0]) < 0
+    # evaluated only (max_iters=0): the saddle is reported, not left
+    x_e, info_e = solve_static(model, x_s, max_iters=0)
+    assert info_e.converged and info_e.minimum is False and torch.equal(x_e, x_s)
+    assert "not a verified minimum" in info_e.message and info_e.min_eigenvalue < 0
     # with it (the default), the solver steps off the saddle; the large rotations that follow take more
     # than the default 50 iterations
     x, info = solve_static(model, rest, max_iters=200)

@@ -521,10 +521,20 @@ class _NewtonRun:
         return None
 
     def _converged(self, reason: str, x: Tensor, gf: np.ndarray, energy: float, noise: float) -> LineSearchResult:
-        """A stopping test fired: the negative-curvature check, then a step off the saddle or the end."""
+        """A stopping test fired: the negative-curvature check, then a step off the saddle or the end
+        (no step when ``max_iters`` is 0, evaluation only, or after ``_MAX_ESCAPES`` of them)."""
         step = _check_minimum(self.phi, x, gf, energy, noise, self.info) if self.check_minimum else None
-        if step is None or self.escapes >= _MAX_ESCAPES:
-            raise _Stop(reason, _converged_message(reason, self.info), converged=True)
+        why = "no descent was found along its eigenvector"
+        if step is not None and self.max_iters == 0:
+            step, why = None, "max_iters=0 (evaluation only)"
+        elif step is not None and self.escapes >= _MAX_ESCAPES:
+            step, why = None, f"{_MAX_ESCAPES} negative-curvature steps were taken"
+        if step is None:
+            msg = f"converged ({reason})"
+            if self.info.minimum is False:
+                msg += (f"; not a verified minimum: the exact Hessian has the eigenvalue {self.info.min_eigenvalue:.3e} "
+                        f"N/m and {why}")
+            raise _Stop(reason, msg, converged=True)
         self.escapes += 1
         self.info.negative_curvature_steps += 1
         self.decrements.append(math.inf)
@@ -596,14 +606,6 @@ def _check_minimum(phi: _Potential, x: Tensor, gf: np.ndarray, energy: float, no
     _log.log(logging.DEBUG, "newton: negative curvature %.3e N/m (round-off %.1e): %s", lam, tau,
              "stepping along it" if step is not None else "no descent along it")
     return step
-
-
-def _converged_message(reason: str, info: SolveInfo) -> str:
-    msg = f"converged ({reason})"
-    if info.minimum is False:
-        msg += (f"; not a verified minimum: the exact Hessian has the eigenvalue {info.min_eigenvalue:.3e} N/m and "
-                "no descent was found along its eigenvector")
-    return msg
 
 
 # -------------------------------------------------------------------- public solvers
@@ -701,7 +703,8 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     most ``max_relax_steps`` steps).  ``check_minimum`` (with ``hessian="exact"``): at a stationary
     point, check the exact Hessian for negative curvature and step off saddles (``info.minimum``).
     ``callback(iteration, x, info)``: called after every Newton iterate, True stops the solve;
-    ``time_limit`` [s] (> 0): wall-time bound of the whole call; ``max_cg_iters`` (>= 1): CG
+    ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
+    and relaxation steps); ``max_cg_iters`` (>= 1): CG
     iterations per Newton direction (None: automatic).  Progress goes to the logger
     ``"torchbend.sim"``.
 
@@ -730,9 +733,10 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     xk, dt, evaluated = x_start, 1e-2, True
     static_kw = ctl.newton_kw()
     step_ctl = replace(ctl, tol=1e-6, max_iters=30, check_minimum=False, callback=None)
-    converged = None
+    converged, stopped = None, ""
     for k in range(max_relax_steps):
         if ctl.deadline is not None and time.perf_counter() > ctl.deadline:
+            stopped = "time_limit"
             break
         state, step_info = _euler_step(model, ClothState(xk, torch.zeros_like(xk)), dt, option, linear, step_ctl, 0)
         infos.append(step_info)
@@ -747,6 +751,7 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
             evaluated = True
             if info.converged or info.stop_reason in ("time_limit", "callback"):
                 converged = (x, info) if info.converged else None
+                stopped = "" if info.converged else info.stop_reason
                 break
     if converged is None and not evaluated:  # the last relaxed state, evaluated only
         kw = dict(static_kw, max_iters=0, check_minimum=False, callback=None, deadline=None)
@@ -763,15 +768,13 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
         return x, out
     x, info = min(candidates, key=lambda c: (c[1].energy if math.isfinite(c[1].energy) else math.inf))
     out = _aggregate(infos, info)
-    out.converged, out.seconds = False, seconds
-    timed_out = ctl.deadline is not None and time.perf_counter() > ctl.deadline
-    if timed_out:
-        out.stop_reason = "time_limit"
-    elif info.stop_reason == "callback":
-        out.stop_reason = "callback"
-    else:
-        out.stop_reason = info.stop_reason if info.stop_reason not in ("residual", "round-off floor", "") else "max_iters"
-    why = f"time limit of {ctl.time_limit:g} s reached" if timed_out else f"last solve: {info.message}"
+    out.converged, out.seconds, out.minimum = False, seconds, None
+    if stopped:
+        out.stop_reason = stopped
+    elif info.stop_reason in ("residual", "round-off floor", ""):
+        out.stop_reason = "max_iters"  # the relaxation budget ran out after that state
+    why = (f"time limit of {ctl.time_limit} s reached" if stopped == "time_limit" else
+           "stopped by the callback" if stopped == "callback" else f"{max_relax_steps} relaxation steps tried")
     out.message = (f"no convergence: {out.iterations} Newton iterations in {out.solves} solves (continuation); "
                    f"{why}; returned the best state (potential {info.energy:.6e} J, residual {info.residual:.3e} N)")
     return x, out
