@@ -59,11 +59,16 @@ def test_failure_is_reported_and_leaves_input_untouched():
     model, rest, _ = cantilever(11, 3)
     x0 = rest.clone()
     x, info = solve_static(model, x0, max_iters=1)
-    assert not info.converged and "no convergence" in info.message
-    assert x is x0 and torch.equal(x0, rest)
+    assert not info.converged and "no convergence" in info.message and info.stop_reason == "max_iters"
+    assert torch.equal(x0, rest)  # the input is untouched, the progress kept: the best iterate comes back
+    assert model.potential(x) < model.potential(rest)
+    free = ~model.pinned
+    assert info.energy == model.potential(x)
+    assert info.residual == pytest.approx(float(model.gradient(x)[free].norm()), rel=1e-12)
     state = ClothState(rest.clone(), torch.zeros_like(rest))
     new, info = implicit_euler_step(model, state, 0.05, max_iters=0)
-    assert not info.converged and new is state
+    assert not info.converged and torch.equal(state.x, rest) and new is not state
+    assert torch.equal(new.v, (new.x - state.x) / 0.05)  # a consistent state, not the old one
     assert torch.isfinite(torch.tensor(info.residual))
 
 

@@ -14,6 +14,11 @@ gradient (through torchbend's analytic double backward).  Pinned positions ``x_p
     dL/dx_p = dL/dx_p|_direct - H_pf lambda.
 
 No Newton iteration is unrolled.
+
+The adjoint is the derivative of an equilibrium only where one was found: the backward pass of a
+solve that did not converge (``info.converged`` False, e.g. ``max_iters`` reached) raises a
+``RuntimeError`` quoting ``info.message``, unless ``allow_unconverged=True`` was passed (then the
+formula above is applied at the returned, best, iterate).
 """
 from __future__ import annotations
 
@@ -31,13 +36,14 @@ __all__ = ["solve_static_adjoint"]
 
 class _Equilibrium(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, model, x0, solve_kw, info_out, pin_positions, *params):
+    def forward(ctx, model, x0, solve_kw, info_out, pin_positions, allow_unconverged, *params):
         x0 = x0.detach().clone()
         if pin_positions is not None:
             x0[model.pinned] = pin_positions.detach().to(x0.dtype)
         with torch.no_grad():
             x, info = solve_static(model, x0, **solve_kw)
         info_out.append(info)
+        ctx.info, ctx.allow_unconverged = info, allow_unconverged
         ctx.model = model
         ctx.has_pins = pin_positions is not None
         ctx.save_for_backward(x.detach(), *params)
@@ -45,6 +51,11 @@ class _Equilibrium(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gx):
+        info: SolveInfo = ctx.info
+        if not info.converged and not ctx.allow_unconverged:
+            raise RuntimeError("solve_static_adjoint: backward through a static solve that did not converge "
+                               f"({info.message}); the implicit adjoint is the derivative of an equilibrium only. "
+                               "Converge the solve (max_iters, continuation=True) or pass allow_unconverged=True")
         x, *params = ctx.saved_tensors
         model: ClothModel = ctx.model
         pinned = model.pinned.repeat_interleave(3).cpu().numpy()
@@ -65,11 +76,11 @@ class _Equilibrium(torch.autograd.Function):
                 g = model.gradient(x)
                 grads = torch.autograd.grad(g, params, grad_outputs=-lam_t, allow_unused=True)
             grads = tuple(torch.zeros_like(p) if gp is None else gp for p, gp in zip(params, grads))
-        return (None, None, None, None, g_pins, *grads)
+        return (None, None, None, None, g_pins, None, *grads)
 
 
 def solve_static_adjoint(model: ClothModel, x0: Tensor, params=(), *, pin_positions: Tensor | None = None,
-                         **solve_kw) -> tuple[Tensor, SolveInfo]:
+                         allow_unconverged: bool = False, **solve_kw) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium ``x*: (V, 3)`` differentiable by the implicit-function adjoint with respect to
     ``params`` (tensors the model's energy terms use, e.g. ``[bend.stiffness]`` or the tensor end
     points of a :meth:`Capsule.transformed` collider) and to ``pin_positions``.
@@ -77,8 +88,11 @@ def solve_static_adjoint(model: ClothModel, x0: Tensor, params=(), *, pin_positi
     ``pin_positions``: ``(P, 3)`` [m] positions of the pinned vertices (``model.pinned``, in
     increasing vertex order) replacing those of ``x0``; ``None`` keeps ``x0``'s.
     ``solve_kw`` go to :func:`~torchbend.sim.solve_static`.  The backward pass solves one sparse
-    linear system with the exact Hessian at ``x*`` (pinned DOFs eliminated).  Check
-    ``info.converged``: the adjoint is the derivative of an equilibrium only if one was found."""
+    linear system with the exact Hessian at ``x*`` (pinned DOFs eliminated).  The adjoint is the
+    derivative of an equilibrium only if one was found: the backward pass of a solve that did not
+    converge raises a ``RuntimeError`` with ``info.message``, unless ``allow_unconverged=True`` (then it
+    differentiates at the returned best iterate as if it were one).  The forward pass never raises
+    for a failed solve: check ``info.converged``."""
     params = list(params)
     n_pinned = int(model.pinned.sum())
     if pin_positions is not None:
@@ -90,5 +104,5 @@ def solve_static_adjoint(model: ClothModel, x0: Tensor, params=(), *, pin_positi
     elif not params:
         raise ValueError("nothing to differentiate: give params (tensors the energies use) and/or pin_positions")
     info: list = []
-    x = _Equilibrium.apply(model, torch.as_tensor(x0), solve_kw, info, pin_positions, *params)
+    x = _Equilibrium.apply(model, torch.as_tensor(x0), solve_kw, info, pin_positions, bool(allow_unconverged), *params)
     return x, info[0]

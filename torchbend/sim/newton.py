@@ -19,23 +19,65 @@ sparse direct solve on the CPU (symmetric-mode LU, which also tells whether the 
 definite) or by preconditioned CG on the positions' device (incomplete LU on the CPU, block-Jacobi
 elsewhere), bounded and truncated at negative curvature (:mod:`torchbend.sim.linear`).  A direction that is not a descent direction (possible with the
 indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo backtracking
-(:mod:`torchbend.sim.line_search`) guarantees that the potential never increases.
+(:mod:`torchbend.sim.line_search`) guarantees that the potential never increases beyond its round-off.
 
-The iteration stops when ``|g_free| <= tol * scale`` with ``scale`` the magnitude of the resultant
-gravity force ``|sum_i m_i g|`` [N] plus, for a time step, the norm of the inertial force
-``M (x_n - x_hat)/dt^2`` (a scale-aware, unit-consistent rule; without gravity, the initial
-residual).  In float64 the attainable residual is limited by coordinate round-off: the bend angles
-carry an absolute error of about ``eps |x| / h``, so very stiff shells on fine meshes far from the
-origin have a floor; ``info.residual_history`` shows it.  Failures are reported in
-:class:`SolveInfo`; the input is never modified and NaN positions are never returned.  Tensors are
-created on the device and in the dtype of the positions; the linear algebra runs in NumPy/SciPy on
-the CPU and its results are moved back explicitly.
+**Stopping rule.**  Two tests; ``info.stop_reason`` and ``info.message`` say which one fired.
+
+* ``"residual"``: ``|g_free| <= tol * F`` with the force scale ``F`` [N] the 2-norm over all DOFs
+  (pinned ones included: their reactions are forces of the system) of the per-DOF sum of the
+  magnitudes of every force acting: gravity ``|m_i g|``, the membrane, bending and collider forces
+  term by term, and for a time step the inertial forces ``|M (x - x_hat)| / dt^2`` at the iterate and
+  ``|M v_n| / dt`` (the inertial force ``M (x_n - x_hat)/dt^2`` of the start of the step).  Internal
+  forces make the rule scale with the stiffness (``Y t``), so that one ``tol`` serves soft and stiff
+  shells; the scale is refreshed at the first iterate, every 10 iterations and whenever the
+  residual comes within ``1e3 tol F`` of it.
+* ``"round-off floor"``: the residual of a stiff shell cannot fall below the round-off of its
+  forces (coordinates carry an absolute error ``eps |x|``; membrane forces of size ``Y t h`` turn it
+  into a residual floor ``~ eps Y t |x|``), estimated as ``r_eps = eps |(|B| |x|)_free|`` (``B`` the
+  per-vertex 3x3 Hessian blocks).  The iteration stops there when the predicted decrease ``-g . p``
+  of the Newton direction (the Newton decrement) is below the potential's round-off
+  ``64 eps (sum_terms |E_term| + sum_i F_i |x_i|)`` and ``|g_free| <= 4 r_eps``; or when, for the
+  last three Newton directions, the decrement was below that round-off, the potential changed by no
+  more than it, the residual made no progress (no halving of its best value) and ``|g_free| <=
+  100 r_eps``; or when the line search finds no decrease along a direction whose decrement is below
+  the round-off and ``|g_free| <= 100 r_eps``.  When the decrement of a step is below the round-off
+  (and the residual above ``4 r_eps``) the full step is taken if it lowers the residual (the
+  potential cannot tell better from worse there).
+
+**Minima, not saddles.**  With the exact Hessian (``hessian="exact"``) and ``check_minimum``, a point
+that passes a stopping test is checked for negative curvature: the smallest eigenvalue of the exact
+Hessian on the free DOFs (:mod:`torchbend.sim.curvature`).  Below ``-1e3 eps ||H||_inf`` the solver
+takes a line-searched step along the eigenvector (the sign with ``g . d <= 0``, both signs when
+``g . d`` is at round-off level, the lower end state kept) and resumes Newton (at most 10 such
+steps).  ``info.minimum`` is True when the returned point was verified, False when a negative
+eigenvalue remains, None when not checked (projected Hessians, ``check_minimum=False``).
+
+**Failures.**  Nothing is raised once the iteration has started: on failure (``max_iters`` reached,
+line search exhausted, ``time_limit``, a stopping ``callback``, a non-finite gradient, or a
+``ValueError`` raised by an energy, e.g. a ``tan`` hinge folded through) the solver returns the
+best iterate it found, the one of lowest potential (ties within round-off: of lower residual), with
+``converged=False``, ``stop_reason`` and ``message`` naming the cause, and ``info`` describing the
+returned state (``residual``, ``energy``, ``energies``, ``best_iteration``).  A static problem
+without pinned vertices or colliders under gravity is unbounded below: diagnosed before iterating.
+The input is never modified and NaN positions are never returned.
+
+**Progress.**  The logger ``logging.getLogger("torchbend.sim")`` gets one line per Newton iteration
+(iteration, residual, tolerance, potential, step length ``alpha``, CG iterations) at ``DEBUG``; once
+a solve has run for more than 5 s its lines go out at ``INFO``, with a summary at the end.
+``callback(iteration, x, info)`` is called after every accepted iterate (``x (V, 3)``, ``info`` the
+running :class:`SolveInfo`); returning True stops the solve (``stop_reason="callback"``).
+
+Tensors are created on the device and in the dtype of the positions; the linear algebra runs in
+NumPy/SciPy on the CPU and its results are moved back explicitly.
 """
 from __future__ import annotations
 
+import logging
 import math
+import operator
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -43,11 +85,20 @@ from torch import Tensor
 
 from .._checks import check_positions, positive
 from ..options import Option, Projection
-from .line_search import armijo_backtracking
+from .curvature import curvature_tolerance, smallest_eigenpair
+from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
+
+_log = logging.getLogger("torchbend.sim")
+_INFO_AFTER_S = 5.0
+"""A solve running longer than this [s] logs its iterations at INFO instead of DEBUG."""
+_STALL_WINDOW = 3
+"""Newton directions over which the round-off floor test looks for progress."""
+_MAX_ESCAPES = 10
+"""Negative-curvature steps at most per Newton solve."""
 
 
 class LinearSolver(Option):
@@ -69,11 +120,21 @@ the nearest one they support (:meth:`Projection.restricted`), colliders drop the
 class SolveInfo:
     """Outcome of a solve (never raised; inspect ``converged`` and ``message``).
 
-    ``residual``: the last ``|g_free|`` [N], ``tolerance``: the one it was compared with [N];
-    ``energy``: the last potential [J] and ``energies`` its terms; ``energy_history`` /
-    ``residual_history``: one entry per accepted iterate; ``regularized_steps``: Newton directions
-    that needed a Levenberg shift or the steepest-descent fallback; ``cg_iterations``: in all (CG
-    solver); ``substeps``: implicit-Euler solves a step took; ``seconds``: wall time [s]."""
+    Describes the returned state: ``residual`` its ``|g_free|`` [N], ``tolerance`` the one it was
+    compared with [N] (``tol`` times ``force_scale`` [N], see the module docstring), ``energy`` its
+    potential [J] and ``energies`` the terms, ``best_iteration`` its index among the iterates of
+    the solve that produced it.  ``stop_reason``: ``"residual"`` or ``"round-off floor"`` (converged),
+    ``"max_iters"``, ``"line_search"``, ``"time_limit"``, ``"callback"``, ``"non_finite"``,
+    ``"evaluation_error"`` (an energy raised a ``ValueError``), ``"rigid_body_modes"`` (unbounded
+    below); ``message`` says it in words, with counts aggregated over sub-solves.  ``minimum``: True
+    when the exact Hessian on the free DOFs was checked positive semi-definite there, False when a
+    negative eigenvalue ``min_eigenvalue`` [N/m] remains, None when not checked.
+    ``negative_curvature_steps``: steps taken along negative-curvature directions.
+    ``iterations``: Newton iterations in all (every sub-solve); ``solves``: Newton solves in all
+    (continuation and substeps make several); ``energy_history`` / ``residual_history``: one entry
+    per accepted iterate; ``regularized_steps``: Newton directions that needed a Levenberg shift or
+    the steepest-descent fallback; ``cg_iterations``: in all (CG solver); ``substeps``:
+    implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s]."""
 
     converged: bool = False
     iterations: int = 0
@@ -89,6 +150,13 @@ class SolveInfo:
     regularized_steps: int = 0
     cg_iterations: int = 0
     substeps: int = 1
+    stop_reason: str = ""
+    minimum: bool | None = None
+    min_eigenvalue: float = math.nan
+    negative_curvature_steps: int = 0
+    force_scale: float = math.nan
+    solves: int = 1
+    best_iteration: int = 0
 
 
 # -------------------------------------------------------------------- Newton
@@ -97,7 +165,13 @@ class _Potential:
 
     ``inertia``: ``None`` (static) or ``(x_hat (V, 3) [m], dt [s])``; ``w`` is then the per-DOF
     ``m / dt^2`` ``(3V,)`` [kg/s^2].  ``free_mask``: ``(3V,)`` bool on the positions' device;
-    ``free``: the same as a NumPy array (indexing the CPU copies of the linear algebra)."""
+    ``free``: the same as a NumPy array (indexing the CPU copies of the linear algebra).
+    ``max_cg_iters``: the bound on CG iterations per direction (None: automatic);
+    ``inertial_force``: ``(3V,)`` [N] the inertial force ``M (x_n - x_hat)/dt^2`` of the start of a
+    time step (None for a static solve), part of the force scale."""
+
+    max_cg_iters: int | None = None
+    inertial_force: Tensor | None = None
 
     def __init__(self, model: ClothModel, x: Tensor, option: Projection, inertia: tuple | None, bend_kw: dict):
         self.model, self.option, self.bend_kw = model, option, bend_kw
@@ -133,14 +207,33 @@ class _Potential:
         """The gradient on the free DOFs (NumPy, CPU)."""
         return self.gradient(y).cpu().numpy()[self.free]
 
-    def force_scale(self, x: Tensor) -> float:
-        """The force scale [N] of the stopping test (see the module docstring)."""
-        scale = float(self.model.external_force(x.dtype).sum(0).norm())
+    def force_magnitudes(self, y: Tensor) -> Tensor:
+        """Per-DOF sum of the magnitudes of the forces acting at ``y``, flat ``(3V,)`` [N]: gravity, each
+        energy term's force, the inertial forces of a time step (see the module docstring)."""
+        model = self.model
+        out = model.external_force(y.dtype).to(y.device).abs()
+        if model.membrane is not None:
+            out = out + model.membrane.gradient(y).abs()
+        if model.bending is not None:
+            out = out + model.bending.gradient(y, **self.bend_kw).abs()
+        for c in model.colliders:
+            out = out + c.gradient(y).abs()
+        out = out.reshape(-1)
         if self.w is not None:
-            scale += float((self.w * (x - self.x_hat).reshape(-1)).norm())
-        if scale == 0:
-            scale = float(self.gradient(x).norm())
-        return max(scale, torch.finfo(x.dtype).tiny)
+            out = out + (self.w * (y - self.x_hat).reshape(-1)).abs()
+        if self.inertial_force is not None:
+            out = out + self.inertial_force.abs()
+        return out
+
+    def gradient_roundoff(self, y: Tensor) -> float:
+        """An estimate [N] of the round-off of ``|g_free|`` at ``y``: ``eps |(|B| |y|)_free|`` with ``B``
+        the per-vertex 3x3 Hessian blocks (and the inertia ``w``), the force error caused by rounding the
+        coordinates."""
+        B = self.model.block_diagonal(y, self.option, self.bend_kw).abs()
+        if self.w is not None:
+            B = B + torch.diag_embed(self.w.reshape(-1, 3))
+        r = (B @ y.abs()[..., None])[..., 0].reshape(-1)[self.free_mask]
+        return float(torch.finfo(y.dtype).eps * r.norm())
 
     def full(self, p: np.ndarray, like: Tensor) -> Tensor:
         """Free-DOF values ``p`` as a ``(V, 3)`` tensor like ``like`` (zero on pinned DOFs)."""
@@ -207,59 +300,326 @@ def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver,
     return p, slope
 
 
-def _stop(info: SolveInfo, it: int, max_iters: int) -> bool:
-    """The stopping test on ``info.residual``; sets ``converged`` and ``message`` when it stops."""
-    if info.residual <= info.tolerance:
-        info.converged, info.message = True, "converged"
-        return True
-    if it == max_iters:
-        info.message = f"no convergence in {max_iters} Newton iterations"
-        return True
-    return False
+@dataclass
+class _Iterate:
+    """An evaluated iterate: positions, potential, its terms, residual, the tolerance and force scale
+    it was compared with, and its index."""
+
+    x: Tensor
+    energy: float
+    terms: dict
+    residual: float
+    tolerance: float
+    scale: float
+    iteration: int
 
 
-def _failed(x0: Tensor, info: SolveInfo, t0: float, message: str) -> tuple[Tensor, SolveInfo]:
-    info.converged, info.message = False, message
-    info.seconds = time.perf_counter() - t0
-    return x0, info
+def _noise(energy_terms: dict, magnitudes: Tensor | None, x: Tensor) -> float:
+    """Round-off [J] of the potential at ``x``: ``64 eps (sum |E_term| + sum_i F_i |x_i|)`` (the terms'
+    own rounding, and the forces times the rounding of the coordinates)."""
+    s = sum(abs(v) for v in energy_terms.values())
+    if magnitudes is not None:
+        s += float((magnitudes * x.reshape(-1).abs()).sum())
+    return 64 * torch.finfo(x.dtype).eps * s
+
+
+def _stalled(info: SolveInfo, decrements: list, noise: float) -> bool:
+    """The round-off floor test (module docstring) on the histories, before the gradient-round-off guard."""
+    w = _STALL_WINDOW
+    res, ene = info.residual_history, info.energy_history
+    if len(decrements) < w or len(res) <= w or len(ene) <= w:
+        return False
+    if max(decrements[-w:]) > noise:
+        return False
+    last = ene[-w - 1:]
+    if max(last) - min(last) > noise:
+        return False
+    return min(res[-w:]) > 0.5 * min(res[:-w])
+
+
+def _better(a: _Iterate, best: _Iterate | None, noise: float) -> bool:
+    """Lower potential wins; within round-off, the lower residual."""
+    if best is None:
+        return True
+    if a.energy < best.energy - noise:
+        return True
+    return a.energy <= best.energy + noise and a.residual < best.residual
+
+
+def _roundoff_step(phi: _Potential, x: Tensor, p: np.ndarray, energy: float, res: float,
+                   noise: float) -> tuple[LineSearchResult, np.ndarray] | None:
+    """The full step ``x + p`` when its decrease is below round-off: accepted if the potential stays
+    within ``noise`` [J] and the residual drops.  Returns ``(step, free gradient there)`` or None."""
+    y = x + phi.full(p, x)
+    try:
+        e, terms = phi.value(y)
+        gy = phi.free_gradient(y)
+    except ValueError:
+        return None
+    r = float(np.linalg.norm(gy))
+    if math.isfinite(e) and e <= energy + noise and r < res:
+        return LineSearchResult(y, e, terms, 1.0), gy
+    return None
+
+
+def _curvature(phi: _Potential, x: Tensor) -> tuple[float, np.ndarray, float] | None:
+    """``(lambda_min [N/m], unit eigenvector on the free DOFs, round-off tolerance [N/m])`` of the exact
+    Hessian of the potential on the free DOFs at ``x``; None when it could not be computed."""
+    Hf = phi.hessian_op.to_scipy(phi.hessian_op.assemble(x, Projection.NONE, phi.bend_kw, phi.w)).tocsr()
+    pair = smallest_eigenpair(Hf)
+    if pair is None:
+        return None
+    return pair[0], pair[1], curvature_tolerance(Hf)
+
+
+def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: float, noise: float,
+            max_steps: int = 40) -> LineSearchResult | None:
+    """A step along the negative-curvature direction ``v`` (unit, free DOFs) that lowers the potential
+    by more than ``noise`` [J]: the largest vertex moves by ``0.1 x`` the bounding-box diagonal at
+    first, halved until the potential drops, then while it keeps dropping; the sign with ``g . d <= 0``
+    (both when ``g . d`` is at round-off level, the lower end state kept).  None if neither sign helps."""
+    vt = phi.full(v, x)
+    vmax = float(vt.norm(dim=-1).max())
+    extent = float((x.amax(0) - x.amin(0)).norm())
+    if not (vmax > 0 and extent > 0):
+        return None
+    d = vt * (0.1 * extent / vmax)
+    gd = float(gf @ (v * (0.1 * extent / vmax)))
+    signs = [-1.0 if gd > 0 else 1.0]
+    if abs(gd) <= noise:
+        signs.append(-signs[0])
+    best: LineSearchResult | None = None
+    for s in signs:
+        alpha, found = 1.0, None
+        for _ in range(max_steps):
+            y = x + (s * alpha) * d
+            try:
+                e, terms = phi.value(y)
+            except ValueError:
+                e, terms = math.inf, {}
+            if math.isfinite(e) and e < energy - noise and (found is None or e < found.energy):
+                found = LineSearchResult(y, e, terms, s * alpha)
+            elif found is not None:
+                break  # past the best point of the halving sequence
+            alpha *= 0.5
+        if found is not None and (best is None or found.energy < best.energy):
+            best = found
+    return best
 
 
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
-            max_iters: int, inertia: tuple | None, bend_kw: dict, max_line_search: int = 30):
-    """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified).  Returns ``(x, info)``."""
-    t0 = time.perf_counter()
-    info = SolveInfo()
-    x = x0.detach().clone()
-    phi = _Potential(model, x, option, inertia, bend_kw)
-    scale = phi.force_scale(x)
-    info.tolerance = tol * scale
-    energy, terms = phi.value(x)
-    info.energy_history.append(energy)
-    if not math.isfinite(energy):
-        return _failed(x0, info, t0, "non-finite potential at the initial state")
-    for it in range(max_iters + 1):
-        gf = phi.free_gradient(x)
+            max_iters: int, inertia: tuple | None, bend_kw: dict, inertial_force: Tensor | None = None,
+            check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
+            time_limit: float | None = None, max_cg_iters: int | None = None,
+            max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
+    """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified).  Returns ``(x, info)``:
+    the converged iterate, or the best one on failure (module docstring).  ``deadline``: a
+    ``time.perf_counter()`` value past which the solve stops (``time_limit`` [s], for the message)."""
+    phi = _Potential(model, x0, option, inertia, bend_kw)
+    phi.max_cg_iters = max_cg_iters
+    phi.inertial_force = inertial_force
+    run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
+                     callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
+    return run.solve(x0.detach().clone(), unbounded=(inertia is None and not model.colliders
+                                                     and not bool(model.pinned.any())
+                                                     and bool((model.gravity != 0).any())))
+
+
+class _Stop(Exception):
+    """Ends a Newton run: ``reason`` (``SolveInfo.stop_reason``), ``message``, ``converged``."""
+
+    def __init__(self, reason: str, message: str, converged: bool = False):
+        super().__init__(message)
+        self.reason, self.message, self.converged = reason, message, converged
+
+
+class _NewtonRun:
+    """The state of one Newton solve (see :func:`_newton` and the module docstring)."""
+
+    def __init__(self, phi: _Potential, linear: LinearSolver, *, tol: float, max_iters: int, check_minimum: bool,
+                 callback: Callable | None, deadline: float | None, time_limit: float | None, max_line_search: int):
+        self.phi, self.linear, self.tol, self.max_iters = phi, linear, tol, max_iters
+        self.check_minimum, self.callback, self.deadline, self.time_limit = check_minimum, callback, deadline, time_limit
+        self.max_line_search = max_line_search
+        self.info = SolveInfo()
+        self.t0 = time.perf_counter()
+        self.best: _Iterate | None = None
+        self.current: _Iterate | None = None
+        self.it = self.escapes = 0
+        self.magnitudes: Tensor | None = None
+        self.scale, self.scale_at = math.nan, -1
+        self.decrements: list = []
+        self.gf_next: np.ndarray | None = None
+        self.alpha, self.cg_before = math.nan, 0
+
+    # ---------------------------------------------------------------- driver
+    def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
+        info = self.info
+        try:
+            try:
+                energy, terms = self.phi.value(x)
+            except ValueError as err:
+                raise _Stop("evaluation_error", f"the potential cannot be evaluated at the initial state: {err}") from None
+            info.energy_history.append(energy)
+            info.energy, info.energies = energy, terms
+            if unbounded:
+                raise _Stop("rigid_body_modes", "the cloth has free rigid-body modes (no pinned vertices and no "
+                            "colliders): under gravity its potential is unbounded below; pin vertices or add a collider")
+            if not math.isfinite(energy):
+                raise _Stop("non_finite", "non-finite potential at the initial state")
+            while True:
+                gf, noise = self._evaluate(x, energy, terms)
+                step = self._test(x, gf, energy, noise)
+                if step is None:
+                    step = self._step(x, gf, energy, terms, noise)
+                x, energy, terms, self.alpha = step.x, step.energy, step.terms, step.alpha
+                self.it += 1
+                info.iterations = self.it
+                info.energy_history.append(energy)
+        except _Stop as stop:
+            return self._finish(x, stop)
+
+    def _where(self) -> str:
+        return f"returned the best iterate (iteration {self.best.iteration if self.best else 0})"
+
+    def _evaluate(self, x: Tensor, energy: float, terms: dict) -> tuple[np.ndarray, float]:
+        """Gradient, force scale, round-off and bookkeeping at the iterate ``x``: ``(g_free, noise [J])``."""
+        phi, info, it = self.phi, self.info, self.it
+        try:
+            gf = self.gf_next if self.gf_next is not None else phi.free_gradient(x)
+        except ValueError as err:
+            raise _Stop("evaluation_error", f"evaluation failed at iteration {it}: {err}; {self._where()}") from None
+        self.gf_next = None
         res = float(np.linalg.norm(gf))
-        info.residual, info.energy, info.energies, info.iterations = res, energy, terms, it
-        info.residual_history.append(res)
         if not math.isfinite(res):
-            return _failed(x0, info, t0, "non-finite gradient")
-        if _stop(info, it, max_iters):
-            break
-        p, slope = _direction(phi, x, gf, linear, res / max(scale, 1e-300), info)
-        step = armijo_backtracking(phi.value, x, phi.full(p, x), energy, terms, slope,
-                                   lambda y, res=res: float(np.linalg.norm(phi.free_gradient(y))) < res,
-                                   max_steps=max_line_search)
+            raise _Stop("non_finite", f"non-finite gradient at iteration {it}; {self._where()}")
+        if self.scale_at < 0 or it - self.scale_at >= 10 or res <= 1e3 * self.tol * self.scale:
+            self.magnitudes = magnitudes = phi.force_magnitudes(x)
+            self.scale = max(float(magnitudes.norm()), torch.finfo(x.dtype).tiny)
+            self.scale_at = it
+        tolerance = self.tol * self.scale
+        noise = _noise(terms, self.magnitudes, x)
+        self.current = _Iterate(x, energy, terms, res, tolerance, self.scale, it)
+        if _better(self.current, self.best, noise):
+            self.best = self.current
+        info.residual, info.energy, info.energies, info.iterations = res, energy, terms, it
+        info.tolerance, info.force_scale, info.best_iteration = tolerance, self.scale, it
+        info.residual_history.append(res)
+        level = logging.INFO if time.perf_counter() - self.t0 > _INFO_AFTER_S else logging.DEBUG
+        if _log.isEnabledFor(level):
+            _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d",
+                     it, res, tolerance, energy, self.alpha, info.cg_iterations - self.cg_before)
+        return gf, noise
+
+    def _test(self, x: Tensor, gf: np.ndarray, energy: float, noise: float) -> LineSearchResult | None:
+        """The stopping tests at the evaluated iterate; raises :class:`_Stop`, or returns a
+        negative-curvature step (or None: iterate on)."""
+        cur, info, it = self.current, self.info, self.it
+        assert cur is not None and self.best is not None
+        reason = None
+        if cur.residual <= cur.tolerance:
+            reason = "residual"
+        elif _stalled(info, self.decrements, noise) and cur.residual <= 100 * self.phi.gradient_roundoff(x):
+            reason = "round-off floor"
+        stop = bool(self.callback(it, x, info)) if (self.callback is not None and it > 0) else False
+        if reason is not None:
+            return self._converged(reason, x, gf, energy, noise)
+        if stop:
+            raise _Stop("callback", f"stopped by the callback at iteration {it}; {self._where()}")
+        if it >= self.max_iters:
+            raise _Stop("max_iters", f"no convergence in {self.max_iters} Newton iterations (residual "
+                        f"{cur.residual:.3e} N > tolerance {cur.tolerance:.3e} N); {self._where()}")
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            raise _Stop("time_limit", f"time limit of {self.time_limit:g} s reached after {it} Newton iterations; "
+                        f"{self._where()}")
+        return None
+
+    def _converged(self, reason: str, x: Tensor, gf: np.ndarray, energy: float, noise: float) -> LineSearchResult:
+        """A stopping test fired: the negative-curvature check, then a step off the saddle or the end
+        (no step when ``max_iters`` is 0, evaluation only, or after ``_MAX_ESCAPES`` of them)."""
+        step = _check_minimum(self.phi, x, gf, energy, noise, self.info) if self.check_minimum else None
+        why = "no descent was found along its eigenvector"
+        if step is not None and self.max_iters == 0:
+            step, why = None, "max_iters=0 (evaluation only)"
+        elif step is not None and self.escapes >= _MAX_ESCAPES:
+            step, why = None, f"{_MAX_ESCAPES} negative-curvature steps were taken"
         if step is None:
-            info.line_search_failures += 1
-            info.message = "line search exhausted (no decrease along the Newton direction)"
-            break
-        x, energy, terms = step.x, step.energy, step.terms
-        info.energy_history.append(energy)
-    info.seconds = time.perf_counter() - t0
-    if not bool(torch.isfinite(x).all()):
-        return _failed(x0, info, t0, "non-finite positions")
-    return x, info
+            msg = f"converged ({reason})"
+            if self.info.minimum is False:
+                msg += (f"; not a verified minimum: the exact Hessian has the eigenvalue {self.info.min_eigenvalue:.3e} "
+                        f"N/m and {why}")
+            raise _Stop(reason, msg, converged=True)
+        self.escapes += 1
+        self.info.negative_curvature_steps += 1
+        self.decrements.append(math.inf)
+        return step
+
+    def _step(self, x: Tensor, gf: np.ndarray, energy: float, terms: dict, noise: float) -> LineSearchResult:
+        """A Newton direction and an accepted step along it (or the round-off floor / a failure)."""
+        phi, info, it = self.phi, self.info, self.it
+        res = float(np.linalg.norm(gf))
+        self.cg_before, shifts_before = info.cg_iterations, info.regularized_steps
+        try:
+            p, slope = _direction(phi, x, gf, self.linear, res / max(self.scale, 1e-300), info)
+        except ValueError as err:
+            raise _Stop("evaluation_error", f"evaluation failed at iteration {it}: {err}; {self._where()}") from None
+        regularized = info.regularized_steps > shifts_before
+        self.decrements.append(-slope)
+        if -slope <= noise:
+            if res <= 4 * phi.gradient_roundoff(x):
+                return self._converged("round-off floor", x, gf, energy, noise)
+            found = _roundoff_step(phi, x, p, energy, res, noise)
+            if found is not None:
+                step, self.gf_next = found
+                return step
+        step = armijo_backtracking(phi.value, x, phi.full(p, x), energy, terms, slope,
+                                   lambda y: float(np.linalg.norm(phi.free_gradient(y))) < res,
+                                   max_steps=self.max_line_search)
+        if step is not None:
+            return step
+        info.line_search_failures += 1
+        if -slope <= noise and res <= 100 * phi.gradient_roundoff(x):
+            return self._converged("round-off floor", x, gf, energy, noise)
+        what = ("a regularised direction (the Hessian on the free DOFs is indefinite or singular)" if regularized
+                else "the Newton direction")
+        raise _Stop("line_search", f"line search exhausted at iteration {it}: no decrease along {what}; {self._where()}")
+
+    def _finish(self, x: Tensor, stop: _Stop) -> tuple[Tensor, SolveInfo]:
+        info = self.info
+        info.converged, info.stop_reason, info.message = stop.converged, stop.reason, stop.message
+        ret = self.current if stop.converged or self.best is None else self.best
+        if ret is not None:
+            info.residual, info.energy, info.energies = ret.residual, ret.energy, ret.terms
+            info.tolerance, info.force_scale, info.best_iteration = ret.tolerance, ret.scale, ret.iteration
+        info.seconds = time.perf_counter() - self.t0
+        level = logging.INFO if info.seconds > _INFO_AFTER_S else logging.DEBUG
+        _log.log(level, "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
+                 info.residual, info.seconds)
+        return (ret.x if ret is not None else x), info
+
+
+def _check_minimum(phi: _Potential, x: Tensor, gf: np.ndarray, energy: float, noise: float,
+                   info: SolveInfo) -> LineSearchResult | None:
+    """The negative-curvature check at a stationary point (module docstring): sets ``info.minimum`` and
+    ``info.min_eigenvalue``; returns a step along the negative-curvature direction, or None (verified,
+    not computable, or no descent along it)."""
+    try:
+        found = _curvature(phi, x)
+    except ValueError:
+        found = None
+    if found is None:
+        info.minimum, info.min_eigenvalue = None, math.nan
+        return None
+    lam, v, tau = found
+    info.min_eigenvalue = lam
+    if lam >= -tau:
+        info.minimum = True
+        return None
+    info.minimum = False
+    step = _escape(phi, x, v, gf, energy, noise)
+    _log.log(logging.DEBUG, "newton: negative curvature %.3e N/m (round-off %.1e): %s", lam, tau,
+             "stepping along it" if step is not None else "no descent along it")
+    return step
 
 
 # -------------------------------------------------------------------- public solvers
@@ -276,100 +636,233 @@ def _parse_options(hessian, linear_solver) -> tuple[Projection, LinearSolver]:
             LinearSolver.parse(linear_solver))
 
 
+def _int_at_least(value, name: str, minimum: int) -> int:
+    """``value`` as an ``int >= minimum`` (a bool or a float is a ``ValueError`` naming ``name``)."""
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+    try:
+        v = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}") from None
+    if v < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {v}")
+    return v
+
+
+def _positive(value, name: str) -> float:
+    try:
+        return positive(value, name)
+    except TypeError:
+        raise ValueError(f"{name} must be positive and finite, got {value!r}") from None
+
+
+@dataclass
+class _Controls:
+    """The validated controls shared by every sub-solve of a public call."""
+
+    tol: float
+    max_iters: int
+    time_limit: float | None
+    deadline: float | None
+    max_cg_iters: int | None
+    callback: Callable | None
+    check_minimum: bool
+
+    def newton_kw(self) -> dict[str, Any]:
+        return {"tol": self.tol, "max_iters": self.max_iters, "callback": self.callback, "deadline": self.deadline,
+                "time_limit": self.time_limit, "max_cg_iters": self.max_cg_iters, "check_minimum": self.check_minimum}
+
+
+def _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum) -> _Controls:
+    tol = _positive(tol, "tol")
+    max_iters = _int_at_least(max_iters, "max_iters", 0)
+    if time_limit is not None:
+        time_limit = _positive(time_limit, "time_limit")
+    if max_cg_iters is not None:
+        max_cg_iters = _int_at_least(max_cg_iters, "max_cg_iters", 1)
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
+    deadline = None if time_limit is None else time.perf_counter() + time_limit
+    return _Controls(tol, max_iters, time_limit, deadline, max_cg_iters, callback, bool(check_minimum))
+
+
+def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
+    """``returned`` (the info of the solve whose state is returned) with the counters of all ``infos``."""
+    out = replace(returned)
+    out.iterations = sum(i.iterations for i in infos)
+    out.solves = sum(i.solves for i in infos)
+    out.line_search_failures = sum(i.line_search_failures for i in infos)
+    out.regularized_steps = sum(i.regularized_steps for i in infos)
+    out.cg_iterations = sum(i.cg_iterations for i in infos)
+    out.negative_curvature_steps = sum(i.negative_curvature_steps for i in infos)
+    return out
+
+
 def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str = "direct",
                  tol: float = 1e-9, max_iters: int = 50, continuation: bool = False,
-                 max_relax_steps: int = 200) -> tuple[Tensor, SolveInfo]:
+                 max_relax_steps: int = 200, check_minimum: bool = True, callback: Callable | None = None,
+                 time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
 
     ``hessian``: a :class:`torchbend.options.Projection` (``"exact"``, ``"clamp"``, ``"abs"``,
     ``"gauss_newton"``, ``"reduced"``) for the Newton matrix; ``linear_solver``: ``"direct"`` (sparse
-    LU) or ``"cg"`` (:class:`LinearSolver`).  ``tol`` is relative to the resultant gravity force
-    (stop when ``|g_free| <= tol |sum_i m_i g|`` [N]).  With ``continuation=True``, a Newton solve
-    that fails from ``x0`` (large rotations of soft shells) is globalised by pseudo-transient
-    continuation: implicit-Euler steps from rest (the velocity is reset every step, so each step is a
-    proximal step on the potential) with a growing step size, retrying Newton every few steps (at most
-    ``max_relax_steps`` steps).  ``info.iterations`` counts all Newton iterations.
-    Returns ``(x (V, 3) [m], info)``; on failure ``x`` is ``x0`` unchanged and ``info.converged`` is False."""
+    factorisation) or ``"cg"`` (:class:`LinearSolver`).  ``tol`` (> 0) is relative to the force scale
+    (stop when ``|g_free| <= tol F`` [N], ``F`` the magnitude of all forces acting, internal ones
+    included) unless the residual has reached its round-off floor: see the module docstring; the
+    default suits shells from ``Y t = 1e2`` to ``1e7`` N/m.  ``max_iters``: Newton iterations per
+    solve (an int >= 0; 0 evaluates ``x0`` only).  With ``continuation=True``, a Newton solve that
+    fails (large rotations of soft shells) is globalised by pseudo-transient continuation from its
+    best iterate: implicit-Euler steps from rest (the velocity is reset every step, so each step is
+    a proximal step on the potential) with a growing step size, retrying Newton every few steps (at
+    most ``max_relax_steps`` steps).  ``check_minimum`` (with ``hessian="exact"``): at a stationary
+    point, check the exact Hessian for negative curvature and step off saddles (``info.minimum``).
+    ``callback(iteration, x, info)``: called after every Newton iterate, True stops the solve;
+    ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
+    and relaxation steps); ``max_cg_iters`` (>= 1): CG
+    iterations per Newton direction (None: automatic).  Progress goes to the logger
+    ``"torchbend.sim"``.
+
+    Returns ``(x (V, 3) [m], info)``.  Nothing is raised once iterating: on failure ``x`` is the best
+    iterate found (lowest potential; ``x0`` itself only when no step lowered it), ``info.converged``
+    is False and ``info.stop_reason`` / ``info.message`` say why; ``info`` describes the returned
+    state.  ``x0`` is never modified.  Invalid arguments raise ``ValueError`` naming them."""
     x0 = _prepare_x(model, x0)
     option, linear = _parse_options(hessian, linear_solver)
-    tol = positive(tol, "tol")
-    x, info = _newton(model, x0, option=option, linear=linear, tol=tol, max_iters=int(max_iters),
-                      inertia=None, bend_kw={})
-    if info.converged or not continuation:
-        return (x, info) if info.converged else (x0, info)
-    return _continuation(model, x0, info, option, linear, hessian, tol, int(max_iters), max_relax_steps)
+    ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
+    max_relax_steps = _int_at_least(max_relax_steps, "max_relax_steps", 0)
+    x, info = _newton(model, x0, option=option, linear=linear, inertia=None, bend_kw={}, **ctl.newton_kw())
+    if info.converged or not continuation or info.stop_reason in ("rigid_body_modes", "time_limit", "callback"):
+        return x, info
+    return _continuation(model, x, info, option, linear, ctl, max_relax_steps)
 
 
-def _continuation(model: ClothModel, x0: Tensor, info: SolveInfo, option: Projection, linear: LinearSolver,
-                  hessian, tol: float, max_iters: int, max_relax_steps: int) -> tuple[Tensor, SolveInfo]:
-    """Pseudo-transient continuation after a failed static solve (see :func:`solve_static`)."""
+def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection, linear: LinearSolver,
+                  ctl: _Controls, max_relax_steps: int) -> tuple[Tensor, SolveInfo]:
+    """Pseudo-transient continuation after a failed static solve (see :func:`solve_static`), from that
+    solve's best iterate ``x_start``.  Returns the converged state, or the best one of all static
+    Newton solves and of the last relaxed state."""
     t0 = time.perf_counter()
-    total = info.iterations
-    x, xk, dt = x0, x0, 1e-2
+    infos = [first]
+    candidates: list = [(x_start, first)]
+    xk, dt, evaluated = x_start, 1e-2, True
+    static_kw = ctl.newton_kw()
+    step_ctl = replace(ctl, tol=1e-6, max_iters=30, check_minimum=False, callback=None)
+    converged, stopped = None, ""
     for k in range(max_relax_steps):
-        state, step_info = implicit_euler_step(model, ClothState(xk, torch.zeros_like(xk)), dt,
-                                               hessian=hessian, linear_solver=linear, tol=1e-6, max_iters=30)
-        total += step_info.iterations
+        if ctl.deadline is not None and time.perf_counter() > ctl.deadline:
+            stopped = "time_limit"
+            break
+        state, step_info = _euler_step(model, ClothState(xk, torch.zeros_like(xk)), dt, option, linear, step_ctl, 0)
+        infos.append(step_info)
         if not step_info.converged:
             dt *= 0.25
             continue
-        xk, dt = state.x, dt * 1.5
+        xk, dt, evaluated = state.x, dt * 1.5, False
         if k % 5 == 4:
-            x, info = _newton(model, xk, option=option, linear=linear, tol=tol, max_iters=max_iters,
-                              inertia=None, bend_kw={})
-            total += info.iterations
-            if info.converged:
+            x, info = _newton(model, xk, option=option, linear=linear, inertia=None, bend_kw={}, **static_kw)
+            infos.append(info)
+            candidates.append((x, info))
+            evaluated = True
+            if info.converged or info.stop_reason in ("time_limit", "callback"):
+                converged = (x, info) if info.converged else None
+                stopped = "" if info.converged else info.stop_reason
                 break
-    info.iterations = total
-    info.seconds = time.perf_counter() - t0
-    if info.converged:
-        info.message = "converged (after pseudo-transient continuation)"
-        return x, info
-    return x0, info
+    if converged is None and not evaluated:  # the last relaxed state, evaluated only
+        kw = dict(static_kw, max_iters=0, check_minimum=False, callback=None, deadline=None)
+        x, info = _newton(model, xk, option=option, linear=linear, inertia=None, bend_kw={}, **kw)
+        info.solves = 0
+        candidates.append((x, info))
+    seconds = first.seconds + (time.perf_counter() - t0)
+    if converged is not None:
+        x, info = converged
+        out = _aggregate(infos, info)
+        out.message = (f"{info.message} after pseudo-transient continuation: {out.iterations} Newton iterations in "
+                       f"{out.solves} solves")
+        out.seconds = seconds
+        return x, out
+    x, info = min(candidates, key=lambda c: (c[1].energy if math.isfinite(c[1].energy) else math.inf))
+    out = _aggregate(infos, info)
+    out.converged, out.seconds, out.minimum = False, seconds, None
+    if stopped:
+        out.stop_reason = stopped
+    elif info.stop_reason in ("residual", "round-off floor", ""):
+        out.stop_reason = "max_iters"  # the relaxation budget ran out after that state
+    why = (f"time limit of {ctl.time_limit} s reached" if stopped == "time_limit" else
+           "stopped by the callback" if stopped == "callback" else f"{max_relax_steps} relaxation steps tried")
+    out.message = (f"no convergence: {out.iterations} Newton iterations in {out.solves} solves (continuation); "
+                   f"{why}; returned the best state (potential {info.energy:.6e} J, residual {info.residual:.3e} N)")
+    return x, out
 
 
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hessian: str = "exact",
                         linear_solver: str = "direct", tol: float = 1e-6, max_iters: int = 30,
-                        max_substep_depth: int = 3) -> tuple[ClothState, SolveInfo]:
+                        max_substep_depth: int = 3, check_minimum: bool = False, callback: Callable | None = None,
+                        time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):
     Newton on the incremental potential.
 
-    ``hessian``, ``linear_solver`` as for :func:`solve_static` (``hessian``: a
-    :class:`torchbend.options.Projection`); ``tol`` is relative to the resultant gravity plus inertial
-    force.  Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous
-    term uses the angles of ``state.x`` as ``theta_prev``.  A step whose Newton solve fails is retried
-    as two half steps (recursively, at most ``max_substep_depth`` halvings; ``info.substeps`` counts
-    the solves).  If that fails too, the input state is returned unchanged with ``info.converged = False``."""
-    dt = positive(dt, "dt")
+    ``hessian``, ``linear_solver``, ``tol``, ``max_iters``, ``callback``, ``time_limit``,
+    ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
+    forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
+    inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
+    Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous term uses
+    the angles of ``state.x`` as ``theta_prev``.  A step whose Newton solve fails is retried as two
+    half steps (recursively, at most ``max_substep_depth`` halvings; ``info.substeps`` counts the
+    (sub)steps of the returned state, ``info.solves`` every Newton solve).
+
+    Nothing is raised once iterating: if the step fails, the best state reached at the end of the
+    step is returned with ``info.converged = False`` (the halves' end state when the first half
+    succeeded, else the best iterate of the full step) with the consistent velocity
+    ``v = (x - x_start)/dt_step``, never the old state; ``state`` is never modified."""
+    dt = _positive(dt, "dt")
     if not isinstance(state, ClothState):
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
     _prepare_x(model, state.x, "state.x")
     _prepare_x(model, state.v, "state.v")
     option, linear = _parse_options(hessian, linear_solver)
-    new, info = _euler_solve(model, state, dt, option, linear, positive(tol, "tol"), int(max_iters))
-    if info.converged or max_substep_depth <= 0:
+    ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
+    depth = _int_at_least(max_substep_depth, "max_substep_depth", 0)
+    return _euler_step(model, state, dt, option, linear, ctl, depth)
+
+
+def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Projection, linear: LinearSolver,
+                ctl: _Controls, depth: int) -> tuple[ClothState, SolveInfo]:
+    """:func:`implicit_euler_step` after validation (recursive halving)."""
+    t0 = time.perf_counter()
+    new, info = _euler_solve(model, state, dt, option, linear, ctl)
+    if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback"):
         info.substeps = 1
         return new, info
-    t0 = time.perf_counter()
-    half = lambda s: implicit_euler_step(model, s, dt / 2, hessian=hessian, linear_solver=linear_solver, tol=tol,
-                                         max_iters=max_iters, max_substep_depth=max_substep_depth - 1)
-    mid, info1 = half(state)
-    if not info1.converged:
-        info1.seconds += info.seconds
-        return state, info1
-    end, info2 = half(mid)
-    info2.iterations += info1.iterations + info.iterations
-    info2.substeps = info1.substeps + info2.substeps
-    info2.seconds = info.seconds + (time.perf_counter() - t0)
-    info2.energy_history = info1.energy_history + info2.energy_history
+    mid, info1 = _euler_step(model, state, dt / 2, option, linear, ctl, depth - 1)
+    if not info1.converged:  # the full step's best state is the one at the end of the step
+        out = _aggregate([info, info1], info)
+        out.substeps, out.seconds = 1, time.perf_counter() - t0
+        if info1.stop_reason in ("time_limit", "callback"):
+            out.stop_reason = info1.stop_reason
+        out.message = _substep_failure(out, "the full step")
+        return new, out
+    end, info2 = _euler_step(model, mid, dt / 2, option, linear, ctl, depth - 1)
+    out = _aggregate([info, info1, info2], info2)
+    out.substeps = info1.substeps + info2.substeps
+    out.seconds = time.perf_counter() - t0
+    out.energy_history = info1.energy_history + info2.energy_history
+    out.residual_history = info1.residual_history + info2.residual_history
     if not info2.converged:
-        return state, info2
-    info2.message = f"converged in {info2.substeps} substeps"
-    return end, info2
+        out.message = _substep_failure(out, "the second half step")
+        return end, out
+    out.message = f"converged in {out.substeps} substeps ({info2.message})"
+    return end, out
+
+
+def _substep_failure(info: SolveInfo, which: str) -> str:
+    return (f"no convergence: {info.iterations} Newton iterations in {info.solves} solves (substeps); returned the "
+            f"best state of {which} (stop reason {info.stop_reason!r}, residual {info.residual:.3e} N, tolerance "
+            f"{info.tolerance:.3e} N)")
 
 
 def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projection, linear: LinearSolver,
-                 tol: float, max_iters: int) -> tuple[ClothState, SolveInfo]:
+                 ctl: _Controls) -> tuple[ClothState, SolveInfo]:
+    """One Newton solve of a step: the converged or best state, with ``v = (x - x_n)/dt``."""
     x_n, v_n = state.x, state.v
     pinned = model.pinned.to(x_n.device)[:, None]
     v_n = torch.where(pinned, torch.zeros_like(v_n), v_n)
@@ -377,9 +870,9 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
     bend_kw = {}
     if model.bending is not None and model.bending.damping is not None:
         bend_kw = {"theta_prev": model.bending.angles(x_n).detach(), "dt": dt}
-    x, info = _newton(model, x_hat.clone(), option=option, linear=linear, tol=tol, max_iters=max_iters,
-                      inertia=(x_hat, dt), bend_kw=bend_kw)
-    if not info.converged:
-        return state, info
+    mass = model.mass.to(device=x_n.device, dtype=x_n.dtype)
+    inertial_force = -(mass[:, None] * v_n / dt).reshape(-1)  # M (x_n - x_hat) / dt^2
+    x, info = _newton(model, x_hat, option=option, linear=linear, inertia=(x_hat, dt), bend_kw=bend_kw,
+                      inertial_force=inertial_force, **ctl.newton_kw())
     v = torch.where(pinned, torch.zeros_like(v_n), (x - x_n) / dt)
     return ClothState(x=x, v=v), info
