@@ -72,6 +72,7 @@ NumPy/SciPy on the CPU and its results are moved back explicitly.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import operator
@@ -441,6 +442,10 @@ class _NewtonRun:
         self.phi, self.linear, self.tol, self.max_iters = phi, linear, tol, max_iters
         self.check_minimum, self.callback, self.deadline, self.time_limit = check_minimum, callback, deadline, time_limit
         self.max_line_search = max_line_search
+        # a stall within 100x the estimated floor ends an exact Newton run (quadratic convergence stalls only
+        # there); projected Hessians converge linearly and may look stalled well above it: 4x for them
+        self.floor_factor = 100.0 if phi.option is Projection.NONE else 4.0
+
         self.info = SolveInfo()
         self.t0 = time.perf_counter()
         self.best: _Iterate | None = None
@@ -451,6 +456,16 @@ class _NewtonRun:
         self.decrements: list = []
         self.gf_next: np.ndarray | None = None
         self.alpha, self.cg_before = math.nan, 0
+
+    def _polish(self) -> bool:
+        """At an apparent round-off floor of a projected Hessian: switch to the exact one for the last
+        iterations (a projected Newton converges linearly and its floor estimate is loose; the exact
+        Newton reaches the true floor quadratically).  True when it switched (once per run)."""
+        if self.phi.option is Projection.NONE:
+            return False
+        self.phi.option, self.floor_factor = Projection.NONE, 100.0
+        self.decrements.clear()
+        return True
 
     # ---------------------------------------------------------------- driver
     def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
@@ -519,8 +534,8 @@ class _NewtonRun:
         reason = None
         if cur.residual <= cur.tolerance:
             reason = "residual"
-        elif _stalled(info, self.decrements, noise) and cur.residual <= 100 * self.phi.gradient_roundoff(x):
-            reason = "round-off floor"
+        elif _stalled(info, self.decrements, noise) and cur.residual <= self.floor_factor * self.phi.gradient_roundoff(x):
+            reason = None if self._polish() else "round-off floor"
         stop = bool(self.callback(it, x, info)) if (self.callback is not None and it > 0) else False
         if reason is not None:
             return self._converged(reason, x, gf, energy, noise)
@@ -567,6 +582,8 @@ class _NewtonRun:
         self.decrements.append(-slope)
         if -slope <= noise:
             if res <= 4 * phi.gradient_roundoff(x):
+                if self._polish():
+                    return self._step(x, gf, energy, terms, noise)
                 return self._converged("round-off floor", x, gf, energy, noise)
             found = _roundoff_step(phi, x, p, energy, res, noise)
             if found is not None:
@@ -579,6 +596,8 @@ class _NewtonRun:
             return step
         info.line_search_failures += 1
         if -slope <= noise and res <= 100 * phi.gradient_roundoff(x):
+            if self._polish():
+                return self._step(x, gf, energy, terms, noise)
             return self._converged("round-off floor", x, gf, energy, noise)
         what = ("a regularised direction (the Hessian on the free DOFs is indefinite or singular)" if regularized
                 else "the Newton direction")
@@ -699,7 +718,7 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
 
 
 def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str = "direct",
-                 tol: float = 1e-9, max_iters: int = 50, continuation: bool = False,
+                 tol: float = 1e-9, max_iters: int = 50, continuation: bool | str = "auto",
                  max_relax_steps: int = 200, check_minimum: bool = True, callback: Callable | None = None,
                  time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
@@ -710,11 +729,23 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     (stop when ``|g_free| <= tol F`` [N], ``F`` the magnitude of all forces acting, internal ones
     included) unless the residual has reached its round-off floor: see the module docstring; the
     default suits shells from ``Y t = 1e2`` to ``1e7`` N/m.  ``max_iters``: Newton iterations per
-    solve (an int >= 0; 0 evaluates ``x0`` only).  With ``continuation=True``, a Newton solve that
-    fails (large rotations of soft shells) is globalised by pseudo-transient continuation from its
-    best iterate: implicit-Euler steps from rest (the velocity is reset every step, so each step is
-    a proximal step on the potential) with a growing step size, retrying Newton every few steps (at
-    most ``max_relax_steps`` steps).  ``check_minimum`` (with ``hessian="exact"``): at a stationary
+    solve (an int >= 0; 0 evaluates ``x0`` only).  ``continuation`` globalises solves that Newton
+    alone does not finish (large rotations of soft shells, where the stiff membrane limits every
+    Newton step to about an edge length):
+
+    * ``"membrane"``: a homotopy in the membrane stiffness: Newton solves with the membrane's moduli
+      scaled by ``1e-3``, ``1e-1`` and then ``1`` (the problem itself), each from the previous
+      equilibrium (a softer membrane lets a step rotate the shell further; the final solve is the
+      unmodified potential, with every control above);
+    * ``"relaxation"``: pseudo-transient continuation: implicit-Euler steps from rest (the velocity
+      is reset every step, so each step is a proximal step on the potential) with a growing step
+      size, retrying Newton every few steps (at most ``max_relax_steps`` steps);
+    * ``"auto"`` (default, also ``True``): a first Newton solve of at most ``min(max_iters, 20)``
+      iterations; if it fails, ``"membrane"`` from its best iterate when the model has a membrane
+      (then ``"relaxation"`` if that fails too), ``"relaxation"`` otherwise;
+    * ``False`` / ``None``: Newton only.
+
+    ``info.iterations`` counts every Newton iteration of every solve.  ``check_minimum`` (with ``hessian="exact"``): at a stationary
     point, check the exact Hessian for negative curvature and step off saddles (``info.minimum``).
     ``callback(iteration, x, info)``: called after every Newton iterate, True stops the solve;
     ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
@@ -730,10 +761,78 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     option, linear = _parse_options(hessian, linear_solver)
     ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
     max_relax_steps = _int_at_least(max_relax_steps, "max_relax_steps", 0)
-    x, info = _newton(model, x0, option=option, linear=linear, inertia=None, bend_kw={}, **ctl.newton_kw())
-    if info.converged or not continuation or info.stop_reason in ("rigid_body_modes", "time_limit", "callback"):
+    mode = _continuation_mode(continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
+    kw = ctl.newton_kw()
+    if mode == "auto":
+        kw["max_iters"] = min(ctl.max_iters, _AUTO_FIRST_ITERS)
+    x, info = _newton(model, x0, option=option, linear=linear, inertia=None, bend_kw={}, **kw)
+    if info.converged or mode is None or info.stop_reason in _FINAL_STOPS:
         return x, info
+    if mode in ("auto", "membrane") and model.membrane is not None:
+        x, info = _membrane_homotopy(model, x, info, option, linear, ctl)
+        if info.converged or mode == "membrane" or info.stop_reason in _FINAL_STOPS:
+            return x, info
     return _continuation(model, x, info, option, linear, ctl, max_relax_steps)
+
+
+_AUTO_FIRST_ITERS = 20
+"""Newton iterations of the first attempt of ``continuation="auto"`` before the homotopy takes over."""
+_HOMOTOPY_FACTORS = (1e-3, 1e-1)
+"""Membrane stiffness factors of the homotopy stages before the unmodified potential."""
+_FINAL_STOPS = ("rigid_body_modes", "time_limit", "callback")
+"""Stop reasons after which no continuation is tried."""
+
+
+def _continuation_mode(continuation) -> str | None:
+    if continuation is None or continuation is False:
+        return None
+    if continuation is True:
+        return "auto"
+    if continuation in ("auto", "membrane", "relaxation"):
+        return continuation
+    raise ValueError(f"continuation must be 'auto', 'membrane', 'relaxation', True, False or None, got {continuation!r}")
+
+
+def _softened(model: ClothModel, factor: float) -> ClothModel:
+    """A shallow copy of ``model`` whose membrane moduli are scaled by ``factor`` (``model`` unchanged)."""
+    mem = copy.copy(model.membrane)
+    assert mem is not None
+    mem._buffers = dict(mem._buffers)  # noqa: SLF001 - own buffer dict: the user's module keeps its moduli
+    mem.mu = mem.mu * factor
+    mem.lam = mem.lam * factor
+    out = copy.copy(model)
+    out.membrane = mem
+    return out
+
+
+def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection,
+                       linear: LinearSolver, ctl: _Controls) -> tuple[Tensor, SolveInfo]:
+    """The membrane-stiffness homotopy of :func:`solve_static` from ``x_start`` (the best iterate of the
+    failed first solve ``first``).  Returns the final solve's state (converged or its best iterate)
+    with the counters of all solves."""
+    t0 = time.perf_counter()
+    infos, x = [first], x_start
+    stage_kw = dict(ctl.newton_kw(), tol=max(ctl.tol, 1e-6), check_minimum=False, callback=None)
+    for factor in _HOMOTOPY_FACTORS:
+        x, info = _newton(_softened(model, factor), x, option=option, linear=linear, inertia=None, bend_kw={},
+                          **stage_kw)
+        infos.append(info)
+        if info.stop_reason in _FINAL_STOPS:
+            break
+    x, info = _newton(model, x, option=option, linear=linear, inertia=None, bend_kw={}, **ctl.newton_kw())
+    infos.append(info)
+    if not info.converged and not info.energy < first.energy:  # never return a worse state than the start's
+        x, info = x_start, first
+    out = _aggregate(infos, info)
+    out.seconds = first.seconds + (time.perf_counter() - t0)
+    stages = " -> ".join(f"{f:g}" for f in (*_HOMOTOPY_FACTORS, 1.0))
+    if info.converged:
+        out.message = (f"{info.message} after a membrane-stiffness homotopy ({stages}): {out.iterations} Newton "
+                       f"iterations in {out.solves} solves")
+    else:
+        out.message = (f"no convergence: {out.iterations} Newton iterations in {out.solves} solves (membrane homotopy "
+                       f"{stages}); last solve: {info.message}")
+    return x, out
 
 
 def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection, linear: LinearSolver,
