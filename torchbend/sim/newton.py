@@ -230,9 +230,10 @@ def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: Linear
         if _stop(info, it, max_iters):
             break
         p, slope = _direction(phi, x, gf, linear, res / max(scale, 1e-300), info)
-        step = armijo_backtracking(phi.value, x, phi.full(p, x), energy, terms, slope,
+        dx = phi.full(p, x)
+        step = armijo_backtracking(phi.value, x, dx, energy, terms, slope,
                                    lambda y, res=res: float(np.linalg.norm(phi.free_gradient(y))) < res,
-                                   max_steps=max_line_search)
+                                   max_steps=max_line_search, alpha_max=model.max_step(x, dx))
         if step is None:
             info.line_search_failures += 1
             info.message = "line search exhausted (no decrease along the Newton direction)"
@@ -360,7 +361,10 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
     bend_kw = {}
     if model.bending is not None and model.bending.damping is not None:
         bend_kw = {"theta_prev": model.bending.angles(x_n).detach(), "dt": dt}
-    x, info = _newton(model, x_hat.clone(), option=option, linear=linear, tol=tol, max_iters=max_iters,
+    # Newton starts at x_hat, or with colliders at the point of the segment x_n -> x_hat where the
+    # step bound stops it (x_hat of a large step may lie through a collider: never start there)
+    x0 = x_n + model.max_step(x_n, x_hat - x_n) * (x_hat - x_n) if model.colliders else x_hat.clone()
+    x, info = _newton(model, x0, option=option, linear=linear, tol=tol, max_iters=max_iters,
                       inertia=(x_hat, dt), bend_kw=bend_kw)
     if not info.converged:
         return state, info
