@@ -10,6 +10,28 @@ than ``margin``::
 ``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
 term ``-k d Hess s`` is negative semi-definite; every projection but ``none``
 (:class:`~torchbend.options.Projection`) drops it.  Units: positions [m].
+
+**Continuous step bound** (:meth:`Collider.max_step`, used by the solvers' line search against
+tunnelling): the penalty is evaluated at points only, so a step may carry a vertex through a collider
+unseen.  ``max_step(x, dx, depth=tau)`` gives per vertex the largest fraction ``alpha`` in ``(0, 1]``
+of the step ``dx`` such that, on the whole segment ``x + t alpha dx`` (``t`` in ``[0, 1]``), the
+vertex stays above its *allowed depth* ``D`` below the surface, with the safety fraction of IPC:
+``alpha = min(1, safety * t*)``, ``t*`` the exact (closed-form) first time of impact of the ray with
+the level set ``s = -D``.  The allowed depth is
+
+    D = max(tau, 2 d),        d = max(0, -s(x))   (current depth below the surface)
+
+and, for the sphere and the capsule, at most ``(R + d)/2`` (half way from the current depth to the
+centre or the axis, ``R`` the radius): a vertex outside the surface may sink at most ``tau`` below it
+in one step, one inside may at most double its depth (plus ``tau``) and never reaches the centre or
+the axis, where the penalty's normal flips and a vertex would be pushed out through the far side.
+A zero ``tau`` (a barrier exactly at the surface) is not offered: a penalty acts only below
+``s = margin``, and with the usual ``margin = 0`` a vertex that may never cross the surface never
+feels the collider, so the solver would stall above it.  The doubling lets a vertex reach any
+equilibrium depth in a few steps while no step can tunnel.  Plane: a linear equation; sphere: a
+quadratic; capsule: the union of an infinite-cylinder quadratic (hits whose axial coordinate lies on
+the segment) and the two end-sphere quadratics, exact.  Roots use the cancellation-free form
+``c / (-b + sqrt(b^2 - a c))``: no NaN for ``dx = 0``, tangent motion or a vertex on the surface.
 """
 from __future__ import annotations
 
@@ -56,6 +78,28 @@ class Collider:
         d = (self.margin - s).clamp_min(0)
         return -self.stiffness * d[:, None] * n
 
+    def max_step(self, x: Tensor, dx: Tensor, *, depth: float, safety: float = 0.9) -> Tensor:
+        """Per-vertex largest step fractions ``(V,)`` in ``(0, 1]`` (dtype and device of ``x``) along
+        ``dx (V, 3)`` [m] from ``x (V, 3)`` [m] that keep every vertex above its allowed depth (module
+        docstring): ``depth`` [m] (> 0) is ``tau``, the penetration a vertex outside may reach in one
+        step; ``safety`` in ``(0, 1)`` the fraction of the time of impact that may be taken."""
+        name = type(self).__name__
+        if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[-1] != 3:
+            raise ValueError(f"{name}.max_step: x must be a (V, 3) tensor, got {getattr(x, 'shape', type(x))}")
+        if not isinstance(dx, Tensor) or dx.shape != x.shape:
+            raise ValueError(f"{name}.max_step: dx must have the shape of x {tuple(x.shape)}, got "
+                             f"{getattr(dx, 'shape', type(dx))}")
+        depth = positive(depth, f"{name}.max_step depth")
+        if not 0 < safety < 1:
+            raise ValueError(f"{name}.max_step: safety must lie in (0, 1), got {safety!r}")
+        x, dx = x.detach(), dx.detach().to(x.dtype)
+        t = self._impact_time(x, dx, depth)
+        return (safety * t).clamp(max=1.0)
+
+    def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:  # pragma: no cover - abstract
+        """First ``t >= 0`` with ``s(x + t dx) = -D`` ``(V,)`` (``inf`` if never); ``D`` as in the module docstring."""
+        raise NotImplementedError
+
     def hessian_blocks(self, x: Tensor, project=None) -> Tensor:
         """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; any ``project`` but ``None``/``"none"``
         drops the curvature term (PSD for convex colliders)."""
@@ -79,6 +123,28 @@ def _radial(p: Tensor, radius: float):
     return r - radius, n, curv
 
 
+def _allowed_radius(r: Tensor, radius: float, tau: float) -> Tensor:
+    """Radius ``rho = R - D`` of the level set ``s = -D`` around a point or an axis, for vertices at
+    distance ``r (V,)`` from it: ``D = max(tau, 2 d)``, at most ``(R + d) / 2`` (``rho >= min(r, R) / 2``)."""
+    d = (radius - r).clamp_min(0)
+    return torch.maximum(radius - torch.clamp(2 * d, min=tau), 0.5 * r.clamp_max(radius))
+
+
+def _ray_ball(p: Tensor, dx: Tensor, rho: Tensor) -> Tensor:
+    """First time ``t >= 0`` ``(V,)`` at which ``|p + t dx| = rho`` for ``p`` outside the ball
+    (``|p| > rho``; ``inf`` when the ray misses it, moves away, starts inside or on it, or ``rho = 0``).
+
+    ``|p + t dx|^2 = rho^2`` is ``a t^2 + 2 b t + c = 0`` with ``a = |dx|^2``, ``b = p . dx``,
+    ``c = |p|^2 - rho^2 > 0``; the entry root is ``c / (-b + sqrt(b^2 - a c))`` (no cancellation)."""
+    a = (dx * dx).sum(-1)
+    b = (p * dx).sum(-1)
+    c = (p * p).sum(-1) - rho * rho
+    disc = b * b - a * c
+    hit = (c > 0) & (b < 0) & (disc >= 0) & (rho > 0)
+    den = torch.where(hit, -b + disc.clamp_min(0).sqrt(), torch.ones_like(b))
+    return torch.where(hit, c / den, torch.full_like(b, math.inf))
+
+
 @dataclass(frozen=True)
 class Sphere(Collider):
     """Solid sphere ``|x - center| <= radius`` [m]."""
@@ -92,6 +158,10 @@ class Sphere(Collider):
 
     def _sd(self, x: Tensor):
         return _radial(x - x.new_tensor(self.center), self.radius)
+
+    def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
+        p = x - x.new_tensor(self.center)
+        return _ray_ball(p, dx, _allowed_radius(p.norm(dim=-1), self.radius, tau))
 
 
 @dataclass(frozen=True)
@@ -113,6 +183,15 @@ class Plane(Collider):
         n = x.new_tensor(self.normal)
         s = (x - x.new_tensor(self.point)) @ n
         return s, n.expand_as(x), None
+
+    def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
+        # s(x + t dx) = s + t (dx . n) reaches -D (D = max(tau, 2 d) > -s) only when moving inwards
+        s = self._sd(x)[0]
+        gap = s + torch.clamp(2 * (-s).clamp_min(0), min=tau)
+        rate = -(dx @ x.new_tensor(self.normal))
+        inwards = rate > 0
+        return torch.where(inwards, gap / torch.where(inwards, rate, torch.ones_like(rate)),
+                           torch.full_like(rate, math.inf))
 
 
 @dataclass(frozen=True)
@@ -148,6 +227,10 @@ class Capsule(Collider):
         a, b = self._ends(x)
         return _capsule_sd(x, a, b, self.radius)
 
+    def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
+        a, b = (e.detach() for e in self._ends(x))
+        return _capsule_impact(x, dx, a, b, self.radius, tau)
+
 
 class _TensorCapsule(Capsule):
     """A :class:`Capsule` whose end points are tensors ``(3,)`` (possibly requiring grad)."""
@@ -177,3 +260,22 @@ def _capsule_sd(x: Tensor, a: Tensor, b: Tensor, radius: float):
     r = (s + radius).clamp_min(torch.finfo(x.dtype).tiny)
     curv = curv - interior[:, None, None] * tt / r[:, None, None]
     return s, n, curv
+
+
+def _capsule_impact(x: Tensor, dx: Tensor, a: Tensor, b: Tensor, radius: float, tau: float) -> Tensor:
+    """First time ``(V,)`` the rays ``x + t dx`` enter the capsule ``a -> b`` of the allowed radius
+    ``rho`` (:func:`_allowed_radius`): the earliest of the lateral entry into the infinite cylinder
+    (kept when its axial coordinate lies on the segment) and the entries into the two end balls.  A
+    capsule is the union of these three convex pieces, and a ray entering the finite cylinder
+    through an end disk is already inside that end's ball, so the minimum is exact."""
+    length = (b - a).norm()
+    u = (b - a) / length
+    q = x - a
+    axial = q @ u
+    tau_c = torch.minimum(axial.clamp_min(0.0), length)
+    rho = _allowed_radius((q - tau_c[:, None] * u).norm(dim=-1), radius, tau)
+    du = dx @ u
+    t_side = _ray_ball(q - axial[:, None] * u, dx - du[:, None] * u, rho)
+    ax_hit = axial + torch.where(torch.isfinite(t_side), t_side, torch.zeros_like(t_side)) * du
+    t_side = torch.where((ax_hit >= 0) & (ax_hit <= length), t_side, torch.full_like(t_side, math.inf))
+    return torch.minimum(t_side, torch.minimum(_ray_ball(q, dx, rho), _ray_ball(x - b, dx, rho)))

@@ -21,8 +21,9 @@ class LineSearchResult(NamedTuple):
 
 def armijo_backtracking(potential: Callable[[Tensor], tuple[float, dict]], x: Tensor, step: Tensor, energy: float,
                         terms: dict, slope: float, residual_decreases: Callable[[Tensor], bool], *,
-                        max_steps: int = 30, c: float = 1e-4, shrink: float = 0.5) -> LineSearchResult | None:
-    """Backtrack ``alpha = 1, 1/2, ...`` along ``step (V, 3)`` [m] from ``x (V, 3)`` [m].
+                        max_steps: int = 30, c: float = 1e-4, shrink: float = 0.5,
+                        alpha_max: float = 1.0) -> LineSearchResult | None:
+    """Backtrack ``alpha = alpha_max, alpha_max/2, ...`` along ``step (V, 3)`` [m] from ``x (V, 3)`` [m].
 
     ``potential(y) -> (Phi [J], per-term energies)``; ``energy``, ``terms``: its value at ``x``;
     ``slope``: the directional derivative ``g . step`` [J] (< 0).  A trial ``y = x + alpha step`` is
@@ -30,9 +31,13 @@ def armijo_backtracking(potential: Callable[[Tensor], tuple[float, dict]], x: Te
     the change of ``Phi`` and the predicted decrease are below the round-off of ``Phi`` (64 eps times
     the sum of the magnitudes of its terms), when ``residual_decreases(y)``.  A ``ValueError`` raised
     by ``potential`` (e.g. a hinge folded through, for the tan model) counts as an infinite potential.
+    ``alpha_max`` in ``(0, 1]``: the largest admissible step fraction, e.g. the continuous collision
+    bound :meth:`~torchbend.sim.model.ClothModel.max_step` (no vertex tunnels through a collider).
     Returns the accepted step, or ``None`` after ``max_steps`` rejections."""
+    if not 0 < alpha_max <= 1:
+        raise ValueError(f"alpha_max must lie in (0, 1], got {alpha_max!r}")
     noise = 64 * torch.finfo(x.dtype).eps * max(abs(energy), sum(abs(v) for v in terms.values()))
-    alpha = 1.0
+    alpha = float(alpha_max)
     for _ in range(max_steps):
         y = x + alpha * step
         try:

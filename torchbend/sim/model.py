@@ -51,6 +51,8 @@ class ClothModel:
         pinned: ``(V,)`` bool mask of vertices held at their given positions, a list of vertex
             indices, or ``None`` (nothing pinned).
         colliders: :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` instances.
+        contact_depth: the penetration [m] (> 0) a vertex may reach below a collider surface in one
+            Newton step (:meth:`max_step`); default ``CONTACT_DEPTH`` times the mean rest edge length.
 
     Attributes:
         topology: the :class:`~torchbend.mesh.HingeTopology` (integer connectivity, CPU).
@@ -59,6 +61,7 @@ class ClothModel:
         gravity: ``(3,)`` [m/s^2].
         pinned: ``(V,)`` bool.
         colliders: tuple of colliders.
+        contact_depth: see above [m] (computed from the rest edges on first use when not given).
 
     A model may be built on the ``meta`` device (shapes only): the checks that need values are
     then skipped, and it cannot be solved.
@@ -66,7 +69,7 @@ class ClothModel:
 
     def __init__(self, faces, rest_positions, *, bending: BendingEnergy | None = None,
                  membrane: MembraneEnergy | None = None, density: float = 0.1,
-                 gravity=(0.0, 0.0, -9.81), pinned=None, colliders=()):
+                 gravity=(0.0, 0.0, -9.81), pinned=None, colliders=(), contact_depth: float | None = None):
         topo, rest = mesh_and_rest(faces, rest_positions)
         V = topo.vertex_count
         density = positive(density, "density")
@@ -79,10 +82,37 @@ class ClothModel:
         self.pinned = _pinned_mask(pinned, V, rest.device)
         self.colliders = _check_colliders(colliders)
         self.mass = _lumped_mass(topo.faces.to(rest.device), rest, V, density)
+        self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
+
+    CONTACT_DEPTH = 0.01
+    """Default :attr:`contact_depth` relative to the mean rest edge length."""
 
     @property
     def vertex_count(self) -> int:
         return self.topology.vertex_count
+
+    @property
+    def contact_depth(self) -> float:
+        """The penetration [m] a vertex outside a collider may reach in one Newton step (:meth:`max_step`)."""
+        if self._contact_depth is None:
+            e = self.topology.edges.to(self.rest_positions.device)
+            length = float((self.rest_positions[e[:, 1]] - self.rest_positions[e[:, 0]]).norm(dim=-1).mean())
+            self._contact_depth = self.CONTACT_DEPTH * length if length > 0 else 1.0
+        return self._contact_depth
+
+    def max_step(self, x: Tensor, dx: Tensor) -> float:
+        """The largest fraction ``alpha`` in ``(0, 1]`` of the step ``dx (V, 3)`` [m] from ``x (V, 3)`` [m]
+        that no collider forbids: the minimum over colliders and vertices of
+        :meth:`Collider.max_step <torchbend.energies.colliders.Collider.max_step>` with
+        ``depth = contact_depth`` (continuous, closed form: no vertex tunnels through a collider on the
+        segment ``x + t alpha dx``, ``t`` in ``[0, 1]``; a vertex outside sinks at most
+        ``contact_depth`` below the surface, one inside at most doubles its depth).  ``1.0`` without
+        colliders (nothing is evaluated)."""
+        if not self.colliders or x.shape[0] == 0:
+            return 1.0
+        tau = self.contact_depth
+        alpha = torch.stack([c.max_step(x, dx, depth=tau).min() for c in self.colliders]).min()
+        return float(alpha)
 
     def external_force(self, dtype=None) -> Tensor:
         """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses')."""
@@ -119,11 +149,15 @@ class ClothModel:
             g = g + c.gradient(x)
         return g
 
-    def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None) -> sp.csr_matrix:
+    def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> sp.csr_matrix:
         """``scipy.sparse`` CSR Hessian ``(3V, 3V)`` [N/m] of the potential (without inertia) at ``x (V, 3)``.
 
         ``option``: a :class:`torchbend.options.Projection` for the bending term; the membrane gets the
-        nearest one it supports, colliders drop their curvature term for every member but ``NONE``."""
+        nearest one it supports, colliders drop their curvature term for every member but ``NONE``.
+        ``contact``: a projection for the colliders alone (default: ``option``), e.g. ``"clamp"`` for
+        PSD contact blocks (as IPC projects every contact Hessian) under an otherwise exact Hessian:
+        the exact penalty curvature ``-k d Hess s`` is negative definite in the tangent plane of a
+        curved collider and grows with the penetration ``d``."""
         n = 3 * self.vertex_count
         H = sp.csr_matrix((n, n))
         if self.membrane is not None:
@@ -131,27 +165,35 @@ class ClothModel:
         if self.bending is not None:
             H = H + to_scipy(self.bending.hessian(x, project=option, **(bend_kw or {})))
         if self.colliders:
-            blocks = self.colliders[0].hessian_blocks(x, project=option)
-            for c in self.colliders[1:]:
-                blocks = blocks + c.hessian_blocks(x, project=option)
-            H = H + _block_diagonal_csr(blocks.detach().cpu().numpy())
+            H = H + _block_diagonal_csr(self.contact_blocks(x, option if contact is None else contact).detach().cpu().numpy())
         return H.tocsr()
 
-    def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
-        """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``
-        as in :meth:`hessian`)."""
+    def contact_blocks(self, x: Tensor, project) -> Tensor:
+        """The colliders' per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m] summed (zeros without
+        colliders); ``project`` as in :meth:`Collider.hessian_blocks
+        <torchbend.energies.colliders.Collider.hessian_blocks>`."""
+        if not self.colliders:
+            return x.new_zeros(x.shape[0], 3, 3)
+        blocks = self.colliders[0].hessian_blocks(x, project=project)
+        for c in self.colliders[1:]:
+            blocks = blocks + c.hessian_blocks(x, project=project)
+        return blocks
+
+    def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
+        """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``,
+        ``contact`` as in :meth:`hessian`)."""
         out = torch.zeros_like(x)
         if self.membrane is not None:
             out = out + self.membrane.hvp(x, v, project=option.restricted(MEMBRANE_PROJECTIONS))
         if self.bending is not None:
             out = out + self.bending.hvp(x, v, project=option, **(bend_kw or {}))
-        for c in self.colliders:
-            out = out + (c.hessian_blocks(x, project=option) @ v[..., None])[..., 0]
+        if self.colliders:
+            out = out + (self.contact_blocks(x, option if contact is None else contact) @ v[..., None])[..., 0]
         return out
 
-    def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None) -> Tensor:
+    def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
         """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` [N/m] (block-Jacobi
-        preconditioner; ``option`` as in :meth:`hessian`)."""
+        preconditioner; ``option``, ``contact`` as in :meth:`hessian`)."""
         V = self.vertex_count
         out = x.new_zeros(V, 3, 3)
         if self.membrane is not None:
@@ -163,8 +205,8 @@ class ClothModel:
             Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
             diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
             out = out.index_add(0, self.bending.hinges.reshape(-1), diag.reshape(-1, 3, 3))
-        for c in self.colliders:
-            out = out + c.hessian_blocks(x, project=option)
+        if self.colliders:
+            out = out + self.contact_blocks(x, option if contact is None else contact)
         return out
 
 

@@ -589,9 +589,10 @@ class _NewtonRun:
             if found is not None:
                 step, self.gf_next = found
                 return step
-        step = armijo_backtracking(phi.value, x, phi.full(p, x), energy, terms, slope,
+        dx = phi.full(p, x)
+        step = armijo_backtracking(phi.value, x, dx, energy, terms, slope,
                                    lambda y: float(np.linalg.norm(phi.free_gradient(y))) < res,
-                                   max_steps=self.max_line_search)
+                                   max_steps=self.max_line_search, alpha_max=phi.model.max_step(x, dx))
         if step is not None:
             return step
         info.line_search_failures += 1
@@ -971,7 +972,10 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
         bend_kw = {"theta_prev": model.bending.angles(x_n).detach(), "dt": dt}
     mass = model.mass.to(device=x_n.device, dtype=x_n.dtype)
     inertial_force = -(mass[:, None] * v_n / dt).reshape(-1)  # M (x_n - x_hat) / dt^2
-    x, info = _newton(model, x_hat, option=option, linear=linear, inertia=(x_hat, dt), bend_kw=bend_kw,
+    # Newton starts at x_hat, or with colliders at the point of the segment x_n -> x_hat where the
+    # step bound stops it (x_hat of a large step may lie through a collider: never start there)
+    x0 = x_n + model.max_step(x_n, x_hat - x_n) * (x_hat - x_n) if model.colliders else x_hat
+    x, info = _newton(model, x0, option=option, linear=linear, inertia=(x_hat, dt), bend_kw=bend_kw,
                       inertial_force=inertial_force, **ctl.newton_kw())
     v = torch.where(pinned, torch.zeros_like(v_n), (x - x_n) / dt)
     return ClothState(x=x, v=v), info
