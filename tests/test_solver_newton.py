@@ -56,7 +56,9 @@ def dense_newton_reference(model, rest, x, iters=4):
     assert abs(float(energy(x)) - model.potential(x)) <= 1e-10 * max(abs(model.potential(x)), 1e-30)
     free = (~model.pinned).repeat_interleave(3)
     n = x.numel()
-    H = torch.autograd.functional.hessian(energy, x).reshape(n, n)[free][:, free]
+    H = torch.autograd.functional.hessian(energy, x)
+    assert isinstance(H, torch.Tensor)
+    H = H.reshape(n, n)[free][:, free]
     y = x.clone()
     for _ in range(iters):
         yg = y.clone().requires_grad_()

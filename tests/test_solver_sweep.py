@@ -192,5 +192,6 @@ def test_reference_is_an_equilibrium():
     free = (~model.pinned).repeat_interleave(3)
     H = hessian(x)
     H_full = torch.autograd.functional.hessian(lambda y: phi(y.reshape(-1, 3)), x.reshape(-1))
+    assert isinstance(H_full, torch.Tensor)
     assert torch.allclose(H, H_full, rtol=1e-10, atol=1e-10 * float(H.abs().max()))
     assert float(torch.linalg.eigvalsh(H[free][:, free])[0]) > 0  # a minimum
