@@ -242,3 +242,22 @@ def test_contact_projection_of_the_model_hessian():
     dense = torch.from_numpy(mixed.toarray())
     for i in range(0, x.shape[0], 5):
         assert torch.allclose(blocks[i], dense[3 * i:3 * i + 3, 3 * i:3 * i + 3], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_drape_41_at_60_hz_converges_every_step_in_few_iterations():
+    """The dynamics acceptance: the 41x41 sphere drape, 120 steps of 1/60 s with the scene's solver
+    options (exact Hessian, direct solver, tol 1e-6, at most 50 iterations): every step converges
+    without substeps, about 5 Newton iterations per step on average (16 before the step bound)."""
+    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    model, x0, _ = build_scene(cfg, resolution=(41, 41))
+    sol = cfg["solver"]
+    state, its = ClothState(x0, torch.zeros_like(x0)), []
+    for _ in range(120):
+        state, info = implicit_euler_step(model, state, 1 / 60, hessian=sol["hessian"], linear_solver=sol["linear_solver"],
+                                          tol=sol["tol"], max_iters=sol["max_iters"])
+        assert info.converged and info.substeps == 1, info.message
+        its.append(info.iterations)
+    print(f"41x41 drape at 60 Hz: {sum(its) / len(its):.2f} Newton iterations per step (max {max(its)})")
+    assert sum(its) / len(its) <= 10
+    assert float(signed_distance(model.colliders[0], state.x).min()) >= -0.01 / 40
