@@ -1,15 +1,15 @@
 """torchbend: discrete hinge bending energies with exact closed-form derivatives for PyTorch.
 
 The one public import path (SPEC sec. 2).  The package is layered, each layer importing only the
-ones before it: ``mesh`` (topology, packing, procedural meshes) -> ``ops`` (pure per-element
-kernels) -> ``backends`` (eager or compiled, decided in one function) -> ``energies`` (bending,
-membrane, colliders) -> ``sim`` (cloth model, Newton solvers, adjoint) -> ``robot`` -> ``scenes``
+ones before it: ``mesh`` (topology, packing, procedural meshes, mesh files: ``tb.mesh.load``) ->
+``ops`` (pure per-element kernels) -> ``backends`` (eager or compiled, decided in one function) ->
+``energies`` (bending, membrane, colliders) -> ``sim`` (cloth model, Newton solvers, adjoint) -> ``robot`` -> ``scenes``
 (YAML configs and their runner).  ``options`` (the option enums) and ``testing`` (plain autograd
 references) stand beside the chain.
 """
 from importlib.metadata import PackageNotFoundError, version
 
-from . import scenes
+from . import mesh, scenes
 from .backends import select_backend, use_backend
 from .energies import (
     BendingEnergy,
@@ -54,6 +54,7 @@ __all__ = [
     "hinge_angles",
     "implicit_euler_step",
     "lame_parameters",
+    "mesh",
     "pack_meshes",
     "rest_hinge_weights",
     "scenes",

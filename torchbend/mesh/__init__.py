@@ -1,5 +1,19 @@
-"""Layer 1, meshes: connectivity (the hinge convention), packing of several meshes, procedural meshes."""
+"""Layer 1, meshes: connectivity (the hinge convention), packing of several meshes, procedural meshes, mesh files
+(``load``, ``clean``, ``save_obj``) and the shipped garment (``skirt``, ``asset_path("skirt.obj")``)."""
+from .garments import skirt
+from .io import MeshReport, asset_path, clean, load, save_obj
 from .packing import PackedMeshes, pack_meshes
 from .topology import HingeTopology, mesh_and_rest
 
-__all__ = ["HingeTopology", "PackedMeshes", "mesh_and_rest", "pack_meshes"]
+__all__ = [
+    "HingeTopology",
+    "MeshReport",
+    "PackedMeshes",
+    "asset_path",
+    "clean",
+    "load",
+    "mesh_and_rest",
+    "pack_meshes",
+    "save_obj",
+    "skirt",
+]

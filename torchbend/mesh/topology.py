@@ -59,6 +59,13 @@ def _faces_str(fs, limit: int = 8) -> str:
     return ", ".join(str(int(f)) for f in fs[:limit]) + tail
 
 
+def _one_indexed_message(vertex_count: int) -> str:
+    return (
+        f"faces look 1-indexed (smallest index 1, largest {vertex_count} = V, the vertex count): indices must "
+        "start at 0; subtract 1 (faces - 1), or read the file with tb.mesh.load, which returns 0-indexed faces"
+    )
+
+
 @dataclass(frozen=True, eq=False)
 class HingeTopology:
     """Integer, no-grad connectivity of a triangle mesh (build once, share across calls).
@@ -99,9 +106,11 @@ class HingeTopology:
 
         ``vertex_count`` (V) defaults to ``faces.max() + 1``; when given, every index must be
         in ``[0, V)``.  Raises ``ValueError`` naming the offending faces/edges for: wrong shape
-        or dtype, empty faces, negative or out-of-range indices, a face repeating a vertex, an
-        edge shared by three or more faces, and two neighbours with inconsistent orientation
-        (they traverse their shared edge in the same direction).
+        or dtype, empty faces, negative or out-of-range indices (faces numbered ``1..V``, as in
+        OBJ files, are named as 1-indexed), a face repeating a vertex, an edge shared by three or
+        more faces, and two neighbours with inconsistent orientation (they traverse their shared
+        edge in the same direction).  Vertices used by no face are allowed (they get no hinge;
+        ``tb.mesh.clean`` drops them).
         """
         F = _as_faces_array(faces)
         nf = F.shape[0]
@@ -114,6 +123,8 @@ class HingeTopology:
         vertex_count = int(vertex_count)
         bad = np.nonzero((F >= vertex_count).any(1))[0]
         if bad.size:
+            if int(F.min()) == 1 and vmax == vertex_count:
+                raise ValueError(_one_indexed_message(vertex_count))
             f0 = int(bad[0])
             raise ValueError(
                 f"vertex index out of range [0, {vertex_count}) in faces [{_faces_str(bad)}]: face {f0} = "
@@ -212,6 +223,9 @@ def mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
         rest = rest.to(torch.get_default_dtype())
     if isinstance(faces, HingeTopology):
         topo = faces
+        n = rest.shape[0] if rest.ndim == 2 and rest.shape[1] == 3 else None
+        if n is not None and n != topo.vertex_count:
+            _check_vertex_count(topo, n)
     else:
         V = rest.shape[0] if rest.ndim == 2 and rest.shape[1] == 3 else None
         topo = HingeTopology.from_faces(faces, V)
@@ -219,3 +233,17 @@ def mesh_and_rest(faces, rest_positions) -> tuple[HingeTopology, Tensor]:
     if rest.ndim != 2:
         raise ValueError(f"rest_positions must have shape (V, 3), got {tuple(rest.shape)}")
     return topo, rest
+
+
+def _check_vertex_count(topo: HingeTopology, n: int) -> None:
+    """Name the two usual causes of a topology built for a vertex count other than the ``n`` rest positions."""
+    V = topo.vertex_count
+    if V == n + 1 and int(topo.faces.min()) == 1:
+        raise ValueError(_one_indexed_message(n))
+    if n > V:
+        unused = f"vertex {V} is" if n == V + 1 else f"vertices {V} to {n - 1} are"
+        raise ValueError(
+            f"rest_positions has {n} vertices but the topology was built for V = {V} (HingeTopology.from_faces "
+            f"takes V = faces.max() + 1 unless vertex_count is given): {unused} used by no face; tb.mesh.clean "
+            f"drops unused vertices, or pass vertex_count={n} to HingeTopology.from_faces to keep them"
+        )
