@@ -3,43 +3,120 @@
     python benchmarks/bm_solver.py                          # drape 11..41, beams at 3 resolutions
     python benchmarks/bm_solver.py --drape 11 21 41 81 --steps 60
 
-Drape (configs/cloth_sphere.yaml): per resolution and Hessian option (exact, clamp, abs,
-gauss_newton): mean/max Newton iterations per step, seconds per step, final energy, max penetration.
-Beams (configs/beams.yaml): tip deflection and its ratio to Kirchhoff plate theory per thickness
-and resolution, with Newton iterations.  No assertions on time.
+Drape (configs/cloth_sphere.yaml): per resolution, Hessian option (exact, clamp, abs,
+gauss_newton) and linear solver (direct, cg): mean/max Newton iterations per step, seconds per step,
+final energy, max penetration.  Beams (configs/beams.yaml): tip deflection and its ratio to Kirchhoff
+plate theory per thickness and resolution, with Newton iterations.
+
+Time split (the paper's Table 1 reports the bending share: 4-6 % of the total time on the cloth-sphere,
+9-12 % on the beams): ``lin %`` is the linear solve (factorisation or CG with its preconditioner),
+``asm %`` the assembly of the free Hessian (every term's blocks and their scatter into one CSR),
+``bend %`` every call into the bending energy (energy, gradient, Hessian blocks and their assembly:
+the paper's "bending force evaluation and stiffness matrix assembly").  Measured by wrapping those
+functions with timers (nested calls counted once).  No assertions on time.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
+from collections import defaultdict
 
 import torch
 from common import machine
 
-from torchbend import ClothState, implicit_euler_step
+import torchbend.sim.linear as linear_mod
+import torchbend.sim.newton as newton_mod
+from torchbend import BendingEnergy, ClothState, implicit_euler_step, solve_static
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
 
 
-def drape(n: int, hessian: str, steps: int) -> str:
+class TimeShares:
+    """Seconds spent in groups of functions while active (``with shares.active(): ...``).
+
+    Each group wraps attributes ``(owner, name)``; a call nested in another call of the same group
+    (e.g. ``BendingEnergy.hessian`` calling ``hinge_hessians``) is counted once."""
+
+    GROUPS = {
+        "lin": [(newton_mod, "direct_solve"), (newton_mod, "pcg"), (newton_mod, "make_preconditioner")],
+        "asm": [(linear_mod.FreeHessian, "assemble")],
+        "bend": [(BendingEnergy, name) for name in ("forward", "gradient", "hvp", "hessian", "hinge_hessians")],
+    }
+
+    def __init__(self):
+        self.seconds: dict = defaultdict(float)
+
+    def _wrap(self, group: str, fn):
+        depth = {"n": 0}
+
+        def timed(*args, **kwargs):
+            if depth["n"]:
+                return fn(*args, **kwargs)
+            depth["n"] += 1
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[group] += time.perf_counter() - t0
+                depth["n"] -= 1
+
+        return timed
+
+    @contextlib.contextmanager
+    def active(self):
+        saved = []
+        try:
+            for group, targets in self.GROUPS.items():
+                for owner, name in targets:
+                    fn = getattr(owner, name)
+                    saved.append((owner, name, owner.__dict__[name]))
+                    setattr(owner, name, self._wrap(group, fn))
+            yield self
+        finally:
+            for owner, name, original in reversed(saved):
+                setattr(owner, name, original)
+
+    def percent(self, total: float) -> str:
+        return " ".join(f"{100 * self.seconds[g] / total:5.1f}" for g in self.GROUPS)
+
+
+def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> str:
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     model, x0, _ = build_scene(cfg, resolution=(n, n))
     state = ClothState(x0, torch.zeros_like(x0))
     its, secs, ok = [], [], True
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], hessian=hessian,
-                                          max_iters=cfg["solver"]["max_iters"])
-        secs.append(time.perf_counter() - t0)
-        its.append(info.iterations)
-        ok &= info.converged
+    shares = TimeShares()
+    with shares.active():
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], hessian=hessian,
+                                              linear_solver=linear_solver, max_iters=cfg["solver"]["max_iters"])
+            secs.append(time.perf_counter() - t0)
+            its.append(info.iterations)
+            ok &= info.converged
     pen = float(model.colliders[0].depth(state.x).max())
     energy = model.potential(state.x)
-    return (f"{n:>3d}x{n:<3d} {hessian:>13s} {sum(its) / len(its):8.2f} {max(its):5d} {sum(secs) / len(secs) * 1e3:10.1f}ms "
+    return (f"{n:>3d}x{n:<3d} {hessian:>13s} {linear_solver:>6s} {sum(its) / len(its):8.2f} {max(its):5d} "
+            f"{sum(secs) / len(secs) * 1e3:10.1f}ms {shares.percent(sum(secs))} "
             f"{energy:13.6e} {pen / (1.0 / (n - 1)):12.2e}  {'yes' if ok else 'NO'}")
+
+
+def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str) -> str:
+    """One cantilever of configs/beams.yaml solved with default solver options (tolerance and
+    globalisation as a user gets them)."""
+    cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
+    model, x0, _ = build_scene(cfg, thickness=thickness, resolution=(nx, ny))
+    shares = TimeShares()
+    t0 = time.perf_counter()
+    with shares.active():
+        _, info = solve_static(model, x0, hessian=hessian, linear_solver=linear_solver)
+    secs = time.perf_counter() - t0
+    return (f"{nx:>3d}x{ny:<2d} t={thickness:.1e} {hessian:>13s} {linear_solver:>6s} {info.iterations:5d} "
+            f"{secs:9.2f}s {shares.percent(secs)}  {'yes' if info.converged else 'NO: ' + info.stop_reason}")
 
 
 def main(argv=None) -> None:
@@ -47,16 +124,31 @@ def main(argv=None) -> None:
     p.add_argument("--drape", type=int, nargs="*", default=[11, 21, 41])
     p.add_argument("--steps", type=int, default=120)
     p.add_argument("--hessians", nargs="+", default=["exact", "clamp", "abs", "gauss_newton"])
+    p.add_argument("--linear", nargs="+", default=["direct", "cg"], help="linear solvers of the drape and beam rows")
     p.add_argument("--beams", type=str, nargs="*", default=["61x6", "131x6", "196x7"])
+    p.add_argument("--split-beams", type=str, nargs="*", default=["61x6"],
+                   help="beam resolutions of the per-option time split table (default solver options)")
     a = p.parse_args(argv)
     print("machine:", machine())
     if a.drape:
         print(f"\ndrape: square cloth falling onto a sphere, {a.steps} implicit Euler steps of 0.005 s")
-        print(f"{'mesh':>7s} {'hessian':>13s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} {'final energy':>13s} "
-              f"{'pen./edge':>12s}  converged")
+        print(f"{'mesh':>7s} {'hessian':>13s} {'linear':>6s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} "
+              f"{'lin %':>5s} {'asm %':>5s} {'bend%':>5s} {'final energy':>13s} {'pen./edge':>12s}  converged")
         for n in a.drape:
             for h in a.hessians:
-                print(drape(n, h, a.steps), flush=True)
+                for lin in a.linear:
+                    print(drape(n, h, a.steps, lin), flush=True)
+    if a.split_beams:
+        cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
+        print("\nbeams: static equilibrium per option, default solver options (time split)")
+        print(f"{'mesh':>6s} {'thickness':>9s} {'hessian':>13s} {'linear':>6s} {'its':>5s} {'seconds':>10s} "
+              f"{'lin %':>5s} {'asm %':>5s} {'bend%':>5s}  converged")
+        for res in a.split_beams:
+            nx, ny = (int(v) for v in res.split("x"))
+            for t in cfg["material"]["thicknesses"]:
+                for h in a.hessians:
+                    for lin in a.linear:
+                        print(beam(nx, ny, float(t), h, lin), flush=True)
     if a.beams:
         print("\nbeams: cantilevers, static equilibrium (exact Hessian, direct solver)")
         cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))

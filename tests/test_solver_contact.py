@@ -261,3 +261,36 @@ def test_drape_41_at_60_hz_converges_every_step_in_few_iterations():
     print(f"41x41 drape at 60 Hz: {sum(its) / len(its):.2f} Newton iterations per step (max {max(its)})")
     assert sum(its) / len(its) <= 10
     assert float(signed_distance(model.colliders[0], state.x).min()) >= -0.01 / 40
+
+
+def test_escape_and_roundoff_steps_respect_the_bound():
+    """The steps Newton takes outside its line search (along negative curvature off a saddle, and the
+    whole step accepted at the round-off floor) keep within the collider step bound: a cloth 1 cm above a
+    soft plane (gravity beats the penalty, so an unbounded escape step would sink deep into it), pushed
+    straight down."""
+    cloth, faces = tb.scenes.grid(5, 5, (0.4, 0.4), dtype=F64)
+    cloth = cloth + torch.tensor([0.0, 0.0, 0.01], dtype=F64)
+    plane = Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1e-3)
+    model = ClothModel(faces, cloth, density=0.2, pinned=[0], colliders=[plane])
+    phi = newton._Potential(model, cloth, tb.Projection.NONE, None, {})
+    gf = phi.free_gradient(cloth)
+    energy, _ = phi.value(cloth)
+    down = torch.zeros_like(cloth)
+    down[:, 2] = -1.0
+    v = down.reshape(-1).numpy()[phi.free]
+    v = v / (v @ v) ** 0.5
+    tau = model.contact_depth
+    out = newton._escape(phi, cloth, v, gf, energy, 0.0)
+    assert out is not None and out.energy < energy
+    assert float(signed_distance(plane, out.x).min()) >= -tau * (1 + 1e-9)
+    # without the bound the same escape step sinks the cloth far below the plane
+    model_free = ClothModel(faces, cloth, density=0.2, pinned=[0], colliders=[plane])
+    model_free.max_step = lambda x, dx: 1.0  # type: ignore[method-assign]
+    phi_free = newton._Potential(model_free, cloth, tb.Projection.NONE, None, {})
+    unbounded = newton._escape(phi_free, cloth, v, gf, energy, 0.0)
+    assert unbounded is not None and float(signed_distance(plane, unbounded.x).min()) < -10 * tau
+    # a round-off step that the bound would shorten is not taken whole
+    p = 0.05 * v
+    assert model.max_step(cloth, phi.full(p, cloth)) < 1.0
+    assert newton._roundoff_step(phi, cloth, p, energy, float("inf"), float("inf")) is None
+    assert newton._roundoff_step(phi_free, cloth, p, energy, float("inf"), float("inf")) is not None

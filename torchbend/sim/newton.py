@@ -350,8 +350,12 @@ def _better(a: _Iterate, best: _Iterate | None, noise: float) -> bool:
 def _roundoff_step(phi: _Potential, x: Tensor, p: np.ndarray, energy: float, res: float,
                    noise: float) -> tuple[LineSearchResult, np.ndarray] | None:
     """The full step ``x + p`` when its decrease is below round-off: accepted if the potential stays
-    within ``noise`` [J] and the residual drops.  Returns ``(step, free gradient there)`` or None."""
-    y = x + phi.full(p, x)
+    within ``noise`` [J] and the residual drops, and no collider bounds the step (a step the collider
+    step bound would shorten is never taken whole).  Returns ``(step, free gradient there)`` or None."""
+    dx = phi.full(p, x)
+    if phi.model.max_step(x, dx) < 1.0:
+        return None
+    y = x + dx
     try:
         e, terms = phi.value(y)
         gy = phi.free_gradient(y)
@@ -377,8 +381,9 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
             max_steps: int = 40) -> LineSearchResult | None:
     """A step along the negative-curvature direction ``v`` (unit, free DOFs) that lowers the potential
     by more than ``noise`` [J]: the largest vertex moves by ``0.1 x`` the bounding-box diagonal at
-    first, halved until the potential drops, then while it keeps dropping; the sign with ``g . d <= 0``
-    (both when ``g . d`` is at round-off level, the lower end state kept).  None if neither sign helps."""
+    first (at most the collider step bound of :meth:`ClothModel.max_step`), halved until the potential
+    drops, then while it keeps dropping; the sign with ``g . d <= 0`` (both when ``g . d`` is at
+    round-off level, the lower end state kept).  None if neither sign helps."""
     vt = phi.full(v, x)
     vmax = float(vt.norm(dim=-1).max())
     extent = float((x.amax(0) - x.amin(0)).norm())
@@ -391,7 +396,7 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
         signs.append(-signs[0])
     best: LineSearchResult | None = None
     for s in signs:
-        alpha, found = 1.0, None
+        alpha, found = phi.model.max_step(x, s * d), None
         for _ in range(max_steps):
             y = x + (s * alpha) * d
             try:
