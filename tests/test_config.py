@@ -19,14 +19,16 @@ from torchbend.scenes import cli
 from torchbend.scenes.config import (
     ConfigError,
     FileMesh,
+    GridMesh,
     SceneConfig,
+    SphereSpec,
     apply_overrides,
     build_scene,
     load_config,
     validate,
 )
-from torchbend.scenes.run import run_config
 from torchbend.scenes.run import main as scenes_main
+from torchbend.scenes.run import run_config
 
 from .test_train import drape_net, material_id, robot_drape
 
@@ -123,8 +125,9 @@ def test_overrides_set_nested_keys_and_are_validated(tmp_path):
                                 "mesh.size=[2, 1]"])
     assert out["solver"]["tol"] == "1e-8"  # YAML reads 1e-8 as a string: the schema converts it
     c = validate(out, SceneConfig)
-    assert c.solver.tol == 1e-8 and c.colliders[0].center == (0.0, 0.0, 0.1) and c.output.every == 5
-    assert c.mesh.size == (2.0, 1.0)
+    sphere, grid = c.colliders[0], c.mesh
+    assert isinstance(sphere, SphereSpec) and isinstance(grid, GridMesh)
+    assert c.solver.tol == 1e-8 and sphere.center == (0.0, 0.0, 0.1) and c.output.every == 5 and grid.size == (2.0, 1.0)
     for bad, message in [("solver.tol", "must be KEY=VALUE"), ("colliders[3].radius=1", "no list element [3]"),
                          ("colliders.x=1", "not inside a mapping"), ("=1", "must be KEY=VALUE")]:
         with pytest.raises(ConfigError, match=re.escape(message)):
