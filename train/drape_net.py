@@ -216,7 +216,7 @@ def main(argv=None) -> dict:
         model.load_state_dict(load_checkpoint(a.init, map_location=device)["model"])
     if a.resume:
         ck = load_checkpoint(ckpt_path, map_location=device)
-        changed = cli.changed_keys(ck.get("config"), cfg)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         model.load_state_dict(ck["model"])
@@ -259,7 +259,7 @@ def main(argv=None) -> dict:
         dist.barrier()
         dist.destroy_process_group()
     if rank == 0 and history:
-        log.info("%s loss: %.6g at step %d -> %.6g at step %d, %.1f s/step -> %s", t["loss"], history[0], start + 1,
+        log.info("%s loss: %.6g at step %d -> %.6g at step %d, %.3f s/step -> %s", t["loss"], history[0], start + 1,
                  history[-1], steps, timer.total() / len(history), a.out)
     return result
 

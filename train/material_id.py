@@ -156,7 +156,7 @@ def main(argv=None) -> dict:
     start = 0
     if a.resume:
         ck = load_checkpoint(ckpt)
-        changed = cli.changed_keys(ck.get("config"), cfg)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("identify.steps",))
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         with torch.no_grad():

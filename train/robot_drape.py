@@ -170,7 +170,7 @@ def main(argv=None) -> dict:
     start = 0
     if a.resume:
         ck = load_checkpoint(ckpt_path, map_location=device)
-        changed = cli.changed_keys(ck.get("config"), cfg)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         net.load_state_dict(ck["model"])

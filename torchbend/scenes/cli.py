@@ -145,12 +145,16 @@ def load_checkpoint(path: str, map_location=None) -> dict:
     return state
 
 
-def changed_keys(old: Any, new: Any, prefix: str = "") -> list[str]:
-    """Dotted paths at which two configs (dicts of plain values) differ."""
+def changed_keys(old: Any, new: Any, ignore: Iterable[str] = (), prefix: str = "") -> list[str]:
+    """Dotted paths at which two configs (dicts of plain values) differ, except those in ``ignore``
+    (e.g. the step count a resumed run extends)."""
+    ignore = tuple(ignore)
+    if prefix in ignore:
+        return []
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k in sorted(set(old) | set(new), key=str):
-            out += changed_keys(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
+            out += changed_keys(old.get(k), new.get(k), ignore, f"{prefix}.{k}" if prefix else str(k))
         return out
     return [] if old == new else [prefix or "(root)"]
 

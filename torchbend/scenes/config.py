@@ -39,7 +39,8 @@ from ..sim.newton import LinearSolver
 __all__ = [
     "ConfigError", "Section", "SceneConfig", "load_config", "validate", "apply_overrides", "build_scene",
     "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes", "RobotConfig",
-    "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3",
+    "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3", "GridMesh", "FileMesh", "MeshSpec", "SphereSpec",
+    "PlaneSpec", "CapsuleSpec", "RobotSection",
 ]
 
 

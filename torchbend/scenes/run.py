@@ -119,7 +119,7 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
     ckpt = os.path.join(out_dir, "checkpoint.pt")
     if resume:
         ck = cli.load_checkpoint(ckpt)
-        changed = cli.changed_keys(ck.get("config"), stats["config"])
+        changed = cli.changed_keys(ck.get("config"), stats["config"], ignore=("solver.steps",))
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         if tuple(ck["x"].shape) != tuple(x0.shape):
