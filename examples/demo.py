@@ -2,6 +2,7 @@
 
     python examples/demo.py                 # small embedded default (about 30k hinges, float64)
     python examples/demo.py --n 185 --dtype float32 --model quadratic
+    python examples/demo.py --device cuda   # on a GPU (an unavailable device exits with one line)
 
 Builds a random curved sheet (its own rest shape), deforms it (a smooth wave plus noise), and evaluates the energy, the
 gradient and the HVP three ways: torchbend's closed forms (``bend.gradient``/``bend.hvp`` and the
@@ -17,6 +18,7 @@ import platform
 import torch
 
 import torchbend as tb
+from torchbend.scenes import cli
 from torchbend.testing import autograd_gradient, autograd_hvp, median_time, plain_bending_energy
 
 
@@ -24,17 +26,18 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp_min(torch.finfo(b.dtype).tiny))
 
 
-def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 5, seed: int = 0) -> dict:
-    """Run the comparison on an ``n x n`` sheet; returns the measured numbers."""
-    dt = getattr(torch, dtype)
+def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 5, seed: int = 0,
+        device: str = "cpu") -> dict:
+    """Run the comparison on an ``n x n`` sheet on ``device``; returns the measured numbers."""
+    dt, dev = getattr(torch, dtype), torch.device(device)
     gen = torch.Generator().manual_seed(seed)
-    rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=seed, dtype=dt)
+    rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=seed, dtype=dt, device=dev)
     bend = tb.BendingEnergy(faces, rest, model=model, stiffness=1e-3)
     # a smooth bending wave plus a little noise (a fraction of the grid spacing)
     wave = 0.05 * torch.sin(2 * torch.pi * rest[:, 0]) * torch.cos(3 * torch.pi * rest[:, 1])
-    noise = (0.05 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dt)
+    noise = (0.05 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype=dt, device=dev)
     x = rest + noise + torch.stack((torch.zeros_like(wave), torch.zeros_like(wave), wave), -1)
-    v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dt)
+    v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype=dt, device=dev)
     H = bend.hinge_count
     plain = lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)  # noqa: E731
 
@@ -56,18 +59,23 @@ def run(n: int = 100, model: str = "tan", dtype: str = "float64", repeat: int = 
         "hvp": _rel(bend.hvp(x, v).double(), h_ref),
         "double_backward": _rel(tb_double_backward().double(), h_ref),
     }
+    def timed(fn):  # the wall time of fn including the device's queued work
+        if dev.type != "cuda":
+            return median_time(fn, repeat)
+        return median_time(lambda: (fn(), torch.cuda.synchronize(dev)), repeat)
+
     with torch.no_grad():
-        t_energy = median_time(lambda: bend(x), repeat)
-        t_energy_ag = median_time(lambda: plain(x), repeat)
+        t_energy = timed(lambda: bend(x))
+        t_energy_ag = timed(lambda: plain(x))
     timings = {
         "energy": (t_energy, t_energy_ag),
-        "gradient": (median_time(lambda: bend.gradient(x), repeat), median_time(ag_grad, repeat)),
-        "energy+backward": (median_time(tb_grad_backward, repeat), median_time(ag_grad, repeat)),
-        "hvp": (median_time(lambda: bend.hvp(x, v), repeat), median_time(ag_hvp, repeat)),
-        "double backward": (median_time(tb_double_backward, repeat), median_time(ag_hvp, repeat)),
+        "gradient": (timed(lambda: bend.gradient(x)), timed(ag_grad)),
+        "energy+backward": (timed(tb_grad_backward), timed(ag_grad)),
+        "hvp": (timed(lambda: bend.hvp(x, v)), timed(ag_hvp)),
+        "double backward": (timed(tb_double_backward), timed(ag_hvp)),
     }
     print(
-        f"torchbend demo: {n}x{n} sheet, {bend.vertex_count} vertices, {H} hinges, model={model}, {dtype}\n"
+        f"torchbend demo: {n}x{n} sheet, {bend.vertex_count} vertices, {H} hinges, model={model}, {dtype}, {dev}\n"
         f"machine: {platform.machine()} {platform.processor() or ''} | torch {torch.__version__} | "
         f"threads {torch.get_num_threads()}"
     )
@@ -89,12 +97,14 @@ def main(argv=None) -> None:
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:1, ... (default cpu)")
     a = p.parse_args(argv)
+    device = cli.resolve_device(a.device, prog=p.prog)
     if a.n < 2:
         p.error("--n must be >= 2")
     if a.repeat < 1:
         p.error("--repeat must be >= 1")
-    run(a.n, a.model, a.dtype, a.repeat, a.seed)
+    run(a.n, a.model, a.dtype, a.repeat, a.seed, str(device))
 
 
 if __name__ == "__main__":

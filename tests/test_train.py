@@ -64,10 +64,10 @@ def test_energy_training_decreases_logs_checkpoints_and_resumes(tiny, tmp_path):
     assert os.path.isfile(os.path.join(out, "checkpoint.pt")) and os.path.isfile(os.path.join(out, "drapes.png"))
     events = os.listdir(os.path.join(out, "tb"))
     assert any(e.startswith("events.out.tfevents") for e in events)
-    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["step"] == 4
+    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)["step"] == 4
     r2 = drape_net.main(["--config", tiny, "--out", out, "--steps", "8", "--resume", "--no-progress"])
     assert r2["start"] == 4 and len(r2["losses"]) == 4
-    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["step"] == 8
+    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)["step"] == 8
     assert r2["losses"][-1] < r["losses"][0]
 
 
@@ -81,7 +81,7 @@ def test_residual_training_decreases(tiny, tmp_path):
 
 
 def test_residual_loss_gradient_matches_finite_differences(tiny):
-    cfg = load_config(tiny, drape_net.DEFAULTS)
+    cfg = load_config(tiny, drape_net.Config)
     cfg["cloth"]["contact_stiffness"] = 50.0
     torch.manual_seed(0)
     physics = ClothPhysics(cfg)
@@ -122,7 +122,7 @@ def test_material_identification_recovers_stiffness(tmp_path):
 
 
 def test_material_gradient_matches_finite_differences_of_the_equilibrium():
-    cfg = load_config(os.path.join(ROOT, "configs", "train_material.yaml"), material_id.DEFAULTS)
+    cfg = load_config(os.path.join(ROOT, "configs", "train_material.yaml"), material_id.Config)
     cfg["beam"]["nx"], cfg["beam"]["ny"] = 9, 3
     x_obs, rest, k_true = material_id.observe(cfg)
     log_k = torch.tensor(math.log(1.7 * k_true), dtype=torch.float64, requires_grad=True)
@@ -162,7 +162,7 @@ def test_ddp_two_processes_keep_parameters_identical(tiny, tmp_path):
     out = str(tmp_path / "ddp")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            os.path.join(ROOT, "train", "drape_net.py"), "--config", tiny, "--out", out, "--steps", "3", "--no-progress"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join([ROOT, os.environ.get("PYTHONPATH", "")])}
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert res.returncode == 0, res.stderr[-3000:]
     p0 = torch.load(os.path.join(out, "params_rank0.pt"))
@@ -187,10 +187,10 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
     # predictions hold the corners exactly at the finger tips; Newton from them converges
     assert all(e["pin_error"] <= 1e-12 and e["converged"] for e in r2["eval"])
     # the trained network lowers the potential on a fixed batch of unseen joint vectors
-    towel = robot_drape.HeldTowel(load_config(str(path), robot_drape.DEFAULTS))
+    towel = robot_drape.HeldTowel(load_config(str(path), robot_drape.Config))
     untrained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
     trained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
-    trained.load_state_dict(torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["model"])
+    trained.load_state_dict(torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)["model"])
     q = towel.sample(8, torch.Generator().manual_seed(99)).requires_grad_()
     energy = {k: float(common.total(towel.physics.energies(towel.drape(n, q), None, None)).mean().detach())
               for k, n in (("untrained", untrained), ("trained", trained))}

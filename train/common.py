@@ -1,49 +1,67 @@
-"""Shared machinery of the training scripts: configs, the cloth physics, logging, checkpoints, DDP.
+"""Shared machinery of the training scripts: config sections, the cloth physics, runtime, checkpoints, plots.
 
-Scripts import torchbend; torchbend never imports this folder.
+Configs use torchbend's one config system (:mod:`torchbend.scenes.config`: typed sections, unknown
+keys rejected with their dotted path) and CLI conventions (:mod:`torchbend.scenes.cli`: ``--config``,
+``--set``, ``--seed``, ``--device``, ``--out``, ``--resume``, ``--log-level``, ``--no-progress``);
+each script's schema is built from the sections below plus its own.  Scripts import torchbend;
+torchbend never imports this folder.
 """
 from __future__ import annotations
 
 import math
 import os
-import random
 import time
+from typing import Annotated
 
-import numpy as np
 import torch
 import torch.distributed as dist
+from pydantic import Field, field_validator
 
 import torchbend as tb
+from torchbend.ops.psi import BendingModel
+from torchbend.scenes.cli import load_checkpoint, save_checkpoint, seed_everything  # noqa: F401  (re-exported)
+from torchbend.scenes.config import Float, Int, NonNegative, Positive, PositiveInt, Section, load_config  # noqa: F401  (re-exported)
 
 ENERGY_TERMS = {"membrane", "bending", "gravity", "sphere", "ground"}
 
 
 # ------------------------------------------------------------------------------ config
-def load_config(path: str, defaults: dict) -> dict:
-    """YAML config merged over ``defaults``; ``ValueError`` naming the key for unknown or bad values."""
-    import yaml
+class ClothSection(Section):
+    """``cloth``: a square cloth of ``resolution`` x ``resolution`` vertices and ``size`` [m], the
+    energy terms of :class:`ClothPhysics` (``energies``) and their parameters."""
 
-    if not os.path.isfile(path):
-        raise ValueError(f"config file not found: {path}")
-    with open(path) as f:
-        try:
-            cfg = yaml.safe_load(f) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"config {path}: invalid YAML ({e})") from None
-    if not isinstance(cfg, dict):
-        raise ValueError(f"config {path}: expected a mapping at the top level")
-    out = {}
-    for section, values in defaults.items():
-        given = cfg.pop(section, {}) or {}
-        if not isinstance(given, dict):
-            raise ValueError(f"config key '{section}' must be a mapping")
-        unknown = set(given) - set(values)
+    resolution: Annotated[Int, Field(ge=3)] = 9
+    size: Positive = 0.8
+    energies: list[str] = ["membrane", "bending", "gravity", "sphere", "ground"]
+    young: Positive = 2e4                # [Pa]
+    poisson: Annotated[Float, Field(gt=-1.0, lt=0.5)] = 0.3
+    thickness: Positive = 1e-3           # [m]
+    density: Positive = 0.2              # [kg/m^2]
+    bending_model: str = "tan"
+    bending_stiffness: Positive = 1e-4   # [N m]
+    contact_stiffness: Positive = 2e3    # [N/m]
+    ground_z: Float = -0.4               # [m]
+
+    @field_validator("energies")
+    @classmethod
+    def _known_terms(cls, value):
+        unknown = sorted(set(value) - ENERGY_TERMS)
         if unknown:
-            raise ValueError(f"unknown config keys {[f'{section}.{k}' for k in sorted(unknown)]}")
-        out[section] = {**values, **given}
-    if cfg:
-        raise ValueError(f"unknown config keys {sorted(cfg)}; allowed sections: {sorted(defaults)}")
-    return out
+            raise ValueError(f"has unknown energy names {unknown}; allowed: {sorted(ENERGY_TERMS)}")
+        return value
+
+    @field_validator("bending_model")
+    @classmethod
+    def _bending_model(cls, value):
+        BendingModel.parse(value, what="bending model")
+        return value
+
+
+class ModelSection(Section):
+    """``model``: the MLP's ``hidden`` width and number of ``layers``."""
+
+    hidden: PositiveInt = 128
+    layers: PositiveInt = 3
 
 
 def check_positive(cfg: dict, key: str, allow_zero: bool = False) -> float:
@@ -154,12 +172,6 @@ class ClothPhysics:
 
 
 # ------------------------------------------------------------------------------ runtime
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
 def distributed() -> tuple[int, int]:
     """``(rank, world_size)``; initialises a gloo process group under torchrun."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -168,21 +180,14 @@ def distributed() -> tuple[int, int]:
     return (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
 
 
-def save_checkpoint(path: str, **state) -> None:
-    tmp = path + ".tmp"
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-
-
-def load_checkpoint(path: str) -> dict:
-    if not os.path.isfile(path):
-        raise ValueError(f"--resume: no checkpoint at {path}")
-    return torch.load(path, weights_only=False)
-
-
 class Timer:
+    """Wall-clock laps [s] (``lap``: since the previous lap; ``total``: since creation)."""
+
     def __init__(self):
-        self.t = time.perf_counter()
+        self.t = self.t0 = time.perf_counter()
+
+    def total(self) -> float:
+        return time.perf_counter() - self.t0
 
     def lap(self) -> float:
         now = time.perf_counter()
@@ -190,21 +195,11 @@ class Timer:
         return dt
 
 
-def save_drape_png(path: str, meshes, titles=None) -> None:
-    import matplotlib
+# ------------------------------------------------------------------------------ plots
+def save_drape_png(path: str, meshes, titles=None, colliders=None) -> None:
+    """PNG of predicted drapes: ``meshes`` a list of ``(x (V, 3), faces)``, ``colliders`` one list of
+    torchbend colliders per mesh (drawn: spheres, planes, capsules)."""
+    from torchbend.scenes.plot import snapshot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig = plt.figure(figsize=(4 * len(meshes), 4))
-    for i, (x, faces) in enumerate(meshes):
-        ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
-        p = x.detach().cpu().numpy()
-        ax.plot_trisurf(p[:, 0], p[:, 1], p[:, 2], triangles=faces.cpu().numpy(), color="tab:blue",
-                        edgecolor="k", linewidth=0.1)
-        if titles:
-            ax.set_title(titles[i], fontsize=8)
-        ax.set_box_aspect((1, 1, 0.6))
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    colliders = colliders or [()] * len(meshes)
+    snapshot(path, [([m], c) for m, c in zip(meshes, colliders, strict=True)], titles=titles, size=4.0, dpi=90)

@@ -16,13 +16,22 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
+from typing import Literal
 
 import torch
 from common import (
     ClothPhysics,
+    ClothSection,
+    Float,
+    Int,
+    ModelSection,
+    NonNegative,
+    Positive,
+    PositiveInt,
+    Section,
     Timer,
-    check_positive,
     distributed,
     load_checkpoint,
     load_config,
@@ -31,17 +40,60 @@ from common import (
     seed_everything,
     total,
 )
+from pydantic import model_validator
 from torch import nn
 
-DEFAULTS = {
-    "cloth": {"resolution": 9, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"],
-              "young": 2e4, "poisson": 0.3, "thickness": 1e-3, "density": 0.2, "bending_model": "tan",
-              "bending_stiffness": 1e-4, "contact_stiffness": 2e3, "ground_z": -0.4},
-    "scene": {"center_range": 0.1, "radius_min": 0.2, "radius_max": 0.3, "fixed_conditions": False},
-    "model": {"hidden": 128, "layers": 3},
-    "train": {"steps": 300, "batch": 16, "lr": 1e-3, "loss": "energy", "log_every": 10, "mesh_every": 100,
-              "checkpoint_every": 50, "seed": 0, "dtype": "float64"},
-}
+import torchbend as tb
+from torchbend.scenes import cli
+from torchbend.scenes.config import MeshSpec, build_mesh
+
+log = logging.getLogger("train.drape_net")
+CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_drape.yaml"))
+
+
+class DrapeCloth(ClothSection):
+    height: Float = 0.32  # initial height of the flat cloth [m]
+
+
+class SceneSection(Section):
+    """``scene``: sphere centres uniform in ``[-center_range, center_range]^2`` [m], radii in
+    ``[radius_min, radius_max]`` [m]; ``fixed_conditions``: one batch for the whole run."""
+
+    center_range: NonNegative = 0.1
+    radius_min: Positive = 0.2
+    radius_max: Positive = 0.3
+    fixed_conditions: bool = False
+
+    @model_validator(mode="after")
+    def _radii(self):
+        if self.radius_max < self.radius_min:
+            raise ValueError(f"radius_max ({self.radius_max}) must not be below radius_min ({self.radius_min})")
+        return self
+
+
+class TrainSection(Section):
+    """``train``: optimisation (Adam) and logging cadence."""
+
+    steps: PositiveInt = 300
+    batch: PositiveInt = 16
+    lr: Positive = 1e-3
+    loss: Literal["energy", "residual"] = "energy"
+    log_every: PositiveInt = 10
+    mesh_every: PositiveInt = 100
+    checkpoint_every: PositiveInt = 50
+    seed: Int = 0
+    dtype: Literal["float32", "float64"] = "float64"
+
+
+class Config(Section):
+    """The drape network's config (``configs/train_drape.yaml``); ``mesh`` (optional, a scene-config
+    mesh section such as ``mesh: garment.obj``) replaces the square cloth of ``cloth``."""
+
+    cloth: DrapeCloth = DrapeCloth()
+    mesh: MeshSpec | None = None
+    scene: SceneSection = SceneSection()
+    model: ModelSection = ModelSection()
+    train: TrainSection = TrainSection()
 
 
 class DrapeNet(nn.Module):
@@ -86,32 +138,19 @@ def loss_fn(kind: str, physics: ClothPhysics, x, center, radius):
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_drape.yaml"))
-    p.add_argument("--out", default="runs/drape_net", help="output directory (logs, checkpoint, PNG)")
+    cli.add_common_args(p, config=CONFIG, out="runs/drape_net")
     p.add_argument("--loss", choices=["energy", "residual"], help="override train.loss")
     p.add_argument("--steps", type=int, help="override train.steps")
-    p.add_argument("--seed", type=int, help="override train.seed")
     p.add_argument("--lr", type=float, help="override train.lr")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     p.add_argument("--init", help="start from the network weights of this checkpoint (fresh optimizer, step 0), "
                    "e.g. residual fine-tuning of an energy-trained network")
-    p.add_argument("--no-progress", action="store_true")
-    return p.parse_args(argv)
+    return cli.parse_args(p, argv)
 
 
-def apply_overrides(cfg: dict, a: argparse.Namespace) -> dict:
-    """Command-line overrides of ``cfg["train"]``, then its checks; returns ``cfg["train"]``."""
-    t = cfg["train"]
-    for key in ("loss", "steps", "seed", "lr"):
-        if getattr(a, key) is not None:
-            t[key] = getattr(a, key)
-    check_positive(cfg, "train.lr")
-    if t["loss"] not in ("energy", "residual"):
-        raise ValueError(f"config key 'train.loss' must be 'energy' or 'residual', got {t['loss']!r}")
-    if t["dtype"] not in ("float32", "float64"):
-        raise ValueError(f"config key 'train.dtype' must be float32 or float64, got {t['dtype']!r}")
-    return t
+def overrides(a: argparse.Namespace) -> list[str]:
+    """``--set`` overrides plus the script's own flags (``--loss``, ``--steps``, ``--seed``, ``--lr``)."""
+    flags = {"loss": a.loss, "steps": a.steps, "seed": a.seed, "lr": a.lr}
+    return list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None]
 
 
 def log_step(writer, physics: ClothPhysics, step: int, x, center, radius, loss: float, seconds: float) -> None:
@@ -130,13 +169,24 @@ def log_step(writer, physics: ClothPhysics, step: int, x, center, radius, loss: 
     writer.add_scalar("time/seconds_per_step", seconds, step)
 
 
+def drawn_colliders(physics: ClothPhysics, center, radius: float) -> list:
+    """The colliders of one sample for the PNG: its sphere and the ground plane (when in the energy)."""
+    out = []
+    if "sphere" in physics.terms:
+        out.append(tb.Sphere(tuple(center), float(radius)))
+    if "ground" in physics.terms:
+        out.append(tb.Plane(point=(0.0, 0.0, physics.ground_z)))
+    return out
+
+
 def save_outputs(out: str, cfg: dict, net: DrapeNet, physics: ClothPhysics, result: dict, dtype, device) -> None:
-    """Rank 0 at the end: a PNG of three predicted drapes and ``history.json``."""
+    """Rank 0 at the end: a PNG of three predicted drapes (colliders drawn) and ``history.json``."""
     with torch.no_grad():
-        cond, _, _ = sample_conditions(cfg, 3, torch.Generator().manual_seed(12345), dtype, device)
+        cond, center, radius = sample_conditions(cfg, 3, torch.Generator().manual_seed(12345), dtype, device)
         x = net(cond, physics.rest)
     save_drape_png(os.path.join(out, "drapes.png"), [(xi, physics.faces) for xi in x],
-                   [f"sphere ({c[0]:+.2f}, {c[1]:+.2f}), r={c[2]:.2f}" for c in cond.tolist()])
+                   [f"sphere ({c[0]:+.2f}, {c[1]:+.2f}), r={c[2]:.2f}" for c in cond.tolist()],
+                   colliders=[drawn_colliders(physics, c, r) for c, r in zip(center.tolist(), radius.tolist())])
     with open(os.path.join(out, "history.json"), "w") as f:
         json.dump(result, f)
 
@@ -146,12 +196,16 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     a = parse_args(argv)
-    cfg = load_config(a.config, DEFAULTS)
-    t = apply_overrides(cfg, a)
+    device = cli.resolve_device(a.device)
+    cfg = load_config(a.config, Config, overrides(a))
+    t = cfg["train"]
     rank, world = distributed()
-    dtype, device = getattr(torch, t["dtype"]), torch.device(a.device)
+    dtype = getattr(torch, t["dtype"])
     seed_everything(int(t["seed"]))
-    physics = ClothPhysics(cfg, dtype=dtype, device=device)
+    mesh = None
+    if cfg["mesh"] is not None:
+        mesh = build_mesh(cfg["mesh"], dtype=dtype, device=device)
+    physics = ClothPhysics(cfg, dtype=dtype, device=device, mesh=mesh)
     model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"])).to(dtype=dtype, device=device)
     net = nn.parallel.DistributedDataParallel(model) if world > 1 else model  # `model` holds the weights
     opt = torch.optim.Adam(net.parameters(), lr=float(t["lr"]))
@@ -159,12 +213,16 @@ def main(argv=None) -> dict:
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.init:
-        model.load_state_dict(load_checkpoint(a.init)["model"])
+        model.load_state_dict(load_checkpoint(a.init, map_location=device)["model"])
     if a.resume:
-        ck = load_checkpoint(ckpt_path)
+        ck = load_checkpoint(ckpt_path, map_location=device)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
+        if changed:
+            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["step"])
+        log.info("resumed at step %d from %s", start, ckpt_path)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + rank + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb")) if rank == 0 else None
     history = []
@@ -200,8 +258,11 @@ def main(argv=None) -> dict:
 
         dist.barrier()
         dist.destroy_process_group()
+    if rank == 0 and history:
+        log.info("%s loss: %.6g at step %d -> %.6g at step %d, %.3f s/step -> %s", t["loss"], history[0], start + 1,
+                 history[-1], steps, timer.total() / len(history), a.out)
     return result
 
 
 if __name__ == "__main__":
-    main()
+    cli.run_main(main)

@@ -14,21 +14,67 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
-from typing import Any
+from typing import Annotated, Any
 
 import torch
-from common import Timer, check_positive, load_checkpoint, load_config, save_checkpoint, seed_everything
+from common import (
+    Float,
+    Int,
+    Positive,
+    PositiveInt,
+    Section,
+    Timer,
+    check_positive,
+    load_checkpoint,
+    load_config,
+    save_checkpoint,
+    seed_everything,
+)
+from pydantic import Field
 
 import torchbend as tb
+from torchbend.scenes import cli
 
-DEFAULTS = {
-    "beam": {"nx": 21, "ny": 4, "length": 0.2, "width": 0.03, "young": 5e6, "poisson": 0.3, "thickness": 2e-3,
-             "density": 2.0, "membrane_young": 5e6},
-    "identify": {"true_stiffness": None, "initial_factor": 3.0, "steps": 15, "lr": 1.0, "tol": 1e-12,
-                 "fit_rest_angles": False, "seed": 0},
-}
+log = logging.getLogger("train.material_id")
+CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_material.yaml"))
+
+
+class BeamSection(Section):
+    """``beam``: an ``nx`` x ``ny`` strip of ``length`` x ``width`` [m], clamped at one end; its
+    material (``young`` [Pa] for the bending stiffness, ``membrane_young`` [Pa] for StVK)."""
+
+    nx: Annotated[Int, Field(ge=3)] = 21
+    ny: Annotated[Int, Field(ge=2)] = 4
+    length: Positive = 0.2
+    width: Positive = 0.03
+    young: Positive = 5e6
+    poisson: Annotated[Float, Field(gt=-1.0, lt=0.5)] = 0.3
+    thickness: Positive = 2e-3
+    density: Positive = 2.0              # [kg/m^2]
+    membrane_young: Positive = 5e6
+
+
+class IdentifySection(Section):
+    """``identify``: the true stiffness [N m] (default: from the beam's material), the initial guess
+    (``initial_factor`` times it), L-BFGS ``steps``/``lr``, the loss ``tol`` to stop at."""
+
+    true_stiffness: Positive | None = None
+    initial_factor: Positive = 3.0
+    steps: PositiveInt = 15
+    lr: Positive = 1.0
+    tol: Annotated[Float, Field(ge=0)] = 1e-12
+    fit_rest_angles: bool = False
+    seed: Int = 0
+
+
+class Config(Section):
+    """The material-identification config (``configs/train_material.yaml``)."""
+
+    beam: BeamSection = BeamSection()
+    identify: IdentifySection = IdentifySection()
 
 
 def build(cfg, stiffness: torch.Tensor, rest_angles=None):
@@ -78,29 +124,22 @@ def loss_of(cfg, log_k, rest_shift, x_obs, x_start=None):
     return ((x - x_obs) ** 2).sum() / scale, x, info
 
 
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
+    cli.add_common_args(p, config=CONFIG, out="runs/material_id")
+    p.add_argument("--steps", type=int, help="override identify.steps")
+    return cli.parse_args(p, argv)
+
+
 def main(argv=None) -> dict:
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_material.yaml"))
-    p.add_argument("--out", default="runs/material_id")
-    p.add_argument("--steps", type=int)
-    p.add_argument("--seed", type=int)
-    p.add_argument("--device", default="cpu", help="only 'cpu' (the sparse solves run in scipy)")
-    p.add_argument("--resume", action="store_true")
-    p.add_argument("--no-progress", action="store_true")
-    a = p.parse_args(argv)
-    if a.device != "cpu":
-        raise ValueError("--device: material identification runs on the CPU (scipy sparse solves)")
-    cfg = load_config(a.config, DEFAULTS)
+    a = parse_args(argv)
+    cli.resolve_device(a.device, supported=("cpu",), why="the sparse solves run in scipy")
+    flags = {"steps": a.steps, "seed": a.seed}
+    cfg = load_config(a.config, Config, list(a.overrides) + [f"identify.{k}={v}" for k, v in flags.items() if v is not None])
     it = cfg["identify"]
-    if a.steps is not None:
-        it["steps"] = a.steps
-    if a.seed is not None:
-        it["seed"] = a.seed
-    check_positive(cfg, "identify.initial_factor")
-    check_positive(cfg, "identify.lr")
     seed_everything(int(it["seed"]))
     x_obs, rest, k_true = observe(cfg)
     log_k = torch.tensor(math.log(k_true * float(it["initial_factor"])), dtype=torch.float64, requires_grad=True)
@@ -117,12 +156,16 @@ def main(argv=None) -> dict:
     start = 0
     if a.resume:
         ck = load_checkpoint(ckpt)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("identify.steps",))
+        if changed:
+            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         with torch.no_grad():
             log_k.copy_(ck["log_k"])
             if shift is not None and ck.get("shift") is not None:
                 shift.copy_(ck["shift"])
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["step"])
+        log.info("resumed at step %d from %s", start, ckpt)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     timer = Timer()
     history = []
@@ -154,11 +197,10 @@ def main(argv=None) -> dict:
     result = {"k_true": k_true, "k_fit": math.exp(float(log_k.detach())), "history": history, "start": start}
     with open(os.path.join(a.out, "history.json"), "w") as f:
         json.dump(result, f, indent=1)
-    if not a.no_progress:
-        print(f"true stiffness {k_true:.6e} N m, identified {result['k_fit']:.6e} N m "
-              f"(relative error {abs(result['k_fit'] - k_true) / k_true:.2e}) after {len(history)} steps")
+    log.info("true stiffness %.6e N m, identified %.6e N m (relative error %.2e) after %d steps -> %s", k_true,
+             result["k_fit"], abs(result["k_fit"] - k_true) / k_true, start + len(history), a.out)
     return result
 
 
 if __name__ == "__main__":
-    main()
+    cli.run_main(main)

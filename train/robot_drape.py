@@ -17,11 +17,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 
 import torch
 from common import (
     ClothPhysics,
+    ClothSection,
+    ModelSection,
+    Positive,
+    PositiveInt,
+    Section,
     Timer,
     check_positive,
     load_checkpoint,
@@ -35,36 +41,70 @@ from drape_net import DrapeNet
 
 import torchbend as tb
 from torchbend.robot import LinkPins, Robot, RobotScene
+from torchbend.scenes import cli
+from torchbend.scenes.config import Float, Int
 
-DEFAULTS = {
-    "cloth": {"resolution": 9, "size": 0.3, "energies": ["membrane", "bending", "gravity", "ground"],
-              "young": 1e5, "poisson": 0.3, "thickness": 1e-3, "density": 0.2, "bending_model": "tan",
-              "bending_stiffness": 1e-4, "contact_stiffness": 1e3, "ground_z": 0.0},
-    "robot": {"urdf": "folding_arm.urdf", "nominal": [0.0, -1.0, 1.2, -0.2, -0.1, -0.1],
-              "spread": [0.5, 0.1, 0.1, 0.3, 0.03, 0.03]},
-    "model": {"hidden": 128, "layers": 3},
-    "train": {"steps": 300, "batch": 16, "lr": 1e-3, "log_every": 10, "checkpoint_every": 50, "seed": 0},
-}
+log = logging.getLogger("train.robot_drape")
+CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_robot.yaml"))
+
+
+class TowelCloth(ClothSection):
+    """``cloth``: the held towel (no sphere; the ground is the table top)."""
+
+    size: Positive = 0.3
+    energies: list[str] = ["membrane", "bending", "gravity", "ground"]
+    young: Positive = 1e5
+    contact_stiffness: Positive = 1e3
+    ground_z: Float = 0.0
+
+
+class PoseSection(Section):
+    """``robot``: the ``urdf``; joints sampled uniformly in ``nominal +- spread`` (one entry per joint)."""
+
+    urdf: str = "folding_arm.urdf"
+    nominal: list[Float] = [0.0, -1.0, 1.2, -0.2, -0.1, -0.1]
+    spread: list[Float] = [0.5, 0.1, 0.1, 0.3, 0.03, 0.03]
+
+
+class TrainSection(Section):
+    """``train``: optimisation (Adam) and logging cadence."""
+
+    steps: PositiveInt = 300
+    batch: PositiveInt = 16
+    lr: Positive = 1e-3
+    log_every: PositiveInt = 10
+    checkpoint_every: PositiveInt = 50
+    seed: Int = 0
+
+
+class Config(Section):
+    """The robot-drape config (``configs/train_robot.yaml``)."""
+
+    cloth: TowelCloth = TowelCloth()
+    robot: PoseSection = PoseSection()
+    model: ModelSection = ModelSection()
+    train: TrainSection = TrainSection()
 
 
 class HeldTowel:
     """The towel, its physics and the robot: ``drape(net, q)`` -> positions ``(B, V, 3)``."""
 
-    def __init__(self, cfg: dict, dtype=torch.float64):
+    def __init__(self, cfg: dict, dtype=torch.float64, device=None):
         c, r = cfg["cloth"], cfg["robot"]
-        self.robot = Robot(r["urdf"], dtype=dtype)
-        self.nominal = self.robot.check_joints(torch.tensor(r["nominal"], dtype=dtype), "robot.nominal")
-        self.spread = self.robot.check_joints(torch.tensor(r["spread"], dtype=dtype), "robot.spread")
+        device = torch.device(device or "cpu")
+        self.robot = Robot(r["urdf"], dtype=dtype, device=device)
+        self.nominal = self.robot.check_joints(torch.tensor(r["nominal"], dtype=dtype, device=device), "robot.nominal")
+        self.spread = self.robot.check_joints(torch.tensor(r["spread"], dtype=dtype, device=device), "robot.spread")
         n = int(c["resolution"])
         if n < 3:
             raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
         size = check_positive(cfg, "cloth.size")
         # rest: a flat towel hanging vertically below the line between the finger tips at the nominal pose
         tips = self.robot.link_transforms(self.nominal, ["finger_left", "finger_right"])[:, :3, 3]
-        flat, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype)
+        flat, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
         u = (tips[0] - tips[1]) / (tips[0] - tips[1]).norm()
-        rest = tips[1] + flat[:, :1] * u - flat[:, 1:2] * torch.tensor([0.0, 0.0, 1.0], dtype=dtype)
-        self.physics = ClothPhysics(cfg, dtype=dtype, mesh=(rest, faces))
+        rest = tips[1] + flat[:, :1] * u - flat[:, 1:2] * torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
+        self.physics = ClothPhysics(cfg, dtype=dtype, device=device, mesh=(rest, faces))
         self.rest, self.faces = rest, faces
         self.density = check_positive(cfg, "cloth.density")
         corners = [n - 1, 0]
@@ -72,7 +112,7 @@ class HeldTowel:
         self._tips0 = rest[self.pins.vertices]  # the order pins.positions returns
 
     def sample(self, batch: int, gen: torch.Generator) -> torch.Tensor:
-        u = 2 * torch.rand(batch, self.robot.joint_count, generator=gen, dtype=self.nominal.dtype) - 1
+        u = 2 * torch.rand(batch, self.robot.joint_count, generator=gen, dtype=self.nominal.dtype).to(self.nominal.device) - 1
         return self.nominal + u * self.spread
 
     def base(self, tips: torch.Tensor) -> torch.Tensor:
@@ -95,7 +135,7 @@ class HeldTowel:
 
     def scene(self) -> RobotScene:
         """The same cloth as a solver scene (reference equilibria)."""
-        pinned = torch.zeros(len(self.rest), dtype=torch.bool)
+        pinned = torch.zeros(len(self.rest), dtype=torch.bool, device=self.rest.device)
         pinned[self.pins.vertices] = True
         ph = self.physics
         colliders = [tb.Plane(point=(0.0, 0.0, ph.ground_z), stiffness=ph.k_contact)] if "ground" in ph.terms else []
@@ -106,12 +146,9 @@ class HeldTowel:
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    p.add_argument("--config", default=os.path.join(os.path.dirname(__file__), "..", "configs", "train_robot.yaml"))
-    p.add_argument("--out", default="runs/robot_drape", help="output directory (logs, checkpoint, PNG)")
+    cli.add_common_args(p, config=CONFIG, out="runs/robot_drape")
     p.add_argument("--steps", type=int, help="override train.steps")
-    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
-    p.add_argument("--no-progress", action="store_true")
-    return p.parse_args(argv)
+    return cli.parse_args(p, argv)
 
 
 def main(argv=None) -> dict:
@@ -119,24 +156,27 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     a = parse_args(argv)
-    cfg = load_config(a.config, DEFAULTS)
+    device = cli.resolve_device(a.device)
+    flags = {"steps": a.steps, "seed": a.seed}
+    cfg = load_config(a.config, Config, list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None])
     t = cfg["train"]
-    if a.steps is not None:
-        t["steps"] = a.steps
-    check_positive(cfg, "train.lr")
     seed_everything(int(t["seed"]))
-    towel = HeldTowel(cfg)
+    towel = HeldTowel(cfg, device=device)
     net = DrapeNet(len(towel.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
-                   inputs=towel.robot.joint_count).double()
+                   inputs=towel.robot.joint_count).to(dtype=torch.float64, device=device)
     opt = torch.optim.Adam(net.parameters(), lr=float(t["lr"]))
     os.makedirs(a.out, exist_ok=True)
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        ck = load_checkpoint(ckpt_path)
+        ck = load_checkpoint(ckpt_path, map_location=device)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
+        if changed:
+            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
         net.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["step"])
+        log.info("resumed at step %d from %s", start, ckpt_path)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     history, timer, steps = [], Timer(), int(t["steps"])
@@ -169,17 +209,21 @@ def main(argv=None) -> dict:
                       "rms_distance_to_equilibrium": float((xi - x_eq).norm(dim=-1).pow(2).mean().sqrt()),
                       "energy_gap": e_pred - e_eq, "energy_equilibrium": e_eq,
                       "pin_error": float((xi[towel.pins.vertices] - towel.pins.positions(qi)).norm(dim=-1).max())})
+    table = [tb.Plane(point=(0.0, 0.0, towel.physics.ground_z))] if "ground" in towel.physics.terms else []
     save_drape_png(os.path.join(a.out, "drapes.png"), [(xi, towel.faces) for xi in x_pred],
-                   [f"yaw {qi[0]:+.2f} wrist {qi[3]:+.2f} rad" for qi in q_eval.tolist()])
+                   [f"yaw {qi[0]:+.2f} wrist {qi[3]:+.2f} rad" for qi in q_eval.tolist()], colliders=[table] * len(x_pred))
     result = {"losses": history, "start": start, "steps": steps, "eval": evals}
     with open(os.path.join(a.out, "history.json"), "w") as f:
         json.dump(result, f)
     writer.close()
+    if history:
+        log.info("loss %.6g at step %d -> %.6g at step %d -> %s", history[0], start + 1, history[-1], steps, a.out)
     for e in evals:
-        print(f"held-out q: RMS distance to the Newton equilibrium {e['rms_distance_to_equilibrium']:.2e} m, "
-              f"energy {e['energy_equilibrium'] + e['energy_gap']:.4f} J vs {e['energy_equilibrium']:.4f} J, pins vs FK {e['pin_error']:.1e} m")
+        log.info("held-out q: RMS distance to the Newton equilibrium %.2e m, energy %.4f J vs %.4f J, pins vs FK %.1e m%s",
+                 e["rms_distance_to_equilibrium"], e["energy_equilibrium"] + e["energy_gap"], e["energy_equilibrium"],
+                 e["pin_error"], "" if e["converged"] else " (Newton did not converge)")
     return result
 
 
 if __name__ == "__main__":
-    main()
+    cli.run_main(main)

@@ -1,93 +1,529 @@
-"""Scene configs (YAML): reading, validation and building of the model, initial state and robot.
+"""Configs (YAML) for scenes and training: one typed, validated schema (pydantic), reading, and the
+builders of the model, initial state and robot of a scene config.
 
-Keys are documented in :mod:`torchbend.scenes.run`.  Unknown or invalid values raise ``ValueError``
-naming the key.
+* :class:`Section` is the base of every config section: unknown keys are rejected, numbers must be
+  finite and not booleans.  :class:`SceneConfig` is the scene schema (sections ``scene``, ``mesh``,
+  ``material``, ``bending``, ``membrane``, ``colliders``, ``gravity``, ``solver``, ``output``,
+  ``robot``; keys documented on each section and in :mod:`torchbend.scenes.run`).  The training
+  scripts (``train/``) subclass :class:`Section` for their own sections.
+* :func:`load_config` reads a YAML file, applies ``KEY=VALUE`` overrides (``solver.tol=1e-8``,
+  ``colliders[0].radius=0.2``), validates it against a schema and returns the validated config as a
+  plain dict (defaults filled in; only numbers, strings, booleans, lists and dicts), fit for a
+  ``torch.load(..., weights_only=True)`` checkpoint.  :func:`validate` does the same for a dict.
+* Every problem is a :class:`ConfigError` (a ``ValueError``) naming the key's full dotted path:
+  ``unknown config key 'solver.tol_x' (allowed: ...)``, ``config key 'colliders[0].radius' must be
+  positive, got -1``, ``missing config key 'robot.pins[1].link'``.
 """
 from __future__ import annotations
 
 import math
 import os
+import types
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any, Literal, TypeGuard, TypeVar, Union, get_args, get_origin
 
 import torch
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 from torch import Tensor
 
 from ..energies import BendingEnergy, Capsule, MembraneEnergy, Plane, Sphere, stiffness_from_material
 from ..mesh import procedural
+from ..ops.membrane import MembraneModel
+from ..ops.psi import BendingModel
+from ..options import Projection
 from ..robot import LinkCapsule, LinkPins, Robot, RobotScene
 from ..sim import ClothModel
+from ..sim.newton import LinearSolver
 
-__all__ = ["load_config", "build_scene", "build_robot_scene", "parse_robot", "check_keyframes", "RobotConfig"]
+__all__ = [
+    "ConfigError", "Section", "SceneConfig", "load_config", "validate", "apply_overrides", "build_scene",
+    "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes", "RobotConfig",
+    "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3", "GridMesh", "FileMesh", "MeshSpec", "SphereSpec",
+    "PlaneSpec", "CapsuleSpec", "RobotSection",
+]
 
-_SECTIONS = {"scene", "mesh", "material", "bending", "membrane", "colliders", "gravity", "solver", "output", "robot"}
+
+M = TypeVar("M", bound=BaseModel)
 
 
-def load_config(path: str) -> dict:
-    """Read a YAML scene config (``ValueError`` for a missing file or a malformed document)."""
+class ConfigError(ValueError):
+    """A config problem: the message names the key's dotted path (``solver.tol``, ``colliders[0].radius``)."""
+
+
+# ------------------------------------------------------------------------------ field types
+def _number(value):
+    """Numbers only: YAML's ``true``/``false`` are not 0/1 (pydantic's lax mode would take them)."""
+    if isinstance(value, bool):
+        raise ValueError(f"must be a number, got {value!r}")
+    return value
+
+
+def _vec3(value):
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
+        raise ValueError(f"must be a list of 3 numbers [x, y, z], got {value!r}")
+    return [_number(v) for v in value]
+
+
+def _pair(value):
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ValueError(f"must be a list of 2 numbers, got {value!r}")
+    return [_number(v) for v in value]
+
+
+Float = Annotated[float, BeforeValidator(_number)]
+Int = Annotated[int, BeforeValidator(_number)]
+Positive = Annotated[float, Field(gt=0), BeforeValidator(_number)]
+NonNegative = Annotated[float, Field(ge=0), BeforeValidator(_number)]
+PositiveInt = Annotated[int, Field(gt=0), BeforeValidator(_number)]
+NonNegativeInt = Annotated[int, Field(ge=0), BeforeValidator(_number)]
+Vec3 = Annotated[tuple[float, float, float], BeforeValidator(_vec3)]
+
+
+class Section(BaseModel):
+    """Base of every config section: unknown keys rejected, numbers finite."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _option(cls, what: str):
+    """A field validator: the value must name a member of the option enum ``cls`` (stored as its string)."""
+    def check(value):
+        member = cls.parse(value, what=what)
+        return value if isinstance(value, str) else member.value  # the user's spelling
+    return check
+
+
+# ------------------------------------------------------------------------------ scene schema
+class SceneSection(Section):
+    """``scene``: ``kind`` = ``dynamic`` (implicit Euler steps), ``robot`` (steps of a robot-held cloth)
+    or ``static`` (one static solve per thickness)."""
+
+    kind: Literal["dynamic", "robot", "static"] = "dynamic"
+
+
+def _pin(value, kinds: tuple):
+    if value is None or value in kinds:
+        return value
+    if isinstance(value, (list, tuple)) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
+        return list(value)
+    names = "".join(f"'{k}', " for k in kinds)
+    raise ValueError(f"must be {names}a list of vertex indices or null, got {value!r}")
+
+
+class GridMesh(Section):
+    """``mesh`` of ``type: grid`` (the default): ``nx * ny`` vertices on ``size`` [m] in the z = 0
+    plane, moved by ``offset`` [m]; ``pin``: ``first_two_columns`` (a clamped beam), ``corners`` (the
+    two corners of the first row) or a list of vertex indices."""
+
+    type: Literal["grid"] = "grid"
+    nx: Annotated[int, Field(ge=2), BeforeValidator(_number)] = 11
+    ny: Annotated[int, Field(ge=2), BeforeValidator(_number)] | None = None  # default: nx
+    size: Annotated[tuple[Positive, Positive], BeforeValidator(_pair)] = (1.0, 1.0)
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    pin: Any = None
+
+    _check_pin = field_validator("pin")(lambda v: _pin(v, ("first_two_columns", "corners")))
+
+
+class FileMesh(Section):
+    """``mesh`` read from a file (``mesh: path.obj`` is short for ``{type: file, path: path.obj}``):
+    :func:`torchbend.mesh.load` with vertex welding within ``weld_tol`` (relative to the mesh size);
+    a relative ``path`` is relative to the config file's folder.  ``offset`` [m]; ``pin``: a list of
+    vertex indices (of the welded mesh)."""
+
+    type: Literal["file"]
+    path: str
+    weld_tol: NonNegative = 1e-6
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    pin: Any = None
+
+    _check_pin = field_validator("pin")(lambda v: _pin(v, ()))
+
+
+class MaterialSection(Section):
+    """``material``: ``young`` [Pa], ``poisson``, ``thickness`` [m] (or ``thicknesses`` for a static
+    sweep), ``density`` [kg/m^2] or ``volumetric_density`` [kg/m^3] (times the thickness)."""
+
+    young: Positive = 1e5
+    poisson: Annotated[float, Field(gt=-1.0, le=0.5), BeforeValidator(_number)] = 0.3
+    thickness: Positive = 1e-3
+    thicknesses: Annotated[list[Positive], Field(min_length=1)] | None = None
+    density: Positive = 0.2
+    volumetric_density: Positive | None = None
+
+
+class BendingSection(Section):
+    """``bending``: ``model`` (``quadratic``, ``tan``, ``sin``), ``stiffness`` [N m] or
+    ``from_material: true`` (``Y t^3 / (24 (1 - nu^2))``), ``damping`` [N m s]."""
+
+    model: str = "tan"
+    stiffness: NonNegative | None = None
+    from_material: bool = False
+    damping: NonNegative | None = None
+
+    _check_model = field_validator("model")(_option(BendingModel, "bending model"))
+
+    @model_validator(mode="after")
+    def _stiffness_or_material(self):
+        if (self.stiffness is None) == (not self.from_material):
+            raise ValueError("give either 'stiffness' [N m] or 'from_material: true'" +
+                             (", not both" if self.from_material else ""))
+        return self
+
+
+class MembraneSection(Section):
+    """``membrane``: ``model`` (``stvk``, ``arap``, ``symmetric_dirichlet``, ``neohookean``); the
+    moduli and thickness come from ``material``."""
+
+    model: str = "stvk"
+
+    _check_model = field_validator("model")(_option(MembraneModel, "membrane model"))
+
+
+class _ColliderSpec(Section):
+    stiffness: Positive = 1e4  # [N/m]
+    margin: NonNegative = 0.0  # [m]
+
+
+class SphereSpec(_ColliderSpec):
+    """``{type: sphere, center, radius, stiffness, margin}`` (:class:`~torchbend.Sphere`)."""
+
+    type: Literal["sphere"]
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: Positive = 1.0
+
+
+class PlaneSpec(_ColliderSpec):
+    """``{type: plane, point, normal, stiffness, margin}`` (:class:`~torchbend.Plane`)."""
+
+    type: Literal["plane"]
+    point: Vec3 = (0.0, 0.0, 0.0)
+    normal: Vec3 = (0.0, 0.0, 1.0)
+
+
+class CapsuleSpec(_ColliderSpec):
+    """``{type: capsule, a, b, radius, stiffness, margin}`` (:class:`~torchbend.Capsule`)."""
+
+    type: Literal["capsule"]
+    a: Vec3 = (0.0, 0.0, 0.0)
+    b: Vec3 = (1.0, 0.0, 0.0)
+    radius: Positive = 0.1
+
+
+ColliderSpec = Annotated[Union[SphereSpec, PlaneSpec, CapsuleSpec], Field(discriminator="type")]
+MeshSpec = Annotated[Union[GridMesh, FileMesh], Field(discriminator="type")]
+
+
+class SolverSection(Section):
+    """``solver``: ``dt`` [s], ``steps``, ``hessian`` (projection), ``linear_solver``, ``tol``,
+    ``max_iters`` (defaults per scene kind: 1e-6 and 30 for steps, 1e-9 and 50 for static solves),
+    ``load_steps`` (static scenes: gravity ramped in that many equal increments)."""
+
+    dt: Positive = 1 / 60
+    steps: PositiveInt = 60
+    hessian: str = "exact"
+    linear_solver: str = "direct"
+    tol: Positive | None = None
+    max_iters: PositiveInt | None = None
+    load_steps: PositiveInt = 1
+
+    _check_hessian = field_validator("hessian")(_option(Projection, "Hessian projection"))
+    _check_linear = field_validator("linear_solver")(_option(LinearSolver, "linear solver"))
+
+
+class OutputSection(Section):
+    """``output``: ``every`` (write a frame every that many steps)."""
+
+    every: PositiveInt = 1
+
+
+def _keyframe(value):
+    if isinstance(value, (list, tuple)) and len(value) == 2:  # [t, q]
+        return {"t": value[0], "q": value[1]}
+    return value
+
+
+class PinSpec(Section):
+    """``robot.pins[i]``: ``{link: name, vertices: [indices]}`` or ``{link: name, nearest: [[x, y, z], ...]}``
+    (the rest vertex nearest each point)."""
+
+    link: str
+    vertices: list[NonNegativeInt] | None = None
+    nearest: list[Vec3] | None = None
+
+    @model_validator(mode="after")
+    def _one_of(self):
+        if (self.vertices is None) == (self.nearest is None):
+            raise ValueError("give either 'vertices: [indices]' or 'nearest: [[x, y, z], ...]'")
+        return self
+
+
+class LinkCapsuleSpec(Section):
+    """``robot.capsules[i]``: a capsule fixed in ``link``'s frame (:class:`~torchbend.robot.LinkCapsule`),
+    end points ``a``, ``b`` [m] in link coordinates."""
+
+    link: str
+    a: Vec3 = (0.0, 0.0, 0.0)
+    b: Vec3 = (0.1, 0.0, 0.0)
+    radius: Positive = 0.02
+    stiffness: Positive = 1e4
+    margin: NonNegative = 0.0
+
+
+class KeyframeSpec(Section):
+    """``robot.trajectory[i]``: ``{t: seconds, q: [joints]}`` (or ``[t, q]``)."""
+
+    t: Float
+    q: list[Float]
+
+
+class RobotSection(Section):
+    """``robot``: ``urdf`` (asset name or path), ``pins``, ``capsules``, ``trajectory`` (joint keyframes)."""
+
+    urdf: str = "folding_arm.urdf"
+    pins: list[PinSpec] = []
+    capsules: list[LinkCapsuleSpec] = []
+    trajectory: list[Annotated[KeyframeSpec, BeforeValidator(_keyframe)]] = []
+
+
+def _mesh_shorthand(value):
+    if value is None:
+        return {"type": "grid"}
+    if isinstance(value, str):
+        return {"type": "file", "path": value}
+    if isinstance(value, dict) and "type" not in value:
+        return {"type": "grid", **value}
+    return value
+
+
+class SceneConfig(Section):
+    """A scene config (every section optional)."""
+
+    scene: SceneSection = SceneSection()
+    mesh: Annotated[MeshSpec, BeforeValidator(_mesh_shorthand)] = GridMesh()
+    material: MaterialSection = MaterialSection()
+    bending: BendingSection | None = None
+    membrane: MembraneSection | None = None
+    colliders: list[ColliderSpec] = []
+    gravity: Vec3 = (0.0, 0.0, -9.81)
+    solver: SolverSection = SolverSection()
+    output: OutputSection = OutputSection()
+    robot: RobotSection | None = None
+
+    @field_validator("scene", "material", "solver", "output", "colliders", mode="before")
+    @classmethod
+    def _null_is_default(cls, value, info):
+        """``solver:`` with nothing under it (YAML null) means the defaults."""
+        if value is None:
+            field = cls.model_fields[info.field_name]
+            return field.get_default(call_default_factory=True)
+        return value
+
+
+# ------------------------------------------------------------------------------ errors
+def _strip(tp):
+    """``tp`` without ``Annotated`` and ``Optional``."""
+    while True:
+        origin = get_origin(tp)
+        if origin is Annotated:
+            tp = get_args(tp)[0]
+        elif origin in (Union, types.UnionType):
+            args = [a for a in get_args(tp) if a is not type(None)]
+            if len(args) != 1:
+                return tp
+            tp = args[0]
+        else:
+            return tp
+
+
+def _is_model(tp) -> TypeGuard[type[BaseModel]]:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _walk(schema, loc, prefix: str = ""):
+    """``(dotted path, type at the end)`` of a pydantic error location; drops the tags that
+    discriminated unions put into locations (``colliders.0.sphere.radius`` -> ``colliders[0].radius``)."""
+    path, tp = prefix, schema
+    for part in loc:
+        tp = _strip(tp) if tp is not None else None
+        if get_origin(tp) in (Union, types.UnionType) and isinstance(part, str):
+            members = [m for m in get_args(tp) if _is_model(m) and "type" in m.model_fields
+                       and part in get_args(m.model_fields["type"].annotation)]
+            if members:
+                tp = members[0]
+                continue
+        if isinstance(part, int):
+            path += f"[{part}]"
+            args = get_args(tp) if get_origin(tp) in (list, tuple) else ()
+            tp = args[0] if args else None
+        else:
+            path += f".{part}" if path else str(part)
+            field = tp.model_fields.get(part) if _is_model(tp) else None
+            tp = field.annotation if field is not None else None
+    return path, tp
+
+
+def _describe(error: Mapping[str, Any], schema, prefix: str) -> str:
+    kind, loc, ctx = error["type"], error["loc"], error.get("ctx") or {}
+    value = error.get("input")
+    path, _ = _walk(schema, loc, prefix)
+    key = f"config key '{path}'" if path else "the config"
+    if kind == "extra_forbidden":
+        _, parent = _walk(schema, loc[:-1], prefix)
+        parent = _strip(parent)
+        allowed = f" (allowed: {', '.join(parent.model_fields)})" if _is_model(parent) else ""
+        return f"unknown config key '{path}'{allowed}"
+    if kind == "missing":
+        return f"missing config key '{path}'"
+    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        bound = next(iter(ctx.values()))
+        words = {("greater_than", 0): "positive", ("greater_than_equal", 0): "non-negative"}
+        ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+        return f"{key} must be {words.get((kind, bound)) or f'{ops[kind]} {bound}'}, got {value!r}"
+    if kind == "union_tag_invalid":
+        disc = ctx["discriminator"].strip("'")
+        return f"{key[:-1]}.{disc}' must be one of {ctx['expected_tags']}, got {ctx['tag']!r}"
+    if kind == "union_tag_not_found":
+        return f"{key} needs a {ctx['discriminator']} key, got {value!r}"
+    if kind == "literal_error":
+        return f"{key} must be one of {ctx['expected'].replace(' or ', ', ')}, got {value!r}"
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        return f"{key} must be a mapping, got {value!r}"
+    if kind in ("list_type", "tuple_type"):
+        return f"{key} must be a list, got {value!r}"
+    if kind in ("float_parsing", "float_type", "int_parsing", "int_type", "finite_number"):
+        what = "an integer" if kind.startswith("int") else "a finite number"
+        return f"{key} must be {what}, got {value!r}"
+    if kind in ("int_from_float",):
+        return f"{key} must be an integer, got {value!r}"
+    if kind in ("bool_parsing", "bool_type"):
+        return f"{key} must be true or false, got {value!r}"
+    if kind in ("string_type",):
+        return f"{key} must be a string, got {value!r}"
+    if kind == "value_error":
+        msg = str(ctx.get("error", error["msg"]))
+        return f"{key} {msg}" if msg.startswith("must ") else f"{key}: {msg}"
+    return f"{key}: {error['msg']}, got {value!r}"
+
+
+def validate(data, schema: type[M], *, prefix: str = "", source: str | None = None) -> M:
+    """``data`` (a dict, or an instance of ``schema``) validated against the schema (e.g.
+    :class:`SceneConfig`); :class:`ConfigError` naming every offending key's path (below ``prefix``)."""
+    if isinstance(data, schema):
+        return data
+    if isinstance(data, BaseModel):
+        data = data.model_dump()
+    try:
+        return schema.model_validate({} if data is None and not prefix else data)
+    except ValidationError as e:
+        msgs = [_describe(err, schema, prefix) for err in e.errors(include_url=False)]
+        where = f"config {source}: " if source else ""
+        raise ConfigError(where + "; ".join(dict.fromkeys(msgs))) from None
+
+
+# ------------------------------------------------------------------------------ reading
+def _parse_key(key: str) -> list:
+    parts: list = []
+    for name in key.split("."):
+        base, _, rest = name.partition("[")
+        if not base:
+            raise ConfigError(f"override key {key!r}: empty name")
+        parts.append(base)
+        while rest:
+            index, _, rest = rest.partition("]")
+            if not index.lstrip("-").isdigit() or (rest and not rest.startswith("[")):
+                raise ConfigError(f"override key {key!r}: expected name[index]")
+            parts.append(int(index))
+            rest = rest[1:]
+    return parts
+
+
+def apply_overrides(cfg: dict, overrides) -> dict:
+    """``cfg`` with ``KEY=VALUE`` overrides set in place (values read as YAML: ``solver.tol=1e-8``,
+    ``colliders[0].center=[0, 0, 0.1]``); missing mappings on the way are created."""
+    import yaml
+
+    for item in overrides or ():
+        key, sep, text = str(item).partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"override {item!r} must be KEY=VALUE, e.g. solver.tol=1e-8")
+        parts = _parse_key(key.strip())
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise ConfigError(f"override {item!r}: the value is not valid YAML") from None
+        node: Any = cfg
+        for i, part in enumerate(parts[:-1]):
+            nxt = parts[i + 1]
+            if isinstance(part, int):
+                if not isinstance(node, list) or not -len(node) <= part < len(node):
+                    raise ConfigError(f"override {item!r}: no list element [{part}]")
+                node = node[part]
+            else:
+                if not isinstance(node, dict):
+                    raise ConfigError(f"override {item!r}: {part!r} is not inside a mapping")
+                if node.get(part) is None:
+                    node[part] = [] if isinstance(nxt, int) else {}
+                node = node[part]
+        last = parts[-1]
+        if isinstance(last, int):
+            if not isinstance(node, list) or not -len(node) <= last < len(node):
+                raise ConfigError(f"override {item!r}: no list element [{last}]")
+        elif not isinstance(node, dict):
+            raise ConfigError(f"override {item!r}: {last!r} is not inside a mapping")
+        node[last] = value
+    return cfg
+
+
+def read_yaml(path: str) -> dict:
+    """The mapping in a YAML file (``{}`` for an empty file); :class:`ConfigError` otherwise."""
     import yaml
 
     if not os.path.isfile(path):
-        raise ValueError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}")
     with open(path) as f:
         try:
             cfg = yaml.safe_load(f)
         except yaml.YAMLError as e:
-            raise ValueError(f"config {path}: invalid YAML ({e})") from None
+            raise ConfigError(f"config {path}: invalid YAML ({e})") from None
+    cfg = {} if cfg is None else cfg
     if not isinstance(cfg, dict):
-        raise ValueError(f"config {path}: expected a mapping at the top level")
-    unknown = set(cfg) - _SECTIONS
-    if unknown:
-        raise ValueError(f"config {path}: unknown keys {sorted(unknown)}; allowed: {sorted(_SECTIONS)}")
+        raise ConfigError(f"config {path}: expected a mapping at the top level")
     return cfg
 
 
-def get_key(section: dict, key: str, where: str, default=None, *, kind=float, positive=False, required=False) -> Any:
-    """``section[key]`` converted by ``kind`` (``ValueError`` naming ``where.key`` if missing, malformed or not positive)."""
-    if key not in section:
-        if required:
-            raise ValueError(f"missing config key '{where}.{key}'")
-        return default
-    value = section[key]
-    try:
-        value = kind(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"config key '{where}.{key}' must be a {kind.__name__}, got {value!r}") from None
-    if positive and not (value > 0 and (kind is not float or math.isfinite(value))):
-        raise ValueError(f"config key '{where}.{key}' must be positive, got {value!r}")
-    return value
+def load_config(path: str, schema: type[BaseModel] | None = None, overrides=()) -> dict:
+    """Read the YAML config ``path``, apply ``overrides`` (``["solver.tol=1e-8", ...]``), validate
+    against ``schema`` (default :class:`SceneConfig`) and return the validated config as a plain dict
+    with the defaults filled in.  A relative ``mesh.path`` becomes relative to the config's folder.
+    :class:`ConfigError` (a ``ValueError``) naming the key for anything unknown or invalid."""
+    schema = schema or SceneConfig
+    cfg = apply_overrides(read_yaml(path), overrides)
+    model = validate(cfg, schema, source=path)
+    out = model.model_dump(mode="json")
+    mesh = out.get("mesh")
+    if isinstance(mesh, dict) and mesh.get("type") == "file" and not os.path.isabs(mesh["path"]):
+        mesh["path"] = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), mesh["path"]))
+    return out
 
 
-def _collider(spec: dict, i: int):
-    where = f"colliders[{i}]"
-    if not isinstance(spec, dict) or "type" not in spec:
-        raise ValueError(f"config key '{where}' must be a mapping with a 'type'")
-    kinds = {"sphere": Sphere, "plane": Plane, "capsule": Capsule}
-    t = spec["type"]
-    if t not in kinds:
-        raise ValueError(f"config key '{where}.type' must be one of {sorted(kinds)}, got {t!r}")
-    kwargs = {k: v for k, v in spec.items() if k != "type"}
-    try:
-        return kinds[t](**kwargs)
-    except TypeError as e:
-        raise ValueError(f"config key '{where}': {e}") from None
-    except ValueError as e:
-        raise ValueError(f"config key '{where}': {e}") from None
-
-
-def build_scene(cfg: dict, *, thickness: float | None = None, resolution: tuple | None = None):
-    """``(model, x0, faces)`` of a config (``thickness``/``resolution`` override the mesh/material).
+# ------------------------------------------------------------------------------ building scenes
+def build_scene(cfg, *, thickness: float | None = None, resolution: tuple | None = None, device=None):
+    """``(model, x0, faces)`` of a scene config (a dict or :class:`SceneConfig`; ``thickness`` and
+    ``resolution`` override the material and the grid; tensors on ``device``, default CPU).
 
     With a ``robot`` section the vertices it binds to links are pinned in the model."""
-    return _build(cfg, thickness, resolution)[:3]
+    return _build(validate(cfg, SceneConfig), thickness, resolution, device)[:3]
 
 
-def build_robot_scene(cfg: dict, *, resolution: tuple | None = None):
+def build_robot_scene(cfg, *, resolution: tuple | None = None):
     """``(scene, x0, faces, keyframes)`` of a config with a ``robot`` section: a
     :class:`~torchbend.robot.RobotScene` whose pins are bound at the first keyframe's joints."""
-    if not cfg.get("robot"):
-        raise ValueError("config has no 'robot' section")
-    model, x0, faces, rc = _build(cfg, None, resolution)
+    cfg = validate(cfg, SceneConfig)
+    if cfg.robot is None:
+        raise ConfigError("config has no 'robot' section")
+    model, x0, faces, rc = _build(cfg, None, resolution, None)
     assert rc is not None  # the config has a robot section
     pins = LinkPins(rc.robot, rc.vertices, rc.links, x0[rc.vertices], rc.keyframes[0][1])
     scene = RobotScene(model, rc.robot, pins, rc.capsules)
@@ -95,101 +531,113 @@ def build_robot_scene(cfg: dict, *, resolution: tuple | None = None):
     return scene, scene.place(x0, rc.keyframes[0][1]), faces, rc.keyframes
 
 
-def _bending(b: dict, faces, rest, young: float, t: float, poisson: float) -> BendingEnergy:
-    """The ``bending`` section: ``model``, ``stiffness`` [N m] or ``from_material: true``, ``damping``."""
-    if b.get("from_material"):
-        k = stiffness_from_material(young, t, poisson)
+def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, device=None) -> tuple[Tensor, Tensor]:
+    """``(rest (V, 3) [m], faces (F, 3))`` of a ``mesh`` section (dict, :class:`GridMesh` or
+    :class:`FileMesh`), offset applied; ``resolution = (nx, ny)`` overrides a grid's size."""
+    if not isinstance(mesh, (GridMesh, FileMesh)):
+        mesh = validate({"mesh": mesh}, SceneConfig).mesh
+    if isinstance(mesh, GridMesh):
+        nx, ny = resolution if resolution is not None else (mesh.nx, mesh.ny or mesh.nx)
+        rest, faces = procedural.grid(nx, ny, mesh.size, dtype=dtype, device=device)
     else:
-        k = get_key(b, "stiffness", "bending", required=True)
-        if k < 0:
-            raise ValueError(f"config key 'bending.stiffness' must be non-negative, got {k}")
-    damping = b.get("damping")
-    if damping is not None:
-        damping = get_key(b, "damping", "bending")
-        if damping < 0:
-            raise ValueError(f"config key 'bending.damping' must be non-negative, got {damping}")
+        from ..mesh import load  # pyright: ignore[reportAttributeAccessIssue]
+
+        if resolution is not None:
+            raise ConfigError("--resolution applies to grid meshes only, not to 'mesh.path' files")
+        try:
+            rest, faces = load(mesh.path, weld_tol=mesh.weld_tol, dtype=dtype, device=device)
+        except ValueError as e:
+            raise ConfigError(f"config key 'mesh.path': {e}") from None
+    return rest + torch.tensor(mesh.offset, dtype=dtype, device=rest.device), faces
+
+
+def _bending(b: BendingSection, faces, rest, young: float, t: float, poisson: float) -> BendingEnergy:
+    k = stiffness_from_material(young, t, poisson) if b.from_material else b.stiffness
     try:
-        return BendingEnergy(faces, rest, model=b.get("model", "tan"), stiffness=k, damping=damping or None)
+        return BendingEnergy(faces, rest, model=b.model, stiffness=k, damping=b.damping or None)
     except ValueError as e:
-        raise ValueError(f"config key 'bending': {e}") from None
+        raise ConfigError(f"config key 'bending': {e}") from None
 
 
-def _pinned(pin, rest: Tensor, nx: int) -> Tensor | None:
-    """The ``mesh.pin`` option: ``first_two_columns`` (a clamped beam), ``corners`` or none."""
+def _pinned(mesh, rest: Tensor, nx: int) -> Tensor | None:
+    """The ``mesh.pin`` option: ``first_two_columns`` (a clamped beam), ``corners``, vertex indices or none."""
+    pin = mesh.pin
     if pin is None:
         return None
+    mask = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
     if pin == "first_two_columns":
         xs = rest[:, 0].unique()
         return rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
     if pin == "corners":
-        pinned = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
-        pinned[[0, nx - 1]] = True
-        return pinned
-    raise ValueError(f"config key 'mesh.pin' must be 'first_two_columns' or 'corners', got {pin!r}")
+        mask[[0, nx - 1]] = True
+        return mask
+    bad = [v for v in pin if v >= len(rest)]
+    if bad:
+        raise ConfigError(f"config key 'mesh.pin': vertex indices {bad} out of range [0, {len(rest)})")
+    mask[pin] = True
+    return mask
 
 
-def _build(cfg: dict, thickness, resolution):
+def build_collider(spec):
+    """The :class:`~torchbend.Sphere`, :class:`~torchbend.Plane` or :class:`~torchbend.Capsule` of a
+    ``colliders`` entry (a validated spec)."""
+    kinds = {"sphere": Sphere, "plane": Plane, "capsule": Capsule}
+    return kinds[spec.type](**spec.model_dump(exclude={"type"}))
+
+
+def _build(cfg: SceneConfig, thickness, resolution, device):
     dtype = torch.float64
-    mesh = cfg.get("mesh") or {}
-    if mesh.get("type", "grid") != "grid":
-        raise ValueError(f"config key 'mesh.type' must be 'grid', got {mesh.get('type')!r}")
-    nx = get_key(mesh, "nx", "mesh", 11, kind=int, positive=True)
-    ny = get_key(mesh, "ny", "mesh", nx, kind=int, positive=True)
-    if resolution is not None:
-        nx, ny = resolution
-    size = mesh.get("size", [1.0, 1.0])
-    rest, faces = procedural.grid(nx, ny, tuple(size), dtype=dtype)
-    offset = torch.tensor(mesh.get("offset", [0.0, 0.0, 0.0]), dtype=dtype)
-    rest = rest + offset
-    mat = cfg.get("material") or {}
-    young = get_key(mat, "young", "material", 1e5, positive=True)
-    poisson = get_key(mat, "poisson", "material", 0.3)
-    t = thickness if thickness is not None else get_key(mat, "thickness", "material", 1e-3, positive=True)
-    if "volumetric_density" in mat:  # [kg/m^3] -> areal density of this thickness
-        density = get_key(mat, "volumetric_density", "material", positive=True) * t
-    else:
-        density = get_key(mat, "density", "material", 0.2, positive=True)
-    bend = None if cfg.get("bending") is None else _bending(cfg["bending"], faces, rest, young, t, poisson)
+    rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=dtype, device=device)
+    nx = resolution[0] if resolution is not None else getattr(cfg.mesh, "nx", 0)
+    mat = cfg.material
+    t = thickness if thickness is not None else mat.thickness
+    density = mat.volumetric_density * t if mat.volumetric_density is not None else mat.density
+    bend = None if cfg.bending is None else _bending(cfg.bending, faces, rest, mat.young, t, mat.poisson)
     mem = None
-    if cfg.get("membrane") is not None:
-        m = cfg["membrane"]
+    if cfg.membrane is not None:
         try:
-            mem = MembraneEnergy(faces, rest, model=m.get("model", "stvk"), young=young, poisson=poisson, thickness=t)
+            mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
         except ValueError as e:
-            raise ValueError(f"config key 'membrane': {e}") from None
-    pinned = _pinned(mesh.get("pin"), rest, nx)
+            raise ConfigError(f"config key 'membrane': {e}") from None
+    pinned = _pinned(cfg.mesh, rest, nx)
     rc = None
-    if cfg.get("robot") is not None:
-        rc = parse_robot(cfg["robot"], rest)
+    if cfg.robot is not None:
+        rc = parse_robot(cfg.robot, rest)
         if pinned is None:
-            pinned = torch.zeros(len(rest), dtype=torch.bool)
+            pinned = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
         pinned = pinned.clone()
         pinned[rc.vertices] = True
-    colliders = [_collider(c, i) for i, c in enumerate(cfg.get("colliders") or [])]
-    gravity = cfg.get("gravity", [0.0, 0.0, -9.81])
+    colliders = []
+    for i, c in enumerate(cfg.colliders):
+        try:
+            colliders.append(build_collider(c))
+        except ValueError as e:
+            raise ConfigError(f"config key 'colliders[{i}]': {e}") from None
     model = ClothModel(faces, rest, bending=bend, membrane=mem, density=density,
-                       gravity=gravity, pinned=pinned, colliders=colliders)
+                       gravity=cfg.gravity, pinned=pinned, colliders=colliders)
     return model, rest.clone(), faces, rc
 
 
 def check_keyframes(keyframes, robot: Robot, where: str = "trajectory") -> list:
     """Validated ``[(t, q (J,)), ...]`` with strictly increasing times."""
     if not keyframes:
-        raise ValueError(f"{where} must list at least one keyframe")
+        raise ConfigError(f"{where} must list at least one keyframe")
     out = []
     for i, k in enumerate(keyframes):
-        if isinstance(k, dict):
+        if isinstance(k, KeyframeSpec):
+            t, q = k.t, k.q
+        elif isinstance(k, dict):
             if set(k) != {"t", "q"}:
-                raise ValueError(f"{where}[{i}] must be a mapping {{t: seconds, q: [joints]}}, got keys {sorted(k)}")
+                raise ConfigError(f"{where}[{i}] must be a mapping {{t: seconds, q: [joints]}}, got keys {sorted(k)}")
             t, q = k["t"], k["q"]
         else:
             t, q = k
         try:
             t = float(t)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}[{i}].t must be a number, got {t!r}") from None
+            raise ConfigError(f"{where}[{i}].t must be a number, got {t!r}") from None
         if not math.isfinite(t) or (out and t <= out[-1][0]):
-            raise ValueError(f"{where}[{i}].t must be finite and larger than the previous keyframe's, got {t}")
+            raise ConfigError(f"{where}[{i}].t must be finite and larger than the previous keyframe's, got {t}")
         out.append((t, robot.check_joints(torch.as_tensor(q, dtype=torch.float64), f"{where}[{i}].q")))
     return out
 
@@ -205,57 +653,40 @@ class RobotConfig:
     keyframes: list
 
 
-def parse_robot(section: dict, rest: Tensor, where: str = "robot") -> RobotConfig:
-    """Parse a scene config's ``robot`` section against the rest mesh ``rest (V, 3)``.
+def parse_robot(section, rest: Tensor, where: str = "robot") -> RobotConfig:
+    """Parse a scene config's ``robot`` section (a dict or :class:`RobotSection`) against the rest
+    mesh ``rest (V, 3)``.
 
     Keys: ``urdf`` (asset name or path, default ``folding_arm.urdf``); ``pins``: a list of
     ``{link: name, vertices: [indices]}`` or ``{link: name, nearest: [[x, y, z], ...]}`` (the rest
     vertex nearest each point); ``capsules``: a list of ``{link, a, b, radius, stiffness, margin}``
     (end points in link coordinates [m]); ``trajectory``: joint keyframes ``[{t: s, q: [...]}, ...]``.
     """
-    if not isinstance(section, dict):
-        raise ValueError(f"config key '{where}' must be a mapping")
-    unknown = set(section) - {"urdf", "pins", "capsules", "trajectory"}
-    if unknown:
-        raise ValueError(f"unknown config keys {[f'{where}.{k}' for k in sorted(unknown)]}")
-    urdf = section.get("urdf", "folding_arm.urdf")
-    if not isinstance(urdf, str):
-        raise ValueError(f"config key '{where}.urdf' must be a string, got {urdf!r}")
-    robot = Robot(urdf)
+    section = validate(section, RobotSection, prefix=where)
+    robot = Robot(section.urdf)
     vertices, links = [], []
-    for i, pin in enumerate(section.get("pins") or []):
+    for i, pin in enumerate(section.pins):
         w = f"{where}.pins[{i}]"
-        if not isinstance(pin, dict) or "link" not in pin or len(set(pin) & {"vertices", "nearest"}) != 1 \
-                or set(pin) - {"link", "vertices", "nearest"}:
-            raise ValueError(f"config key '{w}' must be {{link: name, vertices: [...]}} or {{link: name, nearest: [[x, y, z], ...]}}")
-        robot.check_link(str(pin["link"]), f"config key '{w}.link'")
-        if "vertices" in pin:
-            try:
-                idx = [int(v) for v in pin["vertices"]]
-            except (TypeError, ValueError):
-                raise ValueError(f"config key '{w}.vertices' must be a list of vertex indices") from None
+        robot.check_link(pin.link, f"config key '{w}.link'")
+        if pin.vertices is not None:
+            idx = list(pin.vertices)
             bad = [v for v in idx if not 0 <= v < len(rest)]
             if bad:
-                raise ValueError(f"config key '{w}.vertices': indices {bad} out of range [0, {len(rest)})")
+                raise ConfigError(f"config key '{w}.vertices': indices {bad} out of range [0, {len(rest)})")
         else:
-            try:
-                pts = torch.as_tensor(pin["nearest"], dtype=rest.dtype).reshape(-1, 3)
-            except (TypeError, ValueError, RuntimeError):
-                raise ValueError(f"config key '{w}.nearest' must be a list of [x, y, z] points") from None
+            pts = torch.tensor(pin.nearest, dtype=rest.dtype, device=rest.device).reshape(-1, 3)
             idx = torch.cdist(pts, rest).argmin(-1).tolist()
         vertices += idx
-        links += [str(pin["link"])] * len(idx)
+        links += [pin.link] * len(idx)
     if len(set(vertices)) != len(vertices):
-        raise ValueError(f"config key '{where}.pins' binds a vertex twice")
+        raise ConfigError(f"config key '{where}.pins' binds a vertex twice")
     capsules = []
-    for i, c in enumerate(section.get("capsules") or []):
+    for i, c in enumerate(section.capsules):
         w = f"{where}.capsules[{i}]"
-        if not isinstance(c, dict) or "link" not in c:
-            raise ValueError(f"config key '{w}' must be a mapping with a 'link'")
-        robot.check_link(str(c["link"]), f"config key '{w}.link'")
+        robot.check_link(c.link, f"config key '{w}.link'")
         try:
-            capsules.append(LinkCapsule(**c))
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"config key '{w}': {e}") from None
-    keyframes = check_keyframes(section.get("trajectory"), robot, f"{where}.trajectory")
+            capsules.append(LinkCapsule(**c.model_dump()))
+        except ValueError as e:
+            raise ConfigError(f"config key '{w}': {e}") from None
+    keyframes = check_keyframes(section.trajectory, robot, f"{where}.trajectory")
     return RobotConfig(robot, vertices, links, tuple(capsules), keyframes)
