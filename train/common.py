@@ -111,8 +111,11 @@ class ClothPhysics:
             modules["ground"] = tb.losses.BodyContact(stiffness=0.5 * self.k_contact, eps=0.0, power=2.0,
                                                       colliders=[tb.Plane(point=(0.0, 0.0, self.ground_z))])
         self.loss = tb.ClothLoss(modules, reduction="none").to(device)
-        self.mem = modules.get("membrane")
-        self.bend = modules["bending"].bending if "bending" in modules else None  # the unit-stiffness BendingEnergy
+        # the same energies as solver-side modules (robot_drape's reference scene, mean |theta - theta_rest|)
+        self.mem = modules["membrane"].membrane if "membrane" in modules else None
+        self.bend = None
+        if "bending" in modules:
+            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=modules["bending"].stiffness)
         gravity = modules.get("gravity") or tb.losses.Gravity(faces, rest, density)
         self.mass = density * gravity.areas.to(device)  # (V,) lumped masses [kg]
 

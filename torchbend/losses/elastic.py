@@ -46,18 +46,24 @@ class Stretch(LossTerm):
 
     ``forward(x, *, young=None, poisson=None, thickness=None)``: ``x (B, V, 3)`` or ``(V, 3)`` [m] ->
     ``(B,)`` or ``()`` [J]; the keywords override the stored material for this call.  HOOD/SNUG
-    coefficients: :func:`torchbend.energies.materials.material_from_lame`.
+    coefficients: :func:`torchbend.energies.materials.material_from_lame`.  ``.membrane`` is the wrapped
+    :class:`~torchbend.MembraneEnergy`: of the stored material when it is given as floats (e.g. for a
+    solver's :class:`~torchbend.ClothModel`), else of a unit one.
     """
 
     inputs = ("young", "poisson", "thickness")
 
     def __init__(self, faces, rest: Tensor, *, young, poisson, thickness, model="stvk"):
         super().__init__()
-        self.membrane = MembraneEnergy(faces, rest, model=model, young=2.0, poisson=0.0, thickness=1.0)  # mu=1, lam=0
         self._set_material("young", young)
         self._set_material("poisson", poisson, positive=None)
         self._set_material("thickness", thickness)
         self._check_poisson(torch.as_tensor(self.poisson))
+        material = (self.young, self.poisson, self.thickness)
+        if not all(isinstance(v, float) for v in material):
+            material = (2.0, 0.0, 1.0)  # (mu, lam) = (1, 0); only its rest-state buffers are used then
+        self.membrane = MembraneEnergy(faces, rest, model=model, young=material[0], poisson=material[1],
+                                       thickness=material[2])
 
     @property
     def vertex_count(self) -> int:
