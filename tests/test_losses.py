@@ -387,6 +387,25 @@ def test_cloth_loss_weights_sum_values_and_routing(cloth):
     assert "off" in loss(x, x_hat=rest)[1]
 
 
+def test_cloth_loss_routes_term_specific_inputs(cloth):
+    rest, faces, x = cloth
+    ground = L.BodyContact(stiffness=1e3, eps=0.0, power=2.0, colliders=[tb.Plane(point=(0, 0, 0.01))])
+    sphere = L.BodyContact(stiffness=1e3, eps=0.0, power=2.0)
+    loss = tb.ClothLoss({"ground": ground, "sphere": sphere}, reduction="none")
+    c, r = torch.tensor([0.2, 0.2, -0.05], dtype=F64), torch.tensor(0.1, dtype=F64)
+    _, values = loss(x, sphere={"sphere_center": c, "sphere_radius": r})
+    assert torch.equal(values["ground"], ground(x).detach())  # the ground gets no sphere
+    assert torch.equal(values["sphere"], sphere(x, sphere_center=c, sphere_radius=r).detach())
+    assert (values["ground"] > 0).all() and (values["sphere"] > 0).all()
+    # shared inputs reach both terms of the class
+    _, both = loss(x, sphere_center=c, sphere_radius=r)
+    assert torch.allclose(both["ground"], values["ground"] + values["sphere"], rtol=1e-14, atol=0)
+    with pytest.raises(ValueError, match=r"inputs of term 'sphere' must be a mapping of the names it takes"):
+        loss(x, sphere={"density": 0.2})
+    with pytest.raises(ValueError, match=r"term names \['density'\] are also input names"):
+        tb.ClothLoss({"density": L.Gravity(faces, rest, 0.2)})
+
+
 @pytest.mark.parametrize(
     "call, match",
     [

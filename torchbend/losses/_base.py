@@ -15,7 +15,8 @@ class LossTerm(nn.Module):
 
     ``inputs`` names the keyword inputs a term accepts; :class:`~torchbend.losses.ClothLoss` routes
     its keyword arguments to the terms by these names (one namespace for all terms: ``density`` is
-    shared by :class:`Gravity` and :class:`Inertia`, every other name belongs to one term)."""
+    shared by :class:`Gravity` and :class:`Inertia`; two terms of one class share all their names, and
+    take term-specific inputs as ``loss(x, name={...})``)."""
 
     inputs: tuple[str, ...] = ()
 
