@@ -11,6 +11,8 @@ import pytest
 import torch
 import yaml
 
+import torchbend as tb
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -40,6 +42,7 @@ common = load_script("common")
 drape_net = load_script("drape_net")
 material_id = load_script("material_id")
 robot_drape = load_script("robot_drape")
+hood_style = load_script("hood_style")
 ClothPhysics, load_config = common.ClothPhysics, common.load_config
 
 TINY = {
@@ -200,3 +203,44 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
     assert x.shape == (8, 25, 3)
     (gq,) = torch.autograd.grad(x[:, towel.pins.vertices].sum(), q)
     assert float(gq[:, :4].abs().min()) > 0
+
+
+def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = {"cloth": {"resolution": 5}, "body": {"subdivisions": 1}, "model": {"hidden": 16, "layers": 2},
+           "train": {"batch": 2, "rollout": 3, "log_every": 2, "checkpoint_every": 2}}
+    path = tmp_path / "hood.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = str(tmp_path / "run")
+    r = hood_style.main(["--config", str(path), "--out", out, "--steps", "4", "--seed", "1", "--no-progress"])
+    assert set(r["terms"]) == set(hood_style.TERMS) and all(len(v) == 4 for v in r["terms"].values())
+    assert all(math.isfinite(v) for v in r["losses"]) and all(math.isfinite(v) for vs in r["terms"].values() for v in vs)
+    acc = EventAccumulator(os.path.join(out, "tb"))
+    acc.Reload()
+    assert {f"loss/{name}" for name in hood_style.TERMS} | {"loss/total"} <= set(acc.Tags()["scalars"])
+    for name in hood_style.TERMS:  # the logged values are the per-term values of the run (unweighted, J)
+        logged = {e.step: e.value for e in acc.Scalars(f"loss/{name}")}
+        assert set(logged) == {2, 4}
+        assert all(math.isclose(logged[s], r["terms"][name][s - 1], rel_tol=1e-6, abs_tol=1e-30) for s in logged)
+    r2 = hood_style.main(["--config", str(path), "--out", out, "--steps", "6", "--resume", "--no-progress"])
+    assert r2["start"] == 4 and len(r2["losses"]) == 2
+    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["step"] == 6
+    # another mesh plugs in; a sequence's HOOD materials convert to ours sample by sample
+    grid, faces = tb.scenes.grid(4, 6, (0.4, 0.6))
+    r3 = hood_style.main(["--config", str(path), "--out", str(tmp_path / "mesh"), "--steps", "2", "--no-progress"],
+                         mesh=(grid + torch.tensor([-0.2, -0.3, 0.3]), faces))
+    assert len(r3["losses"]) == 2
+    seq = hood_style.Sequences(load_config(str(path), hood_style.DEFAULTS), 4, torch.Generator().manual_seed(0),
+                               torch.float64, "cpu")
+    for b in range(4):
+        mu, lam = tb.lame_parameters(float(seq.young[b]), float(seq.poisson[b]))
+        assert math.isclose(mu, float(seq.lame_mu[b]), rel_tol=1e-12)
+        assert math.isclose(lam, float(seq.lame_lambda[b]), rel_tol=1e-12, abs_tol=1e-9)
+        assert math.isclose(24 * float(seq.bending_stiffness[b]), float(seq.bending_coeff[b]), rel_tol=1e-14)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_hood_style_without_cuda_names_the_device(tmp_path):
+    with pytest.raises(ValueError, match="--device cuda: CUDA is not available"):
+        hood_style.main(["--out", str(tmp_path), "--steps", "1", "--device", "cuda", "--no-progress"])

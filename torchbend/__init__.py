@@ -4,12 +4,14 @@ The one public import path (SPEC sec. 2).  The package is layered, each layer im
 ones before it: ``mesh`` (topology, packing, procedural meshes, mesh files: ``tb.mesh.load``) ->
 ``ops`` (pure per-element kernels) -> ``backends`` (eager or compiled, decided in one function) ->
 ``energies`` (bending, membrane, colliders) -> ``sim`` (cloth model, Newton solvers, adjoint) -> ``robot`` -> ``scenes``
-(YAML configs and their runner).  ``options`` (the option enums) and ``testing`` (plain autograd
+(YAML configs and their runner); ``losses`` (physics losses as modules for training: gravity,
+inertia, pinning, contact, stretch, bending, ``ClothLoss``) stands beside ``sim`` and imports only
+``mesh``, ``ops`` and ``energies``.  ``options`` (the option enums) and ``testing`` (plain autograd
 references) stand beside the chain.
 """
 from importlib.metadata import PackageNotFoundError, version
 
-from . import mesh, scenes
+from . import losses, mesh, scenes
 from .backends import select_backend, use_backend
 from .energies import (
     BendingEnergy,
@@ -17,12 +19,16 @@ from .energies import (
     MembraneEnergy,
     Plane,
     Sphere,
+    bending_stiffness_from_hood,
     hinge_angles,
+    hood_bending_coeff,
     lame_parameters,
+    material_from_lame,
     rest_hinge_weights,
     stiffness_from_material,
     to_scipy,
 )
+from .losses import ClothLoss
 from .mesh import HingeTopology, PackedMeshes, pack_meshes
 from .ops.membrane import MembraneModel
 from .ops.psi import BendingModel
@@ -40,6 +46,7 @@ __all__ = [
     "BendingEnergy",
     "BendingModel",
     "Capsule",
+    "ClothLoss",
     "ClothModel",
     "ClothState",
     "HingeTopology",
@@ -51,9 +58,13 @@ __all__ = [
     "SolveInfo",
     "Sphere",
     "__version__",
+    "bending_stiffness_from_hood",
     "hinge_angles",
+    "hood_bending_coeff",
     "implicit_euler_step",
     "lame_parameters",
+    "losses",
+    "material_from_lame",
     "mesh",
     "pack_meshes",
     "rest_hinge_weights",

@@ -85,9 +85,11 @@ def total(terms: dict) -> torch.Tensor:
 class ClothPhysics:
     """Potential energy of batched cloth states ``x (B, V, 3)`` with per-sample sphere colliders.
 
-    Terms (each optional, selected by ``energies`` in the config): ``membrane`` (StVK), ``bending``
+    Terms (each optional, selected by ``energies`` in the config), the loss modules of
+    :mod:`torchbend.losses` in a :class:`torchbend.ClothLoss`: ``membrane`` (StVK), ``bending``
     (torchbend hinge energy, analytic first and second derivatives), ``gravity``, ``sphere``
-    (one-sided quadratic penalty, per-sample centre/radius) and ``ground`` (plane z = ground_z)."""
+    (one-sided quadratic penalty ``k/2 max(0, r - |x - c|)^2``, per-sample centre/radius) and ``ground``
+    (the same penalty against the plane z = ground_z)."""
 
     def __init__(self, cfg: dict, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", mesh=None):
         """``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's square grid."""
@@ -107,56 +109,63 @@ class ClothPhysics:
         else:
             rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
         self.rest, self.faces, self.terms = rest, faces, terms
-        self.bend = None
-        if "bending" in terms:
-            k = check_positive(cfg, "cloth.bending_stiffness")
-            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=k).to(device)
-        self.mem = None
-        if "membrane" in terms:
-            self.mem = tb.MembraneEnergy(faces, rest, model="stvk", young=check_positive(cfg, "cloth.young"),
-                                         poisson=float(c["poisson"]), thickness=check_positive(cfg, "cloth.thickness")).to(device)
         density = check_positive(cfg, "cloth.density")
-        p = rest[faces]
-        area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-        self.mass = torch.zeros(len(rest), dtype=dtype, device=device).index_add_(
-            0, faces.reshape(-1), (density * area / 3).repeat_interleave(3))
-        self.g = torch.tensor([0.0, 0.0, -9.81], dtype=dtype, device=device)
+        modules: dict = {}
+        if "membrane" in terms:
+            modules["membrane"] = tb.losses.Stretch(faces, rest, young=check_positive(cfg, "cloth.young"),
+                                                    poisson=float(c["poisson"]),
+                                                    thickness=check_positive(cfg, "cloth.thickness"))
+        if "bending" in terms:
+            modules["bending"] = tb.losses.Bending(faces, rest, check_positive(cfg, "cloth.bending_stiffness"),
+                                                   model=c["bending_model"])
+        if "gravity" in terms:
+            modules["gravity"] = tb.losses.Gravity(faces, rest, density)
         self.k_contact = check_positive(cfg, "cloth.contact_stiffness")
         self.ground_z = float(c["ground_z"])
+        # k/2 max(0, -s)^2: the contact loss with power 2 and no margin
+        if "sphere" in terms:
+            modules["sphere"] = tb.losses.BodyContact(stiffness=0.5 * self.k_contact, eps=0.0, power=2.0)
+        if "ground" in terms:
+            modules["ground"] = tb.losses.BodyContact(stiffness=0.5 * self.k_contact, eps=0.0, power=2.0,
+                                                      colliders=[tb.Plane(point=(0.0, 0.0, self.ground_z))])
+        self.loss = tb.ClothLoss(modules, reduction="none").to(device)
+        # the same energies as solver-side modules (robot_drape's reference scene, mean |theta - theta_rest|)
+        self.mem = modules["membrane"].membrane if "membrane" in modules else None
+        self.bend = None
+        if "bending" in modules:
+            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=modules["bending"].stiffness)
+        gravity = modules.get("gravity") or tb.losses.Gravity(faces, rest, density)
+        self.mass = density * gravity.areas.to(device)  # (V,) lumped masses [kg]
 
     def energies(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> dict:
         """Per-sample energy terms ``{name: (B,)}`` [J]; ``center (B, 3)`` and ``radius (B,)`` are needed
         only with the ``sphere`` term."""
-        out = {}
-        if self.mem is not None:
-            out["membrane"] = self.mem(x)
-        if self.bend is not None:
-            out["bending"] = self.bend(x)
-        if "gravity" in self.terms:
-            out["gravity"] = -(self.mass[:, None] * self.g * x).sum((-1, -2))
-        if "sphere" in self.terms:
-            if center is None or radius is None:
-                raise ValueError("the 'sphere' energy needs the sphere's center and radius")
-            d = (radius[:, None] - (x - center[:, None, :]).norm(dim=-1)).clamp_min(0)
-            out["sphere"] = 0.5 * self.k_contact * (d * d).sum(-1)
-        if "ground" in self.terms:
-            d = (self.ground_z - x[..., 2]).clamp_min(0)
-            out["ground"] = 0.5 * self.k_contact * (d * d).sum(-1)
-        return out
+        if "sphere" not in self.terms:
+            return self.loss.energies(x)
+        if center is None or radius is None:
+            raise ValueError("the 'sphere' energy needs the sphere's center and radius")
+        return self.loss.energies(x, sphere={"sphere_center": center, "sphere_radius": radius})  # (not the ground's)
 
     def gradient(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> torch.Tensor:
         """``dE/dx (B, V, 3)``, differentiable: bending and membrane through their analytic
         gradient Functions (whose backward is the analytic HVP), the rest through autograd."""
         g = torch.zeros_like(x)
-        if self.mem is not None:
-            g = g + self.mem.gradient(x)
-        if self.bend is not None:
-            g = g + self.bend.gradient(x)
+        modules = self.loss.terms
+        if "membrane" in modules:
+            g = g + modules["membrane"].gradient(x)
+        if "bending" in modules:
+            g = g + modules["bending"].gradient(x)
         if "gravity" in self.terms:
-            g = g - self.mass[:, None] * self.g
-        rest_terms = {k: v for k, v in self.energies(x, center, radius).items() if k in ("sphere", "ground")}
-        if rest_terms:
-            (gc,) = torch.autograd.grad(torch.stack([v.sum() for v in rest_terms.values()]).sum(), x, create_graph=True)
+            g = g - self.mass[:, None] * self.mass.new_tensor(modules["gravity"].gravity)
+        contact = []
+        if "sphere" in modules:
+            if center is None or radius is None:
+                raise ValueError("the 'sphere' energy needs the sphere's center and radius")
+            contact.append(modules["sphere"](x, sphere_center=center, sphere_radius=radius).sum())
+        if "ground" in modules:
+            contact.append(modules["ground"](x).sum())
+        if contact:
+            (gc,) = torch.autograd.grad(torch.stack(contact).sum(), x, create_graph=True)
             g = g + gc
         return g
 

@@ -2,10 +2,17 @@
 sparse assembly (bending, membrane, colliders)."""
 from .bending import BendingEnergy, hinge_angles
 from .colliders import Capsule, Collider, Plane, Sphere
-from .materials import lame_parameters, stiffness_from_material
+from .materials import (
+    bending_stiffness_from_hood,
+    hood_bending_coeff,
+    lame_parameters,
+    material_from_lame,
+    stiffness_from_material,
+)
 from .membrane import MembraneEnergy
 from .params import HingeParams, rest_hinge_weights
 from .sparse import to_scipy
 
-__all__ = ["BendingEnergy", "Capsule", "Collider", "HingeParams", "MembraneEnergy", "Plane", "Sphere", "hinge_angles",
-           "lame_parameters", "rest_hinge_weights", "stiffness_from_material", "to_scipy"]
+__all__ = ["BendingEnergy", "Capsule", "Collider", "HingeParams", "MembraneEnergy", "Plane", "Sphere",
+           "bending_stiffness_from_hood", "hinge_angles", "hood_bending_coeff", "lame_parameters", "material_from_lame",
+           "rest_hinge_weights", "stiffness_from_material", "to_scipy"]
