@@ -227,6 +227,9 @@ def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
     assert r2["start"] == 4 and len(r2["losses"]) == 2
     ck = torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)
     assert ck["step"] == 6 and ck["config"] == load_config(str(path), hood_style.Config, ["train.steps=6"])
+    with pytest.raises(ValueError, match=r"does not fit this network \(config differs at model.hidden\)"):
+        hood_style.main(["--config", str(path), "--out", out, "--steps", "7", "--resume", "--no-progress",
+                         "--set", "model.hidden=8"])
     # another mesh plugs in; a sequence's HOOD materials convert to ours sample by sample
     grid, faces = tb.scenes.grid(4, 6, (0.4, 0.6))
     r3 = hood_style.main(["--config", str(path), "--out", str(tmp_path / "mesh"), "--steps", "2", "--no-progress"],

@@ -328,8 +328,13 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
         changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
+        try:
+            net.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as e:  # another mesh or network size
+            first = str(e).strip().splitlines()[-1].strip() if str(e).strip() else type(e).__name__
+            raise ConfigError(f"--resume: {ckpt_path} does not fit this network (config differs at "
+                              f"{', '.join(changed) or 'the mesh passed to main'}): {first}") from None
         start = int(ck["step"])
         log.info("resumed at step %d from %s", start, ckpt_path)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
