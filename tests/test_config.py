@@ -30,11 +30,11 @@ from torchbend.scenes.config import (
 from torchbend.scenes.run import main as scenes_main
 from torchbend.scenes.run import run_config
 
-from .test_train import drape_net, material_id, robot_drape
+from .test_train import drape_net, hood_style, material_id, robot_drape
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIGS = os.path.join(ROOT, "configs")
-SCRIPTS = {"drape_net": drape_net, "material_id": material_id, "robot_drape": robot_drape}
+SCRIPTS = {"drape_net": drape_net, "material_id": material_id, "robot_drape": robot_drape, "hood_style": hood_style}
 TINY = {"cloth": {"resolution": 5}, "scene": {"fixed_conditions": True}, "model": {"hidden": 8, "layers": 1},
         "train": {"steps": 2, "batch": 2, "log_every": 1, "mesh_every": 2, "checkpoint_every": 1}}
 
@@ -112,6 +112,16 @@ def test_bad_values_are_value_errors_naming_the_path(cfg, message):
     ("robot_drape", {"robot": {"nominal": "up"}}, "config key 'robot.nominal' must be a list"),
     ("material_id", {"identify": {"steps": 0}}, "config key 'identify.steps' must be positive, got 0"),
     ("material_id", {"beam": {"nx": 2}}, "config key 'beam.nx' must be >= 3, got 2"),
+    ("hood_style", {"material": {"lame_mu": [6e4, 1.5e4]}}, "config key 'material.lame_mu' must be a pair [lo, hi] with lo <= hi"),
+    ("hood_style", {"material": {"density": [0.1]}}, "config key 'material.density' must be a pair [lo, hi], got [0.1]"),
+    ("hood_style", {"material": {"bending_coeff": [0, 1e-4]}}, "config key 'material.bending_coeff[0]' must be positive"),
+    ("hood_style", {"material": {"lame_lambda_ratio": [0.2, 2.5]}}, "config key 'material.lame_lambda_ratio[1]' must be < 2"),
+    ("hood_style", {"body": {"radius": [0.3, 0.2]}}, "config key 'body.radius' must be a pair [lo, hi] with lo <= hi"),
+    ("hood_style", {"loss": {"weights": {"strech": 1.0}}}, "unknown config key 'loss.weights.strech' (allowed: stretch,"),
+    ("hood_style", {"loss": {"contact_eps": -1e-3}}, "config key 'loss.contact_eps' must be non-negative"),
+    ("hood_style", {"train": {"rollout": 0}}, "config key 'train.rollout' must be positive, got 0"),
+    ("hood_style", {"train": {"dtype": "float16"}}, "config key 'train.dtype' must be one of 'float32', 'float64'"),
+    ("hood_style", {"mesh": {"type": "file", "path": "a.obj", "nx": 3}}, "unknown config key 'mesh.nx'"),
 ])
 def test_training_schemas_extend_the_same_system(tmp_path, script, cfg, message):
     with pytest.raises(ConfigError) as e:
@@ -159,9 +169,9 @@ def test_grid_pin_by_vertex_indices():
 # ------------------------------------------------------------------------------ CLI
 COMMON = ["--config", "--set", "--seed", "--device", "--out", "--resume", "--log-level", "--no-progress"]
 MAINS = {"scenes": scenes_main, "drape_net": drape_net.main, "material_id": material_id.main,
-         "robot_drape": robot_drape.main}
+         "robot_drape": robot_drape.main, "hood_style": hood_style.main}
 OWN = {"scenes": ["--steps", "--resolution"], "drape_net": ["--loss", "--lr", "--init", "--steps"],
-       "material_id": ["--steps"], "robot_drape": ["--steps"]}
+       "material_id": ["--steps"], "robot_drape": ["--steps"], "hood_style": ["--steps"]}
 
 
 @pytest.mark.parametrize("name", sorted(MAINS))

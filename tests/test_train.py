@@ -225,13 +225,17 @@ def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
         assert all(math.isclose(logged[s], r["terms"][name][s - 1], rel_tol=1e-6, abs_tol=1e-30) for s in logged)
     r2 = hood_style.main(["--config", str(path), "--out", out, "--steps", "6", "--resume", "--no-progress"])
     assert r2["start"] == 4 and len(r2["losses"]) == 2
-    assert torch.load(os.path.join(out, "checkpoint.pt"), weights_only=False)["step"] == 6
+    ck = torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)
+    assert ck["step"] == 6 and ck["config"] == load_config(str(path), hood_style.Config, ["train.steps=6"])
+    with pytest.raises(ValueError, match=r"does not fit this network \(config differs at model.hidden\)"):
+        hood_style.main(["--config", str(path), "--out", out, "--steps", "7", "--resume", "--no-progress",
+                         "--set", "model.hidden=8"])
     # another mesh plugs in; a sequence's HOOD materials convert to ours sample by sample
     grid, faces = tb.scenes.grid(4, 6, (0.4, 0.6))
     r3 = hood_style.main(["--config", str(path), "--out", str(tmp_path / "mesh"), "--steps", "2", "--no-progress"],
                          mesh=(grid + torch.tensor([-0.2, -0.3, 0.3]), faces))
     assert len(r3["losses"]) == 2
-    seq = hood_style.Sequences(load_config(str(path), hood_style.DEFAULTS), 4, torch.Generator().manual_seed(0),
+    seq = hood_style.Sequences(load_config(str(path), hood_style.Config), 4, torch.Generator().manual_seed(0),
                                torch.float64, "cpu")
     for b in range(4):
         mu, lam = tb.lame_parameters(float(seq.young[b]), float(seq.poisson[b]))
@@ -240,7 +244,33 @@ def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
         assert math.isclose(24 * float(seq.bending_stiffness[b]), float(seq.bending_coeff[b]), rel_tol=1e-14)
 
 
+def test_hood_style_trains_on_the_shipped_garment_from_its_config(tmp_path):
+    skirt = tb.mesh.asset_path("skirt.obj")
+    rest, faces = tb.mesh.load(skirt)
+    cfg = {"mesh": {"type": "file", "path": skirt, "offset": [0.0, 0.0, 0.65]}, "body": {"subdivisions": 1},
+           "model": {"hidden": 8, "layers": 1}, "train": {"batch": 2, "rollout": 2, "log_every": 1}}
+    path = tmp_path / "skirt.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = str(tmp_path / "run")
+    r = hood_style.main(["--config", str(path), "--out", out, "--steps", "2", "--no-progress"])
+    assert all(math.isfinite(v) for v in r["losses"]) and set(r["terms"]) == set(hood_style.TERMS)
+    ck = torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)
+    assert ck["model"]["net.2.weight"].shape == (3 * len(rest) + 3, 8)  # one output per welded skirt vertex
+    assert ck["config"]["mesh"]["path"] == skirt
+    # the welded mesh with its offset is the cloth the network steps
+    c = load_config(str(path), hood_style.Config)
+    x, f = hood_style.cloth_mesh(c, torch.float64)
+    assert torch.equal(f, faces) and torch.allclose(x, rest + torch.tensor([0.0, 0.0, 0.65], dtype=torch.float64))
+    # `mesh: path.obj` is short for the file variant; pins are refused (the cloth is free)
+    path.write_text(yaml.safe_dump({"mesh": skirt}))
+    assert load_config(str(path), hood_style.Config)["mesh"]["type"] == "file"
+    path.write_text(yaml.safe_dump({"mesh": {"type": "file", "path": skirt, "pin": [0]}}))
+    with pytest.raises(ValueError, match="'mesh.pin': hood_style pins no vertices"):
+        hood_style.cloth_mesh(load_config(str(path), hood_style.Config), torch.float64)
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
 def test_hood_style_without_cuda_names_the_device(tmp_path):
-    with pytest.raises(ValueError, match="--device cuda: CUDA is not available"):
+    with pytest.raises(SystemExit, match="--device cuda: CUDA is not available"):
         hood_style.main(["--out", str(tmp_path), "--steps", "1", "--device", "cuda", "--no-progress"])
+    assert not os.listdir(tmp_path)  # nothing ran

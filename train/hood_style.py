@@ -1,7 +1,9 @@
 """HOOD-style self-supervised cloth dynamics: a network steps the cloth in time, physics is the loss.
 
-    python train/hood_style.py                                   # script defaults
-    python train/hood_style.py --config configs/train_hood.yaml --steps 2000 --device cuda
+    python train/hood_style.py                                   # configs/train_hood.yaml
+    python train/hood_style.py --steps 2000 --set train.batch=16 --device cuda
+    python train/hood_style.py --set mesh.type=file --set mesh.path=../torchbend/mesh/assets/skirt.obj \\
+        --set "mesh.offset=[0, 0, 0.65]"                         # the shipped skirt instead of the grid
 
 As in HOOD (Grigorev et al. 2023) and SNUG (Santesteban et al. 2022), without ground truth: a
 network maps the cloth's current state (positions, velocities), the body's next state and the
@@ -19,85 +21,207 @@ autoregressive rollouts: each step continues every sequence of the batch from th
 previous prediction, and a new batch of sequences (materials, bodies, cloth at rest) starts every
 ``train.rollout`` steps.
 
-The network is a plain MLP on the flattened state (no graph network, so it is tied to one mesh; the
-mesh is pluggable: ``main(argv, mesh=(rest, faces))``, default a square grid).  TensorBoard logs
-every loss term (``loss/<name>``, unweighted, joules), the total and seconds per step; checkpoints
-with ``--resume`` (a resumed run starts new sequences).
+The network is a plain MLP on the flattened state (no graph network, so it is tied to one mesh).
+The cloth is the square grid of ``cloth`` unless the config has a ``mesh`` section (a scene-config
+mesh: ``mesh: garment.obj`` or ``{type: file, path, weld_tol, offset}``, read with
+:func:`torchbend.mesh.load`) or ``main(argv, mesh=(rest, faces))`` passes one (placed by the caller;
+the body moves about the origin).  Common options of every torchbend script (``--config``, ``--set``,
+``--seed``, ``--device``, ``--out``, ``--resume``, ``--log-level``, ``--no-progress``) plus
+``--steps``.  TensorBoard logs every loss term (``loss/<name>``, unweighted, joules), the total and
+seconds per step; checkpoints (weights only, the validated config as plain values) with ``--resume``
+(a resumed run starts new sequences).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
+from typing import Annotated, Literal
 
 import torch
-from common import Timer, check_positive, load_checkpoint, load_config, save_checkpoint, seed_everything
+from common import (
+    Float,
+    Int,
+    ModelSection,
+    NonNegative,
+    Positive,
+    PositiveInt,
+    Section,
+    Timer,
+    load_checkpoint,
+    load_config,
+    save_checkpoint,
+    seed_everything,
+)
+from pydantic import AfterValidator, BeforeValidator, Field
 from torch import nn
 
 import torchbend as tb
+from torchbend.scenes import cli
+from torchbend.scenes.config import ConfigError, MeshSpec, build_mesh
 
+log = logging.getLogger("train.hood_style")
+CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_hood.yaml"))
 TERMS = ("stretch", "bending", "gravity", "inertia", "contact")
 
-DEFAULTS = {
-    "cloth": {"resolution": 9, "size": 0.8, "height": 0.32, "thickness": 4.7e-4},
-    # HOOD's coefficients, sampled per sequence: log-uniform in [lo, hi] (density: uniform);
-    # lame_lambda = ratio * lame_mu with the ratio uniform in lame_lambda_ratio (Poisson ratio (-1, 0.5) needs < 2)
-    "material": {"lame_mu": [1.5e4, 6.0e4], "lame_lambda_ratio": [0.2, 1.8], "bending_coeff": [1.0e-6, 1.0e-4],
-                 "density": [0.1, 0.4]},
-    "body": {"subdivisions": 2, "radius": [0.15, 0.25], "offset": 0.1, "speed": 0.2},
-    "loss": {"dt": 1.0 / 30.0, "contact_stiffness": 1.0e4, "contact_eps": 4.0e-3, "normalize": True,
-             "weights": {name: 1.0 for name in TERMS}},
-    "model": {"hidden": 256, "layers": 3, "output_scale": 10.0},  # output_scale: acceleration [m/s^2]
-    "train": {"steps": 500, "batch": 8, "rollout": 20, "lr": 1.0e-4, "clip_grad": 1.0, "log_every": 10, "checkpoint_every": 100,
-              "seed": 0, "dtype": "float32"},
-}
+
+# ------------------------------------------------------------------------------ config
+def _pair(value):
+    if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ValueError(f"must be a pair [lo, hi], got {value!r}")
+    if any(isinstance(v, bool) for v in value):
+        raise ValueError(f"must be a pair of numbers [lo, hi], got {value!r}")
+    return value
 
 
-def grid_cloth(cfg: dict, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+def _ordered(value):
+    if value[0] > value[1]:
+        raise ValueError(f"must be a pair [lo, hi] with lo <= hi, got {list(value)}")
+    return value
+
+
+def _mesh_path(value):
+    """``mesh: path.obj`` is short for ``mesh: {type: file, path: path.obj}`` (as in scene configs)."""
+    return {"type": "file", "path": value} if isinstance(value, str) else value
+
+
+Ratio = Annotated[float, Field(gt=-1.0, lt=2.0)]
+# a sampling range [lo, hi] (lo <= hi), of positive numbers or of Lame ratios in (-1, 2)
+PositiveRange = Annotated[tuple[Positive, Positive], BeforeValidator(_pair), AfterValidator(_ordered)]
+RatioRange = Annotated[tuple[Ratio, Ratio], BeforeValidator(_pair), AfterValidator(_ordered)]
+
+
+class HoodCloth(Section):
+    """``cloth``: the default square grid (``resolution`` x ``resolution`` vertices, ``size`` [m],
+    flat at ``height`` [m] above the body's mean position) and the ``thickness`` [m] of the stretch
+    energy ``A t Psi`` (used with a ``mesh`` too)."""
+
+    resolution: Annotated[Int, Field(ge=3)] = 9
+    size: Positive = 0.8
+    height: Float = 0.32
+    thickness: Positive = 4.7e-4
+
+
+class MaterialSection(Section):
+    """``material``: HOOD's coefficients, sampled per sequence in ``[lo, hi]``: ``lame_mu`` [Pa] and
+    ``bending_coeff`` [N m] log-uniform, ``lame_lambda = ratio * lame_mu`` with the ratio uniform in
+    ``lame_lambda_ratio`` (within (-1, 2): a Poisson ratio in (-1, 0.5)), areal ``density`` [kg/m^2]
+    uniform."""
+
+    lame_mu: PositiveRange = (1.5e4, 6.0e4)
+    lame_lambda_ratio: RatioRange = (0.2, 1.8)
+    bending_coeff: PositiveRange = (1.0e-6, 1.0e-4)
+    density: PositiveRange = (0.1, 0.4)
+
+
+class BodySection(Section):
+    """``body``: an icosphere of ``subdivisions`` with a per-sequence radius uniform in ``radius`` [m],
+    start uniform in ``[-offset, offset]^2`` [m] (z = 0) and a horizontal velocity of ``speed`` [m/s]
+    in a uniform direction."""
+
+    subdivisions: Annotated[Int, Field(ge=0)] = 2
+    radius: PositiveRange = (0.15, 0.25)
+    offset: NonNegative = 0.1
+    speed: NonNegative = 0.2
+
+
+class WeightsSection(Section):
+    """``loss.weights``: the weight of each term (0 leaves it out)."""
+
+    stretch: NonNegative = 1.0
+    bending: NonNegative = 1.0
+    gravity: NonNegative = 1.0
+    inertia: NonNegative = 1.0
+    contact: NonNegative = 1.0
+
+
+class LossSection(Section):
+    """``loss``: time step ``dt`` [s], contact ``k max(0, eps - d)^3`` (``contact_stiffness`` k
+    [J/m^3], ``contact_eps`` [m]), ``normalize`` (divide by ``M g L``,
+    :func:`torchbend.losses.energy_scale`, at the mid-range density) and the term ``weights``."""
+
+    dt: Positive = 1.0 / 30.0
+    contact_stiffness: Positive = 1.0e4
+    contact_eps: NonNegative = 4.0e-3
+    normalize: bool = True
+    weights: WeightsSection = WeightsSection()
+
+
+class StepModel(ModelSection):
+    """``model``: the MLP's ``hidden`` width, ``layers`` and ``output_scale`` [m/s^2] (the
+    acceleration of a raw output of 1)."""
+
+    hidden: PositiveInt = 256
+    output_scale: Positive = 10.0
+
+
+class TrainSection(Section):
+    """``train``: optimisation (Adam, gradient norm clipped at ``clip_grad``), sequences of ``rollout``
+    steps, logging cadence."""
+
+    steps: PositiveInt = 500
+    batch: PositiveInt = 8
+    rollout: PositiveInt = 20
+    lr: Positive = 1.0e-4
+    clip_grad: Positive = 1.0
+    log_every: PositiveInt = 10
+    checkpoint_every: PositiveInt = 100
+    seed: Int = 0
+    dtype: Literal["float32", "float64"] = "float32"
+
+
+class Config(Section):
+    """The HOOD-style config (``configs/train_hood.yaml``); ``mesh`` (optional, a scene-config mesh
+    section such as ``mesh: garment.obj``) replaces the square grid of ``cloth``."""
+
+    cloth: HoodCloth = HoodCloth()
+    mesh: Annotated[MeshSpec | None, BeforeValidator(_mesh_path)] = None
+    material: MaterialSection = MaterialSection()
+    body: BodySection = BodySection()
+    loss: LossSection = LossSection()
+    model: StepModel = StepModel()
+    train: TrainSection = TrainSection()
+
+
+def grid_cloth(cfg: dict, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
     """The default cloth: a flat square grid centred above the origin (the body's mean position)."""
     c = cfg["cloth"]
-    n = int(c["resolution"])
-    if n < 3:
-        raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
-    size = check_positive(cfg, "cloth.size")
-    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype)
-    return rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype), faces
+    n, size = int(c["resolution"]), float(c["size"])
+    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
+    return rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device), faces
 
 
-def _range(cfg: dict, key: str, positive: bool = True) -> tuple[float, float]:
-    section, name = key.split(".")
-    v = cfg[section][name]
-    try:
-        lo, hi = (float(t) for t in v)
-    except (TypeError, ValueError):
-        raise ValueError(f"config key '{key}' must be a pair [lo, hi], got {v!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi and (lo > 0 or not positive)):
-        raise ValueError(f"config key '{key}' must be finite with {'0 < ' if positive else ''}lo <= hi, got {v!r}")
-    return lo, hi
+def cloth_mesh(cfg: dict, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(rest (V, 3) [m], faces (F, 3))``: the config's ``mesh`` (offset applied) or the default grid."""
+    if cfg["mesh"] is None:
+        return grid_cloth(cfg, dtype, device)
+    if cfg["mesh"].get("pin") is not None:
+        raise ConfigError("config key 'mesh.pin': hood_style pins no vertices (the cloth moves freely over the body)")
+    return build_mesh(cfg["mesh"], dtype=dtype, device=device)
 
 
 class Sequences:
-    """Per-sequence conditions of a batch: HOOD materials (and ours), body radius, start and velocity."""
+    """Per-sequence conditions of a batch: HOOD materials (and ours), body radius, start and velocity
+    (``cfg``: a validated config, :func:`load_config` with :class:`Config`)."""
 
     def __init__(self, cfg: dict, batch: int, gen: torch.Generator, dtype, device):
         m, b = cfg["material"], cfg["body"]
 
-        def uniform(lo, hi, log=False):
+        def uniform(lo_hi, log=False):
+            lo, hi = (float(v) for v in lo_hi)
             u = torch.rand(batch, generator=gen, dtype=torch.float64)
             out = math.log(lo) + u * (math.log(hi) - math.log(lo)) if log else lo + u * (hi - lo)
             return (out.exp() if log else out).to(dtype=dtype, device=device)
 
-        lo, hi = _range(cfg, "material.lame_lambda_ratio", positive=False)
-        if not (-1 < lo and hi < 2):
-            raise ValueError(f"config key 'material.lame_lambda_ratio' must lie in (-1, 2), got {m['lame_lambda_ratio']!r}")
-        self.lame_mu = uniform(*_range(cfg, "material.lame_mu"), log=True)
-        self.lame_lambda = self.lame_mu * uniform(lo, hi)
-        self.bending_coeff = uniform(*_range(cfg, "material.bending_coeff"), log=True)
-        self.density = uniform(*_range(cfg, "material.density"))
+        self.lame_mu = uniform(m["lame_mu"], log=True)
+        self.lame_lambda = self.lame_mu * uniform(m["lame_lambda_ratio"])
+        self.bending_coeff = uniform(m["bending_coeff"], log=True)
+        self.density = uniform(m["density"])
         self.young, self.poisson = tb.material_from_lame(self.lame_mu, self.lame_lambda)
         self.bending_stiffness = tb.bending_stiffness_from_hood(self.bending_coeff)
-        self.radius = uniform(*_range(cfg, "body.radius"))
+        self.radius = uniform(b["radius"])
         offset = float(b["offset"])
         self.center = torch.cat(((2 * torch.rand(batch, 2, generator=gen, dtype=torch.float64) - 1) * offset,
                                  torch.zeros(batch, 1, dtype=torch.float64)), 1).to(dtype=dtype, device=device)
@@ -110,8 +234,6 @@ class Sequences:
         return torch.stack((self.lame_mu.log() - math.log(3e4), self.lame_lambda.log() - math.log(3e4),
                             self.bending_coeff.log() - math.log(1e-5), self.density * 5, self.radius * 5,
                             *(self.velocity * 5).unbind(-1), torch.ones_like(self.radius)), -1)
-
-
 class StepNet(nn.Module):
     """MLP: (state relative to the body, sequence features) -> next positions ``x + dt v + dt^2 a``, with the
     accelerations ``a_i = s (net_i(...) + net_0(...))`` [m/s^2]: one per vertex and one shared by all
@@ -142,71 +264,58 @@ class StepNet(nn.Module):
 
 
 def build_loss(cfg: dict, rest, faces, body_faces) -> tb.ClothLoss:
-    """The ClothLoss of stretch, bending, gravity, inertia and body contact (materials per call)."""
+    """The ClothLoss of stretch, bending, gravity, inertia and body contact (materials per call;
+    ``cfg``: a validated config)."""
     lc = cfg["loss"]
-    weights = lc["weights"]
-    if not isinstance(weights, dict) or set(weights) - set(TERMS):
-        raise ValueError(f"config key 'loss.weights' must map a subset of {list(TERMS)} to numbers, got {weights!r}")
-    weights = {name: float(weights.get(name, 1.0)) for name in TERMS}
+    weights = {name: float(lc["weights"][name]) for name in TERMS}
     # the stored materials are placeholders: every call passes the sampled per-sample ones
     young, poisson = tb.material_from_lame(3e4, 3e4)
-    thickness = check_positive(cfg, "cloth.thickness")
     terms = {
-        "stretch": tb.losses.Stretch(faces, rest, young=young, poisson=poisson, thickness=thickness),
+        "stretch": tb.losses.Stretch(faces, rest, young=young, poisson=poisson, thickness=float(cfg["cloth"]["thickness"])),
         "bending": tb.losses.Bending(faces, rest, 1e-6),  # quadratic: see torchbend.losses.elastic
         "gravity": tb.losses.Gravity(faces, rest, 0.2),
-        "inertia": tb.losses.Inertia(faces, rest, 0.2, check_positive(cfg, "loss.dt")),
-        "contact": tb.losses.BodyContact(stiffness=check_positive(cfg, "loss.contact_stiffness"),
-                                         eps=check_positive(cfg, "loss.contact_eps", allow_zero=True),
+        "inertia": tb.losses.Inertia(faces, rest, 0.2, float(lc["dt"])),
+        "contact": tb.losses.BodyContact(stiffness=float(lc["contact_stiffness"]), eps=float(lc["contact_eps"]),
                                          body_faces=body_faces),
     }
     if lc["normalize"]:  # joules -> O(1): divide by M g L of a mid-range density (torchbend.losses.cloth_loss)
-        scale = tb.losses.energy_scale(faces, rest, sum(_range(cfg, "material.density")) / 2)
+        scale = tb.losses.energy_scale(faces, rest, sum(float(v) for v in cfg["material"]["density"]) / 2)
         weights = {k: w / scale for k, w in weights.items()}
     return tb.ClothLoss(terms, weights)
 
 
-def resolve_device(name: str) -> torch.device:
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
-    return device
-
-
-def parse_args(argv=None):
+def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    p.add_argument("--config", help="YAML config over the script's defaults (e.g. configs/train_hood.yaml)")
-    p.add_argument("--out", default="runs/hood_style", help="output directory (logs, checkpoint, history)")
+    cli.add_common_args(p, config=CONFIG, out="runs/hood_style")
     p.add_argument("--steps", type=int, help="override train.steps")
-    p.add_argument("--seed", type=int, help="override train.seed")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
-    p.add_argument("--no-progress", action="store_true")
-    return p.parse_args(argv)
+    return cli.parse_args(p, argv)
+
+
+def overrides(a: argparse.Namespace) -> list[str]:
+    """``--set`` overrides plus the script's own flags (``--steps``, ``--seed``)."""
+    flags = {"steps": a.steps, "seed": a.seed}
+    return list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None]
 
 
 def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict:
-    """Train; ``mesh = (rest (V, 3), faces (F, 3))`` replaces the default grid cloth (placed above the
-    body, which moves about the origin).  Returns ``{"losses", "terms", "start", "steps"}``."""
+    """Train; ``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's cloth (grid or ``mesh``
+    section; placed as given, the body moves about the origin).  Returns ``{"losses", "terms",
+    "start", "steps"}``."""
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
     a = parse_args(argv)
-    cfg = load_config(a.config, DEFAULTS) if a.config else {k: dict(v) for k, v in DEFAULTS.items()}
+    device = cli.resolve_device(a.device)
+    cfg = load_config(a.config, Config, overrides(a))
     t = cfg["train"]
-    for key in ("steps", "seed"):
-        if getattr(a, key) is not None:
-            t[key] = getattr(a, key)
-    if t["dtype"] not in ("float32", "float64"):
-        raise ValueError(f"config key 'train.dtype' must be float32 or float64, got {t['dtype']!r}")
-    dtype, device = getattr(torch, t["dtype"]), resolve_device(a.device)
-    check_positive(cfg, "train.lr")
-    check_positive(cfg, "train.clip_grad")
+    dtype = getattr(torch, t["dtype"])
     seed_everything(int(t["seed"]))
-    rest, faces = grid_cloth(cfg, dtype) if mesh is None else (mesh[0].to(dtype), mesh[1])
-    sphere, body_faces = tb.scenes.icosphere(int(cfg["body"]["subdivisions"]), 1.0, dtype=dtype)
+    if mesh is None:
+        rest, faces = cloth_mesh(cfg, dtype, device)
+    else:
+        rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
+    sphere, body_faces = tb.scenes.icosphere(int(cfg["body"]["subdivisions"]), 1.0, dtype=dtype, device=device)
     loss_fn = build_loss(cfg, rest, faces, body_faces).to(device)
-    rest, sphere = rest.to(device), sphere.to(device)
     dt = float(cfg["loss"]["dt"])
     m = cfg["model"]
     net = StepNet(len(rest), 9, int(m["hidden"]), int(m["layers"]), float(m["output_scale"])).to(dtype=dtype, device=device)
@@ -215,20 +324,27 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        ck = load_checkpoint(ckpt_path)
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
+        ck = load_checkpoint(ckpt_path, map_location=device)
+        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
+        if changed:
+            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
+        try:
+            net.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as e:  # another mesh or network size
+            first = str(e).strip().splitlines()[-1].strip() if str(e).strip() else type(e).__name__
+            raise ConfigError(f"--resume: {ckpt_path} does not fit this network (config differs at "
+                              f"{', '.join(changed) or 'the mesh passed to main'}): {first}") from None
         start = int(ck["step"])
+        log.info("resumed at step %d from %s", start, ckpt_path)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
-    batch, rollout, steps = int(t["batch"]), int(t["rollout"]), int(t["steps"])
-    if batch < 1 or rollout < 1:
-        raise ValueError(f"config keys 'train.batch' and 'train.rollout' must be >= 1, got {batch}, {rollout}")
+    batch, rollout, steps, log_every = int(t["batch"]), int(t["rollout"]), int(t["steps"]), int(t["log_every"])
     history: list[float] = []
     terms: dict[str, list[float]] = {}  # per evaluated term (weight != 0), unweighted [J]
-    timer = Timer()
+    timer, lap = Timer(), Timer()
     seq = x = v = None
-    frame = 0
+    frame, logged = 0, start
     for step in tqdm(range(start + 1, steps + 1), desc="train (hood-style)", disable=a.no_progress,
                      initial=start, total=steps):
         if seq is None or frame == rollout:  # new sequences: materials, bodies, cloth at rest
@@ -250,11 +366,12 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
         history.append(float(total.detach()))
         for name, value in values.items():
             terms.setdefault(name, []).append(float(value))
-        if step % int(t["log_every"]) == 0 or step == steps:
+        if step % log_every == 0 or step == steps:
             for name, value in values.items():
                 writer.add_scalar(f"loss/{name}", float(value), step)
             writer.add_scalar("loss/total", history[-1], step)
-            writer.add_scalar("time/seconds_per_step", timer.lap() / int(t["log_every"]), step)
+            writer.add_scalar("time/seconds_per_step", lap.lap() / (step - logged), step)
+            logged = step
         if step % int(t["checkpoint_every"]) == 0 or step == steps:
             save_checkpoint(ckpt_path, step=step, model=net.state_dict(), optimizer=opt.state_dict(), config=cfg)
     writer.close()
@@ -262,10 +379,11 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     with open(os.path.join(a.out, "history.json"), "w") as f:
         json.dump(result, f)
     if history:
-        print(f"hood_style: {len(history)} steps, final loss {history[-1]:.4g} "
-              + " ".join(f"{k}={vals[-1]:.3g} J" for k, vals in terms.items() if vals))
+        log.info("loss %.4g at step %d -> %.4g at step %d (%s), %.3f s/step -> %s", history[0], start + 1, history[-1],
+                 steps, ", ".join(f"{k} {vals[-1]:.3g} J" for k, vals in terms.items() if vals),
+                 timer.total() / len(history), a.out)
     return result
 
 
 if __name__ == "__main__":
-    main()
+    cli.run_main(main)
