@@ -105,15 +105,15 @@ def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> st
             f"{energy:13.6e} {pen / (1.0 / (n - 1)):12.2e}  {'yes' if ok else 'NO'}")
 
 
-def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str) -> str:
+def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str, time_limit: float = 60.0) -> str:
     """One cantilever of configs/beams.yaml solved with default solver options (tolerance and
-    globalisation as a user gets them)."""
+    globalisation as a user gets them), stopped after ``time_limit`` seconds."""
     cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
     model, x0, _ = build_scene(cfg, thickness=thickness, resolution=(nx, ny))
     shares = TimeShares()
     t0 = time.perf_counter()
     with shares.active():
-        _, info = solve_static(model, x0, hessian=hessian, linear_solver=linear_solver)
+        _, info = solve_static(model, x0, hessian=hessian, linear_solver=linear_solver, time_limit=time_limit)
     secs = time.perf_counter() - t0
     return (f"{nx:>3d}x{ny:<2d} t={thickness:.1e} {hessian:>13s} {linear_solver:>6s} {info.iterations:5d} "
             f"{secs:9.2f}s {shares.percent(secs)}  {'yes' if info.converged else 'NO: ' + info.stop_reason}")
@@ -128,6 +128,7 @@ def main(argv=None) -> None:
     p.add_argument("--beams", type=str, nargs="*", default=["61x6", "131x6", "196x7"])
     p.add_argument("--split-beams", type=str, nargs="*", default=["61x6"],
                    help="beam resolutions of the per-option time split table (default solver options)")
+    p.add_argument("--time-limit", type=float, default=60.0, help="seconds per beam solve of the time split table")
     a = p.parse_args(argv)
     print("machine:", machine())
     if a.drape:
@@ -148,7 +149,7 @@ def main(argv=None) -> None:
             for t in cfg["material"]["thicknesses"]:
                 for h in a.hessians:
                     for lin in a.linear:
-                        print(beam(nx, ny, float(t), h, lin), flush=True)
+                        print(beam(nx, ny, float(t), h, lin, a.time_limit), flush=True)
     if a.beams:
         print("\nbeams: cantilevers, static equilibrium (exact Hessian, direct solver)")
         cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
