@@ -166,6 +166,53 @@ def test_grid_pin_by_vertex_indices():
         build_scene({"mesh": {"nx": 4, "ny": 3, "pin": [12]}})
 
 
+def test_pin_region_selects_by_rest_coordinates_before_the_offset():
+    # a 4 x 3 grid on [0, 1] x [0, 1] (columns x = 0, 1/3, 2/3, 1), moved by the offset
+    model, x0, _ = build_scene({"mesh": {"nx": 4, "ny": 3, "offset": [5.0, 0.0, 2.0], "pin": {"x_max": 0.4}}})
+    assert model.pinned.nonzero()[:, 0].tolist() == [0, 1, 4, 5, 8, 9]  # x <= 0.4 in mesh coordinates
+    box = {"x_min": 0.3, "x_max": 0.7, "y_min": 0.5, "nearest": [[0.0, 0.0, 0.0], [0.98, 1.02, 0.0]]}
+    model, _, _ = build_scene({"mesh": {"nx": 4, "ny": 3, "offset": [5.0, 0.0, 2.0], "pin": box}})
+    assert model.pinned.nonzero()[:, 0].tolist() == [0, 5, 6, 9, 10, 11]  # the box, plus the nearest vertices
+    # the shipped skirt by its asset name: {z_min: -0.001} is exactly the waist ring z = 0
+    model, x0, _ = build_scene({"mesh": {"type": "file", "path": "asset:skirt.obj", "pin": {"z_min": -0.001}}})
+    assert torch.equal(model.pinned, x0[:, 2] == 0) and int(model.pinned.sum()) == 32
+    with pytest.raises(ConfigError, match=re.escape("config key 'mesh.pin': the region holds no vertex (the mesh spans "
+                                                    "x [0, 1], y [0, 1], z [0, 0] m")):
+        build_scene({"mesh": {"nx": 4, "ny": 3, "offset": [0.0, 0.0, 1.0], "pin": {"z_min": 0.5}}})
+
+
+@pytest.mark.parametrize("mesh, message", [
+    ({"type": "file", "path": "s.obj", "pin": {"z_mim": 0.0}},
+     "unknown config key 'mesh.pin.z_mim' (allowed: x_min, x_max, y_min, y_max, z_min, z_max, nearest)"),
+    ({"type": "file", "path": "s.obj", "pin": {}}, "config key 'mesh.pin': a pin region needs at least one of x_min"),
+    ({"nx": 3, "pin": {"y_min": 1.0, "y_max": 0.0}}, "config key 'mesh.pin': y_min (1.0) must not exceed y_max (0.0)"),
+    ({"type": "file", "path": "s.obj", "pin": {"z_min": "low"}}, "config key 'mesh.pin.z_min' must be a finite number"),
+    ({"type": "file", "path": "s.obj", "pin": {"nearest": [[0, 0]]}},
+     "config key 'mesh.pin.nearest[0]' must be a list of 3 numbers"),
+    ({"type": "file", "path": "s.obj", "pin": [0, -2]}, "config key 'mesh.pin[1]' must be non-negative, got -2"),
+    ({"type": "file", "path": "s.obj", "pin": "corners"},
+     "config key 'mesh.pin' must be a list of vertex indices, a region {x_min: ..., z_max: ..., nearest: ...} or null"),
+    ({"type": "file", "path": "asset:dress.obj"}, "config key 'mesh.path': no shipped mesh named 'dress.obj'; "
+                                                  "available: ['skirt.obj']"),
+    ("asset:dress.obj", "config key 'mesh.path': no shipped mesh named 'dress.obj'"),
+])
+def test_bad_pin_regions_and_asset_names_are_named_by_their_path(mesh, message):
+    with pytest.raises(ConfigError) as e:
+        validate({"mesh": mesh}, SceneConfig)
+    assert message in str(e.value)
+
+
+def test_asset_meshes_are_not_resolved_against_the_config_folder(tmp_path):
+    cfg = load_config(_write(tmp_path, {"mesh": "asset:skirt.obj"}))
+    assert cfg["mesh"]["path"] == "asset:skirt.obj"
+    # the training scripts take the same mesh section, the path shorthand included
+    train = load_config(_write(tmp_path, {"mesh": "asset:skirt.obj"}, "t.yaml"), drape_net.Config)
+    assert train["mesh"]["type"] == "file" and train["mesh"]["path"] == "asset:skirt.obj"
+    assert load_config(_write(tmp_path, {}, "none.yaml"), drape_net.Config)["mesh"] is None
+    local = load_config(_write(tmp_path, {"mesh": "garment.obj"}, "l.yaml"), drape_net.Config)
+    assert local["mesh"]["path"] == str(tmp_path / "garment.obj")
+
+
 # ------------------------------------------------------------------------------ CLI
 COMMON = ["--config", "--set", "--seed", "--device", "--out", "--resume", "--log-level", "--no-progress"]
 MAINS = {"scenes": scenes_main, "drape_net": drape_net.main, "material_id": material_id.main,

@@ -45,7 +45,7 @@ from torch import nn
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import MeshSpec, build_mesh
+from torchbend.scenes.config import ConfigError, MeshField, build_mesh, build_pins
 
 log = logging.getLogger("train.drape_net")
 CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_drape.yaml"))
@@ -87,10 +87,12 @@ class TrainSection(Section):
 
 class Config(Section):
     """The drape network's config (``configs/train_drape.yaml``); ``mesh`` (optional, a scene-config
-    mesh section such as ``mesh: garment.obj``) replaces the square cloth of ``cloth``."""
+    mesh section such as ``mesh: garment.obj`` or ``{type: file, path: asset:skirt.obj, pin: {z_min:
+    -0.001}}``) replaces the square cloth of ``cloth``; its pinned vertices stay at their rest positions
+    (the network predicts no displacement there: ``configs/train_skirt.yaml``)."""
 
     cloth: DrapeCloth = DrapeCloth()
-    mesh: MeshSpec | None = None
+    mesh: MeshField = None
     scene: SceneSection = SceneSection()
     model: ModelSection = ModelSection()
     train: TrainSection = TrainSection()
@@ -98,10 +100,13 @@ class Config(Section):
 
 class DrapeNet(nn.Module):
     """MLP: condition (``inputs`` numbers, e.g. ``(cx, cy, r)``) -> vertex displacements ``(V, 3)``
-    added to a base cloth."""
+    added to a base cloth; ``pinned`` (``(V,)`` bool, optional): vertices whose displacement is zero."""
 
-    def __init__(self, vertex_count: int, hidden: int, layers: int, inputs: int = 3):
+    def __init__(self, vertex_count: int, hidden: int, layers: int, inputs: int = 3,
+                 pinned: torch.Tensor | None = None):
         super().__init__()
+        free = torch.ones(vertex_count, 1) if pinned is None else (~pinned.reshape(-1, 1).bool()).float()
+        self.register_buffer("free", free, persistent=False)  # (V, 1): 0 at pinned vertices
         dims = [inputs] + [hidden] * layers
         mods = []
         for a, b in zip(dims[:-1], dims[1:], strict=True):
@@ -113,7 +118,7 @@ class DrapeNet(nn.Module):
         self.vertex_count = vertex_count
 
     def forward(self, cond: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
-        return rest + 0.1 * self.net(cond).reshape(-1, self.vertex_count, 3)
+        return rest + 0.1 * self.net(cond).reshape(-1, self.vertex_count, 3) * self.free
 
 
 def sample_conditions(cfg, batch: int, gen: torch.Generator, dtype, device):
@@ -202,11 +207,16 @@ def main(argv=None) -> dict:
     rank, world = distributed()
     dtype = getattr(torch, t["dtype"])
     seed_everything(int(t["seed"]))
-    mesh = None
+    mesh = pinned = None
     if cfg["mesh"] is not None:
         mesh = build_mesh(cfg["mesh"], dtype=dtype, device=device)
+        pinned = build_pins(cfg["mesh"], mesh[0])
+        if pinned is not None and t["loss"] == "residual":  # the residual would hold the pins' reaction forces
+            raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
+                              "use 'energy'")
     physics = ClothPhysics(cfg, dtype=dtype, device=device, mesh=mesh)
-    model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"])).to(dtype=dtype, device=device)
+    model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
+                     pinned=pinned).to(dtype=dtype, device=device)
     net = nn.parallel.DistributedDataParallel(model) if world > 1 else model  # `model` holds the weights
     opt = torch.optim.Adam(net.parameters(), lr=float(t["lr"]))
     os.makedirs(a.out, exist_ok=True)

@@ -21,10 +21,20 @@ import os
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, TypeGuard, TypeVar, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Optional, TypeGuard, TypeVar, Union, get_args, get_origin
 
 import torch
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from torch import Tensor
 
 from ..energies import BendingEnergy, Capsule, MembraneEnergy, Plane, Sphere, stiffness_from_material
@@ -39,8 +49,8 @@ from ..sim.newton import LinearSolver
 __all__ = [
     "ConfigError", "Section", "SceneConfig", "load_config", "validate", "apply_overrides", "build_scene",
     "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes", "RobotConfig",
-    "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3", "GridMesh", "FileMesh", "MeshSpec", "SphereSpec",
-    "PlaneSpec", "CapsuleSpec", "RobotSection",
+    "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3", "GridMesh", "FileMesh", "MeshSpec", "MeshField",
+    "PinRegion", "build_pins", "mesh_file", "ASSET_PREFIX", "SphereSpec", "PlaneSpec", "CapsuleSpec", "RobotSection",
 ]
 
 
@@ -102,43 +112,113 @@ class SceneSection(Section):
     kind: Literal["dynamic", "robot", "static"] = "dynamic"
 
 
-def _pin(value, kinds: tuple):
-    if value is None or value in kinds:
-        return value
-    if isinstance(value, (list, tuple)) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
-        return list(value)
-    names = "".join(f"'{k}', " for k in kinds)
-    raise ValueError(f"must be {names}a list of vertex indices or null, got {value!r}")
+_AXES = ("x", "y", "z")
+
+
+class PinRegion(Section):
+    """``mesh.pin`` as a region: the vertices whose rest position, in the mesh's own coordinates
+    (before ``offset``), lies within every bound given (``x_min`` ... ``z_max`` [m], inclusive), plus
+    the vertex nearest each point of ``nearest`` ([[x, y, z], ...] [m], same coordinates).  At least
+    one key; e.g. ``pin: {z_min: -0.001}`` pins the skirt's waist ring (z = 0)."""
+
+    x_min: Float | None = None
+    x_max: Float | None = None
+    y_min: Float | None = None
+    y_max: Float | None = None
+    z_min: Float | None = None
+    z_max: Float | None = None
+    nearest: Annotated[list[Vec3], Field(min_length=1)] | None = None
+
+    @model_validator(mode="after")
+    def _bounds(self):
+        keys = [f"{a}_{m}" for a in _AXES for m in ("min", "max")]
+        if self.nearest is None and all(getattr(self, k) is None for k in keys):
+            raise ValueError(f"a pin region needs at least one of {', '.join(keys)}, nearest")
+        for a in _AXES:
+            lo, hi = getattr(self, f"{a}_min"), getattr(self, f"{a}_max")
+            if lo is not None and hi is not None and lo > hi:
+                raise ValueError(f"{a}_min ({lo}) must not exceed {a}_max ({hi})")
+        return self
+
+
+def _pin_kind(value) -> str:
+    """Which form of ``mesh.pin`` a value is (the discriminator of ``GridPin`` and ``FilePin``)."""
+    if isinstance(value, (Mapping, BaseModel)):
+        return "region"
+    if isinstance(value, (list, tuple)):
+        return "vertices"
+    return "name"
+
+
+def _pin_name(names: tuple[str, ...]) -> BeforeValidator:
+    """The validator of ``mesh.pin`` given as a string: one of ``names``; the message lists every form."""
+    forms = "".join(f"'{k}', " for k in names) + "a list of vertex indices, a region {x_min: ..., z_max: ..., nearest: ...}"
+
+    def name(value):
+        if isinstance(value, str) and value in names:
+            return value
+        raise ValueError(f"must be {forms} or null, got {value!r}")
+
+    return BeforeValidator(name)
+
+
+# ``mesh.pin``: a region, vertex indices, a name (grids: first_two_columns, corners) or null
+GridPin = Optional[Annotated[Union[
+    Annotated[PinRegion, Tag("region")],
+    Annotated[list[NonNegativeInt], Tag("vertices")],
+    Annotated[str, _pin_name(("first_two_columns", "corners")), Tag("name")],
+], Discriminator(_pin_kind)]]
+FilePin = Optional[Annotated[Union[
+    Annotated[PinRegion, Tag("region")],
+    Annotated[list[NonNegativeInt], Tag("vertices")],
+    Annotated[str, _pin_name(()), Tag("name")],
+], Discriminator(_pin_kind)]]
 
 
 class GridMesh(Section):
     """``mesh`` of ``type: grid`` (the default): ``nx * ny`` vertices on ``size`` [m] in the z = 0
     plane, moved by ``offset`` [m]; ``pin``: ``first_two_columns`` (a clamped beam), ``corners`` (the
-    two corners of the first row) or a list of vertex indices."""
+    two corners of the first row), a list of vertex indices or a region (:class:`PinRegion`)."""
 
     type: Literal["grid"] = "grid"
     nx: Annotated[int, Field(ge=2), BeforeValidator(_number)] = 11
     ny: Annotated[int, Field(ge=2), BeforeValidator(_number)] | None = None  # default: nx
     size: Annotated[tuple[Positive, Positive], BeforeValidator(_pair)] = (1.0, 1.0)
     offset: Vec3 = (0.0, 0.0, 0.0)
-    pin: Any = None
+    pin: GridPin = None
 
-    _check_pin = field_validator("pin")(lambda v: _pin(v, ("first_two_columns", "corners")))
+
+ASSET_PREFIX = "asset:"
+
+
+def mesh_file(path: str) -> str:
+    """The file of a ``mesh.path``: ``asset:NAME`` is the mesh ``NAME`` shipped with torchbend
+    (:func:`torchbend.mesh.asset_path`, e.g. ``asset:skirt.obj``), anything else a file path."""
+    if path.startswith(ASSET_PREFIX):
+        from ..mesh import asset_path
+
+        return asset_path(path[len(ASSET_PREFIX):])
+    return path
 
 
 class FileMesh(Section):
     """``mesh`` read from a file (``mesh: path.obj`` is short for ``{type: file, path: path.obj}``):
-    :func:`torchbend.mesh.load` with vertex welding within ``weld_tol`` (relative to the mesh size);
-    a relative ``path`` is relative to the config file's folder.  ``offset`` [m]; ``pin``: a list of
-    vertex indices (of the welded mesh)."""
+    :func:`torchbend.mesh.load` with vertex welding within ``weld_tol`` (relative to the mesh size).
+    ``path``: a file (a relative path is relative to the config file's folder) or ``asset:NAME``, a
+    mesh shipped with torchbend (``asset:skirt.obj``).  ``offset`` [m]; ``pin``: a list of vertex
+    indices (of the welded mesh) or a region (:class:`PinRegion`, e.g. ``{z_min: -0.001}``)."""
 
     type: Literal["file"]
     path: str
     weld_tol: NonNegative = 1e-6
     offset: Vec3 = (0.0, 0.0, 0.0)
-    pin: Any = None
+    pin: FilePin = None
 
-    _check_pin = field_validator("pin")(lambda v: _pin(v, ()))
+    @field_validator("path")
+    @classmethod
+    def _shipped(cls, value: str):
+        mesh_file(value)  # an unknown asset name: ValueError listing the shipped meshes
+        return value
 
 
 class MaterialSection(Section):
@@ -297,6 +377,14 @@ def _mesh_shorthand(value):
     return value
 
 
+def _optional_mesh(value):
+    return None if value is None else _mesh_shorthand(value)
+
+
+# a ``mesh`` key that may be absent (the training scripts): null, a path (``mesh: garment.obj``), a grid or a file
+MeshField = Annotated[MeshSpec | None, BeforeValidator(_optional_mesh)]
+
+
 class SceneConfig(Section):
     """A scene config (every section optional)."""
 
@@ -352,6 +440,11 @@ def _walk(schema, loc, prefix: str = ""):
                        and part in get_args(m.model_fields["type"].annotation)]
             if members:
                 tp = members[0]
+                continue
+            tagged = [m for m in get_args(tp) if get_origin(m) is Annotated
+                      and any(isinstance(meta, Tag) and meta.tag == part for meta in m.__metadata__)]
+            if tagged:  # a union discriminated by a function (``mesh.pin``): the tag is no key either
+                tp = tagged[0]
                 continue
         if isinstance(part, int):
             path += f"[{part}]"
@@ -496,14 +589,16 @@ def read_yaml(path: str) -> dict:
 def load_config(path: str, schema: type[BaseModel] | None = None, overrides=()) -> dict:
     """Read the YAML config ``path``, apply ``overrides`` (``["solver.tol=1e-8", ...]``), validate
     against ``schema`` (default :class:`SceneConfig`) and return the validated config as a plain dict
-    with the defaults filled in.  A relative ``mesh.path`` becomes relative to the config's folder.
+    with the defaults filled in.  A relative ``mesh.path`` becomes relative to the config's folder
+    (``asset:NAME``, a shipped mesh, stays as it is).
     :class:`ConfigError` (a ``ValueError``) naming the key for anything unknown or invalid."""
     schema = schema or SceneConfig
     cfg = apply_overrides(read_yaml(path), overrides)
     model = validate(cfg, schema, source=path)
     out = model.model_dump(mode="json")
     mesh = out.get("mesh")
-    if isinstance(mesh, dict) and mesh.get("type") == "file" and not os.path.isabs(mesh["path"]):
+    if (isinstance(mesh, dict) and mesh.get("type") == "file" and not os.path.isabs(mesh["path"])
+            and not mesh["path"].startswith(ASSET_PREFIX)):
         mesh["path"] = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), mesh["path"]))
     return out
 
@@ -545,7 +640,7 @@ def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, de
         if resolution is not None:
             raise ConfigError("--resolution applies to grid meshes only, not to 'mesh.path' files")
         try:
-            rest, faces = load(mesh.path, weld_tol=mesh.weld_tol, dtype=dtype, device=device)
+            rest, faces = load(mesh_file(mesh.path), weld_tol=mesh.weld_tol, dtype=dtype, device=device)
         except ValueError as e:
             raise ConfigError(f"config key 'mesh.path': {e}") from None
     return rest + torch.tensor(mesh.offset, dtype=dtype, device=rest.device), faces
@@ -559,17 +654,48 @@ def _bending(b: BendingSection, faces, rest, young: float, t: float, poisson: fl
         raise ConfigError(f"config key 'bending': {e}") from None
 
 
-def _pinned(mesh, rest: Tensor, nx: int) -> Tensor | None:
-    """The ``mesh.pin`` option: ``first_two_columns`` (a clamped beam), ``corners``, vertex indices or none."""
+def build_pins(mesh, rest: Tensor, *, resolution: tuple | None = None) -> Tensor | None:
+    """The ``(V,)`` bool mask of a mesh section's ``pin`` (``None`` when it pins nothing) for the rest
+    positions ``rest (V, 3)`` [m] of :func:`build_mesh` (offset applied).
+
+    ``pin``: ``first_two_columns`` (a clamped beam), ``corners`` (the first row's two corners: the
+    grid's ``nx`` or ``resolution[0]`` vertices apart), vertex indices, or a :class:`PinRegion`
+    (bounds and nearest points in the mesh's own coordinates, before ``offset``).
+    :class:`ConfigError` naming ``mesh.pin`` for indices out of range or a region without vertices."""
+    if not isinstance(mesh, (GridMesh, FileMesh)):
+        mesh = validate({"mesh": mesh}, SceneConfig).mesh
     pin = mesh.pin
     if pin is None:
         return None
     mask = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
-    if pin == "first_two_columns":
-        xs = rest[:, 0].unique()
-        return rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
-    if pin == "corners":
-        mask[[0, nx - 1]] = True
+    if isinstance(pin, str):  # the schema allows only these two, and only for grids
+        if pin == "first_two_columns":
+            xs = rest[:, 0].unique()
+            return rest[:, 0] <= xs[min(1, len(xs) - 1)] + 1e-12
+        nx = resolution[0] if resolution is not None else getattr(mesh, "nx", 0)
+        mask[[0, nx - 1]] = True  # corners
+        return mask
+    if isinstance(pin, PinRegion):
+        local = rest - torch.tensor(mesh.offset, dtype=rest.dtype, device=rest.device)  # the mesh's own coordinates
+        bounded = False
+        inside = torch.ones(len(rest), dtype=torch.bool, device=rest.device)
+        for j, a in enumerate(_AXES):
+            lo, hi = getattr(pin, f"{a}_min"), getattr(pin, f"{a}_max")
+            if lo is not None:
+                inside &= local[:, j] >= lo
+            if hi is not None:
+                inside &= local[:, j] <= hi
+            bounded |= lo is not None or hi is not None
+        if bounded:
+            mask |= inside
+        if pin.nearest is not None:
+            pts = torch.tensor(pin.nearest, dtype=rest.dtype, device=rest.device).reshape(-1, 3)
+            mask[torch.cdist(pts, local).argmin(-1)] = True
+        if not mask.any():
+            lo, hi = local.amin(0).tolist(), local.amax(0).tolist()
+            span = ", ".join(f"{a} [{lo[j]:.4g}, {hi[j]:.4g}]" for j, a in enumerate(_AXES))
+            raise ConfigError(f"config key 'mesh.pin': the region holds no vertex (the mesh spans {span} m, "
+                              "before offset)")
         return mask
     bad = [v for v in pin if v >= len(rest)]
     if bad:
@@ -588,7 +714,6 @@ def build_collider(spec):
 def _build(cfg: SceneConfig, thickness, resolution, device):
     dtype = torch.float64
     rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=dtype, device=device)
-    nx = resolution[0] if resolution is not None else getattr(cfg.mesh, "nx", 0)
     mat = cfg.material
     t = thickness if thickness is not None else mat.thickness
     density = mat.volumetric_density * t if mat.volumetric_density is not None else mat.density
@@ -599,7 +724,7 @@ def _build(cfg: SceneConfig, thickness, resolution, device):
             mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
         except ValueError as e:
             raise ConfigError(f"config key 'membrane': {e}") from None
-    pinned = _pinned(cfg.mesh, rest, nx)
+    pinned = build_pins(cfg.mesh, rest, resolution=resolution)
     rc = None
     if cfg.robot is not None:
         rc = parse_robot(cfg.robot, rest)

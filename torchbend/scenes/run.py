@@ -18,7 +18,9 @@ with every frame; ``--resume`` continues from it.  Options shared with the train
 
 Config keys (every section optional; schema and defaults: :class:`torchbend.scenes.config.SceneConfig`):
 ``scene.kind``; ``mesh`` (``type: grid`` with ``nx``, ``ny``, ``size``, ``offset``, ``pin``, or
-``type: file`` with ``path``, ``weld_tol``, ``offset``, ``pin``; ``mesh: path.obj`` for short);
+``type: file`` with ``path`` (a file, or ``asset:NAME`` for a mesh shipped with torchbend), ``weld_tol``,
+``offset``, ``pin``; ``mesh: path.obj`` for short; ``pin``: vertex indices or a region
+``{x_min, ..., z_max, nearest}`` of rest coordinates before the offset, e.g. ``configs/skirt_drape.yaml``);
 ``material`` (``density`` [kg/m^2], ``young`` [Pa], ``poisson``, ``thickness`` [m] or
 ``thicknesses`` for static sweeps, or ``volumetric_density`` [kg/m^3] instead of ``density``);
 ``bending`` (``model``, ``stiffness`` [N m] or ``from_material: true``, ``damping``); ``membrane``
