@@ -308,6 +308,7 @@ def test_hood_bending_coefficient_is_24_times_ours(cloth):
     rest, faces, x = cloth  # flat rest shape (HOOD's bending has zero rest angles)
     bc = torch.tensor([1e-5, 4e-5, 1e-3], dtype=F64)
     k = tb.bending_stiffness_from_hood(bc)
+    assert isinstance(k, torch.Tensor)
     assert torch.allclose(k, bc / 24, rtol=1e-15, atol=0)
     assert torch.allclose(tb.hood_bending_coeff(k), bc, rtol=1e-15, atol=0)
     assert tb.hood_bending_coeff(1.0) == 24.0 and tb.bending_stiffness_from_hood(24.0) == 1.0
@@ -323,7 +324,7 @@ def test_hood_stretch_from_lame_parameters(cloth):
     lame_mu, lame_lambda, t = 23600.0, 44400.0, 4.7e-4  # HOOD's default material
     Y, nu = tb.material_from_lame(lame_mu, lame_lambda)
     assert abs(Y - 7e4) / 7e4 < 2e-3 and abs(nu - 0.485) < 1e-3  # Y = 7e4 Pa, nu = 0.485 (rounded in HOOD)
-    assert all(math.isclose(a, b, rel_tol=1e-14) for a, b in zip(tb.lame_parameters(Y, nu), (lame_mu, lame_lambda)))
+    assert all(math.isclose(a, b, rel_tol=1e-14) for a, b in zip(tb.lame_parameters(float(Y), float(nu)), (lame_mu, lame_lambda)))
     term = L.Stretch(faces, rest, young=Y, poisson=nu, thickness=t)
     assert torch.allclose(term(x), ref_stvk(x, faces, rest, lame_mu, lame_lambda, t), rtol=1e-12, atol=0)
     # per-sample tensors

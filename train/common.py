@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import Annotated
+from typing import Annotated, Any, cast
 
 import torch
 import torch.distributed as dist
@@ -133,7 +133,7 @@ class ClothPhysics:
         self.mem = modules["membrane"].membrane if "membrane" in modules else None
         self.bend = None
         if "bending" in modules:
-            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=modules["bending"].stiffness)
+            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=cast(Any, modules["bending"]).stiffness)
         gravity = modules.get("gravity") or tb.losses.Gravity(faces, rest, density)
         self.mass = density * gravity.areas.to(device)  # (V,) lumped masses [kg]
 
@@ -152,9 +152,9 @@ class ClothPhysics:
         g = torch.zeros_like(x)
         modules = self.loss.terms
         if "membrane" in modules:
-            g = g + modules["membrane"].gradient(x)
+            g = g + cast(Any, modules["membrane"]).gradient(x)
         if "bending" in modules:
-            g = g + modules["bending"].gradient(x)
+            g = g + cast(Any, modules["bending"]).gradient(x)
         if "gravity" in self.terms:
             g = g - self.mass[:, None] * self.mass.new_tensor(modules["gravity"].gravity)
         contact = []

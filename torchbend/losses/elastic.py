@@ -22,6 +22,8 @@ entries are a million times larger (``tests/test_losses.py``).
 """
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import Tensor
 
@@ -64,8 +66,9 @@ class Stretch(LossTerm):
         material = (self.young, self.poisson, self.thickness)
         if not all(isinstance(v, float) for v in material):
             material = (2.0, 0.0, 1.0)  # (mu, lam) = (1, 0); only its rest-state buffers are used then
-        self.membrane = MembraneEnergy(faces, rest, model=model, young=material[0], poisson=material[1],
-                                       thickness=material[2])
+        young_f, poisson_f, thickness_f = cast("tuple[float, float, float]", material)
+        self.membrane = MembraneEnergy(faces, rest, model=model, young=young_f, poisson=poisson_f,
+                                       thickness=thickness_f)
 
     @property
     def vertex_count(self) -> int:

@@ -55,12 +55,11 @@ def skirt(
     dtype = dtype or torch.get_default_dtype()
     half = n_around // 2
     cols = half + 1
-    f64 = dict(dtype=torch.float64)
-    t = torch.linspace(0, 1, n_along, **f64)  # 0 at the waist, 1 at the hem
+    t = torch.linspace(0, 1, n_along, dtype=torch.float64)  # 0 at the waist, 1 at the hem
     radius = rw + (rh - rw) * t  # (n_along,)
     z = 0.0 - L * t  # + 0.0: the waist at z = 0, not -0
     # one angle per ring vertex, so the two copies of a seam vertex are bit-identical
-    ring = torch.arange(n_around + 1, **f64) % n_around * (2 * math.pi / n_around)
+    ring = torch.arange(n_around + 1, dtype=torch.float64) % n_around * (2 * math.pi / n_around)
     slant = math.hypot(L, rh - rw)
     positions, uvs, faces = [], [], []
     for p in range(2):
@@ -68,7 +67,7 @@ def skirt(
         xyz = torch.stack(
             (radius[:, None] * phi.cos(), radius[:, None] * phi.sin(), z[:, None].expand(-1, cols)), -1
         )  # (n_along, cols, 3)
-        local = torch.arange(cols, **f64) * (2 * math.pi / n_around) - math.pi / 2  # [-pi/2, pi/2] per panel
+        local = torch.arange(cols, dtype=torch.float64) * (2 * math.pi / n_around) - math.pi / 2  # [-pi/2, pi/2] per panel
         if rh > rw:  # the cone unrolled about its apex: ruling distance s, sector angle local * r / s
             s = rw * slant / (rh - rw) + slant * t  # (n_along,) distance to the apex
             alpha = local[None, :] * (rw / s[0])

@@ -648,6 +648,8 @@ def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, de
 
 def _bending(b: BendingSection, faces, rest, young: float, t: float, poisson: float) -> BendingEnergy:
     k = stiffness_from_material(young, t, poisson) if b.from_material else b.stiffness
+    if k is None:
+        raise ConfigError("config key 'bending.stiffness' is required unless 'bending.from_material' is true")
     try:
         return BendingEnergy(faces, rest, model=b.model, stiffness=k, damping=b.damping or None)
     except ValueError as e:
