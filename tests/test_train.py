@@ -63,8 +63,10 @@ def tiny(tmp_path):
 
 def test_energy_training_decreases_logs_checkpoints_and_resumes(tiny, tmp_path, capsys):
     out = str(tmp_path / "run")
+    threads = torch.get_num_threads()
     r = drape_net.main(["--config", tiny, "--out", out, "--steps", "4", "--no-progress"])
     assert r["losses"][-1] < r["losses"][0]
+    assert torch.get_num_threads() == threads  # train.threads (1) holds during the run only
     # the run ends with one summary line on stdout, its numbers in history.json
     summary = json.load(open(os.path.join(out, "history.json")))["summary"]
     line = capsys.readouterr().out.strip().splitlines()[-1]

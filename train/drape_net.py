@@ -20,6 +20,7 @@ three drapes with their colliders, ``history.json`` and one summary line on stdo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -410,18 +411,34 @@ def save_outputs(out: str, physics: ClothPhysics, result: dict, drawn: list) -> 
         json.dump(result, f)
 
 
-def main(argv=None) -> dict:
-    from torch.utils.tensorboard import SummaryWriter
-    from tqdm import tqdm
+@contextlib.contextmanager
+def intra_op_threads(threads: int):
+    """Run the block with ``threads`` intra-op CPU threads in torch (0: leave them), restored after."""
+    previous = torch.get_num_threads()
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
+
+def main(argv=None) -> dict:
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
     cfg = load_config(a.config, Config, overrides(a))
+    with intra_op_threads(int(cfg["train"]["threads"])):
+        return train(a, cfg, device)
+
+
+def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
+    """The run of :func:`main` (parsed options ``a``, validated config ``cfg``)."""
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
     t = cfg["train"]
     rank, world = distributed()
     dtype = getattr(torch, t["dtype"])
-    if int(t["threads"]) > 0:
-        torch.set_num_threads(int(t["threads"]))
     seed_everything(int(t["seed"]))
     mesh = None
     if cfg["mesh"] is not None:
