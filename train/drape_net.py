@@ -86,7 +86,13 @@ class SceneSection(Section):
 
 
 class TrainSection(Section):
-    """``train``: optimisation (Adam) and logging cadence."""
+    """``train``: optimisation (Adam), logging cadence, torch's intra-op CPU ``threads``.
+
+    ``lr_schedule: cosine`` decays the learning rate from ``lr`` to ``lr * lr_final`` over the run
+    (:func:`learning_rate`): large steps carry the cloth down the sphere, small ones settle it against
+    the stiff contact and membrane terms (at a constant 1e-3 the default run stalled about 20% above
+    the Newton equilibria in energy).  One thread suits these small tensors: two, on a shared 2-core
+    machine, ran 10-20x slower per step (0: torch's default)."""
 
     steps: PositiveInt = 1000
     batch: PositiveInt = 16
@@ -99,7 +105,7 @@ class TrainSection(Section):
     checkpoint_every: PositiveInt = 50
     seed: Int = 0
     dtype: Literal["float32", "float64"] = "float64"
-    threads: Annotated[Int, Field(ge=0)] = 1  # torch's intra-op CPU threads (0: torch's default)
+    threads: Annotated[Int, Field(ge=0)] = 1
 
 
 class EvalSection(Section):
@@ -255,8 +261,8 @@ class SphereDrape:
         [J] (prediction minus equilibrium: >= 0 when the solve converged to the minimum it slid into),
         ``rms_distance`` [m] (with ``hold_center``, after turning the equilibrium about the vertical
         through the held vertex to fit the prediction: that turn costs no energy), ``relative_residual`` (``|dE/dx|`` of the free vertices at the prediction
-        over the weight of the cloth: 0 at an equilibrium; the stiff contact penalty dominates it, a
-        vertex 0.5 mm inside the sphere already pushes back with about the cloth's weight), the
+        over the weight of the cloth: 0 at an equilibrium; the stiff contact penalty dominates it: with
+        the default 2e3 N/m a vertex 0.5 mm inside the sphere pushes back with about the cloth's weight), the
         equilibrium's ``cap_gap`` [m] and the solve's ``converged``, ``iterations``, ``seconds``."""
         out = []
         for xi, ci, ri in zip(x.detach(), center, radius, strict=True):
