@@ -28,3 +28,107 @@ def test_readme_python_blocks_run_in_order():
             exec(compile(block, f"README.md python block {i}", "exec"), namespace)
         except Exception:
             pytest.fail(f"README.md python block {i} failed:\n{block}\n{traceback.format_exc()}", pytrace=False)
+
+
+# ------------------------------------------------------------------------------ shell commands
+ROOT = os.path.dirname(README)
+
+
+def bash_commands(text: str) -> list[list[str]]:
+    """The commands of the fenced ```bash blocks, split into words (comments dropped, ``&&`` chains split)."""
+    import shlex
+
+    out = []
+    for block in re.findall(r"^```bash[ \t]*\n(.*?)^```[ \t]*$", text, flags=re.M | re.S):
+        for line in block.splitlines():
+            words = shlex.split(line, comments=True)
+            while words:
+                cut = words.index("&&") if "&&" in words else len(words)
+                out.append(words[:cut])
+                words = words[cut + 1:]
+    return out
+
+
+def _script_parser(path: str):
+    """The check of a command line of a script of train/ or of ``python -m torchbend.scenes``:
+    ``argv -> None``, parsing the options (``SystemExit`` on a bad one) and loading the config with
+    the ``--set`` overrides (``ValueError`` naming an unknown key)."""
+    from torchbend.scenes import cli, run
+    from torchbend.scenes.config import SceneConfig, load_config
+
+    if path == "-m torchbend.scenes":
+        def check_scene(argv):
+            a = cli.parse_args(run.parser(), argv)
+            load_config(a.config, SceneConfig, a.overrides)
+        return check_scene
+    from tests.test_train import load_script
+
+    name = os.path.splitext(os.path.basename(path))[0]
+    if os.path.dirname(path) != "train":
+        raise AssertionError(f"README runs {path}: add a check of its options to tests/test_readme.py")
+    for sibling in ("common", "drape_net"):  # the scripts import these by plain name
+        load_script(sibling)
+    script = load_script(name)
+
+    def check_script(argv):
+        a = script.parse_args(argv)
+        load_config(a.config, script.Config, a.overrides)
+    return check_script
+
+
+def _check_files(words: list[str]) -> None:
+    for w in words:
+        if w.endswith((".py", ".yaml", ".yml", ".urdf", ".obj")) and not w.startswith("runs/"):
+            assert os.path.isfile(os.path.join(ROOT, w)), f"README names {w}, which does not exist"
+
+
+def _check_pip(words: list[str]) -> None:
+    import tomllib
+
+    extras = set(tomllib.load(open(os.path.join(ROOT, "pyproject.toml"), "rb"))["project"]["optional-dependencies"])
+    for w in words:
+        m = re.fullmatch(r"\.\[([\w,-]+)\]", w)
+        if m:
+            missing = set(m.group(1).split(",")) - extras
+            assert not missing, f"README installs extras {sorted(missing)} that pyproject.toml does not define"
+    if "--no-build-isolation" in words:
+        assert "-e" in words or "." in words
+
+
+def test_readme_code_blocks_are_python_or_bash():
+    # the two kinds the tests run or check; a new kind needs a check here
+    fences = re.findall(r"^```(\w*)[ \t]*$", open(README, encoding="utf-8").read(), flags=re.M)
+    assert set(fences[0::2]) <= {"python", "bash"} and not any(fences[1::2]), fences
+
+
+def test_readme_shell_commands_name_existing_scripts_and_options():
+    commands = bash_commands(open(README, encoding="utf-8").read())
+    assert len(commands) >= 8
+    for words in commands:
+        _check_files(words)
+        if words[0] == "pip":
+            _check_pip(words)
+        elif words[0] == "torchrun":
+            script = next(i for i, w in enumerate(words) if w.endswith(".py"))
+            _script_parser(words[script])(words[script + 1:])
+        elif words[:3] == ["python", "-m", "torchbend.scenes"]:
+            _script_parser("-m torchbend.scenes")(words[3:])
+        elif words[:3] == ["python", "-m", "pytest"]:
+            marks = [words[i + 1] for i, w in enumerate(words) if w == "-m" and i > 1]
+            assert all(m in ("slow", "gpu", "not slow") for m in marks), marks
+        elif words[0] == "python" and words[1].endswith(".py"):
+            _script_parser(words[1])(words[2:])
+        else:
+            raise AssertionError(f"README runs {' '.join(words)}: add a check of it to tests/test_readme.py")
+
+
+def test_readme_inline_commands_name_existing_files_and_modules():
+    import importlib.util
+
+    text = open(README, encoding="utf-8").read()
+    for cmd in re.findall(r"`(python [^`]+)`", text):
+        words = cmd.split()
+        if words[1] == "-m":
+            assert importlib.util.find_spec(words[2]) is not None, f"README runs {cmd}: no module {words[2]}"
+        else:
+            _check_files(words[1:2])

@@ -47,9 +47,11 @@ ClothPhysics, load_config = common.ClothPhysics, common.load_config
 
 TINY = {
     "cloth": {"resolution": 5, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"]},
-    "scene": {"fixed_conditions": True},
+    "scene": {"fixed_conditions": True, "center_range": 0.0, "radius_min": 0.3},  # one sphere; 4 vertices over its cap
     "model": {"hidden": 16, "layers": 2},
-    "train": {"steps": 8, "batch": 3, "lr": 1e-3, "log_every": 2, "mesh_every": 4, "checkpoint_every": 2},
+    "train": {"steps": 8, "batch": 3, "lr": 1e-3, "lr_schedule": "constant", "log_every": 2, "mesh_every": 4,
+              "checkpoint_every": 2},
+    "eval": {"conditions": 4, "newton": 1, "time_limit": 5.0},
 }
 
 
@@ -60,10 +62,19 @@ def tiny(tmp_path):
     return str(path)
 
 
-def test_energy_training_decreases_logs_checkpoints_and_resumes(tiny, tmp_path):
+def test_energy_training_decreases_logs_checkpoints_and_resumes(tiny, tmp_path, capsys):
     out = str(tmp_path / "run")
+    threads = torch.get_num_threads()
     r = drape_net.main(["--config", tiny, "--out", out, "--steps", "4", "--no-progress"])
     assert r["losses"][-1] < r["losses"][0]
+    assert torch.get_num_threads() == threads  # train.threads (1) holds during the run only
+    # the run ends with one summary line on stdout, its numbers in history.json
+    summary = json.load(open(os.path.join(out, "history.json")))["summary"]
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("drape_net: energy loss") and "cap gap" in line and "drapes.png" in line
+    assert summary["final_loss"] == pytest.approx(sum(r["losses"]) / 4) and summary["steps_run"] == 4
+    assert summary["edge_length"] == pytest.approx((40 * 0.2 + 16 * 0.2 * math.sqrt(2)) / 56) and summary["conditions"] == 4
+    assert summary["cap_gap"] > 0 and len(summary["newton"]) == 1
     assert os.path.isfile(os.path.join(out, "checkpoint.pt")) and os.path.isfile(os.path.join(out, "drapes.png"))
     events = os.listdir(os.path.join(out, "tb"))
     assert any(e.startswith("events.out.tfevents") for e in events)
@@ -88,6 +99,7 @@ def test_residual_loss_gradient_matches_finite_differences(tiny):
     cfg["cloth"]["contact_stiffness"] = 50.0
     torch.manual_seed(0)
     physics = ClothPhysics(cfg)
+    scene = drape_net.SphereDrape(cfg, physics)
     net = drape_net.DrapeNet(len(physics.rest), 8, 1).double()
     for p in net.parameters():
         torch.nn.init.normal_(p, std=0.3)
@@ -95,7 +107,7 @@ def test_residual_loss_gradient_matches_finite_differences(tiny):
     cond, center, radius = drape_net.sample_conditions(cfg, 2, gen, torch.float64, "cpu")
 
     def loss():
-        return drape_net.loss_fn("residual", physics, net(cond, physics.rest), center, radius)[0]
+        return drape_net.loss_fn("residual", scene, scene.predict(net, cond, center, radius), center, radius)[0]
 
     params = list(net.parameters())
     L = loss()
@@ -303,3 +315,104 @@ def test_drape_net_trains_on_the_shipped_skirt_with_its_waist_pinned(tmp_path):
     with pytest.raises(ConfigError, match="'train.loss': 'residual' does not support a pinned mesh"):
         drape_net.main(["--config", path, "--out", str(tmp_path / "res"), "--loss", "residual", "--steps", "1",
                         "--no-progress"])
+
+
+def _on_sphere(center, radius, polar_deg, azimuth_deg, offset):
+    """The point at polar angle ``polar_deg`` from +z and ``azimuth_deg`` around it, ``offset`` [m]
+    outside the sphere's surface (negative: inside)."""
+    p, a = math.radians(polar_deg), math.radians(azimuth_deg)
+    d = torch.tensor([math.sin(p) * math.cos(a), math.sin(p) * math.sin(a), math.cos(p)], dtype=torch.float64)
+    return center + (radius + offset) * d
+
+
+def test_cap_gap_of_a_hand_made_drape():
+    center = torch.tensor([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    radius = torch.tensor([0.25, 0.1], dtype=torch.float64)
+    # sample 0: over the cap (polar angle < 45 deg, above the centre) at 10, 20 and 5 mm (inside) from the
+    # surface; at 60 deg latitude 0.3 m out and below the centre: not over the cap; the held top vertex
+    # 0.2 m up counts only without the ``free`` mask
+    c, r = center[0], float(radius[0])
+    x0 = torch.stack([_on_sphere(c, r, 0, 0, 0.01), _on_sphere(c, r, 30, 40, 0.02), _on_sphere(c, r, 10, 200, -0.005),
+                      _on_sphere(c, r, 60, 0, 0.3), _on_sphere(c, r, 120, 0, 0.0), _on_sphere(c, r, 0, 0, 0.2)])
+    # sample 1: nothing over its cap (all below the sphere's centre)
+    x1 = torch.stack([_on_sphere(center[1], 0.1, 100 + 10 * i, 30 * i, 0.01) for i in range(6)])
+    x = torch.stack((x0, x1))
+    free = torch.tensor([True] * 5 + [False])
+    gap = drape_net.cap_gap(x, center, radius, free)
+    assert gap[0].item() == pytest.approx((0.01 + 0.02 + 0.005) / 3, rel=1e-12)
+    assert math.isnan(gap[1].item())
+    assert drape_net.cap_gap(x, center, radius)[0].item() == pytest.approx((0.01 + 0.02 + 0.005 + 0.2) / 4, rel=1e-12)
+
+
+def test_mean_edge_length_counts_each_edge_once():
+    rest, faces = tb.scenes.grid(3, 3, (0.2, 0.2), dtype=torch.float64)
+    # 12 axis-aligned edges of 0.1 m and 4 diagonals of 0.1 sqrt(2) m
+    assert drape_net.mean_edge_length(rest, faces) == pytest.approx((12 * 0.1 + 4 * 0.1 * math.sqrt(2)) / 16, rel=1e-12)
+
+
+def test_learning_rate_schedules():
+    t = {"lr": 3e-3, "lr_schedule": "cosine", "lr_final": 0.01, "steps": 101}
+    assert drape_net.learning_rate(t, 1) == pytest.approx(3e-3)
+    assert drape_net.learning_rate(t, 51) == pytest.approx(3e-3 * (0.01 + 0.99 * 0.5))
+    assert drape_net.learning_rate(t, 101) == pytest.approx(3e-5)
+    assert drape_net.learning_rate({**t, "lr_schedule": "constant"}, 101) == 3e-3
+
+
+def test_sphere_drape_holds_the_middle_vertex_and_checks_against_newton(tiny):
+    cfg = load_config(tiny, drape_net.Config)
+    physics = ClothPhysics(cfg)
+    scene = drape_net.SphereDrape(cfg, physics)
+    assert scene.held == 12 and int(scene.free.sum()) == 24  # the middle of the 5 x 5 grid
+    cond, center, radius = drape_net.sample_conditions(cfg, 2, torch.Generator().manual_seed(3), torch.float64, "cpu")
+    net = drape_net.DrapeNet(25, 8, 1).double()
+    for p in net.parameters():
+        torch.nn.init.normal_(p, std=0.1)
+    x = scene.predict(net, cond, center, radius).detach()
+    top = center + radius[:, None] * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    assert torch.equal(x[:, 12], top)
+    # the solver model is the same potential, term for term
+    m = scene.model(center[0].tolist(), float(radius[0]))
+    assert torch.allclose(m.mass, physics.mass, rtol=1e-14, atol=0)
+    phys = {k: float(v[0]) for k, v in physics.energies(x[:1], center[:1], radius[:1]).items()}
+    mod = m.energies(x[0])
+    assert mod["membrane"] == pytest.approx(phys["membrane"], rel=1e-12)
+    assert mod["bending"] == pytest.approx(phys["bending"], rel=1e-12)
+    assert mod["gravity"] == pytest.approx(phys["gravity"], rel=1e-12)
+    assert mod["collider0"] + mod["collider1"] == pytest.approx(phys["sphere"] + phys["ground"], rel=1e-12, abs=1e-15)
+    # at an equilibrium: no gap to close; a millimetre off it: the energy difference and the distance back
+    x_eq, info = tb.solve_static(m, x[0])
+    assert info.converged
+    (at_eq,) = scene.check(x_eq[None], center[:1], radius[:1])
+    assert at_eq["converged"] and abs(at_eq["energy_gap"]) < 1e-12 and at_eq["rms_distance"] < 1e-9
+    # vertical moves (orthogonal to the free turn about the vertical through the held vertex)
+    delta = torch.zeros_like(x_eq)
+    delta[:, 2] = 1e-3 * torch.randn(len(x_eq), generator=torch.Generator().manual_seed(0), dtype=torch.float64) * scene.free
+    (off,) = scene.check((x_eq + delta)[None], center[:1], radius[:1])
+    e_off = float(common.total(physics.energies((x_eq + delta)[None], center[:1], radius[:1])))
+    e_eq = float(common.total(physics.energies(x_eq[None], center[:1], radius[:1])))
+    assert off["converged"] and off["energy_gap"] == pytest.approx(e_off - e_eq, rel=1e-6)
+    assert off["rms_distance"] == pytest.approx(float(delta.norm(dim=-1).pow(2).mean().sqrt()), rel=1e-4)
+    assert off["relative_residual"] > at_eq["relative_residual"]
+
+
+@pytest.mark.slow
+def test_quick_start_drapes_rest_on_their_spheres(tmp_path):
+    """The README's main job as it ships: the drapes of held-out spheres rest on them (mean cap gap
+    below one edge length) and lie close to the Newton equilibria started from them."""
+    r = drape_net.main(["--out", str(tmp_path / "qs"), "--no-progress"])
+    s = r["summary"]
+    assert s["cap_gap"] < s["edge_length"]
+    assert s["newton_converged"] == len(s["newton"]) == 3
+    assert s["relative_energy_gap"] < 0.1
+    assert os.path.isfile(os.path.join(tmp_path, "qs", "drapes.png"))
+
+
+def test_turned_onto_undoes_a_turn_about_the_vertical():
+    gen = torch.Generator().manual_seed(4)
+    p = torch.randn(20, 3, generator=gen, dtype=torch.float64)
+    pivot = torch.tensor([0.3, -0.1, 0.7], dtype=torch.float64)
+    c, s = math.cos(0.8), math.sin(0.8)
+    q = p.clone()
+    q[:, 0] = pivot[0] + c * (p[:, 0] - pivot[0]) - s * (p[:, 1] - pivot[1])
+    q[:, 1] = pivot[1] + s * (p[:, 0] - pivot[0]) + c * (p[:, 1] - pivot[1])
+    assert torch.allclose(drape_net.turned_onto(q, p, pivot), p, rtol=0, atol=1e-14)

@@ -19,6 +19,7 @@ import argparse
 import json
 import logging
 import os
+from typing import Annotated
 
 import torch
 from common import (
@@ -37,7 +38,8 @@ from common import (
     seed_everything,
     total,
 )
-from drape_net import DrapeNet
+from drape_net import DrapeNet, intra_op_threads
+from pydantic import Field
 
 import torchbend as tb
 from torchbend.robot import LinkPins, Robot, RobotScene
@@ -67,7 +69,8 @@ class PoseSection(Section):
 
 
 class TrainSection(Section):
-    """``train``: optimisation (Adam) and logging cadence."""
+    """``train``: optimisation (Adam), logging cadence, torch's intra-op CPU ``threads`` (0: torch's
+    default; one suits these small tensors, and two on a shared 2-core machine ran 10-20x slower)."""
 
     steps: PositiveInt = 300
     batch: PositiveInt = 16
@@ -75,6 +78,7 @@ class TrainSection(Section):
     log_every: PositiveInt = 10
     checkpoint_every: PositiveInt = 50
     seed: Int = 0
+    threads: Annotated[Int, Field(ge=0)] = 1
 
 
 class Config(Section):
@@ -152,13 +156,19 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> dict:
-    from torch.utils.tensorboard import SummaryWriter
-    from tqdm import tqdm
-
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
     flags = {"steps": a.steps, "seed": a.seed}
     cfg = load_config(a.config, Config, list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None])
+    with intra_op_threads(int(cfg["train"]["threads"])):
+        return train(a, cfg, device)
+
+
+def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
+    """The run of :func:`main` (parsed options ``a``, validated config ``cfg``)."""
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
     t = cfg["train"]
     seed_everything(int(t["seed"]))
     towel = HeldTowel(cfg, device=device)

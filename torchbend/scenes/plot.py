@@ -18,11 +18,11 @@ def _np(v) -> np.ndarray:
     return torch.as_tensor(v).detach().cpu().double().numpy() if not isinstance(v, np.ndarray) else v
 
 
-def draw_mesh(ax, x, faces, color: str = "tab:blue") -> np.ndarray:
-    """Draw one triangle mesh ``x (V, 3)``, ``faces (F, 3)``; returns its points ``(V, 3)``."""
+def draw_mesh(ax, x, faces, color: str = "tab:blue", alpha: float = 0.9) -> np.ndarray:
+    """Draw one triangle mesh ``x (V, 3)``, ``faces (F, 3)`` (opacity ``alpha``); returns its points ``(V, 3)``."""
     p = _np(x)
     ax.plot_trisurf(p[:, 0], p[:, 1], p[:, 2], triangles=_np(faces).astype(np.int64), color=color,
-                    edgecolor="k", linewidth=0.1, alpha=0.9)
+                    edgecolor="k", linewidth=0.1, alpha=alpha)
     return p
 
 
@@ -95,23 +95,30 @@ def _equal_limits(ax, points: list[np.ndarray]) -> None:
     ax.set_box_aspect((1, 1, 1))
 
 
-def snapshot(path: str, panels, *, titles=None, size: float = 5.0, dpi: int = 100) -> None:
+def snapshot(path: str, panels, *, titles=None, size: float = 5.0, dpi: int = 100, views=(None,),
+             alpha: float = 0.9) -> None:
     """Write a PNG of ``panels``: a list of ``(meshes, colliders)``, one 3D view each, with
-    ``meshes`` a list of ``(x (V, 3), faces (F, 3))`` and ``colliders`` torchbend colliders."""
+    ``meshes`` a list of ``(x (V, 3), faces (F, 3))`` and ``colliders`` torchbend colliders.
+    ``views``: one row of panels per entry, ``(elevation, azimuth)`` [degrees] or ``None``
+    (matplotlib's default view); ``alpha``: the meshes' opacity (below 1 shows colliders behind them)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(size * len(panels), size))
-    for i, (meshes, colliders) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
-        points = [draw_mesh(ax, x, f) for x, f in meshes]
-        cloth = np.concatenate(points) if points else np.zeros((1, 3))
-        points += draw_colliders(ax, colliders, np.stack((cloth.min(0), cloth.max(0))))
-        _equal_limits(ax, points)
-        if titles:
-            ax.set_title(titles[i], fontsize=8)
+    views = list(views)
+    fig = plt.figure(figsize=(size * len(panels), size * len(views)))
+    for row, view in enumerate(views):
+        for i, (meshes, colliders) in enumerate(panels):
+            ax = fig.add_subplot(len(views), len(panels), row * len(panels) + i + 1, projection="3d")
+            points = [draw_mesh(ax, x, f, alpha=alpha) for x, f in meshes]
+            cloth = np.concatenate(points) if points else np.zeros((1, 3))
+            points += draw_colliders(ax, colliders, np.stack((cloth.min(0), cloth.max(0))))
+            _equal_limits(ax, points)
+            if view is not None:
+                ax.view_init(elev=view[0], azim=view[1])
+            if titles and row == 0:
+                ax.set_title(titles[i], fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

@@ -251,12 +251,18 @@ def summary(stats: dict, seconds: float, out: str) -> list[str]:
     return lines
 
 
-def main(argv=None) -> dict:
+def parser() -> argparse.ArgumentParser:
+    """The options of ``python -m torchbend.scenes``."""
     p = argparse.ArgumentParser(prog="python -m torchbend.scenes",
                                 description="Run a torchbend cloth scene from a YAML config.")
     cli.add_common_args(p, config_positional=True)
     p.add_argument("--steps", type=int, help="override solver.steps (dynamic scenes)")
     p.add_argument("--resolution", type=int, nargs=2, metavar=("NX", "NY"), help="override mesh.nx, mesh.ny")
+    return p
+
+
+def main(argv=None) -> dict:
+    p = parser()
     a = cli.parse_args(p, argv)
     device = cli.resolve_device(a.device, prog=p.prog)
     cfg = load_config(a.config, SceneConfig, a.overrides)
