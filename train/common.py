@@ -136,6 +136,7 @@ class ClothPhysics:
             self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=cast(Any, modules["bending"]).stiffness)
         gravity = modules.get("gravity") or tb.losses.Gravity(faces, rest, density)
         self.mass = density * gravity.areas.to(device)  # (V,) lumped masses [kg]
+        self.g = torch.tensor(gravity.gravity, dtype=dtype, device=device)  # (3,) gravity [m/s^2]
 
     def energies(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> dict:
         """Per-sample energy terms ``{name: (B,)}`` [J]; ``center (B, 3)`` and ``radius (B,)`` are needed
