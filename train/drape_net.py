@@ -171,7 +171,7 @@ def sample_conditions(cfg, batch: int, gen: torch.Generator, dtype, device):
 
 def mean_edge_length(rest: torch.Tensor, faces: torch.Tensor) -> float:
     """Mean length [m] of the distinct edges of the mesh ``rest (V, 3)``, ``faces (F, 3)``."""
-    e = torch.cat((faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]])).sort(dim=1).values.unique(dim=0)
+    e = tb.mesh.HingeTopology.from_faces(faces, len(rest)).edges.to(rest.device)
     return float((rest[e[:, 1]] - rest[e[:, 0]]).norm(dim=-1).mean())
 
 
