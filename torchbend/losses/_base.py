@@ -6,7 +6,7 @@ from torch import Tensor, nn
 
 from .._checks import check_finite_tensor, is_traced
 
-__all__ = ["LossTerm", "check_points", "per_sample", "lumped_areas"]
+__all__ = ["LossTerm", "check_points", "per_sample"]
 
 
 class LossTerm(nn.Module):
@@ -105,15 +105,4 @@ def per_sample(value, name: str, x: Tensor, term: str, *, positive: bool | None 
             raise ValueError(f"{term}: {name} must be {'positive' if positive else 'non-negative'}, "
                              f"got min {float(d.min())}")
     return t
-
-
-def lumped_areas(faces: Tensor, rest: Tensor) -> Tensor:
-    """Per-vertex lumped rest areas ``(V,)`` [m^2]: each triangle gives a third of its area to each of
-    its vertices (times an areal density [kg/m^2]: the lumped masses of :class:`~torchbend.ClothModel`)."""
-    X = rest.detach().to(torch.float64)
-    F = faces.to(X.device)
-    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
-    area = 0.5 * torch.linalg.cross(p1 - p0, p2 - p0, dim=-1).norm(dim=-1)
-    out = X.new_zeros(X.shape[0]).index_add_(0, F.reshape(-1), (area / 3).repeat_interleave(3))
-    return out.to(rest.dtype)
 

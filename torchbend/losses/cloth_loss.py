@@ -21,8 +21,7 @@ from collections.abc import Mapping
 from torch import Tensor, nn
 
 from .._checks import positive
-from ..mesh.topology import mesh_and_rest
-from ._base import lumped_areas
+from ..mesh.topology import lumped_areas, mesh_and_rest
 
 __all__ = ["ClothLoss", "energy_scale"]
 

@@ -19,8 +19,8 @@ import torch
 from torch import Tensor
 
 from .._checks import vec3
-from ..mesh.topology import mesh_and_rest
-from ._base import LossTerm, check_points, lumped_areas, per_sample
+from ..mesh.topology import lumped_areas, mesh_and_rest
+from ._base import LossTerm, check_points, per_sample
 
 __all__ = ["Gravity", "Inertia", "Pinning"]
 

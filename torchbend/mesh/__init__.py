@@ -3,7 +3,7 @@
 from .garments import skirt
 from .io import MeshReport, asset_path, clean, load, save_obj
 from .packing import PackedMeshes, pack_meshes
-from .topology import HingeTopology, mesh_and_rest
+from .topology import HingeTopology, lumped_areas, mesh_and_rest
 
 __all__ = [
     "HingeTopology",
@@ -12,6 +12,7 @@ __all__ = [
     "asset_path",
     "clean",
     "load",
+    "lumped_areas",
     "mesh_and_rest",
     "pack_meshes",
     "save_obj",

@@ -34,7 +34,7 @@ from torch import Tensor
 
 from .._checks import check_positions
 
-__all__ = ["HingeTopology", "mesh_and_rest"]
+__all__ = ["HingeTopology", "lumped_areas", "mesh_and_rest"]
 
 
 def _as_faces_array(faces) -> np.ndarray:
@@ -247,3 +247,14 @@ def _check_vertex_count(topo: HingeTopology, n: int) -> None:
             f"takes V = faces.max() + 1 unless vertex_count is given): {unused} used by no face; tb.mesh.clean "
             f"drops unused vertices, or pass vertex_count={n} to HingeTopology.from_faces to keep them"
         )
+
+
+def lumped_areas(faces: Tensor, rest: Tensor) -> Tensor:
+    """Per-vertex lumped rest areas ``(V,)`` [m^2]: each triangle gives a third of its area to each of
+    its vertices (times an areal density [kg/m^2]: the lumped masses of :class:`~torchbend.ClothModel`)."""
+    X = rest.detach().to(torch.float64)
+    F = faces.to(X.device)
+    p0, p1, p2 = X[F[:, 0]], X[F[:, 1]], X[F[:, 2]]
+    area = 0.5 * torch.linalg.cross(p1 - p0, p2 - p0, dim=-1).norm(dim=-1)
+    out = X.new_zeros(X.shape[0]).index_add_(0, F.reshape(-1), (area / 3).repeat_interleave(3))
+    return out.to(rest.dtype)

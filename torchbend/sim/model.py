@@ -24,7 +24,7 @@ from ..energies.bending import BendingEnergy
 from ..energies.colliders import Collider
 from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..energies.sparse import to_scipy
-from ..mesh.topology import mesh_and_rest
+from ..mesh.topology import lumped_areas, mesh_and_rest
 from ..options import Projection
 
 __all__ = ["ClothModel", "ClothState"]
@@ -81,7 +81,7 @@ class ClothModel:
         self.gravity = torch.tensor(_gravity(gravity), dtype=rest.dtype, device=rest.device)
         self.pinned = _pinned_mask(pinned, V, rest.device)
         self.colliders = _check_colliders(colliders)
-        self.mass = _lumped_mass(topo.faces.to(rest.device), rest, V, density)
+        self.mass = density * lumped_areas(topo.faces.to(rest.device), rest)
         self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
 
     CONTACT_DEPTH = 0.01
@@ -258,14 +258,6 @@ def _pinned_mask(pinned, V: int, device: torch.device) -> Tensor:
     if pinned.shape != (V,):
         raise ValueError(f"pinned must have shape ({V},), got {tuple(pinned.shape)}")
     return pinned.to(device)
-
-
-def _lumped_mass(faces: Tensor, rest: Tensor, V: int, density: float) -> Tensor:
-    """``(V,)`` lumped masses [kg]: a third of each triangle's rest-area mass per vertex."""
-    p = rest[faces]
-    area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1)
-    mass = torch.zeros(V, dtype=rest.dtype, device=rest.device)
-    return mass.index_add_(0, faces.reshape(-1), (density * area / 3).repeat_interleave(3))
 
 
 def _block_diagonal_csr(blocks: np.ndarray):
