@@ -171,6 +171,51 @@ def test_truncated_pcg_returns_descent_directions_on_indefinite_matrices():
     assert truncated > 0
 
 
+def test_pcg_reports_a_breakdown_of_an_indefinite_preconditioner():
+    """A preconditioner that is not positive definite stops CG at ``r . M r <= 0``: flagged as a breakdown
+    (not convergence, not negative curvature of A); an SPD one never breaks down."""
+    n = 30
+    A = random_symmetric(n, np.geomspace(1.0, 1e3, n), seed=3)
+    At, b = torch_csr(A), torch.as_tensor(np.random.default_rng(4).standard_normal(n))
+    flip = torch.ones(n, dtype=F64)
+    flip[::2] = -1.0  # an indefinite diagonal preconditioner
+    for M, broken in ((lambda r: flip * r, True), (lambda r: -r, True), (lambda r: r, False)):
+        res = linear.pcg(lambda d: At @ d, b, M, tol=1e-12, maxiter=200)
+        assert res.breakdown is broken
+        if broken:
+            assert not res.converged and res.negative_curvature is None
+        else:
+            assert res.converged
+    zero = linear.pcg(lambda d: At @ d, torch.zeros(n, dtype=F64), lambda r: r, tol=1e-12, maxiter=10)
+    assert zero.converged and not zero.breakdown
+
+
+def test_cg_direction_retries_block_jacobi_after_a_breakdown(monkeypatch):
+    """When the incomplete factorisation is not positive definite (a breakdown of its CG), the Newton
+    direction comes from block-Jacobi CG and matches the direct one."""
+    model, rest, _ = cantilever(6, 3)
+    x = rest + 1e-3 * torch.randn_like(rest) * (~model.pinned)[:, None]
+    phi = newton._Potential(model, x, Projection.CLAMP, None, {})
+    gf = phi.free_gradient(x)
+    p_direct, _ = phi.direct_direction(x, gf)
+    A, b = phi.free_hessian(x), -torch.as_tensor(gf)
+    bj = linear.block_jacobi(phi.hessian_op.diagonal_blocks(A))
+    u = torch.zeros(len(gf), dtype=F64)
+    u[9] = 1.0
+
+    def indefinite(r):  # block-Jacobi with one eigenvalue flipped negative
+        return bj(r) - 3.0 * (u @ r) * (bj(u) @ u) * u
+
+    broken = linear.pcg(lambda d: A @ d, b, indefinite, tol=1e-12, maxiter=200)
+    assert broken.breakdown and float(b @ broken.x) > 0  # a descent direction, but a poor one
+    assert np.linalg.norm(broken.x.numpy() - p_direct) > 1e-2 * np.linalg.norm(p_direct)
+    monkeypatch.setattr(linear, "ilu", lambda A, like, **kw: indefinite)
+    phi.preconditioner = "ilu"  # type: ignore[attr-defined]
+    p_cg, _ = phi.cg_direction(x, gf, relative_residual=0.0)
+    assert phi.linear_method == "cg/block_jacobi"
+    assert np.linalg.norm(p_cg - p_direct) <= 1e-6 * np.linalg.norm(p_direct)
+
+
 def test_pcg_device_checks_every_few_iterations_give_the_same_result():
     A, b = spd_problem(cond=1e3)
     At, bt = torch_csr(A), torch.as_tensor(b)

@@ -342,13 +342,16 @@ def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = F
 # -------------------------------------------------------------------- conjugate gradients
 class CGResult(NamedTuple):
     """A CG solve: the iterate ``x``, the ``iterations`` (operator applications), whether the
-    relative residual reached the tolerance, and ``negative_curvature``: the search direction
-    ``d`` with ``d . A d <= 0`` that truncated it (``None`` if none did)."""
+    relative residual reached the tolerance, ``negative_curvature``: the search direction
+    ``d`` with ``d . A d <= 0`` that truncated it (``None`` if none did), and ``breakdown``: whether
+    it stopped because ``r . precond(r) <= 0`` for a nonzero residual (the preconditioner is not
+    positive definite there: an incomplete factorisation of an ill-conditioned matrix)."""
 
     x: Tensor
     iterations: int
     converged: bool
     negative_curvature: Tensor | None
+    breakdown: bool = False
 
 
 def pcg(apply: Apply, b: Tensor, precond: Apply, *, tol: float, maxiter: int, check_every: int | None = None) -> CGResult:
@@ -371,6 +374,7 @@ def pcg(apply: Apply, b: Tensor, precond: Apply, *, tol: float, maxiter: int, ch
     bnorm = torch.linalg.vector_norm(b)
     done = rz <= 0  # a zero right-hand side, or a preconditioner that is not positive definite
     converged = bnorm == 0
+    breakdown = done & ~converged
     negative = torch.zeros_like(done)
     neg_d = torch.zeros_like(b)
     iterations = torch.zeros((), dtype=torch.int64, device=b.device)
@@ -397,11 +401,12 @@ def pcg(apply: Apply, b: Tensor, precond: Apply, *, tol: float, maxiter: int, ch
         z = precond(r)
         rz_new = torch.dot(r, z)
         go = ~done & (rz_new > 0)
+        breakdown = breakdown | (~done & ~go)
         done = done | ~go
         beta = torch.where(go, rz_new / torch.where(go, rz, torch.ones_like(rz)), torch.zeros_like(rz))
         d = torch.where(go, z + beta * d, d)
         rz = torch.where(go, rz_new, rz)
-    return CGResult(x, int(iterations), bool(converged), neg_d if bool(negative) else None)
+    return CGResult(x, int(iterations), bool(converged), neg_d if bool(negative) else None, bool(breakdown))
 
 
 def cg_iteration_bound(n: int, max_cg_iters: int | None = None) -> int:

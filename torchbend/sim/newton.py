@@ -261,9 +261,11 @@ class _Potential:
         assembled free Hessian, on ``x``'s device, to the forcing term ``min(0.1, sqrt(|g| / scale)) / 100``
         (at least 1e-10 and 100 eps of ``x``'s dtype),
         at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
-        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its direction is not a
-        descent direction, block-Jacobi (SPD) is tried.  ``(p, CG iterations)``; sets ``negative_curvature``,
-        ``positive_definite`` (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
+        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its CG breaks down (the
+        incomplete factorisation is not positive definite) or its direction is not a descent direction,
+        block-Jacobi (SPD) is tried.  ``(p, CG
+        iterations)``; sets ``negative_curvature``, ``positive_definite`` (``False`` when negative curvature was
+        met, else unknown) and ``linear_method``."""
         A = self.free_hessian(x)
         b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
         tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10, 100 * torch.finfo(x.dtype).eps)
@@ -272,7 +274,7 @@ class _Potential:
         M, used = make_preconditioner(kind, A, self.hessian_op)
         res = pcg(lambda d: A @ d, b, M, tol=tol, maxiter=maxiter)
         iterations = res.iterations
-        if used is not Preconditioner.BLOCK_JACOBI and not float(torch.dot(b, res.x)) > 0:
+        if used is not Preconditioner.BLOCK_JACOBI and (res.breakdown or not float(torch.dot(b, res.x)) > 0):
             used = Preconditioner.BLOCK_JACOBI
             res = pcg(lambda d: A @ d, b, make_preconditioner(used, A, self.hessian_op)[0], tol=tol, maxiter=maxiter)
             iterations += res.iterations
@@ -461,6 +463,7 @@ class _NewtonRun:
         self.decrements: list = []
         self.gf_next: np.ndarray | None = None
         self.alpha, self.cg_before = math.nan, 0
+        self.polish_steps = 0  # whole exact steps still to take below round-off after :meth:`_polish`
 
     def _polish(self) -> bool:
         """At an apparent round-off floor of a projected Hessian: switch to the exact one for the last
@@ -468,7 +471,7 @@ class _NewtonRun:
         Newton reaches the true floor quadratically).  True when it switched (once per run)."""
         if self.phi.option is Projection.NONE:
             return False
-        self.phi.option, self.floor_factor = Projection.NONE, 100.0
+        self.phi.option, self.floor_factor, self.polish_steps = Projection.NONE, 100.0, 2
         self.decrements.clear()
         return True
 
@@ -586,14 +589,22 @@ class _NewtonRun:
         regularized = info.regularized_steps > shifts_before
         self.decrements.append(-slope)
         if -slope <= noise:
-            if res <= 4 * phi.gradient_roundoff(x):
-                if self._polish():
-                    return self._step(x, gf, energy, terms, noise)
-                return self._converged("round-off floor", x, gf, energy, noise)
-            found = _roundoff_step(phi, x, p, energy, res, noise)
+            # below the potential's round-off only the residual tells progress: a whole step that lowers it
+            # is taken; at the estimated floor only if it halves the residual (the estimate is an upper
+            # bound).  The first exact steps after a switch from a projected Hessian are taken whatever the
+            # residual: the soft modes' error left by the linear convergence does not show above the stiff
+            # modes' round-off, and the exact step removes it
+            at_floor = res <= 4 * phi.gradient_roundoff(x)
+            target = math.inf if self.polish_steps > 0 else 0.5 * res if at_floor else res
+            self.polish_steps -= 1
+            found = _roundoff_step(phi, x, p, energy, target, noise)
             if found is not None:
                 step, self.gf_next = found
                 return step
+            if at_floor:
+                if self._polish():
+                    return self._step(x, gf, energy, terms, noise)
+                return self._converged("round-off floor", x, gf, energy, noise)
         dx = phi.full(p, x)
         step = armijo_backtracking(phi.value, x, dx, energy, terms, slope,
                                    lambda y: float(np.linalg.norm(phi.free_gradient(y))) < res,
