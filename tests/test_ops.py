@@ -101,7 +101,7 @@ def test_the_default_path_runs_the_operators(monkeypatch):
     """No opt-in: a plain module call, its backward and double backward go through torch.ops.torchbend."""
     bend, x, _ = _setup("tan", F64, False, ())
     calls = []
-    for name in ("bending_energy", "bending_gradient", "bending_hvp"):
+    for name in ("bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp"):
         orig = getattr(native, name)
 
         def spy(*args, _orig=orig, _name=name, **kw):
@@ -113,7 +113,14 @@ def test_the_default_path_runs_the_operators(monkeypatch):
     (g,) = torch.autograd.grad(bend(y), y, create_graph=True)
     assert g.grad_fn is not None and g.grad_fn.name().startswith("TanBendingGradient")
     torch.autograd.grad(g, y, torch.ones_like(x))
-    assert calls == ["bending_energy", "bending_gradient", "bending_hvp"]
+    # the recorded forward computes the gradient with the energy (one pass), the double backward the HVP
+    assert calls == ["bending_energy_gradient", "bending_hvp"]
+    calls.clear()
+    with torch.no_grad():
+        bend(y)
+    (g,) = torch.autograd.grad(bend(y), y)  # a plain backward: no second kernel call
+    assert calls == ["bending_energy", "bending_energy_gradient"]
+    assert torch.equal(g, bend.gradient(x))
 
 
 # ----------------------------------------------------------------------------- torch.library
@@ -134,6 +141,7 @@ def test_opcheck_every_operator(damped):
     cases = {
         "bending_energy": (x, *base, True),
         "bending_gradient": (x, *base, w, ptr, idx, True, False),
+        "bending_energy_gradient": (x, *base, ptr, idx, True, False),
         "bending_hvp": (x, v, *base, w, ptr, idx),
         "bending_second_order": (x, v, torch.randn(x.shape[:-2] + (hinges.shape[0], 4), dtype=F64), *base, w, ptr,
                                  idx),

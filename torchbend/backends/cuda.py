@@ -37,7 +37,7 @@ from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
 __all__ = ["load", "build_error", "build_info", "available", "kernels", "bending_energy", "bending_gradient",
-           "bending_hvp", "bending_hessians"]
+           "bending_energy_gradient", "bending_hvp", "bending_hessians"]
 
 CSRC = cfg.CSRC
 CU_SOURCES = cfg.CUDA_SOURCES
@@ -221,6 +221,15 @@ def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weig
                                                _opt(prev), _code(model), weight.detach(), params, _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return gx, (gp if params else None)
+
+
+def bending_energy_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, inc, params: bool,
+                            check: bool = False):
+    """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or None)``: the energy and the
+    gradient kernels one after the other (the CPU driver fuses them into one pass)."""
+    psi = bending_energy(x, hinges, a, k, rest, c, prev, model, check)
+    gx, gp = bending_gradient(x, hinges, a, k, rest, c, prev, model, x.new_ones(1), inc, params, False)
+    return psi, gx, gp
 
 
 def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc=None,

@@ -234,6 +234,17 @@ def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weig
     return gx, (gp if params else None)
 
 
+def bending_energy_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, inc, params: bool,
+                            check: bool = False):
+    """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` in one compiled pass:
+    the per-hinge energies and the unweighted gradients (checks as :func:`bending_energy`)."""
+    psi, gx, gp, theta, status = _module().bending_energy_gradient(x, hinges, a, k, rest, c, prev, _model_code(model),
+                                                                   inc[0], inc[1], params, check)
+    if status:
+        _raise(status, model, x, theta)
+    return psi, gx, (gp if params else None)
+
+
 def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc,
                 check: bool = False) -> Tensor:
     """``w H v (..., V, 3)``: the closed-form Hessian of the energy applied to ``v`` (no matrix stored); with

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from . import kernels
 
-__all__ = ["bending_energy", "bending_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS",
+__all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS",
            "run"]
 
 _LIB = torch.library.Library("torchbend", "DEF")
@@ -103,6 +103,23 @@ def bending_gradient(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     return gx, (gp if gp is not None else x.new_empty(0))
 
 
+def _energy_gradient_fake(x, hinges, a, k, rest, c, prev, model, ptr, idx, params, check):
+    return (x.new_empty(_batch(x) + (hinges.shape[0],)),) + _gradient_fake(x, hinges, a, k, rest, c, prev, model, None,
+                                                                            ptr, idx, params, check)
+
+
+@_operator(_energy_gradient_fake)
+def bending_energy_gradient(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
+                            prev: Optional[Tensor], model: str, ptr: Tensor, idx: Tensor, params: bool,
+                            check: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4))`` in one pass (the forward of a
+    recorded energy, which keeps the gradient for its backward); the third is empty (``(0,)``) without
+    ``params``."""
+    psi, gx, gp = kernels.module(x).bending_energy_gradient(x, hinges, a, k, rest, c, prev, model, (ptr, idx), params,
+                                                            check)
+    return psi, gx, (gp if gp is not None else x.new_empty(0))
+
+
 def _hvp_fake(x, v, hinges, a, k, rest, c, prev, model, weight, ptr, idx, check=False):
     return torch.empty_like(x, memory_format=torch.contiguous_format)
 
@@ -169,6 +186,7 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
 OPS = {
     "bending_energy": bending_energy,
     "bending_gradient": bending_gradient,
+    "bending_energy_gradient": bending_energy_gradient,
     "bending_hvp": bending_hvp,
     "bending_second_order": bending_second_order,
     "hinge_hessians": hinge_hessians,

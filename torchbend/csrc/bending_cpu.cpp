@@ -630,19 +630,22 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
   return {psi, theta, fold_status(theta, model)};
 }
 
-// (w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H), status); w a
-// per-hinge weight (the cotangent of the energy: scalar, (H,) or (B, H)); check as in bending_energy
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradient(
+// (psi (..., H) or an empty tensor, w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty
+// tensor, theta (..., H), status): the gradient pass, which also writes the (unweighted) per-hinge energies
+// when `energies` is set (the forward of a recorded energy: one pass instead of two)
+static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> gradient_pass(
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
-    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
-    torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params, bool check) {
+    const c10::optional<torch::Tensor>& c, const c10::optional<torch::Tensor>& prev, int64_t model,
+    torch::Tensor weight, const torch::Tensor& inc_ptr, const torch::Tensor& inc_idx, bool params, bool check,
+    bool energies) {
   Prepared P = prepare(x, hinges, a, k, rest, c, prev);
   weight = prepare_weight(weight, P);
   TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
   auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto gp = params ? torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options()) : torch::empty({0}, P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
-  if (check && finite_status(P.x, kBadX)) return {gx, gp, theta, kBadX};
+  auto psi = energies ? torch::empty_like(theta) : torch::empty({0}, P.x.options());
+  if (check && finite_status(P.x, kBadX)) return {psi, gx, gp, theta, kBadX};
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_gradient", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
@@ -650,6 +653,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradien
     const T* xp = P.x.data_ptr<T>();
     const int64_t* hp = P.hinges.data_ptr<int64_t>();
     T* gpp = params ? gp.data_ptr<T>() : nullptr; T* to = theta.data_ptr<T>();
+    T* po = energies ? psi.data_ptr<T>() : nullptr;
     int64_t V = P.V;
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
@@ -657,15 +661,15 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradien
       scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
                        [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
         alignas(64) T X[12][W], G[12][W];
-        alignas(64) T TH[W], S[W], GP[4][W];
+        alignas(64) T TH[W], S[W], PS[W], GP[4][W];
         HingeTile<T, W> Q;
         Half<T, W> hA, hB;
         gather_tile<T>(xp, nullptr, hp, V, args, &w, nl, bs, hs, X, nullptr, Q);
         theta_tile<T, W>(X, TH);
         if (gpp) {
           TB_LANES_AGG(W) {
-            T psi, d1, d2, g4[4];
-            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, g4);
+            T d1, d2, g4[4];
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, g4);
             S[l] = Q.w[l] * d1;
             GP[0][l] = Q.w[l] * g4[0]; GP[1][l] = Q.w[l] * g4[1]; GP[2][l] = Q.w[l] * g4[2]; GP[3][l] = Q.w[l] * g4[3];
           }
@@ -673,8 +677,8 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradien
             for (int j = 0; j < 4; ++j) gpp[4 * (bh0 + l) + j] = GP[j][l];
         } else {
           TB_LANES_AGG(W) {
-            T psi, d1, d2;
-            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, static_cast<T*>(nullptr));
+            T d1, d2;
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
             S[l] = Q.w[l] * d1;
           }
         }
@@ -682,10 +686,32 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradien
         grad_of_halves<T, W>(hA, hB, G);
         for (int m = 0; m < 12; ++m) TB_LANES(W) O[m][l] = S[l] * G[m][l];
         for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
+        if (po)
+          for (int l = 0; l < nl; ++l) po[bh0 + l] = PS[l];
       });
     });
   });
-  return {gx, gp, theta, fold_status(theta, model)};
+  return {psi, gx, gp, theta, fold_status(theta, model)};
+}
+
+// (w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H), status); w a
+// per-hinge weight (the cotangent of the energy: scalar, (H,) or (B, H)); check as in bending_energy
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_gradient(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
+    torch::Tensor inc_ptr, torch::Tensor inc_idx, bool params, bool check) {
+  auto r = gradient_pass(x, hinges, a, k, rest, c, prev, model, weight, inc_ptr, inc_idx, params, check, false);
+  return {std::get<1>(r), std::get<2>(r), std::get<3>(r), std::get<4>(r)};
+}
+
+// (psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or an empty tensor, theta (..., H),
+// status): the per-hinge energies and the unweighted gradients in one pass; check as in bending_energy
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> bending_energy_gradient(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+    c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor inc_ptr,
+    torch::Tensor inc_idx, bool params, bool check) {
+  return gradient_pass(x, hinges, a, k, rest, c, prev, model, torch::ones({1}, x.options()), inc_ptr, inc_idx,
+                       params, check, true);
 }
 
 // (w H v (..., V, 3), theta (..., H)): the Hessian of the energy applied to directions v (..., V, 3) of x's
@@ -997,6 +1023,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("assemble", &assemble, "CSR values of the bending Hessian of one mesh, per hinge or per triangle");
   m.def("bending_energy", &bending_energy, "per-hinge energies and angles");
   m.def("bending_gradient", &bending_gradient, "weighted gradient in positions and per-hinge parameter gradients");
+  m.def("bending_energy_gradient", &bending_energy_gradient,
+        "per-hinge energies with the gradient in positions and the per-hinge parameter gradients, one pass");
   m.def("bending_hvp", &bending_hvp, "weighted Hessian-vector product in positions");
   m.def("bending_second_order", &bending_second_order,
         "the general double backward: position and parameter directions, per-hinge weight");

@@ -308,6 +308,13 @@ def _kernel_double_backward(model: BendingModel, saved: tuple, needs, ggx, ggp) 
     return tuple(out)
 
 
+def _scaled(gE: Tensor, g1: Tensor, gp1: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The gradients of a mesh's energy ``(dE/dx (..., V, 3), dpsi/dp (..., H, 4) or None)`` times its cotangent
+    ``gE (...,)``: ``(gx, gp)`` as the gradient operator returns them (``gp`` empty without parameters)."""
+    s = gE[..., None, None]
+    return s * g1, (s * gp1 if gp1 is not None else g1.new_empty(0))
+
+
 def _kernel_energy(code: str, x, hinges, seg, seg_count, a, k, rest, c, prev, check) -> Tensor:
     """The energy of the kernel path: the operator's per-hinge energies, summed per mesh (or segment)."""
     psi = _ops.run("bending_energy", x, hinges, a, k, rest, c, prev, code, check)
@@ -333,30 +340,43 @@ def _make_kernel(model: BendingModel):
 
     class _GradientImpl(torch.autograd.Function):
         @staticmethod
-        def forward(ctx, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check):
+        def forward(ctx, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check, g1=None, gp1=None):
             ctx.save_for_backward(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx)
             ctx.set_materialize_grads(False)
+            if g1 is not None:  # the unweighted gradients of the energy's forward pass, scaled by the cotangent
+                return _scaled(gE, g1, gp1)
             return _kernel_gradient(code, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, check)
 
         @staticmethod
         def backward(ctx, ggx, ggp):
-            return _kernel_double_backward(model, ctx.saved_tensors, ctx.needs_input_grad, ggx, ggp)
+            return _kernel_double_backward(model, ctx.saved_tensors, ctx.needs_input_grad, ggx, ggp) + (None, None)
 
     class _EnergyImpl(torch.autograd.Function):
         @staticmethod
         def forward(ctx, x, hinges, seg, seg_count, a, k, rest, c, prev, ptr, idx, check):
-            ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx)
+            needs = ctx.needs_input_grad
+            params = any(needs[5:9])
+            if seg is None and (needs[0] or params):
+                # a recorded energy is differentiated next: one pass computes the energies and the gradients
+                # (with the weight 1), which the backward scales by the cotangent
+                psi, g1, gp1 = _ops.run("bending_energy_gradient", x, hinges, a, k, rest, c, prev, code, ptr, idx,
+                                        params, check)
+                ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx, g1, gp1 if params else None)
+                return _reduce(psi, seg, seg_count)
+            ctx.save_for_backward(x, hinges, seg, a, k, rest, c, prev, ptr, idx, None, None)
             return _kernel_energy(code, x, hinges, seg, seg_count, a, k, rest, c, prev, check)
 
         @staticmethod
         def backward(ctx, gE):
-            x, hinges, seg, a, k, rest, c, prev, ptr, idx = ctx.saved_tensors
+            x, hinges, seg, a, k, rest, c, prev, ptr, idx, g1, gp1 = ctx.saved_tensors
             needs = ctx.needs_input_grad
             params = any(needs[5:9])
             # the positions were checked by the forward
             if torch.is_grad_enabled():  # create_graph=True: the gradient is differentiable (analytic HVP)
-                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, False)
-            else:  # a plain backward (and torch.compile's trace of it): the operator alone
+                gx, gp = _Gradient.apply(gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, False, g1, gp1)
+            elif g1 is not None:  # a plain backward (and torch.compile's trace of it): scale the forward's gradients
+                gx, gp = _scaled(gE, g1, gp1)
+            else:  # the operator alone
                 gx, gp = _kernel_gradient(code, gE, x, hinges, seg, a, k, rest, c, prev, ptr, idx, params, False)
             out: list = [None] * 12
             out[0] = gx if needs[0] else None
