@@ -10,8 +10,10 @@ more than the kernels themselves on meshes of a thousand hinges; the schemas are
 infer from the annotated functions below (:func:`torch.library.infer_schema`).
 
 The operators are not differentiable themselves: derivatives come from torchbend's autograd Functions
-(:mod:`torchbend.energies._bending_fn`), which call ``bending_energy`` in the forward, ``bending_gradient``
-in its backward and ``bending_hvp``/``bending_second_order`` in the double backward.  The checks stay on in
+(:mod:`torchbend.energies._bending_fn`), which call ``bending_energy`` in the forward (``bending_energy_gradient``
+when autograd records it: the gradient comes in the same pass and the backward scales it),
+``bending_gradient`` in the backward otherwise, and ``bending_hvp``/``bending_second_order`` in the double
+backward.  The checks stay on in
 compiled code because they run inside the operators (on the CPU inside the C++ kernels, which return a status
 word): a folded ``tan`` hinge is the ``ValueError`` of :func:`torchbend.ops.psi.check_fold`; with ``check=True``
 non-finite positions (and directions ``v`` of ``bending_hvp``) are the ``ValueError`` of

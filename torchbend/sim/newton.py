@@ -40,9 +40,18 @@ indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo ba
   last three Newton directions, the decrement was below that round-off, the potential changed by no
   more than it, the residual made no progress (no halving of its best value) and ``|g_free| <=
   100 r_eps``; or when the line search finds no decrease along a direction whose decrement is below
-  the round-off and ``|g_free| <= 100 r_eps``.  When the decrement of a step is below the round-off
-  (and the residual above ``4 r_eps``) the full step is taken if it lowers the residual (the
-  potential cannot tell better from worse there).
+  the round-off and ``|g_free| <= 100 r_eps``.  Every variant also needs ``|g_free| <= eps^(1/4) F``
+  (``F`` at that iterate): a floor far above that is not round-off but an ill-conditioned state (nearly
+  collapsed triangles), where the iteration goes on.  When the decrement of a step is below the
+  round-off the full step is taken if it lowers the residual, or at ``|g_free| <= 4 r_eps`` if it
+  halves it (the potential cannot tell better from worse there).
+
+**Projected Hessians** (``clamp``, ``abs``, ``gauss_newton``) converge linearly: once they reach an
+apparent round-off floor, or after 5 full steps in a row that did not halve the residual, the
+solve switches to the exact Hessian for its last iterations (quadratic convergence near the
+minimum; the line search keeps the potential decreasing), and takes the first two exact steps below
+the round-off whatever the residual (a soft mode's error left by the linear convergence does not
+show above a stiff membrane's round-off).
 
 **Minima, not saddles.**  With the exact Hessian (``hessian="exact"``) and ``check_minimum``, a point
 that passes a stopping test is checked for negative curvature: the smallest eigenvalue of the exact
@@ -98,6 +107,8 @@ _INFO_AFTER_S = 5.0
 """A solve running longer than this [s] logs its iterations at INFO instead of DEBUG."""
 _STALL_WINDOW = 3
 """Newton directions over which the round-off floor test looks for progress."""
+_SLOW_STEPS = 5
+"""Full steps in a row that do not halve the residual after which a projected Hessian gives way to the exact one."""
 _MAX_ESCAPES = 10
 """Negative-curvature steps at most per Newton solve."""
 
@@ -263,9 +274,9 @@ class _Potential:
         at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
         The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its CG breaks down (the
         incomplete factorisation is not positive definite) or its direction is not a descent direction,
-        block-Jacobi (SPD) is tried.  ``(p, CG
-        iterations)``; sets ``negative_curvature``, ``positive_definite`` (``False`` when negative curvature was
-        met, else unknown) and ``linear_method``."""
+        block-Jacobi (SPD) is tried, and of the two descent directions the one with the lower quadratic model
+        ``g.p + p.Ap/2`` is kept.  ``(p, CG iterations)``; sets ``negative_curvature``, ``positive_definite``
+        (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
         A = self.free_hessian(x)
         b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
         tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10, 100 * torch.finfo(x.dtype).eps)
@@ -275,9 +286,16 @@ class _Potential:
         res = pcg(lambda d: A @ d, b, M, tol=tol, maxiter=maxiter)
         iterations = res.iterations
         if used is not Preconditioner.BLOCK_JACOBI and (res.breakdown or not float(torch.dot(b, res.x)) > 0):
-            used = Preconditioner.BLOCK_JACOBI
-            res = pcg(lambda d: A @ d, b, make_preconditioner(used, A, self.hessian_op)[0], tol=tol, maxiter=maxiter)
-            iterations += res.iterations
+            retry = pcg(lambda d: A @ d, b, make_preconditioner(Preconditioner.BLOCK_JACOBI, A, self.hessian_op)[0],
+                        tol=tol, maxiter=maxiter)
+            iterations += retry.iterations
+
+            def model(r) -> float:  # the quadratic model at the direction (inf: not a descent direction)
+                bx = float(torch.dot(b, r.x))
+                return 0.5 * float(torch.dot(r.x, A @ r.x)) - bx if bx > 0 else math.inf
+
+            if model(retry) <= model(res):
+                res, used = retry, Preconditioner.BLOCK_JACOBI
         self.negative_curvature = res.negative_curvature
         self.positive_definite = False if res.negative_curvature is not None else None
         self.linear_method = f"cg/{used.value}"
@@ -464,9 +482,11 @@ class _NewtonRun:
         self.gf_next: np.ndarray | None = None
         self.alpha, self.cg_before = math.nan, 0
         self.polish_steps = 0  # whole exact steps still to take below round-off after :meth:`_polish`
+        self.slow_steps = 0  # consecutive full steps that did not halve the residual
 
     def _polish(self) -> bool:
-        """At an apparent round-off floor of a projected Hessian: switch to the exact one for the last
+        """At an apparent round-off floor of a projected Hessian, or when it converges slowly (``_SLOW_STEPS``
+        full steps in a row that did not halve the residual): switch to the exact one for the last
         iterations (a projected Newton converges linearly and its floor estimate is loose; the exact
         Newton reaches the true floor quadratically).  True when it switched (once per run)."""
         if self.phi.option is Projection.NONE:
@@ -474,6 +494,16 @@ class _NewtonRun:
         self.phi.option, self.floor_factor, self.polish_steps = Projection.NONE, 100.0, 2
         self.decrements.clear()
         return True
+
+    def _credible_floor(self, x: Tensor, res: float) -> bool:
+        """Whether a residual ``res`` [N] at an apparent round-off floor is small against the force scale at
+        ``x`` (refreshed there): ``res <= eps^(1/4) F``.  Above that the state is ill-conditioned (nearly
+        collapsed elements have huge Hessian blocks, hence a huge floor estimate), not converged."""
+        if self.scale_at != self.it:
+            self.magnitudes = self.phi.force_magnitudes(x)
+            self.scale = max(float(self.magnitudes.norm()), torch.finfo(x.dtype).tiny)
+            self.scale_at = self.it
+        return res <= torch.finfo(x.dtype).eps ** 0.25 * self.scale
 
     # ---------------------------------------------------------------- driver
     def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
@@ -528,6 +558,8 @@ class _NewtonRun:
         info.residual, info.energy, info.energies, info.iterations = res, energy, terms, it
         info.tolerance, info.force_scale, info.best_iteration = tolerance, self.scale, it
         info.residual_history.append(res)
+        h = info.residual_history
+        self.slow_steps = self.slow_steps + 1 if len(h) > 1 and self.alpha == 1.0 and h[-1] > 0.5 * h[-2] else 0
         level = logging.INFO if time.perf_counter() - self.t0 > _INFO_AFTER_S else logging.DEBUG
         if _log.isEnabledFor(level):
             _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d",
@@ -540,9 +572,12 @@ class _NewtonRun:
         cur, info, it = self.current, self.info, self.it
         assert cur is not None and self.best is not None
         reason = None
+        if self.slow_steps >= _SLOW_STEPS:
+            self._polish()
         if cur.residual <= cur.tolerance:
             reason = "residual"
-        elif _stalled(info, self.decrements, noise) and cur.residual <= self.floor_factor * self.phi.gradient_roundoff(x):
+        elif (_stalled(info, self.decrements, noise) and cur.residual <= self.floor_factor * self.phi.gradient_roundoff(x)
+              and self._credible_floor(x, cur.residual)):
             reason = None if self._polish() else "round-off floor"
         stop = bool(self.callback(it, x, info)) if (self.callback is not None and it > 0) else False
         if reason is not None:
@@ -594,7 +629,7 @@ class _NewtonRun:
             # bound).  The first exact steps after a switch from a projected Hessian are taken whatever the
             # residual: the soft modes' error left by the linear convergence does not show above the stiff
             # modes' round-off, and the exact step removes it
-            at_floor = res <= 4 * phi.gradient_roundoff(x)
+            at_floor = res <= 4 * phi.gradient_roundoff(x) and self._credible_floor(x, res)
             target = math.inf if self.polish_steps > 0 else 0.5 * res if at_floor else res
             self.polish_steps -= 1
             found = _roundoff_step(phi, x, p, energy, target, noise)
@@ -612,7 +647,7 @@ class _NewtonRun:
         if step is not None:
             return step
         info.line_search_failures += 1
-        if -slope <= noise and res <= 100 * phi.gradient_roundoff(x):
+        if -slope <= noise and res <= 100 * phi.gradient_roundoff(x) and self._credible_floor(x, res):
             if self._polish():
                 return self._step(x, gf, energy, terms, noise)
             return self._converged("round-off floor", x, gf, energy, noise)
