@@ -2,6 +2,7 @@
 
     python benchmarks/bm_solver.py                          # drape 11..41, beams at 3 resolutions
     python benchmarks/bm_solver.py --drape 11 21 41 81 --steps 60
+    python benchmarks/bm_solver.py --drape --split-beams --beams --sweep full   # the acceptance sweep table only
 
 Drape (configs/cloth_sphere.yaml): per resolution, Hessian option (exact, clamp, abs,
 gauss_newton) and linear solver (direct, cg): mean/max Newton iterations per step, seconds per step,
@@ -14,6 +15,11 @@ Time split (the paper's Table 1 reports the bending share: 4-6 % of the total ti
 ``bend %`` every call into the bending energy (energy, gradient, Hessian blocks and their assembly:
 the paper's "bending force evaluation and stiffness matrix assembly").  Measured by wrapping those
 functions with timers (nested calls counted once).  No assertions on time.
+
+Sweep (``--sweep full|corners``): the cantilever strips of ``tests/test_solver_sweep.py`` (Y t, t,
+resolution, triangulation pattern) for every Hessian option and linear solver with default solver options:
+converged, Newton iterations, seconds, and the relative displacement error against that test's dense
+reference (run from the repository root: it imports the test module).
 """
 from __future__ import annotations
 
@@ -119,6 +125,35 @@ def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str, t
             f"{secs:9.2f}s {shares.percent(secs)}  {'yes' if info.converged else 'NO: ' + info.stop_reason}")
 
 
+def sweep(cases: str) -> None:
+    """The table of the solver acceptance sweep (module docstring); ``cases``: ``"full"`` or ``"corners"``."""
+    import sys
+
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from tests import test_solver_sweep as sw
+
+    print(f"\nsweep: cantilever strips ({cases}), default solver options; error = relative displacement error "
+          "against the dense autograd reference")
+    print(f"{'Y t':>6s} {'t':>6s} {'mesh':>5s} {'pattern':>7s} {'hessian':>13s} {'linear':>6s} {'its':>5s} "
+          f"{'seconds':>8s} {'error':>8s}  converged")
+    total = ok = 0
+    for yt, t, res, pattern in (sw.FULL if cases == "full" else sw.CORNERS):
+        model, rest, _ = sw.scene(yt, t, *res, pattern)
+        x_ref = sw.reference(yt, t, *res, pattern)
+        for hessian in sw.HESSIANS:
+            for lin in sw.SOLVERS:
+                t0 = time.perf_counter()
+                x, info = solve_static(model, rest, hessian=hessian, linear_solver=lin)
+                secs = time.perf_counter() - t0
+                err = float((x - x_ref).norm() / (x_ref - rest).norm())
+                good = info.converged and err <= 1e-6
+                total, ok = total + 1, ok + good
+                print(f"{yt:6.0e} {t:6.0e} {res[0]:>2d}x{res[1]:<2d} {pattern:>7s} {hessian:>13s} {lin:>6s} "
+                      f"{info.iterations:5d} {secs:8.2f} {err:8.1e}  {'yes' if info.converged else 'NO'}"
+                      f"{'' if good else '  <- fails the acceptance'}", flush=True)
+    print(f"{ok} of {total} solves converged within 1e-6 of the reference")
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--drape", type=int, nargs="*", default=[11, 21, 41])
@@ -129,8 +164,12 @@ def main(argv=None) -> None:
     p.add_argument("--split-beams", type=str, nargs="*", default=["61x6"],
                    help="beam resolutions of the per-option time split table (default solver options)")
     p.add_argument("--time-limit", type=float, default=60.0, help="seconds per beam solve of the time split table")
+    p.add_argument("--sweep", choices=["full", "corners"], default=None,
+                   help="the acceptance sweep table of tests/test_solver_sweep.py")
     a = p.parse_args(argv)
     print("machine:", machine())
+    if a.sweep:
+        sweep(a.sweep)
     if a.drape:
         print(f"\ndrape: square cloth falling onto a sphere, {a.steps} implicit Euler steps of 0.005 s")
         print(f"{'mesh':>7s} {'hessian':>13s} {'linear':>6s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} "

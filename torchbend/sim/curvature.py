@@ -61,10 +61,13 @@ def count_below(A, sigma: float) -> int | None:
 
 
 def _nearest(A, sigma: float, k: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """``k`` eigenpairs of ``A`` nearest ``sigma`` (shift-invert Lanczos), or None if that fails."""
+    """``k`` eigenpairs of ``A`` nearest ``sigma`` (shift-invert Lanczos), or None if that fails.  The start
+    vector is fixed (ARPACK's default is drawn from a generator whose state persists between calls, which made a
+    solve's negative-curvature steps depend on the solves run before it in the process)."""
     n = int(A.get_shape()[0])
+    v0 = np.random.default_rng(0).standard_normal(n)
     try:
-        w, V = spla.eigsh(sp.csc_matrix(A), k=max(1, min(k, n - 2)), sigma=sigma, which="LM", maxiter=50 * n)
+        w, V = spla.eigsh(sp.csc_matrix(A), k=max(1, min(k, n - 2)), sigma=sigma, which="LM", maxiter=50 * n, v0=v0)
     except RuntimeError:  # a singular shifted matrix, or ArpackError / ArpackNoConvergence
         return None
     if not (np.all(np.isfinite(w)) and np.all(np.isfinite(V))):

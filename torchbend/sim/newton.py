@@ -47,7 +47,8 @@ indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo ba
   halves it (the potential cannot tell better from worse there).
 
 **Projected Hessians** (``clamp``, ``abs``, ``gauss_newton``) converge linearly: once they reach an
-apparent round-off floor, or after 5 full steps in a row that did not halve the residual, the
+apparent round-off floor, or after 5 full steps in a row that did not halve the residual once
+it is below ``1e-3 F`` (near a minimum: far from one, the exact Hessian could lead to another), the
 solve switches to the exact Hessian for its last iterations (quadratic convergence near the
 minimum; the line search keeps the potential decreasing), and takes the first two exact steps below
 the round-off whatever the residual (a soft mode's error left by the linear convergence does not
@@ -200,6 +201,7 @@ class _Potential:
         self.positive_definite: bool | None = None
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
+        self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
 
     def value(self, y: Tensor) -> tuple[float, dict]:
         """``(Phi(y) [J], per-term energies)``; the inertial term is ``"inertia"``."""
@@ -272,8 +274,9 @@ class _Potential:
         assembled free Hessian, on ``x``'s device, to the forcing term ``min(0.1, sqrt(|g| / scale)) / 100``
         (at least 1e-10 and 100 eps of ``x``'s dtype),
         at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
-        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its CG breaks down (the
-        incomplete factorisation is not positive definite) or its direction is not a descent direction,
+        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its CG breaks down on a
+        projected Hessian or near a minimum (``near_minimum``: the incomplete factorisation is not positive
+        definite) or its direction is not a descent direction,
         block-Jacobi (SPD) is tried, and of the two descent directions the one with the lower quadratic model
         ``g.p + p.Ap/2`` is kept.  ``(p, CG iterations)``; sets ``negative_curvature``, ``positive_definite``
         (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
@@ -285,7 +288,11 @@ class _Potential:
         M, used = make_preconditioner(kind, A, self.hessian_op)
         res = pcg(lambda d: A @ d, b, M, tol=tol, maxiter=maxiter)
         iterations = res.iterations
-        if used is not Preconditioner.BLOCK_JACOBI and (res.breakdown or not float(torch.dot(b, res.x)) > 0):
+        # a breakdown on a matrix expected positive (semi-)definite (a projected Hessian, or the exact one after
+        # the switch near a minimum) is the incomplete factorisation's failure; on the exact Hessian elsewhere it
+        # usually reflects the matrix's own indefiniteness, and the direction is kept
+        broke = res.breakdown and (self.option is not Projection.NONE or self.near_minimum)
+        if used is not Preconditioner.BLOCK_JACOBI and (broke or not float(torch.dot(b, res.x)) > 0):
             retry = pcg(lambda d: A @ d, b, make_preconditioner(Preconditioner.BLOCK_JACOBI, A, self.hessian_op)[0],
                         tol=tol, maxiter=maxiter)
             iterations += retry.iterations
@@ -485,13 +492,14 @@ class _NewtonRun:
         self.slow_steps = 0  # consecutive full steps that did not halve the residual
 
     def _polish(self) -> bool:
-        """At an apparent round-off floor of a projected Hessian, or when it converges slowly (``_SLOW_STEPS``
-        full steps in a row that did not halve the residual): switch to the exact one for the last
+        """At an apparent round-off floor of a projected Hessian, or when it converges slowly near a minimum
+        (``_SLOW_STEPS`` full steps in a row that did not halve a residual below ``1e-3 F``): switch to the exact one for the last
         iterations (a projected Newton converges linearly and its floor estimate is loose; the exact
         Newton reaches the true floor quadratically).  True when it switched (once per run)."""
         if self.phi.option is Projection.NONE:
             return False
         self.phi.option, self.floor_factor, self.polish_steps = Projection.NONE, 100.0, 2
+        self.phi.near_minimum = True
         self.decrements.clear()
         return True
 
@@ -572,7 +580,7 @@ class _NewtonRun:
         cur, info, it = self.current, self.info, self.it
         assert cur is not None and self.best is not None
         reason = None
-        if self.slow_steps >= _SLOW_STEPS:
+        if self.slow_steps >= _SLOW_STEPS and cur.residual <= 1e-3 * cur.scale:
             self._polish()
         if cur.residual <= cur.tolerance:
             reason = "residual"
@@ -793,7 +801,9 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
       is reset every step, so each step is a proximal step on the potential) with a growing step
       size, retrying Newton every few steps (at most ``max_relax_steps`` steps);
     * ``"auto"`` (default, also ``True``): a first Newton solve of at most ``min(max_iters, 20)``
-      iterations; if it fails, ``"membrane"`` from its best iterate when the model has a membrane
+      iterations, continued up to ``max_iters`` when it is converging (its last residual its lowest, a
+      tenth of the lowest before its last 5 iterations and 1e-3 of its largest: softening the membrane
+      there could lead to another minimum); if it fails, ``"membrane"`` from its best iterate when the model has a membrane
       (then ``"relaxation"`` if that fails too), ``"relaxation"`` otherwise;
     * ``False`` / ``None``: Newton only.
 
@@ -818,6 +828,14 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     if mode == "auto":
         kw["max_iters"] = min(ctl.max_iters, _AUTO_FIRST_ITERS)
     x, info = _newton(model, x0, option=option, linear=linear, inertia=None, bend_kw={}, **kw)
+    if mode == "auto" and info.stop_reason == "max_iters" and _converging(info) and ctl.max_iters > kw["max_iters"]:
+        # the first attempt is on its way (a steadily falling residual): let it finish before softening anything
+        first = info
+        x, info = _newton(model, x, option=option, linear=linear, inertia=None, bend_kw={},
+                          **dict(kw, max_iters=ctl.max_iters - kw["max_iters"]))
+        merged = _aggregate([first, info], info)  # its best iterate is at least the first attempt's
+        merged.seconds = first.seconds + info.seconds
+        info = merged
     if info.converged or mode is None or info.stop_reason in _FINAL_STOPS:
         return x, info
     if mode in ("auto", "membrane") and model.membrane is not None:
@@ -828,7 +846,16 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
 
 
 _AUTO_FIRST_ITERS = 20
-"""Newton iterations of the first attempt of ``continuation="auto"`` before the homotopy takes over."""
+"""Newton iterations of the first attempt of ``continuation="auto"`` before the homotopy takes over (unless
+the attempt is converging: :func:`_converging`)."""
+
+
+def _converging(info: SolveInfo) -> bool:
+    """Whether a Newton run that hit its iteration bound is converging: its last residual is its lowest, at
+    most a tenth of the lowest before its last 5 iterations and below 1e-3 of the largest it had (the
+    final approach to a minimum), so that more iterations, not a homotopy, finish it."""
+    h = info.residual_history
+    return len(h) > 5 and h[-1] <= min(h) and h[-1] <= 0.1 * min(h[:-5]) and h[-1] < 1e-3 * max(h)
 _HOMOTOPY_FACTORS = (1e-3, 1e-1)
 """Membrane stiffness factors of the homotopy stages before the unmodified potential."""
 _FINAL_STOPS = ("rigid_body_modes", "time_limit", "callback")
