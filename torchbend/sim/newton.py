@@ -493,8 +493,8 @@ class _NewtonRun:
 
     def _polish(self) -> bool:
         """At an apparent round-off floor of a projected Hessian, or when it converges slowly near a minimum
-        (``_SLOW_STEPS`` full steps in a row that did not halve a residual below ``1e-3 F``): switch to the exact one for the last
-        iterations (a projected Newton converges linearly and its floor estimate is loose; the exact
+        (``_SLOW_STEPS`` full steps in a row that did not halve a residual below ``1e-3 F``): switch to the
+        exact one for the last iterations (a projected Newton converges linearly and its floor estimate is loose; the exact
         Newton reaches the true floor quadratically).  True when it switched (once per run)."""
         if self.phi.option is Projection.NONE:
             return False
@@ -508,10 +508,14 @@ class _NewtonRun:
         ``x`` (refreshed there): ``res <= eps^(1/4) F``.  Above that the state is ill-conditioned (nearly
         collapsed elements have huge Hessian blocks, hence a huge floor estimate), not converged."""
         if self.scale_at != self.it:
-            self.magnitudes = self.phi.force_magnitudes(x)
-            self.scale = max(float(self.magnitudes.norm()), torch.finfo(x.dtype).tiny)
-            self.scale_at = self.it
+            self._refresh_scale(x)
         return res <= torch.finfo(x.dtype).eps ** 0.25 * self.scale
+
+    def _refresh_scale(self, x: Tensor) -> None:
+        """The per-DOF force magnitudes and the force scale ``F`` [N] at the current iterate ``x``."""
+        self.magnitudes = magnitudes = self.phi.force_magnitudes(x)
+        self.scale = max(float(magnitudes.norm()), torch.finfo(x.dtype).tiny)
+        self.scale_at = self.it
 
     # ---------------------------------------------------------------- driver
     def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
@@ -555,9 +559,7 @@ class _NewtonRun:
         if not math.isfinite(res):
             raise _Stop("non_finite", f"non-finite gradient at iteration {it}; {self._where()}")
         if self.scale_at < 0 or it - self.scale_at >= 10 or res <= 1e3 * self.tol * self.scale:
-            self.magnitudes = magnitudes = phi.force_magnitudes(x)
-            self.scale = max(float(magnitudes.norm()), torch.finfo(x.dtype).tiny)
-            self.scale_at = it
+            self._refresh_scale(x)
         tolerance = self.tol * self.scale
         noise = _noise(terms, self.magnitudes, x)
         self.current = _Iterate(x, energy, terms, res, tolerance, self.scale, it)
@@ -639,7 +641,7 @@ class _NewtonRun:
             # modes' round-off, and the exact step removes it
             at_floor = res <= 4 * phi.gradient_roundoff(x) and self._credible_floor(x, res)
             target = math.inf if self.polish_steps > 0 else 0.5 * res if at_floor else res
-            self.polish_steps -= 1
+            self.polish_steps = max(0, self.polish_steps - 1)
             found = _roundoff_step(phi, x, p, energy, target, noise)
             if found is not None:
                 step, self.gf_next = found
@@ -848,6 +850,10 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
 _AUTO_FIRST_ITERS = 20
 """Newton iterations of the first attempt of ``continuation="auto"`` before the homotopy takes over (unless
 the attempt is converging: :func:`_converging`)."""
+_HOMOTOPY_FACTORS = (1e-3, 1e-1)
+"""Membrane stiffness factors of the homotopy stages before the unmodified potential."""
+_FINAL_STOPS = ("rigid_body_modes", "time_limit", "callback")
+"""Stop reasons after which no continuation is tried."""
 
 
 def _converging(info: SolveInfo) -> bool:
@@ -856,10 +862,6 @@ def _converging(info: SolveInfo) -> bool:
     final approach to a minimum), so that more iterations, not a homotopy, finish it."""
     h = info.residual_history
     return len(h) > 5 and h[-1] <= min(h) and h[-1] <= 0.1 * min(h[:-5]) and h[-1] < 1e-3 * max(h)
-_HOMOTOPY_FACTORS = (1e-3, 1e-1)
-"""Membrane stiffness factors of the homotopy stages before the unmodified potential."""
-_FINAL_STOPS = ("rigid_body_modes", "time_limit", "callback")
-"""Stop reasons after which no continuation is tried."""
 
 
 def _continuation_mode(continuation) -> str | None:
