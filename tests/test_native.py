@@ -1,6 +1,8 @@
 """The compiled C++ kernels (torchbend.backends.native): same blocks as the closed form in eager
 PyTorch and as torch.func; the eager path runs where they do not apply.  Skipped only where no C++
 toolchain exists."""
+import os
+
 import pytest
 import torch
 
@@ -123,6 +125,37 @@ def test_native_assembly_both_paths_match_eager(kernel, mesh, model):
         lambda y: plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, model)
     )(x).reshape(n, n)
     assert rel(Dt, ref) <= 1e-13
+
+
+@pytest.mark.parametrize("per_triangle", [False, True])
+def test_native_assembly_any_hinge_order(kernel, per_triangle):
+    """The C++ assembly zeroes the values just ahead of its scatter and adds each face's block after the last
+    of its hinges: the CSR values do not depend on the order of the hinges (shuffled, reversed) and equal the
+    eager index_add into the full position maps (``hinge_pos``, ``face_pos``) of the block bases."""
+    from torchbend.energies.sparse import HessianPattern
+
+    rest, faces = tb.scenes.random_curved_sheet(9, 7, amplitude=0.3, seed=4, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2)
+    x = rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
+    topo, pat, H = bend.topology, HessianPattern(bend.topology), bend.hinge_count
+    a, k, r = bend.weights, bend.stiffness.expand(H).contiguous(), bend.rest_angles
+
+    def values(order):
+        inv = torch.empty_like(order)
+        inv[order] = torch.arange(H)
+        feh = torch.where(topo.face_edge_hinges >= 0, inv[topo.face_edge_hinges.clamp_min(0)], -1)
+        return torch.ops.torchbend.assemble(x, topo.hinges[order], a[order], k[order], r[order], None, None, "tan",
+                                            pat.hinge_blocks[order], topo.faces, feh, topo.face_edge_signs,
+                                            pat.face_blocks, pat.row_len, pat.nnz, per_triangle)
+
+    base = values(torch.arange(H))
+    for order in (torch.randperm(H, generator=torch.Generator().manual_seed(5)), torch.arange(H - 1, -1, -1)):
+        assert rel(values(order), base) <= 1e-15
+    ref = bend.hessian(x, assembly="triangle" if per_triangle else "hinge", backend="eager").values()
+    assert rel(base, ref) <= 1e-14
+    # the full position maps (the block bases spread over the rows) reach every CSR position
+    counts = torch.bincount(pat.hinge_pos.reshape(-1), minlength=pat.nnz)
+    assert counts.min() >= 1 and pat.face_pos[pat.face_has_hinge].max() < pat.nnz
 
 
 def test_native_out_buffers(kernel):
@@ -258,6 +291,7 @@ def test_large_outputs_reuse_released_memory(kernel):
     del b, c
     native.empty_output_cache()
     assert native.output_cache_info()["blocks"] == 0 and native.output_cache_info()["bytes"] == 0
+    limit = native.output_cache_info()["limit"]
     try:
         native.set_output_cache_limit(0)
         d = bend.hinge_hessians(x1)
@@ -265,4 +299,14 @@ def test_large_outputs_reuse_released_memory(kernel):
         del d
         assert native.output_cache_info()["blocks"] == 0
     finally:
-        native.set_output_cache_limit(1024)
+        native.set_output_cache_limit(limit / 2**20)
+    assert native.output_cache_info()["limit"] == limit
+
+
+def test_output_cache_default_limit(kernel):
+    """The cache keeps TORCHBEND_OUTPUT_CACHE_MB megabytes, by default an eighth of the physical memory and at
+    least 1 GiB (a million hinges' blocks in float64, 1.15 GB, stay warm with 16 GB or more)."""
+    env = os.environ.get("TORCHBEND_OUTPUT_CACHE_MB")
+    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    expected = int(env) << 20 if env is not None else max(1 << 30, physical // 8)
+    assert native.output_cache_info()["limit"] == expected

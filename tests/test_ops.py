@@ -158,8 +158,8 @@ def test_opcheck_every_operator(damped):
     pat, topo = HessianPattern(bend1.topology), bend1.topology
     for per_triangle in (False, True):
         torch.library.opcheck(torch.ops.torchbend.assemble.default,
-                              (x1, h1, a1, k1, r1, c1, p1, m1, pat.hinge_pos, topo.faces, topo.face_edge_hinges,
-                               topo.face_edge_signs, pat.face_pos, pat.nnz, per_triangle))
+                              (x1, h1, a1, k1, r1, c1, p1, m1, pat.hinge_blocks, topo.faces, topo.face_edge_hinges,
+                               topo.face_edge_signs, pat.face_blocks, pat.row_len, pat.nnz, per_triangle))
     assert set(cases) | {"assemble"} <= set(ops.OPS)
     for name in ops.OPS:
         assert hasattr(torch.ops.torchbend, name)

@@ -163,17 +163,17 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     return Hb, g, d2
 
 
-def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_pos: Tensor, faces: Tensor,
-                    face_edge_hinges: Tensor, face_edge_signs: Tensor, face_pos: Tensor, nnz: int,
+def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_blocks: Tensor, faces: Tensor,
+                    face_edge_hinges: Tensor, face_edge_signs: Tensor, face_blocks: Tensor, row_len: Tensor, nnz: int,
                     per_triangle: bool) -> Tensor:
     """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per hinge or per
     triangle in C++ (serial: the scatter targets overlap) into the pattern of
-    :class:`torchbend.energies.sparse.HessianPattern` (its ``hinge_pos``, ``face_pos``, ``nnz``) over the
-    topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
+    :class:`torchbend.energies.sparse.HessianPattern` (its ``hinge_blocks``, ``face_blocks``, ``row_len``, ``nnz``)
+    over the topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
     ``ValueError`` as in :func:`bending_hessians`."""
     values, theta, status = _module().assemble(
-        x, hinges, a, k, rest, c, prev, _model_code(model), hinge_pos, faces, face_edge_hinges, face_edge_signs,
-        face_pos, nnz, per_triangle)
+        x, hinges, a, k, rest, c, prev, _model_code(model), hinge_blocks, faces, face_edge_hinges, face_edge_signs,
+        face_blocks, row_len, nnz, per_triangle)
     if status:
         _raise(status, model, x, theta)
     return values
@@ -182,10 +182,12 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
 def output_cache_info() -> dict[str, int]:
     """The cache of large outputs (the per-hinge blocks of big meshes): memory of released outputs kept for the
     next ones of the same size, so that repeated calls write into warm pages instead of page-faulting fresh
-    memory.  ``{"blocks", "bytes", "hits", "misses"}``; at most 4 blocks and ``TORCHBEND_OUTPUT_CACHE_MB``
-    (default 1024) megabytes are kept, see :func:`empty_output_cache` and :func:`set_output_cache_limit`."""
-    blocks, nbytes, hits, misses = _module().output_cache_info()
-    return {"blocks": blocks, "bytes": nbytes, "hits": hits, "misses": misses}
+    memory.  ``{"blocks", "bytes", "hits", "misses", "limit"}``; at most 4 blocks and ``limit`` bytes are kept:
+    ``TORCHBEND_OUTPUT_CACHE_MB`` megabytes, by default an eighth of the physical memory and at least 1 GiB (the
+    blocks of a million hinges take 1.15 GB in float64), see :func:`empty_output_cache` and
+    :func:`set_output_cache_limit`."""
+    blocks, nbytes, hits, misses, limit = _module().output_cache_info()
+    return {"blocks": blocks, "bytes": nbytes, "hits": hits, "misses": misses, "limit": limit}
 
 
 def empty_output_cache() -> None:

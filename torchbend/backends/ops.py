@@ -168,21 +168,21 @@ def hinge_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor
     return tuple(out[:3])  # type: ignore[return-value]
 
 
-def _assemble_fake(x, hinges, a, k, rest, c, prev, model, hinge_pos, faces, face_edge_hinges, face_edge_signs,
-                   face_pos, nnz, per_triangle):
+def _assemble_fake(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges, face_edge_signs,
+                   face_blocks, row_len, nnz, per_triangle):
     return x.new_empty(nnz)
 
 
 @_operator(_assemble_fake)
 def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
-             prev: Optional[Tensor], model: str, hinge_pos: Tensor, faces: Tensor, face_edge_hinges: Tensor,
-             face_edge_signs: Tensor, face_pos: Tensor, nnz: int, per_triangle: bool) -> Tensor:
-    """CSR values ``(nnz,)`` of the unprojected Hessian of one mesh ``x (V, 3)`` (the pattern's arrays from
-    :class:`torchbend.energies.sparse.HessianPattern` and the topology)."""
+             prev: Optional[Tensor], model: str, hinge_blocks: Tensor, faces: Tensor, face_edge_hinges: Tensor,
+             face_edge_signs: Tensor, face_blocks: Tensor, row_len: Tensor, nnz: int, per_triangle: bool) -> Tensor:
+    """CSR values ``(nnz,)`` of the unprojected Hessian of one mesh ``x (V, 3)`` (the pattern's block bases
+    from :class:`torchbend.energies.sparse.HessianPattern` and the topology)."""
     from . import native
 
-    return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_pos, faces, face_edge_hinges,
-                                  face_edge_signs, face_pos, nnz, per_triangle)
+    return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges,
+                                  face_edge_signs, face_blocks, row_len, nnz, per_triangle)
 
 
 OPS = {

@@ -16,6 +16,7 @@
 #include <utility>
 #include <vector>
 #include <sys/mman.h>
+#include <unistd.h>
 #ifdef __AVX__
 #include <immintrin.h>
 #endif
@@ -89,8 +90,10 @@ static int64_t fold_status(const torch::Tensor& theta, int64_t model) {
 // of at least kPoolMin bytes therefore take their memory from a small cache of blocks that earlier outputs
 // released: a loop that calls an operation repeatedly (a Newton solver, a benchmark) writes into warm
 // pages, as with the caller-provided out= buffers, without having to manage them.  At most kPoolBlocks
-// released blocks and `limit` bytes are kept (TORCHBEND_OUTPUT_CACHE_MB, default 1024; 0: no cache);
-// torchbend.backends.native.empty_output_cache() frees them.  Blocks are matched by exact size.
+// released blocks and `limit` bytes are kept (TORCHBEND_OUTPUT_CACHE_MB; 0: no cache; default: an eighth of the
+// physical memory, at least 1 GiB, so that the blocks of a million hinges, 1.15 GB in float64, stay warm on a
+// machine of 16 GB or more); torchbend.backends.native.empty_output_cache() frees them.  Blocks are matched by
+// exact size.
 constexpr size_t kPoolMin = size_t(4) << 20, kPoolAlign = size_t(2) << 20;
 constexpr int kPoolBlocks = 4;
 
@@ -105,7 +108,9 @@ static OutputPool& output_pool() {
   static OutputPool* pool = [] {  // never destroyed: tensors may be released at interpreter exit
     auto* p = new OutputPool;
     const char* env = std::getenv("TORCHBEND_OUTPUT_CACHE_MB");
-    p->limit = size_t(env ? std::max(0L, std::atol(env)) : 1024L) << 20;
+    long pages = sysconf(_SC_PHYS_PAGES), page = sysconf(_SC_PAGE_SIZE);
+    size_t eighth = pages > 0 && page > 0 ? size_t(pages) * size_t(page) / 8 : 0;
+    p->limit = env ? size_t(std::max(0L, std::atol(env))) << 20 : std::max(size_t(1) << 30, eighth);
     return p;
   }();
   return *pool;
@@ -164,11 +169,11 @@ static torch::Tensor pooled_empty(const std::vector<int64_t>& shape, const torch
   return torch::from_blob(ptr, shape, [rounded](void* q) { pool_release(q, rounded); }, options);
 }
 
-// (blocks held, bytes held, hits, misses) of the output cache
-static std::tuple<int64_t, int64_t, int64_t, int64_t> output_cache_info() {
+// (blocks held, bytes held, hits, misses, limit in bytes) of the output cache
+static std::tuple<int64_t, int64_t, int64_t, int64_t, int64_t> output_cache_info() {
   OutputPool& P = output_pool();
   std::lock_guard<std::mutex> lock(P.mu);
-  return {int64_t(P.blocks.size()), int64_t(P.held), P.hits, P.misses};
+  return {int64_t(P.blocks.size()), int64_t(P.held), P.hits, P.misses, int64_t(P.limit)};
 }
 
 static void empty_output_cache() {
@@ -239,65 +244,101 @@ static torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::
 // block per triangle, eq. 7 with the conditional transpose: face_block).  Serial: the scatter
 // targets overlap.
 
+// values += the local (3m x 3m) matrix `loc` of an element with vertices v[0..m): vertex block (a, b) starts at
+// CSR position base[m a + b], its row p at base + p row_len[v[a]] (torchbend.energies.sparse.StencilPattern)
+template <typename T, int m>
+static inline void scatter_blocks(T* values, const int64_t* base, const int64_t* v, const int64_t* row_len,
+                                  const T* loc) {
+  for (int a = 0; a < m; ++a) {
+    const int64_t rl = row_len[v[a]];
+    for (int b = 0; b < m; ++b) {
+      T* dst = values + base[m * a + b];
+      for (int p = 0; p < 3; ++p, dst += rl) {
+        const T* src = loc + 3 * m * (3 * a + p) + 3 * b;
+        dst[0] += src[0]; dst[1] += src[1]; dst[2] += src[2];
+      }
+    }
+  }
+}
+
 template <typename T>
 static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
-                          Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hpos,
-                          const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fpos,
-                          int64_t F, bool per_triangle, T* values, T* thout) {
+                          Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
+                          const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
+                          const int64_t* row_len, int64_t F, bool per_triangle, T* values, int64_t nnz, T* thout) {
   std::vector<T> d1s(per_triangle ? H : 0);
+  // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
+  // vertex blocks include the face's 9, so that its scatter finds them in cache (a separate pass over the faces
+  // would stream the whole value array a second time).  first[h] -> next[f] -> ...: the faces whose last hinge is h
+  std::vector<int64_t> first(per_triangle ? H : 0, -1), next(per_triangle ? F : 0, -1);
+  for (int64_t f = per_triangle ? F : 0; f-- > 0;) {
+    const int64_t* fh = feh + 3 * f;
+    int64_t last = std::max(fh[0], std::max(fh[1], fh[2]));
+    if (last >= 0) { next[f] = first[last]; first[last] = f; }
+  }
+  T blk[81];
   alignas(64) T buf[W][144];
   T gbuf[W][12];
   T X[12][W], D1[W], D2[W], G[12][W];
   Blocks<T, W> tile;
   T* op[W]; T* gp[W];
   for (int l = 0; l < W; ++l) { op[l] = buf[l]; gp[l] = gbuf[l]; }
+  // `values` comes uninitialised and is zeroed just ahead of the scatter: before a tile, [0, zeroed) is zeroed up
+  // to the last position the tile touches (first touches come after, and in cache, whatever the hinge order)
+  int64_t zeroed = 0;
   for (int64_t h0 = 0; h0 < H; h0 += W) {
     int nl = int(std::min<int64_t>(W, H - h0));
+    int64_t reach = zeroed;
     for (int l = 0; l < W; ++l) {
       if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); D1[l] = D2[l] = T(0); continue; }
       int64_t h = h0 + l;
       load_hinge<T, W>(x, hinges + 4 * h, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
                       damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
+      for (int va = 0; va < 4; ++va) {
+        const int64_t* base = hblk + 16 * h + 4 * va;
+        int64_t end = std::max(std::max(base[0], base[1]), std::max(base[2], base[3])) + 2 * row_len[hinges[4 * h + va]] + 3;
+        reach = std::max(reach, end);
+      }
     }
+    if (reach > zeroed) { std::fill(values + zeroed, values + reach, T(0)); zeroed = reach; }
     if (!per_triangle) {
       block_tile<T, W>(X, D1, D2, tile);
       write_tile<T, false>(tile, nl, op, gp);
-      for (int l = 0; l < nl; ++l) {
-        const int64_t* pos = hpos + 144 * (h0 + l);
-        for (int m = 0; m < 144; ++m) values[pos[m]] += buf[l][m];
-      }
+      for (int l = 0; l < nl; ++l) scatter_blocks<T, 4>(values, hblk + 16 * (h0 + l), hinges + 4 * (h0 + l), row_len,
+                                                       buf[l]);
     } else {
       grad_tile<T, W>(X, G);
       for (int l = 0; l < nl; ++l) {
         d1s[h0 + l] = D1[l];
-        const int64_t* pos = hpos + 144 * (h0 + l);
+        T gg[144];
         for (int r = 0; r < 12; ++r) {
           T gr = D2[l] * G[r][l];
-          for (int cc = 0; cc < 12; ++cc) values[pos[12 * r + cc]] += gr * G[cc][l];
+          for (int cc = 0; cc < 12; ++cc) gg[12 * r + cc] = gr * G[cc][l];
         }
+        scatter_blocks<T, 4>(values, hblk + 16 * (h0 + l), hinges + 4 * (h0 + l), row_len, gg);
       }
+      for (int l = 0; l < nl; ++l)
+        for (int64_t f = first[h0 + l]; f >= 0; f = next[f]) {
+          const int64_t* fh = feh + 3 * f;
+          T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
+          const int64_t* fv = faces + 3 * f;
+          face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
+          scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
+        }
     }
   }
-  if (!per_triangle) return;
-  T blk[81];
-  for (int64_t f = 0; f < F; ++f) {
-    const int64_t* fh = feh + 3 * f;
-    if (fh[0] < 0 && fh[1] < 0 && fh[2] < 0) continue;
-    T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
-    const int64_t* fv = faces + 3 * f;
-    face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
-    const int64_t* pos = fpos + 81 * f;
-    for (int m = 0; m < 81; ++m) values[pos[m]] += blk[m];
-  }
+  std::fill(values + zeroed, values + nnz, T(0));  // blocks of no hinge (none in a bending pattern)
 }
 
 // (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,), status); parameters as in
-// bending_hessians, x finite (the caller checks)
+// bending_hessians, the pattern as block bases (torchbend.energies.sparse.StencilPattern: hinge_blocks (H, 16),
+// face_blocks (F, 9), row_len (V,)), x finite (the caller checks)
 std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
                        c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
-                       torch::Tensor hinge_pos, torch::Tensor faces, torch::Tensor face_edge_hinges,
-                       torch::Tensor face_edge_signs, torch::Tensor face_pos, int64_t nnz, bool per_triangle) {
+                       torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
+                       torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
+                       bool per_triangle) {
   TORCH_CHECK(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, "x must be a CPU (V, 3) tensor");
   x = x.contiguous();
   int64_t H = hinges.size(0), F = faces.size(0);
@@ -311,18 +352,21 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
   bool damped = c_.has_value();
   torch::Tensor c, prev;
   if (damped) { c = prep(*c_); prev = prep(*prev_); }
-  hinges = idx(hinges); hinge_pos = idx(hinge_pos); faces = idx(faces);
-  face_edge_hinges = idx(face_edge_hinges); face_edge_signs = idx(face_edge_signs); face_pos = idx(face_pos);
-  TORCH_CHECK(hinge_pos.numel() == 144 * H && face_pos.numel() == 81 * F, "pattern does not match the mesh");
-  auto values = torch::zeros({nnz}, x.options()), theta = torch::empty({H}, x.options());
+  hinges = idx(hinges); hinge_blocks = idx(hinge_blocks); faces = idx(faces);
+  face_edge_hinges = idx(face_edge_hinges); face_edge_signs = idx(face_edge_signs); face_blocks = idx(face_blocks);
+  row_len = idx(row_len);
+  TORCH_CHECK(hinge_blocks.numel() == 16 * H && face_blocks.numel() == 9 * F && row_len.numel() == x.size(0),
+              "pattern does not match the mesh");
+  auto values = pooled_empty({nnz}, x.options()), theta = torch::empty({H}, x.options());  // zeroed in the pass
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
     Param<scalar_t> none{nullptr, 0, H};
     assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),
                             param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
                             damped ? param<scalar_t>(prev, H) : none, damped, int(model),
-                            hinge_pos.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
+                            hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
                             face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
-                            face_pos.data_ptr<int64_t>(), F, per_triangle, values.data_ptr<scalar_t>(),
+                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), F, per_triangle,
+                            values.data_ptr<scalar_t>(), nnz,
                             theta.data_ptr<scalar_t>());
   });
   return {values, theta, fold_status(theta, model)};
@@ -1028,7 +1072,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_hvp", &bending_hvp, "weighted Hessian-vector product in positions");
   m.def("bending_second_order", &bending_second_order,
         "the general double backward: position and parameter directions, per-hinge weight");
-  m.def("output_cache_info", &output_cache_info, "(blocks, bytes, hits, misses) of the cache of large outputs");
+  m.def("output_cache_info", &output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &set_output_cache_limit, "the most bytes the cache of large outputs keeps");
 }

@@ -105,8 +105,8 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
         op = "hessian_triangle" if per_triangle else "hessian_hinge"
         if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE and projection is Projection.NONE:
             return pattern.csr(torch.ops.torchbend.assemble(
-                x, hinges, *p.astuple(), model.value, pattern.hinge_pos, topo.faces, topo.face_edge_hinges,
-                topo.face_edge_signs, pattern.face_pos, pattern.nnz, per_triangle))
+                x, hinges, *p.astuple(), model.value, pattern.hinge_blocks, topo.faces, topo.face_edge_hinges,
+                topo.face_edge_signs, pattern.face_blocks, pattern.row_len, pattern.nnz, per_triangle))
     values = x.new_zeros(pattern.nnz)
     hinge_pos = pattern.hinge_pos.to(x.device)
     if not per_triangle:
