@@ -217,19 +217,22 @@ def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weig
                      check: bool = False):
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` (``inc`` unused: atomic scatter)."""
     _check(check, x)
-    gx, gp, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                               _opt(prev), _code(model), weight.detach(), params, _stream(x))
+    gx, gp, _, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
+                                                  _opt(prev), _code(model), weight.detach(), params, False, _stream(x))
     check_fold(BendingModel.parse(model), theta)
     return gx, (gp if params else None)
 
 
 def bending_energy_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, inc, params: bool,
                             check: bool = False):
-    """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or None)``: the energy and the
-    gradient kernels one after the other (the CPU driver fuses them into one pass)."""
-    psi = bending_energy(x, hinges, a, k, rest, c, prev, model, check)
-    gx, gp = bending_gradient(x, hinges, a, k, rest, c, prev, model, x.new_ones(1), inc, params, False)
-    return psi, gx, gp
+    """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` from one kernel (the
+    gradient kernel also storing the energies it computes)."""
+    _check(check, x)
+    gx, gp, psi, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(),
+                                                    _opt(c), _opt(prev), _code(model), x.new_ones(1), params, True,
+                                                    _stream(x))
+    check_fold(BendingModel.parse(model), theta)
+    return psi, gx, (gp if params else None)
 
 
 def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weight: Tensor, inc=None,

@@ -38,7 +38,7 @@ __global__ void energy_kernel(const T* x, const int64_t* hinges, int64_t B, int6
 
 template <typename T>
 __global__ void gradient_kernel(const T* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H, HingeArgs<T> args,
-                                Param<T> w, T* gx, T* gp, T* theta) {
+                                Param<T> w, T* gx, T* gp, T* psi, T* theta) {
   int64_t bh = thread_index();
   if (bh >= B * H) return;
   int64_t b = bh / H, h = bh - b * H;
@@ -49,6 +49,7 @@ __global__ void gradient_kernel(const T* x, const int64_t* hinges, int64_t B, in
   psi_first<T>(args, b, h, th, p, d1, gp ? g4 : nullptr);
   T wi = w(b, h), s = wi * d1;
   theta[bh] = th;
+  if (psi) psi[bh] = p;  // the energy in the same pass (bending_energy_gradient)
   if (gp) for (int j = 0; j < 4; ++j) gp[4 * bh + j] = wi * g4[j];
   grad_tile<T, 1>(X, G);
   T* out = gx + 3 * V * b;
@@ -147,11 +148,12 @@ template <typename T> int energy(const void* x, const int64_t* hinges, int64_t B
 }
 
 template <typename T> int gradient(const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
-                                   const tb_hinge_args& a, tb_param w, void* gx, void* gp, void* theta, cudaStream_t s) {
+                                   const tb_hinge_args& a, tb_param w, void* gx, void* gp, void* psi, void* theta,
+                                   cudaStream_t s) {
   if (B * H == 0) return 0;
   gradient_kernel<T><<<grid(B * H), kThreads, 0, s>>>(static_cast<const T*>(x), hinges, B, V, H, hinge_args<T>(a, H),
                                                       param<T>(w, H), static_cast<T*>(gx), static_cast<T*>(gp),
-                                                      static_cast<T*>(theta));
+                                                      static_cast<T*>(psi), static_cast<T*>(theta));
   return int(cudaGetLastError());
 }
 
@@ -201,10 +203,11 @@ int tb_cuda_energy(int dtype, const void* x, const int64_t* hinges, int64_t B, i
 }
 
 int tb_cuda_gradient(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
-                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* theta, void* stream) {
+                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* psi, void* theta,
+                     void* stream) {
   auto s = static_cast<cudaStream_t>(stream);
-  return dtype ? gradient<double>(x, hinges, B, V, H, args, weight, gx, gp, theta, s)
-               : gradient<float>(x, hinges, B, V, H, args, weight, gx, gp, theta, s);
+  return dtype ? gradient<double>(x, hinges, B, V, H, args, weight, gx, gp, psi, theta, s)
+               : gradient<float>(x, hinges, B, V, H, args, weight, gx, gp, psi, theta, s);
 }
 
 int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,

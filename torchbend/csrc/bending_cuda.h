@@ -12,11 +12,13 @@ struct tb_param { const void* p; int64_t n; };
 struct tb_hinge_args { tb_param a, k, rest, c, prev; int damped, model; };
 
 // dtype: 0 float32, 1 float64; stream: a cudaStream_t (0 = the default stream).  Outputs of the
-// scattering operations (gx, hv) must be zeroed by the caller; gp may be null.
+// scattering operations (gx, hv) must be zeroed by the caller; gp may be null; psi (B, H), the unweighted
+// per-hinge energies computed in the same pass, may be null.
 int tb_cuda_energy(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                    tb_hinge_args args, void* psi, void* theta, void* stream);
 int tb_cuda_gradient(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
-                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* theta, void* stream);
+                     tb_hinge_args args, tb_param weight, void* gx, void* gp, void* psi, void* theta,
+                     void* stream);
 int tb_cuda_hvp(int dtype, const void* x, const void* v, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                 tb_hinge_args args, tb_param weight, void* hv, void* theta, void* stream);
 // the general double backward (torchbend.backends.native.bending_second_order): v (B, V, 3) or null, t

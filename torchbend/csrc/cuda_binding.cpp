@@ -78,20 +78,23 @@ torch::Tensor weight_of(const torch::Tensor& w, const Args& r) {
   return u;
 }
 
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> gradient(
+// (w dE/dx, w dpsi/dparams or empty, psi or empty, theta); with `energy` the per-hinge energies psi come from the
+// same kernel
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> gradient(
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
-    bool params, int64_t stream) {
+    bool params, bool energy, int64_t stream) {
   c10::DeviceGuard guard(x.device());
   Args r = prepare(x, hinges, a, k, rest, c, prev, model);
   auto w = weight_of(weight, r);
   auto gx = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
   auto gp = params ? torch::empty(with(r.batch, {r.H, 4}), r.x.options()) : torch::empty({0}, r.x.options());
   auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
+  auto psi = energy ? torch::empty_like(theta) : torch::empty({0}, r.x.options());
   check(tb_cuda_gradient(dtype_code(r.x), r.x.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args,
-                         tparam(w), gx.data_ptr(), params ? gp.data_ptr() : nullptr, theta.data_ptr(),
-                         as_stream(stream)), "gradient");
-  return {gx, gp, theta};
+                         tparam(w), gx.data_ptr(), params ? gp.data_ptr() : nullptr,
+                         energy ? psi.data_ptr() : nullptr, theta.data_ptr(), as_stream(stream)), "gradient");
+  return {gx, gp, psi, theta};
 }
 
 std::tuple<torch::Tensor, torch::Tensor> hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges, torch::Tensor a,
@@ -164,7 +167,8 @@ std::vector<std::string> kernels() {
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_energy", &energy, "per-hinge energies and angles (CUDA)");
-  m.def("bending_gradient", &gradient, "weighted gradient and per-hinge parameter gradients (CUDA)");
+  m.def("bending_gradient", &gradient,
+        "weighted gradient, per-hinge parameter gradients and (optionally) energies in one pass (CUDA)");
   m.def("bending_hvp", &hvp, "weighted Hessian-vector product (CUDA)");
   m.def("bending_hessians", &hinge_hessians, "per-hinge 12x12 blocks, angle gradients, psi'', theta (CUDA)");
   m.def("bending_second_order", &second_order,
