@@ -113,6 +113,27 @@ def test_pattern_is_cached_per_module(sheet):
     assert bend._pattern is p1 and isinstance(p1, HessianPattern)
     assert p1.nnz == bend.hessian(x).values().numel()
     assert p1.nnz == HessianPattern(bend.topology).nnz
+    # index arrays go to another device once and stay there ("meta" stands in for a GPU); the CPU ones are the
+    # pattern's own
+    meta = p1.on("meta")
+    assert p1.on("meta") is meta and meta["element_blocks"].is_meta
+    assert {"crow_indices", "col_indices", "row_len", "face_blocks", "hinged_faces"} <= set(meta)
+    assert p1.on("cpu")["crow_indices"] is p1.crow_indices
+    # off the CPU the full maps are expanded per call from the block bases there, on the CPU built once and kept
+    assert p1.element_positions(torch.device("meta")).is_meta
+    assert p1.hinged_face_positions(torch.device("meta")).shape == p1.face_pos[p1.face_has_hinge].shape
+    assert p1.element_positions(torch.device("cpu")).data_ptr() == p1.element_pos.data_ptr()
+    # the full position maps (the block bases spread over the rows): every entry of every vertex block of a hinge
+    # or a hinged face, no two entries of one block at one position, all inside the values
+    for pos, m in ((p1.hinge_pos, 4), (p1.face_pos[p1.face_has_hinge], 3)):
+        assert pos.shape[1] == 9 * m * m and int(pos.min()) >= 0 and int(pos.max()) < p1.nnz
+        assert all(len(set(row.tolist())) == 9 * m * m for row in pos)
+    cols = p1.col_indices[p1.hinge_pos].reshape(-1, 4, 3, 4, 3)  # column of entry (a, p; b, q): 3 v_b + q
+    want = 3 * bend.hinges[:, None, None, :, None] + torch.arange(3)[None, None, None, None, :]
+    assert torch.equal(cols, want.expand_as(cols))
+    rows = (torch.searchsorted(p1.crow_indices, p1.hinge_pos, right=True) - 1).reshape(-1, 4, 3, 4, 3)  # 3 v_a + p
+    want = 3 * bend.hinges[:, :, None, None, None] + torch.arange(3)[None, None, :, None, None]
+    assert torch.equal(rows, want.expand_as(rows))
 
 
 @pytest.mark.parametrize("project", PROJECTIONS)

@@ -108,23 +108,26 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
                 x, hinges, *p.astuple(), model.value, pattern.hinge_blocks, topo.faces, topo.face_edge_hinges,
                 topo.face_edge_signs, pattern.face_blocks, pattern.row_len, pattern.nnz, per_triangle))
     values = x.new_zeros(pattern.nnz)
-    hinge_pos = pattern.hinge_pos.to(x.device)
+
+    def positions(sl: slice) -> Tensor:  # the value positions of the entries of the hinges' blocks
+        return pattern.element_positions(x.device, sl).reshape(-1)
+
     if not per_triangle:
         for sl in chunks(hinges.shape[0]):  # chunks: the blocks of one chunk stay in cache
             Hb, g, d2 = _blocks("hessian_hinge", x, hinges[sl], p.sliced(sl), model, backend)
             if projection is not Projection.NONE:
                 Hb = project_blocks(Hb, projection, g, d2)
-            values.index_add_(0, hinge_pos[sl].reshape(-1), Hb.reshape(-1))
+            values.index_add_(0, positions(sl), Hb.reshape(-1))
         return pattern.csr(values)
     x4 = gather(x, hinges)
     theta, g4 = geometry.hinge_angle_and_gradient(x4)
     d1, d2 = psi_theta_derivatives(model, theta, *p.astuple())
     g = g4.flatten(-2)
     w = d2 if projection is Projection.NONE else d2.clamp_min(0)
-    gg = (w[:, None] * g)[:, :, None] * g[:, None, :]
-    values.index_add_(0, hinge_pos.reshape(-1), gg.reshape(-1))
+    for sl in chunks(hinges.shape[0]):
+        gg = (w[sl, None] * g[sl])[:, :, None] * g[sl, None, :]
+        values.index_add_(0, positions(sl), gg.reshape(-1))
     if projection is Projection.NONE:
-        Hf = triangle_hessian_blocks(x, topo, d1)
-        keep = pattern.face_has_hinge.to(x.device)
-        values.index_add_(0, pattern.face_pos.to(x.device)[keep].reshape(-1), Hf[keep].reshape(-1))
+        Hf = triangle_hessian_blocks(x, topo, d1)[pattern.on(x.device)["hinged_faces"]]
+        values.index_add_(0, pattern.hinged_face_positions(x.device).reshape(-1), Hf.reshape(-1))
     return pattern.csr(values)

@@ -163,7 +163,8 @@ class MembraneEnergy(nn.Module):
         if self._pattern is None:
             self._pattern = StencilPattern(self.topology.faces.numpy(), self.vertex_count)
         pat = self._pattern
-        return pat.csr(x.new_zeros(pat.nnz).index_add_(0, pat.element_pos.to(x.device).reshape(-1), He.reshape(-1)))
+        pos = pat.element_positions(x.device)
+        return pat.csr(x.new_zeros(pat.nnz).index_add_(0, pos.reshape(-1), He.reshape(-1)))
 
     def extra_repr(self) -> str:
         return (f"model={self.model.value}, faces={self.face_count}, young={self.young:g}, "

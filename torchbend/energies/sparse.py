@@ -26,11 +26,13 @@ class StencilPattern:
     ``base + p * row_len[v_i] + q`` with ``base`` the position of the block's first entry.
 
     ``element_blocks (n, m * m)`` holds those bases for each element's vertex pairs ``(a, b)`` (flat
-    ``m * a + b``): the compiled assembly reads these (8 bytes per vertex block instead of 72).
-    ``element_pos (n, (3m)^2)`` (built on first use) maps every entry of each element's local
-    ``3m x 3m`` matrix (flat index ``3m * (3a + p) + 3b + q``) to its position in the CSR value array, so
-    that assembling is one ``index_add`` into it.  :meth:`blocks` and :meth:`positions` do the same for
-    other element lists whose vertex pairs the pattern covers.
+    ``m * a + b``): 8 bytes per vertex block where a map of every entry takes 72.  The compiled assembly
+    reads them as they are; :meth:`expand` turns them into the positions of every entry of the local
+    ``3m x 3m`` matrices (flat index ``3m * (3a + p) + 3b + q``), chunk by chunk on the values' device, for an
+    ``index_add`` (:meth:`element_positions`: on the CPU the full map, built on first request and kept; on
+    other devices expanded per call, which there costs less than holding it).  :meth:`blocks` does the same for
+    other element lists whose vertex pairs the pattern covers.  :meth:`on` keeps the index arrays on each device
+    they were asked for (a CUDA assembly copies them once, not per call).
     """
 
     def __init__(self, elements: np.ndarray, vertex_count: int):
@@ -51,17 +53,28 @@ class StencilPattern:
         col = np.empty(int(crow[-1]), dtype=np.int64)
         col[pos.reshape(-1)] = np.broadcast_to(3 * bj[:, None, None] + p[None, None, :], pos.shape).reshape(-1)
         self._keys, self._base, self._V = keys, base, V
-        self._elements = elements
         self.size = 3 * V
         self.nnz = int(crow[-1])
         self.crow_indices = torch.as_tensor(crow, dtype=torch.int64)
         self.col_indices = torch.as_tensor(col, dtype=torch.int64)
         self.row_len = torch.as_tensor(row_len, dtype=torch.int64)
+        self.elements = torch.as_tensor(elements, dtype=torch.int64)
         self.element_blocks = self.blocks(elements)
+        self._devices: dict[torch.device, dict[str, Tensor]] = {}
 
-    @functools.cached_property
-    def element_pos(self) -> Tensor:
-        return self.positions(self._elements)
+    def on(self, device: torch.device | str) -> dict[str, Tensor]:
+        """The index arrays (``crow_indices``, ``col_indices``, ``row_len``, ``elements``, ``element_blocks`` and
+        those a subclass adds) on ``device``, copied on first request and kept."""
+        device = torch.device(device)
+        if device.type == "cpu":
+            return self._arrays()
+        if device not in self._devices:
+            self._devices[device] = {k: t.to(device) for k, t in self._arrays().items()}
+        return self._devices[device]
+
+    def _arrays(self) -> dict[str, Tensor]:
+        return {"crow_indices": self.crow_indices, "col_indices": self.col_indices, "row_len": self.row_len,
+                "elements": self.elements, "element_blocks": self.element_blocks}
 
     def blocks(self, elements: np.ndarray) -> Tensor:
         """``(n, m * m)`` positions of the first entry of each vertex block ``(a, b)`` of ``elements: (n, m)``."""
@@ -71,22 +84,36 @@ class StencilPattern:
         b = np.searchsorted(self._keys, rows * self._V + cols)
         return torch.as_tensor(self._base[b].reshape(n, m * m), dtype=torch.int64)
 
-    def positions(self, elements: np.ndarray, blocks: Tensor | None = None) -> Tensor:
-        """``(n, (3m)^2)`` value positions of the local matrices of ``elements: (n, m)`` (their :meth:`blocks`
-        if already at hand)."""
+    @staticmethod
+    def expand(blocks: Tensor, elements: Tensor, row_len: Tensor) -> Tensor:
+        """``(n, (3m)^2)`` value positions of every entry of the local matrices of ``elements (n, m)`` from their
+        block bases ``blocks (n, m * m)`` (on any one device, with ``row_len`` there too)."""
         n, m = elements.shape
-        base = (self.blocks(elements) if blocks is None else blocks).reshape(n, m, 1, m, 1)
-        rl = self.row_len[torch.as_tensor(elements, dtype=torch.int64)].reshape(n, m, 1, 1, 1)
-        p = torch.arange(3, dtype=torch.int64)
-        return (base + rl * p.reshape(1, 1, 3, 1, 1) + p.reshape(1, 1, 1, 1, 3)).reshape(n, (3 * m) ** 2)
+        rl = row_len[elements].reshape(n, m, 1, 1, 1)
+        p = torch.arange(3, dtype=torch.int64, device=blocks.device)
+        return (blocks.reshape(n, m, 1, m, 1) + rl * p.reshape(1, 1, 3, 1, 1)
+                + p.reshape(1, 1, 1, 1, 3)).reshape(n, (3 * m) ** 2)
+
+    @functools.cached_property
+    def element_pos(self) -> Tensor:
+        """``(n, (3m)^2)`` value positions of the local matrices of the pattern's elements (CPU; built on first
+        request and kept)."""
+        return self.expand(self.element_blocks, self.elements, self.row_len)
+
+    def element_positions(self, device: torch.device, sl: slice = slice(None)) -> Tensor:
+        """``element_pos[sl]`` on ``device``."""
+        if device.type == "cpu":
+            return self.element_pos[sl]
+        a = self.on(device)
+        return self.expand(a["element_blocks"][sl], a["elements"][sl], a["row_len"])
 
     def csr(self, values: Tensor) -> Tensor:
-        dev = values.device
+        a = self.on(values.device)
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
             return torch.sparse_csr_tensor(
-                self.crow_indices.to(dev),
-                self.col_indices.to(dev),
+                a["crow_indices"],
+                a["col_indices"],
                 values,
                 size=(self.size, self.size),
                 check_invariants=False,
@@ -96,10 +123,10 @@ class StencilPattern:
 class HessianPattern(StencilPattern):
     """The bending Hessian's pattern: blocks of vertices sharing a hinge stencil.
 
-    ``hinge_blocks (H, 16)`` and ``face_blocks (F, 9)`` (faces with at least one hinge; the others
-    contribute nothing and hold zeros) are the block bases of :class:`StencilPattern`; ``hinge_pos (H, 144)``
-    and ``face_pos (F, 81)`` (built on first use, for the eager assembly) map every local entry to its CSR
-    value position."""
+    ``hinge_blocks (H, 16)`` and ``face_blocks (F, 9)`` (faces with at least one hinge, listed in
+    ``hinged_faces``; the others contribute nothing and hold zeros) are the block bases of
+    :class:`StencilPattern`; ``hinge_pos (H, 144)`` and ``face_pos (F, 81)`` (built on request) map every local
+    entry to its CSR value position."""
 
     def __init__(self, topo: HingeTopology):
         super().__init__(topo.hinges.numpy(), topo.vertex_count)
@@ -109,20 +136,33 @@ class HessianPattern(StencilPattern):
         if has_hinge.any():
             fblk[torch.as_tensor(has_hinge)] = self.blocks(topo.faces.numpy()[has_hinge])
         self.face_has_hinge = torch.as_tensor(has_hinge)
+        self.hinged_faces = torch.as_tensor(np.flatnonzero(has_hinge), dtype=torch.int64)
         self.face_blocks = fblk
-        self._faces = topo.faces.numpy()
+        self.faces = topo.faces
+
+    def _arrays(self) -> dict[str, Tensor]:
+        return {**super()._arrays(), "faces": self.faces, "face_blocks": self.face_blocks,
+                "hinged_faces": self.hinged_faces}
 
     @property
     def hinge_pos(self) -> Tensor:
         return self.element_pos
 
-    @functools.cached_property
+    @property
     def face_pos(self) -> Tensor:
-        fpos = torch.zeros((self._faces.shape[0], 81), dtype=torch.int64)
-        keep = self.face_has_hinge
-        if keep.any():
-            fpos[keep] = self.positions(self._faces[keep.numpy()], self.face_blocks[keep])
-        return fpos
+        return self.expand(self.face_blocks, self.faces, self.row_len)
+
+    @functools.cached_property
+    def _hinged_face_pos(self) -> Tensor:
+        return self.face_pos[self.hinged_faces]
+
+    def hinged_face_positions(self, device: torch.device) -> Tensor:
+        """``face_pos[hinged_faces]`` on ``device`` (kept on the CPU, expanded per call elsewhere)."""
+        if device.type == "cpu":
+            return self._hinged_face_pos
+        a = self.on(device)
+        keep = a["hinged_faces"]
+        return self.expand(a["face_blocks"][keep], a["faces"][keep], a["row_len"])
 
 
 def to_scipy(H: Tensor):
