@@ -18,7 +18,8 @@ import torch
 from torchbend.backends import _build_config as cfg
 from torchbend.backends import cuda, native
 
-NATIVE_FUNCTIONS = ("bending_hessians", "assemble", "bending_energy", "bending_gradient", "bending_hvp")
+NATIVE_FUNCTIONS = ("bending_hessians", "assemble", "bending_energy", "bending_gradient", "bending_hvp",
+                    "project_blocks")
 """The least set of functions of the CPU module (``PYBIND11_MODULE`` in ``csrc/bending_cpu.cpp``); a new
 binding is checked without being listed (every ``m.def`` of the source must be there), list it here too
 if the Python side relies on it."""

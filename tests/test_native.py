@@ -40,9 +40,77 @@ def test_native_blocks_match_eager_and_torch_func(kernel, sheet, model):
     assert rel(fused, eager) <= 1e-15
     assert rel(fused, _per_hinge_reference(bend, x, kw)) <= 1e-12
     # everything built on the blocks follows: hinge assembly, projections
-    for project in (None, "clamp", "reduced"):
+    for project in (None, "clamp", "abs", "reduced"):
         a, b = _both(lambda project=project: bend.hessian(x, assembly="hinge", project=project).to_dense())
         assert rel(a, b) <= 1e-14
+
+
+def _eigh_projection(M: torch.Tensor, abs_mode: bool) -> torch.Tensor:
+    """The reference: eigh of the symmetric part in float64, scaled to entries of at most 1 first (eigh itself
+    overflows on blocks of 1e200)."""
+    M = M.double()
+    s = M.abs().amax((-1, -2), keepdim=True).clamp_min(1e-300)
+    L, Q = torch.linalg.eigh(0.5 * (M + M.transpose(-1, -2)) / s)
+    return (Q * (L.abs() if abs_mode else L.clamp_min(0))[..., None, :]) @ Q.transpose(-1, -2) * s
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_native_projection_jacobi_matches_eigh(kernel, dtype):
+    """The compiled PSD projections (cyclic Jacobi, 8 blocks at a time): clamp and abs of symmetric 9x9 and
+    12x12 blocks equal eigh's to a few eps of the block norm, whatever the scale (1e-200, 1e200), for zero
+    blocks, repeated and zero eigenvalues, batch shapes and a last partial tile; the result is symmetric and
+    PSD (clamp, abs) and leaves a PSD block as it is."""
+    gen = torch.Generator().manual_seed(7)
+    eps = torch.finfo(dtype).eps
+    for n in (9, 12):
+        A = torch.randn(2, 13, n, n, dtype=F64, generator=gen)
+        A[0, 0] = 0
+        A[0, 1] = torch.diag(torch.tensor([1., 1, 1, -1, -1, -1, 2, 2, 2] + [0.] * (n - 9), dtype=F64))
+        A[0, 2] = A[0, 2] @ A[0, 2].T  # PSD: unchanged
+        if dtype == F64:
+            A[1, 0] *= 1e-200
+            A[1, 1] *= 1e200
+        A = A.to(dtype)
+        for abs_mode in (False, True):
+            P = native.project_blocks(A, abs_mode)
+            assert P.shape == A.shape and P.dtype == dtype and bool(torch.isfinite(P).all())
+            R = _eigh_projection(A, abs_mode)
+            s = A.double().abs().amax((-1, -2), keepdim=True).clamp_min(1e-300)  # norms in units of the block
+            err = ((P.double() - R) / s).flatten(-2).norm(dim=-1) / (A.double() / s).flatten(-2).norm(dim=-1)
+            assert float(err.nan_to_num(0.0).max()) <= 50 * eps and int(err.isnan().sum()) == 1  # nan: zero block
+            assert torch.equal(P, P.transpose(-1, -2)) and not P[0, 0].any()
+            Pd = P.double()
+            scale = Pd.abs().amax((-1, -2)).clamp_min(1e-300)
+            assert float((torch.linalg.eigvalsh(Pd / scale[..., None, None])).min()) >= -50 * eps
+        assert rel(native.project_blocks(A[0, 2:3], False), A[0, 2:3]) <= 50 * eps
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_native_projection_of_hinge_blocks(kernel, dtype):
+    """Hinge blocks are projected in the 9-dimensional complement of the translations (the same matrix as the
+    12x12 projection, a smaller eigenproblem): equal to eigh's clamp / abs of the full blocks, the translations
+    still in the null space; through the modules, every projection of the compiled path equals the eager one."""
+    rest, faces = tb.scenes.random_curved_sheet(9, 7, amplitude=0.3, seed=5, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2).to(dtype)
+    gen = torch.Generator().manual_seed(5)
+    x = (rest + 0.02 * torch.randn((2,) + rest.shape, generator=gen, dtype=F64)).to(dtype)
+    Hb = bend.hinge_hessians(x)
+    eps = torch.finfo(dtype).eps
+    for abs_mode in (False, True):
+        P = native.project_blocks(Hb, abs_mode, True)
+        R = _eigh_projection(Hb, abs_mode)
+        err = (P.double() - R).flatten(-2).norm(dim=-1) / Hb.double().flatten(-2).norm(dim=-1)
+        assert float(err.max()) <= 50 * eps
+        assert rel(P, native.project_blocks(Hb, abs_mode, False)) <= 50 * eps
+        t = torch.eye(3, dtype=F64).repeat(4, 1)  # (12, 3): the three translations
+        assert float((P.double() @ t).norm() / P.double().norm()) <= 50 * eps
+    tol = 1e-13 if dtype == F64 else 1e-4
+    for project in ("clamp", "abs", "reduced"):
+        a, b = _both(lambda project=project: bend.hinge_hessians(x, project=project))
+        assert rel(a, b) <= tol
+        v = torch.randn(x.shape, generator=gen, dtype=F64).to(dtype)
+        a, b = _both(lambda project=project, v=v: bend.hvp(x, v, project=project))
+        assert rel(a, b) <= tol
 
 
 def test_native_float32_batched_and_degenerate(kernel):

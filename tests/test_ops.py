@@ -160,7 +160,13 @@ def test_opcheck_every_operator(damped):
         torch.library.opcheck(torch.ops.torchbend.assemble.default,
                               (x1, h1, a1, k1, r1, c1, p1, m1, pat.hinge_blocks, topo.faces, topo.face_edge_hinges,
                                topo.face_edge_signs, pat.face_blocks, pat.row_len, pat.nnz, per_triangle))
-    assert set(cases) | {"assemble"} <= set(ops.OPS)
+    Hb = torch.ops.torchbend.hinge_hessians(x, *base)[0]
+    for mode in ("clamp", "abs"):
+        torch.library.opcheck(torch.ops.torchbend.project_blocks.default, (Hb, mode, True))
+        torch.library.opcheck(torch.ops.torchbend.project_blocks.default, (Hb[..., 3:, 3:].contiguous(), mode, False))
+    with pytest.raises(ValueError, match="mode must be"):
+        torch.ops.torchbend.project_blocks(Hb, "reduced")
+    assert set(cases) | {"assemble", "project_blocks"} <= set(ops.OPS)
     for name in ops.OPS:
         assert hasattr(torch.ops.torchbend, name)
 

@@ -38,7 +38,7 @@ from .._checks import check_finite_tensor, check_positions
 from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "MODEL_CODE",
+__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "project_blocks", "MODEL_CODE",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 CSRC = cfg.CSRC
@@ -177,6 +177,15 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
     if status:
         _raise(status, model, x, theta)
     return values
+
+
+def project_blocks(M: Tensor, abs_mode: bool, hinge: bool = False) -> Tensor:
+    """The PSD projection of symmetric blocks ``M (..., n, n)``, ``n`` 9 or 12, float32 or float64:
+    ``Q max(L, 0) Q^T`` (``abs_mode``: ``Q |L| Q^T``) of ``(M + M^T) / 2``, by cyclic Jacobi vectorized across
+    blocks (the C++ counterpart of :func:`torchbend.ops.projection.project_blocks`' eigh).  ``hinge``: 12x12
+    blocks of four vertices, invariant under translations (hinge blocks), are projected in the 9-dimensional
+    complement of the translations (the same matrix, 0.42 of the work)."""
+    return _module().project_blocks(M, abs_mode, hinge)
 
 
 def output_cache_info() -> dict[str, int]:

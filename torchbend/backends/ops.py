@@ -35,7 +35,7 @@ from torch import Tensor
 
 from . import kernels
 
-__all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "OPS",
+__all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "project_blocks", "OPS",
            "run"]
 
 _LIB = torch.library.Library("torchbend", "DEF")
@@ -185,6 +185,27 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
                                   face_edge_signs, face_blocks, row_len, nnz, per_triangle)
 
 
+def _project_fake(M, mode, hinge=False):
+    return torch.empty_like(M, memory_format=torch.contiguous_format)
+
+
+@_operator(_project_fake)
+def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
+    """PSD projection (``mode`` ``"clamp"`` or ``"abs"``) of symmetric blocks ``M (..., n, n)``: compiled (cyclic
+    Jacobi; ``hinge``: translation-invariant 12x12 hinge blocks, projected in the translations' complement) for
+    CPU float32/float64 blocks of 9x9 or 12x12, ``torch.linalg.eigh`` otherwise (CUDA, other sizes)."""
+    from ..ops.projection import project_blocks as eager_project
+    from ..options import Projection
+
+    if mode not in ("clamp", "abs"):
+        raise ValueError(f"project_blocks: mode must be 'clamp' or 'abs', got {mode!r}")
+    if M.is_cuda or M.shape[-1] not in (9, 12) or M.dtype not in (torch.float32, torch.float64):
+        return eager_project(M, Projection(mode)).contiguous()
+    from . import native
+
+    return native.project_blocks(M, mode == "abs", hinge)
+
+
 OPS = {
     "bending_energy": bending_energy,
     "bending_gradient": bending_gradient,
@@ -193,5 +214,6 @@ OPS = {
     "bending_second_order": bending_second_order,
     "hinge_hessians": hinge_hessians,
     "assemble": assemble,
+    "project_blocks": project_blocks,
 }
 """Every registered operator by name (``torch.ops.torchbend.<name>``)."""

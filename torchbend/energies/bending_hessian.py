@@ -30,7 +30,7 @@ from .. import backends
 from ..backends import ops as _ops  # registers torch.ops.torchbend
 from ..mesh.topology import HingeTopology
 from ..ops import hinge as geometry
-from ..ops.projection import project_blocks
+from ..ops.projection import _expand_translation, project_blocks
 from ..ops.psi import BendingModel, psi_theta_derivatives
 from ..ops.stencil import chunks, gather, scatter
 from ..ops.triangle import triangle_hessian_blocks
@@ -56,21 +56,30 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Te
     return torch.cat(blocks, -3), torch.cat(grads, -2)
 
 
-def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend) -> tuple:
-    """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``."""
+def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend,
+            projection: Projection = Projection.NONE) -> tuple:
+    """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``, ``Hb``
+    projected by ``projection``: in C++ where the blocks were (the eigenvalue projections by Jacobi), else by
+    :func:`torchbend.ops.projection.project_blocks`."""
     if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
-        return _ops.run("hinge_hessians", x, hinges, *p.astuple(), model.value)
+        Hb, g, d2 = _ops.run("hinge_hessians", x, hinges, *p.astuple(), model.value)
+        if projection in (Projection.CLAMP, Projection.ABS):
+            Hb = _ops.run("project_blocks", Hb, projection.value, True)
+        elif projection is Projection.REDUCED:
+            Hb = _expand_translation(_ops.run("project_blocks", Hb[..., 3:, 3:], Projection.CLAMP.value, False))
+        elif projection is not Projection.NONE:
+            Hb = project_blocks(Hb, projection, g, d2)
+        return Hb, g, d2
     x4 = gather(x, hinges)
     d1, d2 = psi_theta_derivatives(model, geometry.hinge_angle(x4), *p.astuple())
     Hb, g = hinge_hessian_blocks(x4, d1, d2)
-    return Hb, g, d2
+    return (Hb if projection is Projection.NONE else project_blocks(Hb, projection, g, d2)), g, d2
 
 
 def hinge_hessians(x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, projection: Projection,
                    backend) -> Tensor:
     """Per-hinge energy Hessians ``(..., H, 12, 12)``, projected per block unless ``projection`` is ``none``."""
-    Hb, g, d2 = _blocks("hinge_hessians", x, hinges, p, model, backend)
-    return Hb if projection is Projection.NONE else project_blocks(Hb, projection, g, d2)
+    return _blocks("hinge_hessians", x, hinges, p, model, backend, projection)[0]
 
 
 def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel,
@@ -87,8 +96,8 @@ def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: B
         g = g4.flatten(-2)
         out = (d2.clamp_min(0) * (g * v4).sum(-1))[..., None] * g
     else:
-        Hb, g, d2 = _blocks("hvp_projected", x, hinges, p, model, backend)
-        out = (project_blocks(Hb, projection, g, d2) @ v4[..., None])[..., 0]
+        Hb, g, d2 = _blocks("hvp_projected", x, hinges, p, model, backend, projection)
+        out = (Hb @ v4[..., None])[..., 0]
     return scatter(out.unflatten(-1, (4, 3)), hinges, V)
 
 
@@ -114,9 +123,7 @@ def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, mod
 
     if not per_triangle:
         for sl in chunks(hinges.shape[0]):  # chunks: the blocks of one chunk stay in cache
-            Hb, g, d2 = _blocks("hessian_hinge", x, hinges[sl], p.sliced(sl), model, backend)
-            if projection is not Projection.NONE:
-                Hb = project_blocks(Hb, projection, g, d2)
+            Hb = _blocks("hessian_hinge", x, hinges[sl], p.sliced(sl), model, backend, projection)[0]
             values.index_add_(0, positions(sl), Hb.reshape(-1))
         return pattern.csr(values)
     x4 = gather(x, hinges)
