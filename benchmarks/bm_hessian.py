@@ -7,7 +7,7 @@
 Prints, per size: torchbend ``hinge_hessians`` in eager PyTorch (``backend="eager"``) vs
 ``torch.func.vmap(torch.func.hessian)`` of the plain per-hinge energy; sparse CSR assembly per hinge vs
 per triangle vs autodiff blocks + the same scatter; the cost of each projection (eager); with
-``--native`` the same blocks and assemblies by the compiled kernels, and first the cost of fresh
+``--native`` the same blocks, projections and assemblies by the compiled kernels, and first the cost of fresh
 output memory vs ``out=`` buffers; and, on a cloth draped over a sphere, the share of hinges whose
 exact block is indefinite (needs projecting).  No assertions on time.
 """
@@ -122,10 +122,20 @@ def run_size(hinges: int, dtype, repeat: int, native: bool = False) -> None:
         print(f"  sparse assembly    native: per hinge {th * 1e3:9.2f} ms   per triangle {tt * 1e3:9.2f} ms   "
               f"(hinge/triangle {th / tt:4.2f}x; native triangle {t_tri / tt:4.1f}x faster than eager triangle)")
     line = "  projections (eager blocks, incl. evaluation)"
+    eager_proj = {}
     for p in ("clamp", "abs", "gauss_newton", "reduced"):
-        t = timeit(lambda p=p: bend.hinge_hessians(x, project=p, backend="eager"), max(1, repeat // 2))
-        line += f"  {p} {t * 1e3:8.1f} ms"
+        eager_proj[p] = timeit(lambda p=p: bend.hinge_hessians(x, project=p, backend="eager"), max(1, repeat // 2))
+        line += f"  {p} {eager_proj[p] * 1e3:8.1f} ms"
     print(line)
+    if nat:
+        line = "  projections (native blocks + Jacobi, incl. evaluation)"
+        for p in ("clamp", "abs", "reduced"):
+            t = timeit(lambda p=p: bend.hinge_hessians(x, project=p, backend="native"), max(repeat, 5))
+            err = float((bend.hinge_hessians(x, project=p, backend="native")
+                         - bend.hinge_hessians(x, project=p, backend="eager")).norm()
+                        / bend.hinge_hessians(x, project=p, backend="eager").norm())
+            line += f"  {p} {t * 1e3:8.1f} ms ({eager_proj[p] / t:4.1f}x eager, rel. diff {err:.0e})"
+        print(line)
 
 
 def drape_report() -> None:
