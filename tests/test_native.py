@@ -72,7 +72,7 @@ def test_native_projection_jacobi_matches_eigh(kernel, dtype):
             A[1, 1] *= 1e200
         A = A.to(dtype)
         for abs_mode in (False, True):
-            P = native.project_blocks(A, abs_mode)
+            P = native.project_blocks(A, "abs" if abs_mode else "clamp")
             assert P.shape == A.shape and P.dtype == dtype and bool(torch.isfinite(P).all())
             R = _eigh_projection(A, abs_mode)
             s = A.double().abs().amax((-1, -2), keepdim=True).clamp_min(1e-300)  # norms in units of the block
@@ -82,7 +82,7 @@ def test_native_projection_jacobi_matches_eigh(kernel, dtype):
             Pd = P.double()
             scale = Pd.abs().amax((-1, -2)).clamp_min(1e-300)
             assert float((torch.linalg.eigvalsh(Pd / scale[..., None, None])).min()) >= -50 * eps
-        assert rel(native.project_blocks(A[0, 2:3], False), A[0, 2:3]) <= 50 * eps
+        assert rel(native.project_blocks(A[0, 2:3], "clamp"), A[0, 2:3]) <= 50 * eps
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
@@ -96,14 +96,23 @@ def test_native_projection_of_hinge_blocks(kernel, dtype):
     x = (rest + 0.02 * torch.randn((2,) + rest.shape, generator=gen, dtype=F64)).to(dtype)
     Hb = bend.hinge_hessians(x)
     eps = torch.finfo(dtype).eps
+    t = torch.eye(3, dtype=F64).repeat(4, 1)  # (12, 3): the three translations
     for abs_mode in (False, True):
-        P = native.project_blocks(Hb, abs_mode, True)
+        mode = "abs" if abs_mode else "clamp"
+        P = native.project_blocks(Hb, mode, True)
         R = _eigh_projection(Hb, abs_mode)
         err = (P.double() - R).flatten(-2).norm(dim=-1) / Hb.double().flatten(-2).norm(dim=-1)
         assert float(err.max()) <= 50 * eps
-        assert rel(P, native.project_blocks(Hb, abs_mode, False)) <= 50 * eps
-        t = torch.eye(3, dtype=F64).repeat(4, 1)  # (12, 3): the three translations
+        assert rel(P, native.project_blocks(Hb, mode, False)) <= 50 * eps
         assert float((P.double() @ t).norm() / P.double().norm()) <= 50 * eps
+    # reduced: the lower-right 9x9 clamped (as eigh), mapped back by D^T P D
+    from torchbend.ops.projection import Projection, project_blocks
+
+    Pr = native.project_blocks(Hb, "reduced", True)
+    assert rel(Pr, project_blocks(Hb.double(), Projection.REDUCED)) <= 50 * eps
+    assert float((Pr.double() @ t).norm() / Pr.double().norm()) <= 50 * eps
+    with pytest.raises(RuntimeError, match="reduced"):
+        native.project_blocks(Hb[..., 3:, 3:].contiguous(), "reduced", False)
     tol = 1e-13 if dtype == F64 else 1e-4
     for project in ("clamp", "abs", "reduced"):
         a, b = _both(lambda project=project: bend.hinge_hessians(x, project=project))

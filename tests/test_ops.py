@@ -161,11 +161,14 @@ def test_opcheck_every_operator(damped):
                               (x1, h1, a1, k1, r1, c1, p1, m1, pat.hinge_blocks, topo.faces, topo.face_edge_hinges,
                                topo.face_edge_signs, pat.face_blocks, pat.row_len, pat.nnz, per_triangle))
     Hb = torch.ops.torchbend.hinge_hessians(x, *base)[0]
-    for mode in ("clamp", "abs"):
+    for mode in ("clamp", "abs", "reduced"):
         torch.library.opcheck(torch.ops.torchbend.project_blocks.default, (Hb, mode, True))
+    for mode in ("clamp", "abs"):
         torch.library.opcheck(torch.ops.torchbend.project_blocks.default, (Hb[..., 3:, 3:].contiguous(), mode, False))
     with pytest.raises(ValueError, match="mode must be"):
-        torch.ops.torchbend.project_blocks(Hb, "reduced")
+        torch.ops.torchbend.project_blocks(Hb, "reduced")  # not declared hinge blocks
+    with pytest.raises(ValueError, match="mode must be"):
+        torch.ops.torchbend.project_blocks(Hb, "gauss_newton", True)
     assert set(cases) | {"assemble", "project_blocks"} <= set(ops.OPS)
     for name in ops.OPS:
         assert hasattr(torch.ops.torchbend, name)

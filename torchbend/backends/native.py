@@ -179,13 +179,17 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
     return values
 
 
-def project_blocks(M: Tensor, abs_mode: bool, hinge: bool = False) -> Tensor:
+PROJECTION_CODE = {"clamp": 0, "abs": 1, "reduced": 2}
+
+
+def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     """The PSD projection of symmetric blocks ``M (..., n, n)``, ``n`` 9 or 12, float32 or float64:
-    ``Q max(L, 0) Q^T`` (``abs_mode``: ``Q |L| Q^T``) of ``(M + M^T) / 2``, by cyclic Jacobi vectorized across
-    blocks (the C++ counterpart of :func:`torchbend.ops.projection.project_blocks`' eigh).  ``hinge``: 12x12
+    ``Q max(L, 0) Q^T`` (``"clamp"``; ``"abs"``: ``Q |L| Q^T``) of ``(M + M^T) / 2``, by cyclic Jacobi vectorized
+    across blocks (the C++ counterpart of :func:`torchbend.ops.projection.project_blocks`).  ``hinge``: 12x12
     blocks of four vertices, invariant under translations (hinge blocks), are projected in the 9-dimensional
-    complement of the translations (the same matrix, 0.42 of the work)."""
-    return _module().project_blocks(M, abs_mode, hinge)
+    complement of the translations (the same matrix, 0.42 of the work); ``"reduced"`` (hinge blocks only) is that
+    function's structured projection."""
+    return _module().project_blocks(M, PROJECTION_CODE[mode], hinge)
 
 
 def output_cache_info() -> dict[str, int]:

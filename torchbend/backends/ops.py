@@ -191,19 +191,21 @@ def _project_fake(M, mode, hinge=False):
 
 @_operator(_project_fake)
 def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
-    """PSD projection (``mode`` ``"clamp"`` or ``"abs"``) of symmetric blocks ``M (..., n, n)``: compiled (cyclic
-    Jacobi; ``hinge``: translation-invariant 12x12 hinge blocks, projected in the translations' complement) for
-    CPU float32/float64 blocks of 9x9 or 12x12, ``torch.linalg.eigh`` otherwise (CUDA, other sizes)."""
+    """PSD projection (``mode`` ``"clamp"``, ``"abs"`` or, for hinge blocks, ``"reduced"``) of symmetric blocks
+    ``M (..., n, n)``: compiled (cyclic Jacobi; ``hinge``: translation-invariant 12x12 hinge blocks, projected in
+    the translations' complement) for CPU float32/float64 blocks of 9x9 or 12x12,
+    :func:`torchbend.ops.projection.project_blocks` otherwise (CUDA, other sizes)."""
     from ..ops.projection import project_blocks as eager_project
     from ..options import Projection
 
-    if mode not in ("clamp", "abs"):
-        raise ValueError(f"project_blocks: mode must be 'clamp' or 'abs', got {mode!r}")
+    if mode not in ("clamp", "abs", "reduced") or (mode == "reduced" and not (hinge and M.shape[-1] == 12)):
+        raise ValueError(f"project_blocks: mode must be 'clamp', 'abs' or, for 12x12 hinge blocks, 'reduced'; "
+                         f"got {mode!r}")
     if M.is_cuda or M.shape[-1] not in (9, 12) or M.dtype not in (torch.float32, torch.float64):
         return eager_project(M, Projection(mode)).contiguous()
     from . import native
 
-    return native.project_blocks(M, mode == "abs", hinge)
+    return native.project_blocks(M, mode, hinge)
 
 
 OPS = {

@@ -1236,6 +1236,35 @@ static void project_hinge_tile(const T* in, T* out, int nl, bool abs_mode) {
   store_blocks<T, 12>(S, nl, out);
 }
 
+// The `reduced` projection of hinge blocks (torchbend.ops.projection): the lower-right 9x9 block (the Hessian in
+// y_k = x_k - x_0) clamped, then D^T P D back to 12x12 (block row and column 0: minus the sums of the others)
+template <typename T>
+static void project_reduced_tile(const T* in, T* out, int nl) {
+  alignas(64) T A[9][9][W];
+  for (int l = 0; l < W; ++l)
+    for (int i = 0; i < 9; ++i)
+      for (int j = 0; j < 9; ++j)
+        A[i][j][l] = l < nl ? T(0.5) * (in[l * 144 + (i + 3) * 12 + j + 3] + in[l * 144 + (j + 3) * 12 + i + 3]) : T(0);
+  jacobi_project<T, 9>(A, false);
+  for (int l = 0; l < nl; ++l) {
+    T* o = out + l * 144;
+    for (int i = 0; i < 9; ++i)
+      for (int j = 0; j < 9; ++j) o[(i + 3) * 12 + j + 3] = A[i][j][l];
+    for (int p = 0; p < 3; ++p)
+      for (int c = 3; c < 12; ++c) {  // row p of block row 0 and, by symmetry, column p
+        T s = T(0);
+        for (int k = 0; k < 3; ++k) s += o[(3 * (k + 1) + p) * 12 + c];
+        o[p * 12 + c] = o[c * 12 + p] = -s;
+      }
+    for (int p = 0; p < 3; ++p)
+      for (int q = 0; q < 3; ++q) {
+        T s = T(0);
+        for (int k = 0; k < 3; ++k) s += o[p * 12 + 3 * (k + 1) + q];
+        o[p * 12 + q] = -s;
+      }
+  }
+}
+
 template <typename T, int N>
 static void project_tile(const T* in, T* out, int nl, bool abs_mode) {
   alignas(64) T A[N][N][W];
@@ -1244,14 +1273,17 @@ static void project_tile(const T* in, T* out, int nl, bool abs_mode) {
   store_blocks<T, N>(A, nl, out);
 }
 
-// the PSD projection (clamp, or abs with abs_mode) of symmetric blocks M (..., n, n), n = 9 or 12 (the reduced
-// 9x9 and the full hinge blocks; with `hinge`, 12x12 blocks invariant under translations of the 4 vertices,
-// projected in the translations' complement): a new tensor
-torch::Tensor project_blocks(torch::Tensor M, bool abs_mode, bool hinge) {
+// the PSD projection (mode 0: clamp, 1: abs) of symmetric blocks M (..., n, n), n = 9 or 12; with `hinge`, 12x12
+// blocks invariant under translations of their 4 vertices, projected in the translations' complement, or by
+// mode 2 (reduced, hinge blocks only): a new tensor
+torch::Tensor project_blocks(torch::Tensor M, int64_t mode, bool hinge) {
   TORCH_CHECK(M.device().is_cpu() && M.dim() >= 2 && M.size(-1) == M.size(-2) && (M.size(-1) == 9 || M.size(-1) == 12),
               "project_blocks: M must be a CPU (..., n, n) tensor with n 9 or 12");
   TORCH_CHECK(M.scalar_type() == torch::kFloat || M.scalar_type() == torch::kDouble,
               "project_blocks: M must be float32 or float64");
+  TORCH_CHECK(mode >= 0 && mode <= 2 && (mode < 2 || (hinge && M.size(-1) == 12)),
+              "project_blocks: mode must be 0 (clamp), 1 (abs) or, for hinge blocks, 2 (reduced)");
+  const bool abs_mode = mode == 1;
   M = M.contiguous();
   const int64_t n = M.size(-1), count = n ? M.numel() / (n * n) : 0;
   auto out = pooled_empty(M.sizes().vec(), M.options());
@@ -1262,7 +1294,8 @@ torch::Tensor project_blocks(torch::Tensor M, bool abs_mode, bool hinge) {
     at::parallel_for(0, tiles, 16, [&](int64_t begin, int64_t end) {
       for (int64_t t = begin; t < end; ++t) {
         int nl = int(std::min<int64_t>(W, count - t * W));
-        if (n == 12 && hinge) project_hinge_tile<scalar_t>(in + t * W * 144, o + t * W * 144, nl, abs_mode);
+        if (mode == 2) project_reduced_tile<scalar_t>(in + t * W * 144, o + t * W * 144, nl);
+        else if (n == 12 && hinge) project_hinge_tile<scalar_t>(in + t * W * 144, o + t * W * 144, nl, abs_mode);
         else if (n == 12) project_tile<scalar_t, 12>(in + t * W * 144, o + t * W * 144, nl, abs_mode);
         else project_tile<scalar_t, 9>(in + t * W * 81, o + t * W * 81, nl, abs_mode);
       }
@@ -1283,6 +1316,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the general double backward: position and parameter directions, per-hinge weight");
   m.def("output_cache_info", &output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &empty_output_cache, "free the memory the cache of large outputs holds");
-  m.def("project_blocks", &project_blocks, "PSD projection (clamp or abs) of symmetric 9x9 or 12x12 blocks (hinge: translation-invariant), Jacobi");
+  m.def("project_blocks", &project_blocks, "PSD projection (clamp, abs; reduced for hinge blocks) of symmetric 9x9 or 12x12 blocks, Jacobi");
   m.def("set_output_cache_limit", &set_output_cache_limit, "the most bytes the cache of large outputs keeps");
 }

@@ -30,7 +30,7 @@ from .. import backends
 from ..backends import ops as _ops  # registers torch.ops.torchbend
 from ..mesh.topology import HingeTopology
 from ..ops import hinge as geometry
-from ..ops.projection import _expand_translation, project_blocks
+from ..ops.projection import project_blocks
 from ..ops.psi import BendingModel, psi_theta_derivatives
 from ..ops.stencil import chunks, gather, scatter
 from ..ops.triangle import triangle_hessian_blocks
@@ -63,10 +63,8 @@ def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingMo
     :func:`torchbend.ops.projection.project_blocks`."""
     if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
         Hb, g, d2 = _ops.run("hinge_hessians", x, hinges, *p.astuple(), model.value)
-        if projection in (Projection.CLAMP, Projection.ABS):
+        if projection in (Projection.CLAMP, Projection.ABS, Projection.REDUCED):
             Hb = _ops.run("project_blocks", Hb, projection.value, True)
-        elif projection is Projection.REDUCED:
-            Hb = _expand_translation(_ops.run("project_blocks", Hb[..., 3:, 3:], Projection.CLAMP.value, False))
         elif projection is not Projection.NONE:
             Hb = project_blocks(Hb, projection, g, d2)
         return Hb, g, d2
