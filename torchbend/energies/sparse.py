@@ -154,15 +154,17 @@ class HessianPattern(StencilPattern):
 
     @functools.cached_property
     def _hinged_face_pos(self) -> Tensor:
-        return self.face_pos[self.hinged_faces]
+        return self._expand_hinged_faces(self._arrays())
+
+    def _expand_hinged_faces(self, a: dict[str, Tensor]) -> Tensor:
+        keep = a["hinged_faces"]
+        return self.expand(a["face_blocks"][keep], a["faces"][keep], a["row_len"])
 
     def hinged_face_positions(self, device: torch.device) -> Tensor:
         """``face_pos[hinged_faces]`` on ``device`` (kept on the CPU, expanded per call elsewhere)."""
         if device.type == "cpu":
             return self._hinged_face_pos
-        a = self.on(device)
-        keep = a["hinged_faces"]
-        return self.expand(a["face_blocks"][keep], a["faces"][keep], a["row_len"])
+        return self._expand_hinged_faces(self.on(device))
 
 
 def to_scipy(H: Tensor):
