@@ -41,6 +41,15 @@ __all__ = ["energy_function", "gradient_function", "bending_energy_raw", "bendin
 _PARAM_SLOTS = (1, 2, 3, 4)  # K, REST, C, PREV in models' slot numbering
 
 
+def _scatter_soa(vs, hinges: Tensor, vertex_count: int) -> Tensor:
+    """:func:`~torchbend.ops.stencil.scatter_soa`, or the zeros ``(..., V, 3)`` when there is nothing to sum
+    (an empty batch or no hinges)."""
+    c = vs[0][0]
+    if c.numel() == 0:
+        return c.new_zeros(c.shape[:-1] + (vertex_count, 3))
+    return scatter_soa(vs, hinges, vertex_count)
+
+
 def _chunk_weight(gE: Tensor, seg: Tensor | None, sl) -> Tensor:
     """Per-hinge cotangent of one chunk (``(..., 1)`` broadcasts when there are no segments)."""
     return gE[..., None] if seg is None else gE[..., seg[sl]]
@@ -114,7 +123,7 @@ def _gradient_forward(model: BendingModel, gE, x, hinges, seg, a, params) -> tup
         theta, g4, _ = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h))
         _, pg, _ = _psi(model, theta, a[sl], [sliced(t, sl) for t in _params(params)], hessian=False)
         w = _chunk_weight(gE, seg, sl)  # (..., h) or (..., 1)
-        part = scatter_soa(_scale4(g4, w * pg[THETA]), h, V)
+        part = _scatter_soa(_scale4(g4, w * pg[THETA]), h, V)
         gx = part if gx is None else gx + part
         for i, slot in enumerate(_PARAM_SLOTS[: len(params)]):
             gps[i].append(w * pg[slot])
@@ -168,7 +177,7 @@ def _second_order(model: BendingModel, saved: tuple, t_gE, t_x, t_params):
     for sl in chunks(hinges.shape[0]):
         dx4, dp, dg, h = _second_chunk(model, saved, sl, t_gE, t_x, t_params)
         if dx4 is not None:
-            dx = _add(dx, scatter_soa(dx4, h, x.shape[-2]))
+            dx = _add(dx, _scatter_soa(dx4, h, x.shape[-2]))
         for i, d in enumerate(dp):
             dps[i].append(d)
         dgs.append(dg)
@@ -431,6 +440,8 @@ def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Te
     ``impl="native"``: the compiled operators (``torch.ops.torchbend``; ``inc`` the vertex incidence lists,
     computed when not given; ``check``: the operator checks that x is finite).
     """
+    if type(model) is not BendingModel:  # a name ("tan"): parsed, an unknown one a ValueError listing the models
+        model = BendingModel.parse(model)
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
         if _records(x, k, rest, c, prev):
@@ -446,6 +457,8 @@ def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: 
                          check: bool = False) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP);
     ``check``: the compiled operator checks that x is finite."""
+    if type(model) is not BendingModel:  # a name ("tan"): parsed, an unknown one a ValueError listing the models
+        model = BendingModel.parse(model)
     ones = x.new_ones(x.shape[:-2])
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
@@ -465,6 +478,8 @@ def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, 
 
     Per hinge ``H v = psi'' (g . v) g + psi' (H_theta v)`` with ``psi' = d psi/d theta``; ``impl="native"``:
     the compiled kernel (CPU or CUDA, by x's device; ``check``: it checks that x and v are finite)."""
+    if type(model) is not BendingModel:  # a name ("tan"): parsed, an unknown one a ValueError listing the models
+        model = BendingModel.parse(model)
     if impl is not None:
         ptr, idx = _incidence(hinges, x.shape[-2], inc)
         return _ops.run("bending_hvp", x, v, hinges, a, k, rest, c, prev, model.value, x.new_ones(1), ptr, idx,
@@ -476,7 +491,7 @@ def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, 
         theta, g4, hv4 = geometry.hinge_angle_gradient_hvp_soa(gather_soa(x, h), v4)
         f1, f2 = psi_theta_derivatives(model, theta, a[sl], sliced(k, sl), sliced(rest, sl), sliced(c, sl),
                                        sliced(prev, sl))
-        part = scatter_soa(_axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1)), h, x.shape[-2])
+        part = _scatter_soa(_axpy4(f2 * _dot4(g4, v4), g4, _scale4(hv4, f1)), h, x.shape[-2])
         out = part if out is None else out + part
     assert out is not None  # chunks() yields at least one slice
     return out

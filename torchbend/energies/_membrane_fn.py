@@ -23,7 +23,7 @@ from ..ops.membrane import (
 )
 from ..ops.stencil import scatter
 
-__all__ = ["energy_function", "gradient_function", "hvp_faces"]
+__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values"]
 
 
 def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
@@ -35,7 +35,15 @@ def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
 
 def to_vertices(G: Tensor, D: Tensor, faces: Tensor, vertex_count: int) -> Tensor:
     """Pull a per-element ``dE/dF``-like ``G (..., T, 3, 2)`` back to vertices: ``(..., V, 3)``."""
+    if G.numel() == 0:  # an empty batch or no faces: nothing to sum
+        return G.new_zeros(G.shape[:-3] + (vertex_count, 3))
     return scatter((G @ D.transpose(-1, -2)).transpose(-1, -2), faces, vertex_count)
+
+
+def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: Tensor | None = None) -> None:
+    """:func:`~torchbend.ops.membrane.check_finite_values` where there are values (none in an empty batch)."""
+    if values.numel():
+        check_finite_values(model, what, values, F, N)
 
 
 def _make(model: MembraneModel):
@@ -47,7 +55,7 @@ def _make(model: MembraneModel):
             F, N = deformation(x, faces, D)
             check_collapsed(model, F, N)
             _, P = stress(model, F, mu, lam, N)
-            check_finite_values(model, "gradient", P, F, N)
+            check_values(model, "gradient", P, F, N)
             G = (gE[..., None] * coef)[..., None, None] * P  # (..., T, 3, 2)
             return to_vertices(G, D, faces, x.shape[-2])
 
@@ -64,7 +72,7 @@ def _make(model: MembraneModel):
             l, Q, _, P = eigensystem(model, F, mu, lam, N)
             G = dg = None
             if t_x is not None:
-                check_finite_values(model, "Hessian", l, F, N)
+                check_values(model, "Hessian", l, F, N)
                 dF = deformation_gradient(t_x, faces, D).flatten(-2)  # (..., T, 6)
                 G = (gE[..., None] * coef)[..., None, None] * hvp_faces(l, Q, dF)
                 dg = (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2))  # (..., T)
@@ -93,7 +101,7 @@ def _make(model: MembraneModel):
             F, N = deformation(x, faces, D)
             check_collapsed(model, F, N)
             psi = energy_density(model, F, mu, lam, N)
-            check_finite_values(model, "energy", psi, F, N)
+            check_values(model, "energy", psi, F, N)
             return (coef * psi).sum(-1)
 
         @staticmethod
@@ -125,10 +133,10 @@ _FUNCTIONS = {m: _make(m) for m in MembraneModel}
 
 
 def energy_function(model: MembraneModel) -> type[torch.autograd.Function]:
-    """The private energy Function of ``model``."""
-    return _FUNCTIONS[model][0]
+    """The private energy Function of ``model`` (a :class:`MembraneModel` or its name)."""
+    return _FUNCTIONS[MembraneModel.parse(model)][0]
 
 
 def gradient_function(model: MembraneModel) -> type[torch.autograd.Function]:
     """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
-    return _FUNCTIONS[model][1]
+    return _FUNCTIONS[MembraneModel.parse(model)][1]

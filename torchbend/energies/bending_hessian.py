@@ -96,6 +96,8 @@ def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: B
     else:
         Hb, g, d2 = _blocks("hvp_projected", x, hinges, p, model, backend, projection)
         out = (Hb @ v4[..., None])[..., 0]
+    if out.numel() == 0:  # an empty batch or no hinges: nothing to sum
+        return out.new_zeros(out.shape[:-2] + (V, 3))
     return scatter(out.unflatten(-1, (4, 3)), hinges, V)
 
 

@@ -238,7 +238,8 @@ class _TensorCapsule(Capsule):
     ends: tuple[Tensor, Tensor]
 
     def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float):
-        a, b = torch.as_tensor(a), torch.as_tensor(b)
+        # an end point given as Python numbers is kept in float64 (cast to the positions' dtype per call)
+        a, b = (e if isinstance(e, Tensor) else torch.as_tensor(e, dtype=torch.float64) for e in (a, b))
         super().__init__(a=tuple(a.detach().tolist()), b=tuple(b.detach().tolist()), radius=radius, stiffness=stiffness,
                          margin=margin)
         object.__setattr__(self, "ends", (a, b))

@@ -17,7 +17,6 @@ from ..mesh.topology import mesh_and_rest
 from ..ops.membrane import (
     MembraneModel,
     check_collapsed,
-    check_finite_values,
     deformation,
     deformation_gradient,
     eigensystem,
@@ -124,7 +123,7 @@ class MembraneEnergy(nn.Module):
         F, N = deformation(x, self.faces, D)
         check_collapsed(self.model, F, N)
         l, Q, _, _ = eigensystem(self.model, F, mu, lam, N)
-        check_finite_values(self.model, "Hessian", l, F, N)
+        fn.check_values(self.model, "Hessian", l, F, N)
         return project_eigenvalues(l, projection) * coef[..., None], Q, D, v
 
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:

@@ -16,6 +16,7 @@ deliberately (that changes the equilibrium).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 from torch import Tensor, nn
@@ -38,6 +39,17 @@ def energy_scale(faces, rest: Tensor, density: float, gravity: float = 9.81) -> 
     return mass * positive(gravity, "gravity") * size
 
 
+def _weight(name: str, value) -> float:
+    """A term's weight as a finite float; ``ValueError`` naming the term otherwise."""
+    try:
+        w = float(value)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"ClothLoss: the weight of term '{name}' must be a number, got {value!r}") from None
+    if not math.isfinite(w):
+        raise ValueError(f"ClothLoss: the weight of term '{name}' must be finite, got {value!r}")
+    return w
+
+
 class ClothLoss(nn.Module):
     """Weighted sum of named loss terms, with the per-term values for logging (HOOD's "criterions
     summed by name").
@@ -47,10 +59,14 @@ class ClothLoss(nn.Module):
             inputs to per-sample values ``(B,)`` (or ``()``) [J]: the terms of :mod:`torchbend.losses`
             (:class:`Stretch`, :class:`Bending`, :class:`Gravity`, :class:`Inertia`, :class:`Pinning`,
             :class:`BodyContact`) or any ``nn.Module`` such as :class:`~torchbend.BendingEnergy`.
-        weights: ``{name: weight}`` (missing names weigh 1).  A term of weight 0 is not evaluated (it
-            costs nothing) and is left out of the values.  ``loss.weights`` may be changed between calls
-            (e.g. a ramp on the contact weight).
+        weights: ``{name: weight}`` (missing names weigh 1), finite numbers (a NaN or infinite weight is a
+            ``ValueError``, here and at every call).  A term of weight 0 is not evaluated (it costs nothing)
+            and is left out of the values.  ``loss.weights`` may be changed between calls (e.g. a ramp on
+            the contact weight).
         reduction: ``"mean"`` over the batch (default), ``"sum"`` or ``"none"`` (per sample ``(B,)``).
+            An empty batch (``x (0, V, 3)``) gives ``0`` for ``"mean"`` and ``"sum"`` (no sample adds to the
+            loss; torch's mean of an empty tensor would be NaN) and a ``(0,)`` tensor for ``"none"``; the
+            gradient is then the empty ``(0, V, 3)``.
 
     ``forward(x, **inputs) -> (total, values)``: ``total`` the weighted sum, reduced; ``values``
     ``{name: value}`` the *unweighted* reduced value of every evaluated term, detached (for logging;
@@ -86,7 +102,7 @@ class ClothLoss(nn.Module):
         unknown = sorted(set(weights) - set(terms))
         if unknown:
             raise ValueError(f"ClothLoss: weights for unknown terms {unknown}; terms: {sorted(terms)}")
-        self.weights = {name: float(weights.get(name, 1.0)) for name in terms}
+        self.weights = {name: _weight(name, weights.get(name, 1.0)) for name in terms}
         if reduction not in _REDUCTIONS:
             raise ValueError(f"ClothLoss: reduction must be one of {_REDUCTIONS}, got {reduction!r}")
         self.reduction = reduction
@@ -111,6 +127,8 @@ class ClothLoss(nn.Module):
                 raise ValueError(f"ClothLoss: the inputs of term '{name}' must be a mapping of the names it takes "
                                  f"{sorted(takes)}, got {sorted(given) if isinstance(given, Mapping) else given!r}")
         out = {}
+        for name, w in self.weights.items():
+            _weight(name, w)  # the weights may have been changed since the construction
         for name, term in self.terms.items():
             if self.weights[name] == 0:
                 continue
@@ -124,7 +142,7 @@ class ClothLoss(nn.Module):
 
     def _reduce(self, v: Tensor) -> Tensor:
         if self.reduction == "mean":
-            return v.mean()
+            return v.mean() if v.numel() else v.sum()  # an empty batch: 0, not NaN (class docstring)
         return v.sum() if self.reduction == "sum" else v
 
     def forward(self, x: Tensor, **inputs) -> tuple[Tensor, dict[str, Tensor]]:

@@ -23,6 +23,7 @@ solver's colliders.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -60,13 +61,24 @@ def _nearest(x: Tensor, body: Tensor) -> Tensor:
         return torch.cat(parts, 1)
 
 
+def _as_tensor(value, what: str, term: str, x: Tensor) -> Tensor:
+    """``value`` as a tensor; Python numbers straight in the dtype of ``x`` (a float64 run never sees them
+    rounded to float32)."""
+    if isinstance(value, Tensor):
+        return value
+    try:
+        return torch.as_tensor(value, dtype=x.dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{term}: {what} must be a tensor or numbers, got {value!r}") from None
+
+
 class BodyContact(LossTerm):
     """One-sided contact penalty ``E = k sum_i max(0, eps - s_i)^p`` [J] (module docstring).
 
     Args:
         stiffness: ``k`` [J/m^p] (> 0).
         eps: ``eps`` [m] (>= 0): the penalty acts below this distance from the body (default 4 mm).
-        power: ``p`` (> 1; default 3, as HOOD and SNUG).
+        power: ``p`` (finite, > 1; default 3, as HOOD and SNUG).
         body_faces: ``(Fb, 3)`` int faces of a body mesh whose positions every call passes as ``body``.
         colliders: static :class:`~torchbend.Sphere`/``Plane``/``Capsule`` colliders.
 
@@ -84,9 +96,12 @@ class BodyContact(LossTerm):
         super().__init__()
         self.stiffness = positive(stiffness, "BodyContact: stiffness")
         self.eps = nonnegative(eps, "BodyContact: eps")
-        self.power = float(power)
-        if not self.power > 1:
-            raise ValueError(f"BodyContact: power must be > 1 (a differentiable penalty), got {power!r}")
+        try:
+            self.power = float(power)
+        except (TypeError, ValueError):
+            raise ValueError(f"BodyContact: power must be a number > 1, got {power!r}") from None
+        if not (self.power > 1 and math.isfinite(self.power)):
+            raise ValueError(f"BodyContact: power must be > 1 and finite (a differentiable penalty), got {power!r}")
         if body_faces is not None:
             f = torch.as_tensor(body_faces)
             if f.ndim != 2 or f.shape[1] != 3 or f.is_floating_point() or f.numel() == 0 or bool((f < 0).any()):
@@ -152,10 +167,10 @@ class BodyContact(LossTerm):
 
     def _sphere_distance(self, x: Tensor, center, radius) -> Tensor:
         name, batch = self.term_name, tuple(x.shape[:-2])
-        c = torch.as_tensor(center)
+        c = _as_tensor(center, "sphere_center", name, x)
         if c.shape not in ((3,), batch + (3,)):
             raise ValueError(f"{name}: sphere_center must have shape (3,) or {batch + (3,)}, got {tuple(c.shape)}")
-        r = torch.as_tensor(radius)
+        r = _as_tensor(radius, "sphere_radius", name, x)
         if r.shape not in ((), batch):
             raise ValueError(f"{name}: sphere_radius must be a scalar or have shape {batch}, got {tuple(r.shape)}")
         c, r = c.to(device=x.device, dtype=x.dtype), r.to(device=x.device, dtype=x.dtype)

@@ -149,8 +149,11 @@ class Pinning(LossTerm):
         if bool((idx < 0).any()) or torch.unique(idx).numel() != idx.numel():
             raise ValueError(f"Pinning: indices must be distinct and non-negative, got {idx.tolist()[:16]}")
         self.register_buffer("indices", idx)
-        k = torch.as_tensor(stiffness, dtype=torch.get_default_dtype() if not isinstance(stiffness, Tensor)
-                            else None)
+        # Python numbers are kept in float64 (cast to the positions' dtype per call: no float32 rounding)
+        try:
+            k = stiffness if isinstance(stiffness, Tensor) else torch.as_tensor(stiffness, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"Pinning: stiffness must be a number or a tensor, got {stiffness!r}") from None
         if k.ndim > 1 or (k.ndim == 1 and k.shape[0] != idx.numel()):
             raise ValueError(f"Pinning: stiffness must be a scalar or have shape ({idx.numel()},) (one per pin), "
                              f"got {tuple(k.shape)}")

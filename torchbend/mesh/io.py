@@ -137,7 +137,7 @@ def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray, int]:
     tris: list[tuple[int, int, int]] = []
     n_poly = 0
     try:
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a byte-order mark is not text
             lines = fh.read().replace("\\\r\n", " ").replace("\\\n", " ").splitlines()
     except OSError as e:
         raise ValueError(f"cannot read mesh file {path}: {e}") from None
@@ -183,8 +183,10 @@ def _read_meshio(path: str) -> tuple[np.ndarray, np.ndarray, int]:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
             m = meshio.read(path)
     except (Exception, SystemExit) as e:  # ReadError, KeyError, struct.error, SystemExit, ...
-        why = " ".join(out.getvalue().split()) or f"{type(e).__name__}: {e}"
-        raise ValueError(f"cannot read mesh file {path}: {why}") from None
+        m = _read_meshio_without_bom(meshio, path)
+        if m is None:
+            why = " ".join(out.getvalue().split()) or f"{type(e).__name__}: {e}"
+            raise ValueError(f"cannot read mesh file {path}: {why}") from None
     pts = np.asarray(m.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] not in (2, 3):
         raise ValueError(f"{path}: points must be 2D or 3D, got shape {pts.shape}")
@@ -201,6 +203,34 @@ def _read_meshio(path: str) -> tuple[np.ndarray, np.ndarray, int]:
         tris.extend(np.stack([data[:, 0], data[:, j], data[:, j + 1]], 1) for j in range(1, k - 1))
     faces = np.concatenate(tris, 0) if tris else np.zeros((0, 3), dtype=np.int64)
     return pts, faces, n_poly
+
+
+_BOM = b"\xef\xbb\xbf"  # the UTF-8 byte-order mark some editors and exporters write first
+
+
+def _read_meshio_without_bom(meshio, path: str):
+    """meshio's reading of a text file that begins with a UTF-8 byte-order mark (which meshio's text readers
+    take for part of the first line: ``ply``, ``OFF``, ...) from a copy without it; ``None`` if the file has
+    no mark or the copy cannot be read either.  Tried only after the file itself failed to read (a binary
+    file may begin with these bytes)."""
+    import tempfile
+
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError:
+        return None
+    if not data.startswith(_BOM):
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = os.path.join(tmp, os.path.basename(path))
+        with open(copy, "wb") as fh:
+            fh.write(data[len(_BOM):])
+        try:
+            with contextlib.redirect_stdout(StringIO()), contextlib.redirect_stderr(StringIO()):
+                return meshio.read(copy)
+        except (Exception, SystemExit):
+            return None
 
 
 Cleaned = tuple[Tensor, Tensor] | tuple[Tensor, Tensor, MeshReport]
@@ -221,7 +251,8 @@ def load(path, *, weld_tol: float | None = 1e-6, dtype=torch.float64, device=Non
 
     Args:
         path: an ``.obj`` file (read without dependencies), or any format meshio reads (``.ply``, ``.stl``,
-            ``.off``, ``.vtk``, ...).  Polygons are fan-triangulated.
+            ``.off``, ``.vtk``, ...).  Polygons are fan-triangulated.  A UTF-8 byte-order mark at the start
+            of a text file is skipped.
         weld_tol: vertices closer than ``weld_tol`` times the bounding-box diagonal are merged (UV seams);
             ``None`` or ``0`` keeps every vertex.
         dtype, device: of the returned positions (faces are ``int64`` on ``device``).

@@ -48,8 +48,9 @@ class ClothModel:
         membrane: a :class:`~torchbend.MembraneEnergy` over the same mesh, or ``None``.
         density: areal density [kg/m^2] (> 0): lumped masses, 1/3 of each triangle's rest-area mass per vertex.
         gravity: ``(3,)`` acceleration [m/s^2].
-        pinned: ``(V,)`` bool mask of vertices held at their given positions, a list of vertex
-            indices, or ``None`` (nothing pinned).
+        pinned: ``(V,)`` bool mask of vertices held at their given positions, integer vertex indices
+            (a tensor, array or list, of any length: ``V`` indices are indices, not a mask), or ``None``
+            (nothing pinned).
         colliders: :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` instances.
         contact_depth: the penetration [m] (> 0) a vertex may reach below a collider surface in one
             Newton step (:meth:`max_step`); default ``CONTACT_DEPTH`` times the mean rest edge length.
@@ -152,12 +153,13 @@ class ClothModel:
     def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> sp.csr_matrix:
         """``scipy.sparse`` CSR Hessian ``(3V, 3V)`` [N/m] of the potential (without inertia) at ``x (V, 3)``.
 
-        ``option``: a :class:`torchbend.options.Projection` for the bending term; the membrane gets the
+        ``option``: a :class:`torchbend.options.Projection` (or its name) for the bending term; the membrane gets the
         nearest one it supports, colliders drop their curvature term for every member but ``NONE``.
         ``contact``: a projection for the colliders alone (default: ``option``), e.g. ``"clamp"`` for
         PSD contact blocks (as IPC projects every contact Hessian) under an otherwise exact Hessian:
         the exact penalty curvature ``-k d Hess s`` is negative definite in the tangent plane of a
         curved collider and grows with the penetration ``d``."""
+        option = Projection.parse(option)
         n = 3 * self.vertex_count
         H = sp.csr_matrix((n, n))
         if self.membrane is not None:
@@ -182,6 +184,7 @@ class ClothModel:
     def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
         """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``,
         ``contact`` as in :meth:`hessian`)."""
+        option = Projection.parse(option)
         out = torch.zeros_like(x)
         if self.membrane is not None:
             out = out + self.membrane.hvp(x, v, project=option.restricted(MEMBRANE_PROJECTIONS))
@@ -194,6 +197,7 @@ class ClothModel:
     def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
         """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` [N/m] (block-Jacobi
         preconditioner; ``option``, ``contact`` as in :meth:`hessian`)."""
+        option = Projection.parse(option)
         V = self.vertex_count
         out = x.new_zeros(V, 3, 3)
         if self.membrane is not None:
@@ -237,27 +241,34 @@ def _check_colliders(colliders) -> tuple:
 
 
 def _pinned_mask(pinned, V: int, device: torch.device) -> Tensor:
-    """``(V,)`` bool mask on ``device`` from a mask, a list of vertex indices or ``None``.
+    """``(V,)`` bool mask on ``device`` from a mask, vertex indices or ``None``.
 
-    Index values are checked where they are given (a list: on the CPU), then the mask is built on
-    ``device``; values on the ``meta`` device are not checked."""
+    A boolean tensor, array or list is a mask (it must have length ``V``); integers are vertex indices,
+    whatever their count (a list of ``V`` indices is not mistaken for a mask; repeated indices are
+    allowed); an empty list pins nothing.  Index values are checked where they are given (a list: on the
+    CPU), then the mask is built on ``device``; values on the ``meta`` device are not checked."""
     if pinned is None:
         return torch.zeros(V, dtype=torch.bool, device=device)
     if not isinstance(pinned, Tensor):
-        pinned = torch.as_tensor(pinned, device="cpu")  # user data (a list): checked on the host
-    if pinned.dtype != torch.bool:
-        if pinned.ndim == 1 and not pinned.is_floating_point() and pinned.numel() != V:
-            # a list of vertex indices
-            if pinned.numel() and pinned.device.type != "meta" and (int(pinned.min()) < 0 or int(pinned.max()) >= V):
-                raise ValueError(f"pinned indices must lie in [0, {V}), got range "
-                                 f"[{int(pinned.min())}, {int(pinned.max())}]")
-            mask = torch.zeros(V, dtype=torch.bool, device=device)
-            mask[pinned.long().to(device)] = True
-            return mask
-        raise ValueError(f"pinned must be a (V,) = ({V},) bool mask or a list of vertex indices")
-    if pinned.shape != (V,):
-        raise ValueError(f"pinned must have shape ({V},), got {tuple(pinned.shape)}")
-    return pinned.to(device)
+        try:
+            pinned = torch.as_tensor(pinned, device="cpu")  # user data (a list): checked on the host
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"pinned must be a ({V},) bool mask or a list of vertex indices, got {pinned!r}") from None
+        if pinned.numel() == 0 and pinned.ndim == 1:
+            pinned = pinned.long()  # [] reads as float32: no index
+    if pinned.dtype == torch.bool:
+        if pinned.shape != (V,):
+            raise ValueError(f"pinned: a mask must have shape ({V},) (one per vertex), got {tuple(pinned.shape)}")
+        return pinned.to(device)
+    if pinned.ndim != 1 or pinned.is_floating_point() or pinned.is_complex():
+        raise ValueError(f"pinned must be a ({V},) bool mask or a (P,) tensor/list of integer vertex indices, got "
+                         f"shape {tuple(pinned.shape)} dtype {pinned.dtype}")
+    if pinned.numel() and pinned.device.type != "meta" and (int(pinned.min()) < 0 or int(pinned.max()) >= V):
+        raise ValueError(f"pinned indices must lie in [0, {V}), got range "
+                         f"[{int(pinned.min())}, {int(pinned.max())}]")
+    mask = torch.zeros(V, dtype=torch.bool, device=device)
+    mask[pinned.long().to(device)] = True
+    return mask
 
 
 def _block_diagonal_csr(blocks: np.ndarray):
