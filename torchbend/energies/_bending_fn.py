@@ -413,12 +413,12 @@ def _records(*tensors: Tensor | None) -> bool:
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
-def energy_function(model: BendingModel) -> type[torch.autograd.Function]:
+def energy_function(model: BendingModel | str) -> type[torch.autograd.Function]:
     """The private energy Function of ``model`` (for tests and advanced use)."""
     return _FUNCTIONS[BendingModel.parse(model)][0]
 
 
-def gradient_function(model: BendingModel) -> type[torch.autograd.Function]:
+def gradient_function(model: BendingModel | str) -> type[torch.autograd.Function]:
     """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
     return _FUNCTIONS[BendingModel.parse(model)][1]
 
@@ -429,8 +429,8 @@ def _expand_params(x: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev) -> li
 
 
 def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                       prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN, seg: Tensor | None = None,
-                       seg_count: int = 0, impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
+                       prev: Tensor | None = None, *, model: BendingModel | str = BendingModel.TAN,
+                       seg: Tensor | None = None, seg_count: int = 0, impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
                        check: bool = False) -> Tensor:
     """Unvalidated functional entry: energy ``(...,)`` (or ``(..., seg_count)`` with ``seg``).
 
@@ -452,7 +452,7 @@ def bending_energy_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Te
 
 
 def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                         prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                         prev: Tensor | None = None, *, model: BendingModel | str = BendingModel.TAN,
                          impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None,
                          check: bool = False) -> Tensor:
     """Unvalidated ``dE/dx: (..., V, 3)`` through the gradient Function (differentiable: analytic HVP);
@@ -472,7 +472,7 @@ def bending_gradient_raw(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: 
 
 
 def bending_hvp_raw(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Tensor | None = None,
-                    prev: Tensor | None = None, *, model: BendingModel = BendingModel.TAN,
+                    prev: Tensor | None = None, *, model: BendingModel | str = BendingModel.TAN,
                     impl: str | None = None, inc: tuple[Tensor, Tensor] | None = None, check: bool = False) -> Tensor:
     """Unvalidated ``Hess_x(E) v: (..., V, 3)`` straight from the closed form (no autograd involved).
 

@@ -132,11 +132,11 @@ def _make(model: MembraneModel):
 _FUNCTIONS = {m: _make(m) for m in MembraneModel}
 
 
-def energy_function(model: MembraneModel) -> type[torch.autograd.Function]:
+def energy_function(model: MembraneModel | str) -> type[torch.autograd.Function]:
     """The private energy Function of ``model`` (a :class:`MembraneModel` or its name)."""
     return _FUNCTIONS[MembraneModel.parse(model)][0]
 
 
-def gradient_function(model: MembraneModel) -> type[torch.autograd.Function]:
+def gradient_function(model: MembraneModel | str) -> type[torch.autograd.Function]:
     """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
     return _FUNCTIONS[MembraneModel.parse(model)][1]

@@ -150,7 +150,7 @@ class ClothModel:
             g = g + c.gradient(x)
         return g
 
-    def hessian(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> sp.csr_matrix:
+    def hessian(self, x: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> sp.csr_matrix:
         """``scipy.sparse`` CSR Hessian ``(3V, 3V)`` [N/m] of the potential (without inertia) at ``x (V, 3)``.
 
         ``option``: a :class:`torchbend.options.Projection` (or its name) for the bending term; the membrane gets the
@@ -181,7 +181,7 @@ class ClothModel:
             blocks = blocks + c.hessian_blocks(x, project=project)
         return blocks
 
-    def hvp(self, x: Tensor, v: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
+    def hvp(self, x: Tensor, v: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> Tensor:
         """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``,
         ``contact`` as in :meth:`hessian`)."""
         option = Projection.parse(option)
@@ -194,7 +194,7 @@ class ClothModel:
             out = out + (self.contact_blocks(x, option if contact is None else contact) @ v[..., None])[..., 0]
         return out
 
-    def block_diagonal(self, x: Tensor, option: Projection, bend_kw: dict | None = None, *, contact=None) -> Tensor:
+    def block_diagonal(self, x: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> Tensor:
         """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` [N/m] (block-Jacobi
         preconditioner; ``option``, ``contact`` as in :meth:`hessian`)."""
         option = Projection.parse(option)
