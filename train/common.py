@@ -19,10 +19,29 @@ from pydantic import Field, field_validator
 
 import torchbend as tb
 from torchbend.ops.psi import BendingModel
+from torchbend.scenes import cli
 from torchbend.scenes.cli import load_checkpoint, save_checkpoint, seed_everything  # noqa: F401  (re-exported)
-from torchbend.scenes.config import Float, Int, NonNegative, Positive, PositiveInt, Section, load_config  # noqa: F401  (re-exported)
+from torchbend.scenes.config import (  # noqa: F401  (re-exported)
+    MAX_GRID_VERTICES,
+    ConfigError,
+    Float,
+    Int,
+    NonNegative,
+    Positive,
+    PositiveInt,
+    Section,
+    Seed,
+    load_config,
+)
 
 ENERGY_TERMS = {"membrane", "bending", "gravity", "sphere", "ground"}
+MAX_SIDE = math.isqrt(MAX_GRID_VERTICES)  # the most vertices per side of a square grid cloth
+MAX_BATCH = 100_000
+MAX_PARAMETERS = 100_000_000  # of a network: 0.8 GB of float64 weights, three times that with Adam's state
+# sizes of a batch and of a network's layers
+Batch = Annotated[PositiveInt, Field(le=MAX_BATCH)]
+Width = Annotated[PositiveInt, Field(le=1_000_000)]
+Depth = Annotated[PositiveInt, Field(le=1000)]
 
 
 # ------------------------------------------------------------------------------ config
@@ -30,7 +49,7 @@ class ClothSection(Section):
     """``cloth``: a square cloth of ``resolution`` x ``resolution`` vertices and ``size`` [m], the
     energy terms of :class:`ClothPhysics` (``energies``) and their parameters."""
 
-    resolution: Annotated[Int, Field(ge=3)] = 9
+    resolution: Annotated[Int, Field(ge=3, le=MAX_SIDE)] = 9
     size: Positive = 0.8
     energies: list[str] = ["membrane", "bending", "gravity", "sphere", "ground"]
     young: Positive = 2e4                # [Pa]
@@ -60,8 +79,32 @@ class ClothSection(Section):
 class ModelSection(Section):
     """``model``: the MLP's ``hidden`` width and number of ``layers``."""
 
-    hidden: PositiveInt = 128
-    layers: PositiveInt = 3
+    hidden: Width = 128
+    layers: Depth = 3
+
+
+def check_network_size(count: int, what: str) -> int:
+    """``count`` (the parameters of a network) when at most :data:`MAX_PARAMETERS`; else a
+    :class:`ConfigError` saying which sizes (``what``) make it so large."""
+    if count > MAX_PARAMETERS:
+        raise ConfigError(f"the network would have {count:.3g} parameters, more than the {MAX_PARAMETERS:.0e} "
+                          f"allowed: make {what} smaller")
+    return count
+
+
+def resume_run(path: str, cfg: dict, log, *pairs, ignore=("train.steps",), map_location=None,
+               hint: str = "no key") -> int:
+    """Continue a run from the checkpoint at ``path`` (``--resume``): the ``(module or optimizer,
+    checkpoint key)`` ``pairs`` restored (:func:`torchbend.scenes.cli.restore`), a warning naming
+    the config keys that differ from the checkpoint's (but ``ignore``); returns the step reached.
+    :class:`ConfigError` for a checkpoint of another script or one that does not fit."""
+    ck, changed = cli.resume_checkpoint(path, cfg, {key: dict for _, key in pairs}, ignore=ignore,
+                                        map_location=map_location)
+    cli.restore(path, changed, *((obj, ck[key]) for obj, key in pairs), hint=hint)
+    if changed:
+        log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
+    log.info("resumed at step %d from %s", ck["step"], path)
+    return ck["step"]
 
 
 def check_positive(cfg: dict, key: str, allow_zero: bool = False) -> float:

@@ -30,6 +30,7 @@ from typing import Annotated, Literal
 
 import torch
 from common import (
+    Batch,
     ClothPhysics,
     ClothSection,
     Float,
@@ -39,10 +40,13 @@ from common import (
     Positive,
     PositiveInt,
     Section,
+    Seed,
     Timer,
+    check_network_size,
     distributed,
     load_checkpoint,
     load_config,
+    resume_run,
     save_checkpoint,
     seed_everything,
     total,
@@ -95,7 +99,7 @@ class TrainSection(Section):
     machine, ran 10-20x slower per step (0: torch's default)."""
 
     steps: PositiveInt = 1000
-    batch: PositiveInt = 16
+    batch: Batch = 16
     lr: Positive = 3e-3
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     lr_final: Annotated[Float, Field(gt=0, le=1)] = 0.01  # cosine: the last step's lr relative to lr
@@ -103,7 +107,7 @@ class TrainSection(Section):
     log_every: PositiveInt = 10
     mesh_every: PositiveInt = 100
     checkpoint_every: PositiveInt = 50
-    seed: Int = 0
+    seed: Seed = 0
     dtype: Literal["float32", "float64"] = "float64"
     threads: Annotated[Int, Field(ge=0)] = 1
 
@@ -114,10 +118,10 @@ class EvalSection(Section):
     Newton from the predictions for the first ``newton`` (also drawn in ``drapes.png``), at most
     ``time_limit`` [s] each (:meth:`SphereDrape.check`)."""
 
-    conditions: PositiveInt = 32
+    conditions: Batch = 32
     newton: Annotated[Int, Field(ge=0)] = 3
     time_limit: Positive = 20.0
-    seed: Int = 12345
+    seed: Seed = 12345
 
 
 class Config(Section):
@@ -141,6 +145,8 @@ class DrapeNet(nn.Module):
     def __init__(self, vertex_count: int, hidden: int, layers: int, inputs: int = 3,
                  pinned: torch.Tensor | None = None):
         super().__init__()
+        check_network_size(inputs * hidden + (layers - 1) * hidden * (hidden + 1) + (hidden + 1) * 3 * vertex_count,
+                           f"model.hidden ({hidden}), model.layers ({layers}) or the cloth ({vertex_count} vertices)")
         free = torch.ones(vertex_count, 1) if pinned is None else (~pinned.reshape(-1, 1).bool()).float()
         self.register_buffer("free", free, persistent=False)  # (V, 1): 0 at pinned vertices
         dims = [inputs] + [hidden] * layers
@@ -286,6 +292,16 @@ class SphereDrape:
         return out
 
 
+def init_weights(path: str, cfg: dict, model: nn.Module, device) -> None:
+    """``--init``: the network weights (``model``) of the checkpoint at ``path`` loaded into ``model``;
+    :class:`ConfigError` naming the path when it holds none or they do not fit."""
+    ck = load_checkpoint(path, map_location=device)
+    if not isinstance(ck.get("model"), dict):
+        raise ConfigError(f"--init: {path} holds no network weights ('model')")
+    changed = cli.changed_keys(ck["config"], cfg) if isinstance(ck.get("config"), dict) else []
+    cli.restore(path, changed, (model, ck["model"]), flag="--init")
+
+
 def learning_rate(t: dict, step: int) -> float:
     """The learning rate of step ``step`` (1-based) of the ``train`` section ``t``: ``lr`` throughout
     (``constant``) or a cosine from ``lr`` at the first step to ``lr * lr_final`` at the last."""
@@ -311,8 +327,8 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     cli.add_common_args(p, config=CONFIG, out="runs/drape_net")
     p.add_argument("--loss", choices=["energy", "residual"], help="override train.loss")
-    p.add_argument("--steps", type=int, help="override train.steps")
-    p.add_argument("--lr", type=float, help="override train.lr")
+    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
+    p.add_argument("--lr", type=cli.positive_float, help="override train.lr")
     p.add_argument("--init", help="start from the network weights of this checkpoint (fresh optimizer, step 0), "
                    "e.g. residual fine-tuning of an energy-trained network")
     return cli.parse_args(p, argv)
@@ -468,16 +484,9 @@ def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.init:
-        model.load_state_dict(load_checkpoint(a.init, map_location=device)["model"])
+        init_weights(a.init, cfg, model, device)
     if a.resume:
-        ck = load_checkpoint(ckpt_path, map_location=device)
-        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
-        if changed:
-            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        start = int(ck["step"])
-        log.info("resumed at step %d from %s", start, ckpt_path)
+        start = resume_run(ckpt_path, cfg, log, (model, "model"), (opt, "optimizer"), map_location=device)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + rank + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb")) if rank == 0 else None
     history = []

@@ -42,6 +42,7 @@ from typing import Annotated, Literal
 
 import torch
 from common import (
+    Batch,
     Float,
     Int,
     ModelSection,
@@ -49,9 +50,11 @@ from common import (
     Positive,
     PositiveInt,
     Section,
+    Seed,
     Timer,
-    load_checkpoint,
+    check_network_size,
     load_config,
+    resume_run,
     save_checkpoint,
     seed_everything,
 )
@@ -121,7 +124,7 @@ class BodySection(Section):
     start uniform in ``[-offset, offset]^2`` [m] (z = 0) and a horizontal velocity of ``speed`` [m/s]
     in a uniform direction."""
 
-    subdivisions: Annotated[Int, Field(ge=0)] = 2
+    subdivisions: Annotated[Int, Field(ge=0, le=8)] = 2  # 20 * 4**s faces: 1.3 million at 8
     radius: PositiveRange = (0.15, 0.25)
     offset: NonNegative = 0.1
     speed: NonNegative = 0.2
@@ -162,13 +165,13 @@ class TrainSection(Section):
     steps, logging cadence."""
 
     steps: PositiveInt = 500
-    batch: PositiveInt = 8
+    batch: Batch = 8
     rollout: PositiveInt = 20
     lr: Positive = 1.0e-4
     clip_grad: Positive = 1.0
     log_every: PositiveInt = 10
     checkpoint_every: PositiveInt = 100
-    seed: Int = 0
+    seed: Seed = 0
     dtype: Literal["float32", "float64"] = "float32"
 
 
@@ -245,7 +248,10 @@ class StepNet(nn.Module):
 
     def __init__(self, vertex_count: int, features: int, hidden: int, layers: int, output_scale: float):
         super().__init__()
-        dims = [6 * vertex_count + 3 + features] + [hidden] * layers
+        dims = [6 * vertex_count + 3 + features] + [hidden] * layers + [3 * vertex_count + 3]
+        check_network_size(sum((a + 1) * b for a, b in zip(dims[:-1], dims[1:])),
+                           f"model.hidden ({hidden}), model.layers ({layers}) or the cloth ({vertex_count} vertices)")
+        dims = dims[:-1]
         mods: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:], strict=True):
             mods += [nn.Linear(a, b), nn.Tanh()]
@@ -287,7 +293,7 @@ def build_loss(cfg: dict, rest, faces, body_faces) -> tb.ClothLoss:
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     cli.add_common_args(p, config=CONFIG, out="runs/hood_style")
-    p.add_argument("--steps", type=int, help="override train.steps")
+    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
     return cli.parse_args(p, argv)
 
 
@@ -324,19 +330,8 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        ck = load_checkpoint(ckpt_path, map_location=device)
-        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
-        if changed:
-            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        try:
-            net.load_state_dict(ck["model"])
-            opt.load_state_dict(ck["optimizer"])
-        except (RuntimeError, ValueError, KeyError) as e:  # another mesh or network size
-            first = str(e).strip().splitlines()[-1].strip() if str(e).strip() else type(e).__name__
-            raise ConfigError(f"--resume: {ckpt_path} does not fit this network (config differs at "
-                              f"{', '.join(changed) or 'the mesh passed to main'}): {first}") from None
-        start = int(ck["step"])
-        log.info("resumed at step %d from %s", start, ckpt_path)
+        start = resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device,
+                           hint="the mesh passed to main")
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     batch, rollout, steps, log_every = int(t["batch"]), int(t["rollout"]), int(t["steps"]), int(t["log_every"])

@@ -21,19 +21,21 @@ from typing import Annotated, Any
 
 import torch
 from common import (
+    MAX_GRID_VERTICES,
+    ConfigError,
     Float,
     Int,
     Positive,
     PositiveInt,
     Section,
+    Seed,
     Timer,
     check_positive,
-    load_checkpoint,
     load_config,
     save_checkpoint,
     seed_everything,
 )
-from pydantic import Field
+from pydantic import Field, model_validator
 
 import torchbend as tb
 from torchbend.scenes import cli
@@ -56,6 +58,12 @@ class BeamSection(Section):
     density: Positive = 2.0              # [kg/m^2]
     membrane_young: Positive = 5e6
 
+    @model_validator(mode="after")
+    def _size(self):
+        if self.nx * self.ny > MAX_GRID_VERTICES:
+            raise ValueError(f"nx x ny = {self.nx} x {self.ny} vertices is more than the {MAX_GRID_VERTICES} allowed")
+        return self
+
 
 class IdentifySection(Section):
     """``identify``: the true stiffness [N m] (default: from the beam's material), the initial guess
@@ -67,7 +75,7 @@ class IdentifySection(Section):
     lr: Positive = 1.0
     tol: Annotated[Float, Field(ge=0)] = 1e-12
     fit_rest_angles: bool = False
-    seed: Int = 0
+    seed: Seed = 0
 
 
 class Config(Section):
@@ -103,8 +111,9 @@ def observe(cfg):
     k = torch.tensor(true_stiffness(cfg), dtype=torch.float64)
     model, rest, _ = build(cfg, k)
     x, info = tb.solve_static(model, rest, tol=1e-10, continuation=True)
-    if not info.converged:
-        raise RuntimeError(f"synthetic observation did not converge: {info.message}")
+    if not info.converged:  # the beam's or the stiffness's values: no equilibrium within the solver's limits
+        raise ConfigError(f"the synthetic observation (the static solve at the true stiffness {float(k):.3g} N m) did "
+                          f"not converge: {info.message}; check the 'beam' and 'identify.true_stiffness' values")
     return x, rest, float(k)
 
 
@@ -124,10 +133,33 @@ def loss_of(cfg, log_k, rest_shift, x_obs, x_start=None):
     return ((x - x_obs) ** 2).sum() / scale, x, info
 
 
+def resume(path: str, cfg: dict, log_k: torch.Tensor, shift: torch.Tensor | None, opt) -> int:
+    """``--resume``: ``log_k``, the rest-angle ``shift`` (when fitted) and the optimizer restored from
+    the checkpoint at ``path``; returns its step.  :class:`ConfigError` for a checkpoint of another
+    script or one that does not fit (another beam resolution)."""
+    ck, changed = cli.resume_checkpoint(path, cfg, {"log_k": torch.Tensor, "optimizer": dict,
+                                                    "shift": (torch.Tensor, type(None))}, ignore=("identify.steps",))
+    differs = f"config differs at {', '.join(changed) or 'no key'}"
+    if ck["log_k"].shape != log_k.shape:
+        raise ConfigError(f"--resume: {path} does not fit this run ({differs}): log_k of shape {tuple(ck['log_k'].shape)}")
+    if shift is not None and ck.get("shift") is not None and ck["shift"].shape != shift.shape:
+        raise ConfigError(f"--resume: {path} does not fit this run ({differs}): {ck['shift'].numel()} rest-angle "
+                          f"shifts, this beam has {shift.numel()} hinges")
+    cli.restore(path, changed, (opt, ck["optimizer"]), what="run")
+    with torch.no_grad():
+        log_k.copy_(ck["log_k"])
+        if shift is not None and ck.get("shift") is not None:
+            shift.copy_(ck["shift"])
+    if changed:
+        log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
+    log.info("resumed at step %d from %s", ck["step"], path)
+    return ck["step"]
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     cli.add_common_args(p, config=CONFIG, out="runs/material_id")
-    p.add_argument("--steps", type=int, help="override identify.steps")
+    p.add_argument("--steps", type=cli.positive_int, help="override identify.steps")
     return cli.parse_args(p, argv)
 
 
@@ -141,7 +173,7 @@ def main(argv=None) -> dict:
     cfg = load_config(a.config, Config, list(a.overrides) + [f"identify.{k}={v}" for k, v in flags.items() if v is not None])
     it = cfg["identify"]
     seed_everything(int(it["seed"]))
-    x_obs, rest, k_true = observe(cfg)
+    k_true = true_stiffness(cfg)
     log_k = torch.tensor(math.log(k_true * float(it["initial_factor"])), dtype=torch.float64, requires_grad=True)
     shift = None
     if it["fit_rest_angles"]:
@@ -155,17 +187,8 @@ def main(argv=None) -> dict:
     ckpt = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        ck = load_checkpoint(ckpt)
-        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("identify.steps",))
-        if changed:
-            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        with torch.no_grad():
-            log_k.copy_(ck["log_k"])
-            if shift is not None and ck.get("shift") is not None:
-                shift.copy_(ck["shift"])
-        opt.load_state_dict(ck["optimizer"])
-        start = int(ck["step"])
-        log.info("resumed at step %d from %s", start, ckpt)
+        start = resume(ckpt, cfg, log_k, shift, opt)
+    x_obs, rest, k_true = observe(cfg)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     timer = Timer()
     history = []

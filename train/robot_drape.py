@@ -23,16 +23,18 @@ from typing import Annotated
 
 import torch
 from common import (
+    Batch,
     ClothPhysics,
     ClothSection,
     ModelSection,
     Positive,
     PositiveInt,
     Section,
+    Seed,
     Timer,
     check_positive,
-    load_checkpoint,
     load_config,
+    resume_run,
     save_checkpoint,
     save_drape_png,
     seed_everything,
@@ -73,11 +75,11 @@ class TrainSection(Section):
     default; one suits these small tensors, and two on a shared 2-core machine ran 10-20x slower)."""
 
     steps: PositiveInt = 300
-    batch: PositiveInt = 16
+    batch: Batch = 16
     lr: Positive = 1e-3
     log_every: PositiveInt = 10
     checkpoint_every: PositiveInt = 50
-    seed: Int = 0
+    seed: Seed = 0
     threads: Annotated[Int, Field(ge=0)] = 1
 
 
@@ -151,7 +153,7 @@ class HeldTowel:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     cli.add_common_args(p, config=CONFIG, out="runs/robot_drape")
-    p.add_argument("--steps", type=int, help="override train.steps")
+    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
     return cli.parse_args(p, argv)
 
 
@@ -179,14 +181,7 @@ def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        ck = load_checkpoint(ckpt_path, map_location=device)
-        changed = cli.changed_keys(ck.get("config"), cfg, ignore=("train.steps",))
-        if changed:
-            log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        start = int(ck["step"])
-        log.info("resumed at step %d from %s", start, ckpt_path)
+        start = resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     history, timer, steps = [], Timer(), int(t["steps"])

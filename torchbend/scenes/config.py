@@ -17,7 +17,10 @@ builders of the model, initial state and robot of a scene config.
 from __future__ import annotations
 
 import math
+import operator
 import os
+import re
+import reprlib
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -51,33 +54,89 @@ __all__ = [
     "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes", "RobotConfig",
     "Float", "Int", "Positive", "NonNegative", "PositiveInt", "Vec3", "GridMesh", "FileMesh", "MeshSpec", "MeshField",
     "PinRegion", "build_pins", "mesh_file", "ASSET_PREFIX", "SphereSpec", "PlaneSpec", "CapsuleSpec", "RobotSection",
+    "Seed", "short_repr", "one_line", "QUOTE_LIMIT", "MAX_GRID_VERTICES", "check_resolution", "read_yaml",
 ]
 
 
 M = TypeVar("M", bound=BaseModel)
 
 
+QUOTE_LIMIT = 200
+"""The most characters of an offending value (or of any one quoted run or word) a message shows."""
+MESSAGE_LIMIT = 1000
+"""The most characters of a whole error message (longer ones keep their start and end)."""
+MAX_ERRORS = 5
+"""The most validation errors one :class:`ConfigError` lists (then ``... and N more``)."""
+
+_REPR = reprlib.Repr()
+_REPR.maxstring = _REPR.maxother = QUOTE_LIMIT
+_REPR.maxlist = _REPR.maxtuple = _REPR.maxdict = _REPR.maxset = 8
+_REPR.maxlevel = 4
+
+
+def _clip(text: str, limit: int) -> str:
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def short_repr(value: Any, limit: int = QUOTE_LIMIT) -> str:
+    """``repr(value)`` in at most about ``limit`` characters (long strings and deep or long
+    containers elided with ``...``), for quoting a user's value in an error message."""
+    try:
+        text = _REPR.repr(value)
+    except Exception:  # a value whose repr fails is quoted by its type
+        text = f"<{type(value).__name__}>"
+    return _clip(text, limit)
+
+
+# a quoted run (the closing quote kept) or a word, longer than QUOTE_LIMIT
+_LONG = re.compile("('[^'\n]{N,})'|(\"[^\"\n]{N,})\"|(\\S{N,})".replace("N", str(QUOTE_LIMIT)))
+
+
+def _clip_match(m: re.Match) -> str:
+    if m.group(3) is not None:
+        return _clip(m.group(3), QUOTE_LIMIT)
+    quoted = m.group(1) if m.group(1) is not None else m.group(2)
+    return _clip(quoted, QUOTE_LIMIT) + quoted[0]
+
+
+def one_line(message: Any, limit: int = MESSAGE_LIMIT) -> str:
+    """``message`` as one line of at most about ``limit`` characters: line breaks become spaces, a
+    quoted run or a word longer than :data:`QUOTE_LIMIT` keeps its first :data:`QUOTE_LIMIT`
+    characters (then ``... (N characters)``), an overlong whole keeps its start and end."""
+    text = re.sub(r"\s*[\r\n]+\s*", " ", str(message)).strip()
+    text = _LONG.sub(_clip_match, text)
+    if len(text) > limit:
+        text = f"{text[:limit * 3 // 4]} ... {text[-(limit // 4):]}"
+    return text
+
+
 class ConfigError(ValueError):
-    """A config problem: the message names the key's dotted path (``solver.tol``, ``colliders[0].radius``)."""
+    """A config problem: the message names the key's dotted path (``solver.tol``, ``colliders[0].radius``).
+
+    The message is kept to one line and quotes at most about :data:`QUOTE_LIMIT` characters of any
+    value (:func:`one_line`)."""
+
+    def __init__(self, message: Any = ""):
+        super().__init__(one_line(message))
 
 
 # ------------------------------------------------------------------------------ field types
 def _number(value):
     """Numbers only: YAML's ``true``/``false`` are not 0/1 (pydantic's lax mode would take them)."""
     if isinstance(value, bool):
-        raise ValueError(f"must be a number, got {value!r}")
+        raise ValueError(f"must be a number, got {short_repr(value)}")
     return value
 
 
 def _vec3(value):
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 3:
-        raise ValueError(f"must be a list of 3 numbers [x, y, z], got {value!r}")
+        raise ValueError(f"must be a list of 3 numbers [x, y, z], got {short_repr(value)}")
     return [_number(v) for v in value]
 
 
 def _pair(value):
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
-        raise ValueError(f"must be a list of 2 numbers, got {value!r}")
+        raise ValueError(f"must be a list of 2 numbers, got {short_repr(value)}")
     return [_number(v) for v in value]
 
 
@@ -88,6 +147,30 @@ NonNegative = Annotated[float, Field(ge=0), BeforeValidator(_number)]
 PositiveInt = Annotated[int, Field(gt=0), BeforeValidator(_number)]
 NonNegativeInt = Annotated[int, Field(ge=0), BeforeValidator(_number)]
 Vec3 = Annotated[tuple[float, float, float], BeforeValidator(_vec3)]
+SEED_LIMIT = 2**32
+Seed = Annotated[int, Field(ge=0, lt=SEED_LIMIT), BeforeValidator(_number)]
+"""A random seed: an integer in [0, 2**32) (every generator seeded with it accepts it)."""
+
+MAX_GRID_VERTICES = 10_000_000
+"""The most vertices of a grid mesh (``nx * ny``): beyond, memory runs out long before a step."""
+
+
+def check_resolution(nx, ny, where: str = "mesh.nx x mesh.ny") -> tuple[int, int]:
+    """``(nx, ny)`` of a grid when both are integers >= 2 with ``nx * ny <= MAX_GRID_VERTICES``;
+    :class:`ConfigError` naming ``where`` otherwise."""
+    sides = []
+    for n in (nx, ny):
+        try:
+            side = operator.index(n)
+        except TypeError:
+            side = None
+        if side is None or isinstance(n, bool) or side < 2:
+            raise ConfigError(f"{where}: a grid needs an integer >= 2 of vertices per side, got {short_repr(n)}")
+        sides.append(side)
+    if sides[0] * sides[1] > MAX_GRID_VERTICES:
+        raise ConfigError(f"{where}: a grid of {sides[0]} x {sides[1]} vertices is more than the "
+                          f"{MAX_GRID_VERTICES} allowed")
+    return sides[0], sides[1]
 
 
 class Section(BaseModel):
@@ -157,7 +240,7 @@ def _pin_name(names: tuple[str, ...]) -> BeforeValidator:
     def name(value):
         if isinstance(value, str) and value in names:
             return value
-        raise ValueError(f"must be {forms} or null, got {value!r}")
+        raise ValueError(f"must be {forms} or null, got {short_repr(value)}")
 
     return BeforeValidator(name)
 
@@ -186,6 +269,13 @@ class GridMesh(Section):
     size: Annotated[tuple[Positive, Positive], BeforeValidator(_pair)] = (1.0, 1.0)
     offset: Vec3 = (0.0, 0.0, 0.0)
     pin: GridPin = None
+
+    @model_validator(mode="after")
+    def _size(self):
+        n, m = self.nx, self.ny or self.nx
+        if n * m > MAX_GRID_VERTICES:
+            raise ValueError(f"nx x ny = {n} x {m} vertices is more than the {MAX_GRID_VERTICES} a grid may have")
+        return self
 
 
 ASSET_PREFIX = "asset:"
@@ -473,31 +563,31 @@ def _describe(error: Mapping[str, Any], schema, prefix: str) -> str:
         bound = next(iter(ctx.values()))
         words = {("greater_than", 0): "positive", ("greater_than_equal", 0): "non-negative"}
         ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
-        return f"{key} must be {words.get((kind, bound)) or f'{ops[kind]} {bound}'}, got {value!r}"
+        return f"{key} must be {words.get((kind, bound)) or f'{ops[kind]} {bound}'}, got {short_repr(value)}"
     if kind == "union_tag_invalid":
         disc = ctx["discriminator"].strip("'")
-        return f"{key[:-1]}.{disc}' must be one of {ctx['expected_tags']}, got {ctx['tag']!r}"
+        return f"{key[:-1]}.{disc}' must be one of {ctx['expected_tags']}, got {short_repr(ctx['tag'])}"
     if kind == "union_tag_not_found":
-        return f"{key} needs a {ctx['discriminator']} key, got {value!r}"
+        return f"{key} needs a {ctx['discriminator']} key, got {short_repr(value)}"
     if kind == "literal_error":
-        return f"{key} must be one of {ctx['expected'].replace(' or ', ', ')}, got {value!r}"
+        return f"{key} must be one of {ctx['expected'].replace(' or ', ', ')}, got {short_repr(value)}"
     if kind in ("model_type", "model_attributes_type", "dict_type"):
-        return f"{key} must be a mapping, got {value!r}"
+        return f"{key} must be a mapping, got {short_repr(value)}"
     if kind in ("list_type", "tuple_type"):
-        return f"{key} must be a list, got {value!r}"
+        return f"{key} must be a list, got {short_repr(value)}"
     if kind in ("float_parsing", "float_type", "int_parsing", "int_type", "finite_number"):
         what = "an integer" if kind.startswith("int") else "a finite number"
-        return f"{key} must be {what}, got {value!r}"
+        return f"{key} must be {what}, got {short_repr(value)}"
     if kind in ("int_from_float",):
-        return f"{key} must be an integer, got {value!r}"
+        return f"{key} must be an integer, got {short_repr(value)}"
     if kind in ("bool_parsing", "bool_type"):
-        return f"{key} must be true or false, got {value!r}"
+        return f"{key} must be true or false, got {short_repr(value)}"
     if kind in ("string_type",):
-        return f"{key} must be a string, got {value!r}"
+        return f"{key} must be a string, got {short_repr(value)}"
     if kind == "value_error":
         msg = str(ctx.get("error", error["msg"]))
         return f"{key} {msg}" if msg.startswith("must ") else f"{key}: {msg}"
-    return f"{key}: {error['msg']}, got {value!r}"
+    return f"{key}: {error['msg']}, got {short_repr(value)}"
 
 
 def validate(data, schema: type[M], *, prefix: str = "", source: str | None = None) -> M:
@@ -510,9 +600,10 @@ def validate(data, schema: type[M], *, prefix: str = "", source: str | None = No
     try:
         return schema.model_validate({} if data is None and not prefix else data)
     except ValidationError as e:
-        msgs = [_describe(err, schema, prefix) for err in e.errors(include_url=False)]
+        msgs = list(dict.fromkeys(_describe(err, schema, prefix) for err in e.errors(include_url=False)))
+        more = f"; ... and {len(msgs) - MAX_ERRORS} more" if len(msgs) > MAX_ERRORS else ""
         where = f"config {source}: " if source else ""
-        raise ConfigError(where + "; ".join(dict.fromkeys(msgs))) from None
+        raise ConfigError(where + "; ".join(msgs[:MAX_ERRORS]) + more) from None
 
 
 # ------------------------------------------------------------------------------ reading
@@ -521,12 +612,12 @@ def _parse_key(key: str) -> list:
     for name in key.split("."):
         base, _, rest = name.partition("[")
         if not base:
-            raise ConfigError(f"override key {key!r}: empty name")
+            raise ConfigError(f"override key {short_repr(key)}: empty name")
         parts.append(base)
         while rest:
             index, _, rest = rest.partition("]")
             if not index.lstrip("-").isdigit() or (rest and not rest.startswith("[")):
-                raise ConfigError(f"override key {key!r}: expected name[index]")
+                raise ConfigError(f"override key {short_repr(key)}: expected name[index]")
             parts.append(int(index))
             rest = rest[1:]
     return parts
@@ -540,50 +631,83 @@ def apply_overrides(cfg: dict, overrides) -> dict:
     for item in overrides or ():
         key, sep, text = str(item).partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"override {item!r} must be KEY=VALUE, e.g. solver.tol=1e-8")
+            raise ConfigError(f"override {short_repr(item)} must be KEY=VALUE, e.g. solver.tol=1e-8")
         parts = _parse_key(key.strip())
         try:
             value = yaml.safe_load(text)
         except yaml.YAMLError:
-            raise ConfigError(f"override {item!r}: the value is not valid YAML") from None
+            raise ConfigError(f"override {short_repr(item)}: the value is not valid YAML") from None
+        except RecursionError:
+            raise ConfigError(f"override {short_repr(item)}: the value is nested too deeply") from None
         node: Any = cfg
         for i, part in enumerate(parts[:-1]):
             nxt = parts[i + 1]
             if isinstance(part, int):
                 if not isinstance(node, list) or not -len(node) <= part < len(node):
-                    raise ConfigError(f"override {item!r}: no list element [{part}]")
+                    raise ConfigError(f"override {short_repr(item)}: no list element [{part}]")
                 node = node[part]
             else:
                 if not isinstance(node, dict):
-                    raise ConfigError(f"override {item!r}: {part!r} is not inside a mapping")
+                    raise ConfigError(f"override {short_repr(item)}: {short_repr(part)} is not inside a mapping")
                 if node.get(part) is None:
                     node[part] = [] if isinstance(nxt, int) else {}
                 node = node[part]
         last = parts[-1]
         if isinstance(last, int):
             if not isinstance(node, list) or not -len(node) <= last < len(node):
-                raise ConfigError(f"override {item!r}: no list element [{last}]")
+                raise ConfigError(f"override {short_repr(item)}: no list element [{last}]")
         elif not isinstance(node, dict):
-            raise ConfigError(f"override {item!r}: {last!r} is not inside a mapping")
+            raise ConfigError(f"override {short_repr(item)}: {short_repr(last)} is not inside a mapping")
         node[last] = value
     return cfg
 
 
 def read_yaml(path: str) -> dict:
-    """The mapping in a YAML file (``{}`` for an empty file); :class:`ConfigError` otherwise."""
+    """The mapping in a YAML file (UTF-8 text; ``{}`` for a file holding ``{}``); :class:`ConfigError`
+    for a missing or unreadable file, a directory, text that is not UTF-8, invalid YAML, an empty
+    file (no YAML document: write ``{}`` for every default) and anything but a mapping."""
     import yaml
 
+    shown = short_repr(str(path)) if len(str(path)) > QUOTE_LIMIT else str(path)
+    if os.path.isdir(path):
+        raise ConfigError(f"config {shown} is a directory, not a YAML file")
     if not os.path.isfile(path):
-        raise ConfigError(f"config file not found: {path}")
-    with open(path) as f:
-        try:
-            cfg = yaml.safe_load(f)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config {path}: invalid YAML ({e})") from None
-    cfg = {} if cfg is None else cfg
+        raise ConfigError(f"config file not found: {shown}")
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise ConfigError(f"config {shown} cannot be read: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"config {shown} is not UTF-8 text (byte 0x{data[e.start]:02x} on line {line}); "
+                          "save it as UTF-8") from None
+    try:
+        cfg = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"config {shown}: invalid YAML{at}: {e.problem or e.context or type(e).__name__}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config {shown}: invalid YAML: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"config {shown}: invalid YAML: nested too deeply") from None
+    if cfg is None:
+        raise ConfigError(f"config {shown} is empty (no YAML mapping; write {{}} for every default)")
     if not isinstance(cfg, dict):
-        raise ConfigError(f"config {path}: expected a mapping at the top level")
+        raise ConfigError(f"config {shown}: expected a mapping (key: value lines) at the top level, "
+                          f"got {_yaml_kind(cfg)}")
     return cfg
+
+
+def _yaml_kind(value) -> str:
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, str):
+        return f"the string {short_repr(value)}"
+    return f"{type(value).__name__} {short_repr(value)}"
 
 
 def load_config(path: str, schema: type[BaseModel] | None = None, overrides=()) -> dict:
@@ -632,7 +756,8 @@ def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, de
     if not isinstance(mesh, (GridMesh, FileMesh)):
         mesh = validate({"mesh": mesh}, SceneConfig).mesh
     if isinstance(mesh, GridMesh):
-        nx, ny = resolution if resolution is not None else (mesh.nx, mesh.ny or mesh.nx)
+        nx, ny = (check_resolution(*resolution, where="--resolution") if resolution is not None
+                  else (mesh.nx, mesh.ny or mesh.nx))
         rest, faces = procedural.grid(nx, ny, mesh.size, dtype=dtype, device=device)
     else:
         from ..mesh import load  # pyright: ignore[reportAttributeAccessIssue]
@@ -643,6 +768,8 @@ def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, de
             rest, faces = load(mesh_file(mesh.path), weld_tol=mesh.weld_tol, dtype=dtype, device=device)
         except ValueError as e:
             raise ConfigError(f"config key 'mesh.path': {e}") from None
+        except OSError as e:  # a directory, no permission to read, ...
+            raise ConfigError(f"config key 'mesh.path': cannot read {mesh.path}: {e.strerror or e}") from None
     return rest + torch.tensor(mesh.offset, dtype=dtype, device=rest.device), faces
 
 
@@ -716,16 +843,7 @@ def build_collider(spec):
 def _build(cfg: SceneConfig, thickness, resolution, device):
     dtype = torch.float64
     rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=dtype, device=device)
-    mat = cfg.material
-    t = thickness if thickness is not None else mat.thickness
-    density = mat.volumetric_density * t if mat.volumetric_density is not None else mat.density
-    bend = None if cfg.bending is None else _bending(cfg.bending, faces, rest, mat.young, t, mat.poisson)
-    mem = None
-    if cfg.membrane is not None:
-        try:
-            mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
-        except ValueError as e:
-            raise ConfigError(f"config key 'membrane': {e}") from None
+    # the cheap checks (pins, robot, colliders) before the energies are built
     pinned = build_pins(cfg.mesh, rest, resolution=resolution)
     rc = None
     if cfg.robot is not None:
@@ -740,6 +858,16 @@ def _build(cfg: SceneConfig, thickness, resolution, device):
             colliders.append(build_collider(c))
         except ValueError as e:
             raise ConfigError(f"config key 'colliders[{i}]': {e}") from None
+    mat = cfg.material
+    t = thickness if thickness is not None else mat.thickness
+    density = mat.volumetric_density * t if mat.volumetric_density is not None else mat.density
+    bend = None if cfg.bending is None else _bending(cfg.bending, faces, rest, mat.young, t, mat.poisson)
+    mem = None
+    if cfg.membrane is not None:
+        try:
+            mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
+        except ValueError as e:
+            raise ConfigError(f"config key 'membrane': {e}") from None
     model = ClothModel(faces, rest, bending=bend, membrane=mem, density=density,
                        gravity=cfg.gravity, pinned=pinned, colliders=colliders)
     return model, rest.clone(), faces, rc
@@ -762,7 +890,7 @@ def check_keyframes(keyframes, robot: Robot, where: str = "trajectory") -> list:
         try:
             t = float(t)
         except (TypeError, ValueError):
-            raise ConfigError(f"{where}[{i}].t must be a number, got {t!r}") from None
+            raise ConfigError(f"{where}[{i}].t must be a number, got {short_repr(t)}") from None
         if not math.isfinite(t) or (out and t <= out[-1][0]):
             raise ConfigError(f"{where}[{i}].t must be finite and larger than the previous keyframe's, got {t}")
         out.append((t, robot.check_joints(torch.as_tensor(q, dtype=torch.float64), f"{where}[{i}].q")))

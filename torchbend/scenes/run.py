@@ -12,7 +12,8 @@ iterations, residual, energy per term, seconds).  Three scene kinds:
 * ``static`` (e.g. ``beams``): one static solve per listed thickness (cantilevers).
 
 Dynamic and robot scenes write ``checkpoint.pt`` (step, positions, velocities, statistics so far)
-with every frame; ``--resume`` continues from it.  Options shared with the training scripts
+with every frame; ``--resume`` continues from it (a checkpoint of another scene kind or mesh is an
+error; other config changes are logged as a warning).  Options shared with the training scripts
 (:mod:`torchbend.scenes.cli`): ``--config``, ``--set KEY=VALUE``, ``--seed``, ``--device``, ``--out``,
 ``--resume``, ``--log-level``, ``--no-progress``; and ``--steps``, ``--resolution NX NY``.
 
@@ -62,7 +63,16 @@ import torch
 from ..robot import trajectory
 from ..sim import ClothState, implicit_euler_step, solve_static
 from . import cli
-from .config import SceneConfig, build_collider, build_robot_scene, build_scene, load_config, validate
+from .config import (
+    ConfigError,
+    SceneConfig,
+    build_collider,
+    build_robot_scene,
+    build_scene,
+    check_resolution,
+    load_config,
+    validate,
+)
 from .plot import snapshot
 
 __all__ = ["run_config", "main"]
@@ -87,7 +97,8 @@ def run_config(cfg, out_dir: str, *, steps: int | None = None, resolution: tuple
     tensors (robot scenes: CPU only), ``resume`` continues a dynamic or robot run from
     ``out_dir/checkpoint.pt``, ``name`` titles the snapshot."""
     cfg = validate(cfg, SceneConfig)
-    os.makedirs(os.path.join(out_dir, "frames"), exist_ok=True)
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+        raise ConfigError(f"--steps must be a positive integer, got {steps!r}")
     kind = cfg.scene.kind
     sol = cfg.solver
     stats = {"config": cfg.model_dump(mode="json"), "kind": kind, "steps": []}
@@ -114,18 +125,25 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
         stats["pin_error"] = []
     else:
         model, x0, faces = build_scene(cfg, resolution=resolution, device=device)
+    os.makedirs(os.path.join(out_dir, "frames"), exist_ok=True)
     dt, n_steps = sol.dt, steps if steps is not None else sol.steps
     kw: dict[str, Any] = dict(hessian=sol.hessian, linear_solver=sol.linear_solver, tol=sol.tol or 1e-6,
                               max_iters=sol.max_iters or 30)
     state, start = ClothState(x0, torch.zeros_like(x0)), 0
     ckpt = os.path.join(out_dir, "checkpoint.pt")
     if resume:
-        ck = cli.load_checkpoint(ckpt)
-        changed = cli.changed_keys(ck.get("config"), stats["config"], ignore=("solver.steps",))
+        ck, changed = cli.resume_checkpoint(ckpt, stats["config"], {"x": torch.Tensor, "v": torch.Tensor,
+                                                                     "steps": list, "pin_error": list},
+                                            ignore=("solver.steps",))
+        other = [k for k in changed if k == "scene.kind" or k == "mesh" or k.startswith("mesh.")]
+        if other:
+            raise ConfigError(f"--resume: {ckpt} is of another scene (config differs at {', '.join(other)})")
+        for key in ("x", "v"):
+            if tuple(ck[key].shape) != tuple(x0.shape):
+                raise ConfigError(f"--resume: {ckpt} holds {key} of shape {tuple(ck[key].shape)}, this scene "
+                                  f"{tuple(x0.shape)} (another --resolution?)")
         if changed:
             log.warning("--resume: the config differs from the checkpoint's at %s", ", ".join(changed))
-        if tuple(ck["x"].shape) != tuple(x0.shape):
-            raise ValueError(f"--resume: the checkpoint has {len(ck['x'])} vertices, this scene {len(x0)}")
         state = ClothState(ck["x"].to(x0), ck["v"].to(x0))
         start = int(ck["step"])
         stats["steps"] = list(ck["steps"])
@@ -172,6 +190,7 @@ def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name)
     shown = []
     for j, t in enumerate(thicknesses):
         model, x0, faces = build_scene(cfg, thickness=float(t), resolution=resolution, device=device)
+        os.makedirs(os.path.join(out_dir, "frames"), exist_ok=True)
         # load stepping (continuation in gravity) for large deflections: each static solve
         # starts from the previous equilibrium
         n_load = sol.load_steps
@@ -256,14 +275,20 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m torchbend.scenes",
                                 description="Run a torchbend cloth scene from a YAML config.")
     cli.add_common_args(p, config_positional=True)
-    p.add_argument("--steps", type=int, help="override solver.steps (dynamic scenes)")
-    p.add_argument("--resolution", type=int, nargs=2, metavar=("NX", "NY"), help="override mesh.nx, mesh.ny")
+    p.add_argument("--steps", type=cli.positive_int, help="override solver.steps (dynamic scenes)")
+    p.add_argument("--resolution", type=cli.positive_int, nargs=2, metavar=("NX", "NY"),
+                   help="override mesh.nx, mesh.ny (grid meshes)")
     return p
 
 
 def main(argv=None) -> dict:
     p = parser()
     a = cli.parse_args(p, argv)
+    if a.resolution:
+        try:
+            check_resolution(*a.resolution, where="argument --resolution")
+        except ConfigError as e:
+            p.error(str(e))
     device = cli.resolve_device(a.device, prog=p.prog)
     cfg = load_config(a.config, SceneConfig, a.overrides)
     if cfg["scene"]["kind"] == "robot" and device.type != "cpu":
