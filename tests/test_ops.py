@@ -22,9 +22,64 @@ def kernel():
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
 
 
-def _eps_ulp(a, b, dtype) -> float:
+def _eps_ulp(a, b, dtype, scale=None) -> float:
+    """``|a - b| / |scale|`` in ulps of ``dtype`` (normwise; ``scale`` defaults to ``b``)."""
     a, b = a.detach().double(), b.detach().double()
-    return float((a - b).norm() / b.norm()) / torch.finfo(dtype).eps
+    ref = b if scale is None else scale.detach().double()
+    return float((a - b).norm() / ref.norm()) / torch.finfo(dtype).eps
+
+
+def _magnitudes(bend, x, call, v) -> dict[str, torch.Tensor]:
+    """What the results of :func:`_everything` are sums of, in absolute value: each entry the sum over hinges
+    (and over the batch, for parameters shared by it) of the magnitudes of the per-hinge terms, ``sum_h |psi_h|``,
+    ``sum_h |g_h|``, ``sum_h |H_h| |v_h|``, ``sum_b |d psi_bh / d p_h|`` (float64, from the plain energy of
+    :mod:`torchbend.testing`).
+
+    A sum of terms each computed to a few ulps of its own size is correct to a few ulps of the sum of their
+    magnitudes, not of the sum itself: where the hinges' forces at a vertex nearly cancel (random positions),
+    ``|sum_h g_h|`` is several times smaller than ``sum_h |g_h|``, and two correct implementations that round or
+    sum in another order (another vector width, fused multiply-adds or not, ATen's AVX2 or AVX-512 kernels)
+    differ by more ulps of the result than of the terms.  The tolerance is taken relative to these magnitudes:
+    the conditioning of the sum, not one CPU's rounding."""
+    from torchbend.testing import plain_bending_energy
+
+    x64 = x.detach().double()
+    prev64 = call.get("theta_prev")
+    p = tb.energies.HingeParams.bind(bend, x64, None if prev64 is None else prev64.double(), call.get("dt"))
+    hinges, model = bend.hinges, bend.model
+    batch, H = x64.shape[:-2], hinges.shape[0]
+    shape = (*batch, H)
+    k, rest = p.k.expand(shape).reshape(-1), p.rest.expand(shape).reshape(-1)
+    damped = p.c is not None and p.prev is not None
+    c = p.c.expand(shape).reshape(-1) if p.c is not None else k
+    prev = p.prev.expand(shape).reshape(-1) if p.prev is not None else k
+    a = p.a.expand(shape).reshape(-1)
+    xh = x64[..., hinges, :].reshape(-1, 4, 3)
+    stencil = torch.arange(4)[None]
+
+    def psi(xs, a_, k_, rest_, c_, prev_):
+        return plain_bending_energy(xs, stencil, a_[None], k_, rest_[None], model,
+                                    c_ if damped else None, prev_[None] if damped else None)
+
+    args = (xh, a, k, rest, c, prev)
+    e = torch.vmap(psi)(*args).reshape(shape)
+    g = torch.vmap(torch.func.grad(psi))(*args).reshape(*shape, 12)
+    Hh = torch.vmap(torch.func.hessian(psi))(*args).reshape(*shape, 12, 12)
+    vh = v.detach().double()[..., hinges, :].reshape(*shape, 12)
+
+    def scatter(per_hinge):  # (*batch, H, 12) -> (*batch, V, 3)
+        out = x64.new_zeros(x64.shape).reshape(-1, *x64.shape[-2:])
+        out.index_add_(1, hinges.reshape(-1), per_hinge.reshape(-1, 4 * H, 3))
+        return out.reshape(x64.shape)
+
+    hv = scatter((Hh.abs() @ vh.abs()[..., None])[..., 0])
+    out = {"energy": e.abs().sum(-1), "gradient": scatter(g.abs()), "hvp": hv, "hvp_method": hv}
+    params = [q for q in (bend.stiffness, bend.rest_angles) if q.requires_grad]
+    if params:
+        dk, drest = torch.vmap(torch.func.grad(psi, argnums=(2, 3)))(*args)
+        for i, d in enumerate((dk, drest)[:len(params)]):
+            out[f"param{i}"] = d.reshape(-1, H).abs().sum(0)
+    return out
 
 
 def _grad(t: torch.Tensor) -> torch.Tensor:
@@ -56,6 +111,10 @@ def _setup(model, dtype, damped, batch, learn=False, packed=False):
     return bend, x, call
 
 
+def _direction(x):
+    return torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64).to(x.dtype)
+
+
 def _everything(bend, x, call, backend):
     """Energy, gradient (backward), HVP (double backward) and parameter gradients with ``backend`` meaning it."""
     with tb.use_backend(backend):
@@ -63,7 +122,7 @@ def _everything(bend, x, call, backend):
         E = bend(y, **call)
         params = [p for p in (bend.stiffness, bend.rest_angles) if p.requires_grad]
         g = torch.autograd.grad(E.sum(), [y, *params], create_graph=True)
-        v = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64).to(x.dtype)
+        v = _direction(x)
         (hv,) = torch.autograd.grad(g[0], y, v)
         with torch.no_grad():  # learnable parameters: hvp() records no graph here
             hv_method = bend.hvp(x, v, **call)
@@ -79,13 +138,18 @@ def _everything(bend, x, call, backend):
 @pytest.mark.parametrize("batch", [(), (2,)])
 @pytest.mark.parametrize("learn", [False, True])
 def test_compiled_ops_match_eager_within_4_ulp(dtype, model, damped, batch, learn):
-    """Without learnable parameters the double backward is the HVP operator, with them the second-order one."""
+    """Without learnable parameters the double backward is the HVP operator, with them the second-order one.
+
+    4 ulps normwise of the magnitudes the results are sums of (:func:`_magnitudes`): the conditioning of the
+    per-vertex sums, so that the bound holds for every instruction set the kernels and ATen are built for."""
     bend, x, call = _setup(model, dtype, damped, batch, learn=learn)
     a, b = _everything(bend, x, call, "native"), _everything(bend, x, call, "eager")
+    scale = _magnitudes(bend, x, call, _direction(x))
     for name in a:
         assert a[name].dtype == dtype and a[name].shape == b[name].shape, name
-        err = _eps_ulp(a[name], b[name], dtype)
-        assert err <= 4, f"{name}: {err:.2f} ulp normwise"
+        assert scale[name].shape == b[name].shape, name
+        err = _eps_ulp(a[name], b[name], dtype, scale[name])
+        assert err <= 4, f"{name}: {err:.2f} ulp normwise of the summed magnitudes ({_eps_ulp(a[name], b[name], dtype):.2f} of the result)"
 
 
 @pytest.mark.parametrize("dtype", [F64, F32])
@@ -93,8 +157,9 @@ def test_compiled_ops_packed_meshes(dtype):
     bend, x, _ = _setup("tan", dtype, False, (), packed=True)
     a, b = _everything(bend, x, {}, "native"), _everything(bend, x, {}, "eager")
     assert a["energy"].shape == (2,)
+    scale = _magnitudes(bend, x, {}, _direction(x))
     for name in a:
-        assert _eps_ulp(a[name], b[name], dtype) <= 4, name
+        assert _eps_ulp(a[name], b[name], dtype, scale[name]) <= 4, name
 
 
 def test_the_default_path_runs_the_operators(monkeypatch):

@@ -28,8 +28,8 @@ NATIVE_SOURCES = ("bending_cpu.cpp",)
 """The translation units of the CPU extension (add a new ``.cpp`` here; headers are found by themselves)."""
 NATIVE_CFLAGS = ("-O3", "-march=native", "-fopenmp", "-fno-math-errno")
 """-fno-math-errno: sqrt without its errno branch, so that the half-hinge lane loops vectorize (about 8%
-faster; the results stay correctly rounded).  ``-march=native`` is what the JIT build uses; the install
-build replaces it with :func:`cpu_arch_flags` (``TORCHBEND_CPU_ARCH``)."""
+faster; the results stay correctly rounded).  ``-march=native`` is the default; both the install build and
+the JIT build replace it with :func:`cpu_arch_flags` (``TORCHBEND_CPU_ARCH``), see :func:`native_cflags`."""
 NATIVE_LDFLAGS = ("-fopenmp",)
 
 # ---- CUDA extension (torchbend._cuda; JIT name torchbend_cuda_<hash>) ----
@@ -71,14 +71,36 @@ def cuda_source_hash(csrc: str = CSRC) -> str:
 
 
 def cpu_arch_flags() -> list[str]:
-    """The instruction-set flag of the install-time CPU build from ``TORCHBEND_CPU_ARCH``: unset or
+    """The instruction-set flag of the CPU build (install time and JIT) from ``TORCHBEND_CPU_ARCH``: unset or
     ``native`` -> ``-march=native`` (this machine's CPU: right for a build from source, as the documented
     install is; not for a wheel copied to other machines), ``none``/``portable``/empty -> no flag (the
-    compiler's baseline, e.g. x86-64), anything else ``X`` -> ``-march=X`` (e.g. ``x86-64-v3``)."""
+    compiler's baseline, e.g. x86-64), anything else ``X`` -> ``-march=X`` (e.g. ``x86-64-v3``).
+
+    The flag decides more than where the code runs: the vector width and whether ``a*b + c`` is contracted
+    into one fused multiply-add change the last bits of the results (x86-64: SSE2 without FMA; x86-64-v3:
+    AVX2 with FMA; native on an AVX-512 machine: 512-bit vectors with FMA).  The tests take tolerances
+    that hold for every one of them; ``tests/test_portable_builds.py`` runs them against such builds."""
     value = os.environ.get("TORCHBEND_CPU_ARCH", "native").strip()
     if value.lower() in ("", "none", "portable"):
         return []
     return [f"-march={value}"]
+
+
+def cpu_arch_tag(flags: list[str] | tuple[str, ...] | None = None) -> str:
+    """A short identifier of the instruction-set flags ``flags`` (default :func:`cpu_arch_flags`): ``"native"``,
+    ``"portable"`` (no ``-march``) or the ``-march`` value with every character outside ``[A-Za-z0-9]`` as ``_``
+    (``"x86_64_v3"``); part of the JIT module's name, so that builds for different architectures do not
+    overwrite one another in ``TORCH_EXTENSIONS_DIR``."""
+    arch = [f.split("=", 1)[1] for f in (cpu_arch_flags() if flags is None else flags) if f.startswith("-march=")]
+    if not arch:
+        return "portable"
+    return "".join(c if c.isalnum() else "_" for c in arch[-1])
+
+
+def native_cflags() -> list[str]:
+    """The CPU extension's compile flags: :data:`NATIVE_CFLAGS` with the instruction-set flag of
+    :func:`cpu_arch_flags` (``TORCHBEND_CPU_ARCH``) in place of ``-march=native``."""
+    return [*(f for f in NATIVE_CFLAGS if not _is_arch_flag(f)), *cpu_arch_flags()]
 
 
 def cuda_archs(default: tuple[str, ...] = CUDA_INSTALL_ARCHS) -> list[str]:
@@ -181,10 +203,12 @@ def read_build_info(path: str) -> dict | None:
         return None
 
 
-def find_prebuilt(module: str, expected_hash: str, torch_version: str) -> tuple[str | None, dict | None, str]:
+def find_prebuilt(module: str, expected_hash: str, torch_version: str,
+                  cpu_arch: bool = False) -> tuple[str | None, dict | None, str]:
     """``(path, info, "")`` of the installed extension ``module`` (e.g. ``"torchbend._native"``) if it was built
     from the current sources (``expected_hash``) against this torch, else ``(path or None, info, why not)``.
-    The library is only read, not loaded."""
+    ``cpu_arch`` (the CPU extension): where ``TORCHBEND_CPU_ARCH`` is set, the installed module must also have
+    been built with its instruction-set flag (:func:`cpu_arch_flags`).  The library is only read, not loaded."""
     import importlib.util
 
     if os.environ.get("TORCHBEND_PREBUILT", "1").strip().lower() in ("0", "no", "false", "off"):
@@ -204,4 +228,9 @@ def find_prebuilt(module: str, expected_hash: str, torch_version: str) -> tuple[
         return spec.origin, info, f"built against torch {info.get('torch')}, running torch {torch_version}"
     if "-march=native" in info.get("cflags", []) and info.get("cpu") != cpu_id():
         return spec.origin, info, f"built with -march=native for another CPU ({info.get('cpu')})"
+    if cpu_arch and os.environ.get("TORCHBEND_CPU_ARCH") is not None:
+        built = [f for f in info.get("cflags", []) if _is_arch_flag(f)]
+        if built != cpu_arch_flags():
+            return spec.origin, info, (f"built with {built or 'no -march'}, TORCHBEND_CPU_ARCH asks for "
+                                       f"{cpu_arch_flags() or 'no -march'}")
     return spec.origin, info, ""

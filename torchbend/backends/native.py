@@ -38,7 +38,7 @@ from .._checks import check_finite_tensor, check_positions
 from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
 
-__all__ = ["load", "build_error", "build_info", "extension_name", "bending_hessians", "assemble_arrays", "project_blocks", "MODEL_CODE",
+__all__ = ["load", "build_error", "build_info", "extension_name", "jit_cflags", "bending_hessians", "assemble_arrays", "project_blocks", "MODEL_CODE",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 CSRC = cfg.CSRC
@@ -46,17 +46,28 @@ SOURCES = cfg.NATIVE_SOURCES
 HEADERS = cfg.headers()
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
 CFLAGS = cfg.NATIVE_CFLAGS
-"""The JIT build's flags (see :data:`torchbend.backends._build_config.NATIVE_CFLAGS`)."""
+"""The CPU extension's flags with the default ``-march=native`` (see :data:`torchbend.backends._build_config.NATIVE_CFLAGS`);
+the JIT build uses :func:`jit_cflags`, these with the instruction-set flag of ``TORCHBEND_CPU_ARCH``."""
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
 
-_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
+_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None,
+                         "cflags": None, "arch": None}
+
+
+def jit_cflags() -> list[str]:
+    """The JIT build's compile flags: :data:`CFLAGS` with the instruction-set flag of ``TORCHBEND_CPU_ARCH``
+    (:func:`torchbend.backends._build_config.native_cflags`; default ``-march=native``)."""
+    return cfg.native_cflags()
 
 
 def extension_name() -> str:
-    """``torchbend_native_<hash>``: a short hash of the sources, every header in ``csrc`` and the flags, so
-    that any edit rebuilds (``torch.utils.cpp_extension.load`` itself tracks only the ``.cpp`` sources)."""
-    return f"torchbend_native_{cfg.native_source_hash()[:12]}"
+    """``torchbend_native_<hash>`` (``-march=native``) or ``torchbend_native_<hash>_<arch>`` (``TORCHBEND_CPU_ARCH``,
+    e.g. ``_x86_64_v3``, ``_portable``): a short hash of the sources, every header in ``csrc`` and the flags, so
+    that any edit rebuilds (``torch.utils.cpp_extension.load`` itself tracks only the ``.cpp`` sources), and the
+    instruction set, so that builds for different architectures are cached side by side."""
+    tag = cfg.cpu_arch_tag()
+    return f"torchbend_native_{cfg.native_source_hash()[:12]}" + ("" if tag == "native" else f"_{tag}")
 
 
 def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
@@ -64,7 +75,7 @@ def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
     ``found``: the installed module's path and build info, if any."""
     import torch
 
-    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.native_source_hash(), torch.__version__)
+    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.native_source_hash(), torch.__version__, cpu_arch=True)
     found = {"path": path, "build": info}
     if why:
         return None, why, found
@@ -82,15 +93,19 @@ def _build() -> tuple[Any, str | None]:
     module, why, found = _load_prebuilt()
     _INFO.update(found, prebuilt=why or "used")
     if module is not None:
-        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
+        cflags = list((found["build"] or {}).get("cflags", []))
+        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__, cflags=cflags,
+                     arch=cfg.cpu_arch_tag([f for f in cflags if f.startswith("-march=")]))
         return module, None
     try:
         from torch.utils.cpp_extension import load as load_extension
 
+        cflags = jit_cflags()
         module = load_extension(
             name=extension_name(), sources=[os.path.join(CSRC, f) for f in SOURCES], extra_include_paths=[CSRC],
-            extra_cflags=list(CFLAGS), extra_ldflags=list(cfg.NATIVE_LDFLAGS), verbose=False)
-        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None))
+            extra_cflags=cflags, extra_ldflags=list(cfg.NATIVE_LDFLAGS), verbose=False)
+        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None),
+                     cflags=cflags, arch=cfg.cpu_arch_tag(cflags))
         return module, None
     except Exception as e:  # no compiler, no ninja, ...
         reason = f"{type(e).__name__}: {e}"
@@ -121,8 +136,9 @@ def build_info() -> dict[str, Any]:
     """How :func:`load` got the module: ``source`` (``"install"``: the module built by ``pip install``;
     ``"jit"``: compiled or taken from torch's extension cache on first use; ``None``: not available),
     ``seconds`` (the time :func:`load` took in this process), ``path`` (the library), ``prebuilt`` (``"used"``
-    or why the installed module was not used) and ``build`` (what the installed module says of its build:
-    source hash, flags, torch version).  Loads the module if that has not happened yet."""
+    or why the installed module was not used), ``build`` (what the installed module says of its build:
+    source hash, flags, torch version), ``cflags`` (the compile flags of the module in use) and ``arch`` (their
+    instruction set: ``"native"``, ``"portable"`` or e.g. ``"x86_64_v3"``, see ``TORCHBEND_CPU_ARCH``).  Loads the module if that has not happened yet."""
     _build()
     return dict(_INFO)
 
