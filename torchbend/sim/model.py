@@ -258,7 +258,7 @@ def _pinned_mask(pinned, V: int, device: torch.device) -> Tensor:
             pinned = pinned.long()  # [] reads as float32: no index
     if pinned.dtype == torch.bool:
         if pinned.shape != (V,):
-            raise ValueError(f"pinned: a mask must have shape ({V},) (one per vertex), got {tuple(pinned.shape)}")
+            raise ValueError(f"pinned must have shape ({V},) (a bool mask, one per vertex), got {tuple(pinned.shape)}")
         return pinned.to(device)
     if pinned.ndim != 1 or pinned.is_floating_point() or pinned.is_complex():
         raise ValueError(f"pinned must be a ({V},) bool mask or a (P,) tensor/list of integer vertex indices, got "
