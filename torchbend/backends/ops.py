@@ -43,6 +43,17 @@ _KERNELS: dict = {}
 """The Python kernel of every operator by name (what the dispatcher calls for CPU and CUDA tensors)."""
 
 
+_MODELS = ("quadratic", "tan", "sin")
+
+
+def _model(op: str, model: str) -> str:
+    """``model`` if it names a bending model, else the ``ValueError`` naming the operator and the choices (the
+    other arguments are checked by the kernels, :file:`torchbend/csrc/checks.h`)."""
+    if model not in _MODELS:
+        raise ValueError(f"torchbend.{op}: model must be one of {', '.join(map(repr, _MODELS))}, got {model!r}")
+    return model
+
+
 def _batch(x: Tensor) -> tuple[int, ...]:
     return tuple(x.shape[:-2])
 
@@ -53,10 +64,21 @@ def _operator(fake):
 
     def register(fn):
         name = fn.__name__
+
+        def checked_fake(*args, **kwargs):
+            # the dispatcher sends a call whose tensors mix devices to the highest-priority one's kernel (a meta
+            # tensor among CPU ones: this fake), so the fake checks what the kernels check: one device
+            tensors = [t for t in (*args, *kwargs.values()) if isinstance(t, Tensor)]
+            for t in tensors[1:]:
+                if t.device != tensors[0].device:
+                    raise ValueError(f"torchbend.{name}: every tensor argument must be on the first one's device "
+                                     f"({tensors[0].device}), got one on {t.device}")
+            return fake(*args, **kwargs)
+
         _LIB.define(name + torch.library.infer_schema(fn, mutates_args=()))
         _LIB.impl(name, fn, "CPU")
         _LIB.impl(name, fn, "CUDA")
-        torch.library.register_fake(f"torchbend::{name}", fake, lib=_LIB)
+        torch.library.register_fake(f"torchbend::{name}", checked_fake, lib=_LIB)
         _KERNELS[name] = fn
         return getattr(torch.ops.torchbend, name)
 
@@ -86,6 +108,7 @@ def _energy_fake(x, hinges, a, k, rest, c, prev, model, check):
 def bending_energy(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: Optional[Tensor],
                    prev: Optional[Tensor], model: str, check: bool) -> Tensor:
     """Per-hinge energies ``psi (..., H)``."""
+    _model("bending_energy", model)
     return kernels.module(x).bending_energy(x, hinges, a, k, rest, c, prev, model, check)
 
 
@@ -100,6 +123,7 @@ def bending_gradient(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
                      check: bool) -> tuple[Tensor, Tensor]:
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4))``; the second is empty (``(0,)``)
     without ``params``."""
+    _model("bending_gradient", model)
     gx, gp = kernels.module(x).bending_gradient(x, hinges, a, k, rest, c, prev, model, weight, (ptr, idx), params,
                                                 check)
     return gx, (gp if gp is not None else x.new_empty(0))
@@ -117,6 +141,7 @@ def bending_energy_gradient(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, res
     """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4))`` in one pass (the forward of a
     recorded energy, which keeps the gradient for its backward); the third is empty (``(0,)``) without
     ``params``."""
+    _model("bending_energy_gradient", model)
     psi, gx, gp = kernels.module(x).bending_energy_gradient(x, hinges, a, k, rest, c, prev, model, (ptr, idx), params,
                                                             check)
     return psi, gx, (gp if gp is not None else x.new_empty(0))
@@ -132,6 +157,7 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest
                 check: bool = False) -> Tensor:
     """``w H v (..., V, 3)``: the Hessian of the energy in the positions applied to ``v`` (x's shape); with
     ``check`` non-finite ``x`` or ``v`` are a ``ValueError``."""
+    _model("bending_hvp", model)
     return kernels.module(x).bending_hvp(x, v, hinges, a, k, rest, c, prev, model, weight, (ptr, idx), check)
 
 
@@ -148,6 +174,7 @@ def bending_second_order(x: Tensor, v: Optional[Tensor], t: Optional[Tensor], hi
     """The general double backward: ``(dx (..., V, 3), dp (..., H, 4), dg (..., H))`` for directions ``v`` in the
     positions and ``t (..., H, 4)`` in the per-hinge ``(k, rest, c, prev)`` (either may be ``None``); see
     :func:`torchbend.backends.native.bending_second_order`."""
+    _model("bending_second_order", model)
     return tuple(kernels.module(x).bending_second_order(x, v, t, hinges, a, k, rest, c, prev, model, weight,
                                                         (ptr, idx)))  # type: ignore[return-value]
 
@@ -162,6 +189,7 @@ def hinge_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor
                    prev: Optional[Tensor], model: str, check: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """``(blocks (..., H, 12, 12), angle gradients g (..., H, 12), psi'' (..., H))`` (unprojected); with ``check``
     non-finite positions are a ``ValueError``."""
+    _model("hinge_hessians", model)
     blocks = kernels.module(x).bending_hessians
     out = blocks(x, hinges, a, k, rest, c, prev, model, check=True) if check else blocks(x, hinges, a, k, rest, c,
                                                                                         prev, model)
@@ -179,6 +207,7 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
              face_edge_signs: Tensor, face_blocks: Tensor, row_len: Tensor, nnz: int, per_triangle: bool) -> Tensor:
     """CSR values ``(nnz,)`` of the unprojected Hessian of one mesh ``x (V, 3)`` (the pattern's block bases
     from :class:`torchbend.energies.sparse.HessianPattern` and the topology)."""
+    _model("assemble", model)
     from . import native
 
     return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges,
@@ -199,9 +228,14 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     from ..options import Projection
 
     if mode not in ("clamp", "abs", "reduced") or (mode == "reduced" and not (hinge and M.shape[-1] == 12)):
-        raise ValueError(f"project_blocks: mode must be 'clamp', 'abs' or, for 12x12 hinge blocks, 'reduced'; "
+        raise ValueError(f"torchbend.project_blocks: mode must be 'clamp', 'abs' or, for 12x12 hinge blocks, 'reduced'; "
                          f"got {mode!r}")
+    if M.dim() < 2 or M.shape[-1] != M.shape[-2] or not M.is_floating_point():
+        raise ValueError(f"torchbend.project_blocks: M must be a floating-point (..., n, n) tensor, got "
+                         f"{tuple(M.shape)} {M.dtype}")
     if M.is_cuda or M.shape[-1] not in (9, 12) or M.dtype not in (torch.float32, torch.float64):
+        if not bool(torch.isfinite(M).all()):
+            raise ValueError("torchbend.project_blocks: M holds non-finite values")
         return eager_project(M, Projection(mode)).contiguous()
     from . import native
 

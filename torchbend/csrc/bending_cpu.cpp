@@ -6,6 +6,7 @@
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -21,6 +22,7 @@
 #include <immintrin.h>
 #endif
 
+#include "checks.h"
 #include "hinge_ops.h"
 
 using namespace torchbend;
@@ -237,6 +239,56 @@ static torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::
   return t;
 }
 
+struct Prepared {
+  torch::Tensor x, hinges, a, k, rest, c, prev;
+  std::vector<int64_t> batch;
+  int64_t B, V, H;
+  bool damped;
+};
+
+// every hinge index in [0, V) (a separate pass; the operators that read the indices in a pass of their own check
+// them there: gather_tile, scatter_plan)
+static void check_hinge_range(const char* op, const torch::Tensor& hinges, int64_t V) {
+  torchbend::checks::check_range(op, "hinges", hinges, 0, V, "x has V = " + std::to_string(V) + " vertices");
+}
+
+// the arguments shared by the bending operators, checked (torchbend/csrc/checks.h) before any work: x a CPU
+// float32/float64 (..., V, 3) tensor, hinges an int64 (H, 4) tensor of vertex indices in [0, V), the per-hinge
+// parameters CPU tensors of 1, H or (prev) B*H values, c and prev both given or both absent
+static Prepared prepare(const char* op, torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                        torch::Tensor rest, const c10::optional<torch::Tensor>& c_,
+                        const c10::optional<torch::Tensor>& prev_, int64_t model, bool check_hinges,
+                        bool batched_params = true) {
+  namespace ck = torchbend::checks;
+  ck::require(model >= 0 && model <= 2, op, "model code must be 0 (quadratic), 1 (tan) or 2 (sin), got ", model);
+  ck::require(x.device().is_cpu() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CPU (..., V, 3) tensor, got ",
+              ck::shape_str(x), " on ", x.device());
+  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
+              "x must be float32 or float64, got ", x.scalar_type());
+  ck::require(c_.has_value() == prev_.has_value(), op, "the viscous term needs both c and prev (got ",
+              c_.has_value() ? "c without prev" : "prev without c", ")");
+  Prepared p;
+  p.hinges = ck::index_tensor(op, "hinges", hinges, x.device(), 4);
+  p.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
+  p.V = x.size(-2); p.H = hinges.size(0); p.B = 1;
+  for (auto s : p.batch) p.B *= s;
+  if (check_hinges) check_hinge_range(op, p.hinges, p.V);
+  p.x = x.contiguous();
+  p.damped = c_.has_value();
+  auto prep = [&](torch::Tensor t, const char* name, bool batched) {
+    ck::require(t.device().is_cpu(), op, name, " must be on the CPU (x's device), got ", t.device());
+    ck::require(t.is_floating_point() || t.scalar_type() == torch::kLong || t.scalar_type() == torch::kInt, op, name,
+                " must be a real tensor, got ", t.scalar_type());
+    int64_t n = t.numel();
+    ck::require(n == 1 || n == p.H || (batched && n == p.B * p.H), op, name, " has ", n, " values; expected 1 or H = ",
+                p.H, batched ? " or B*H = " + std::to_string(p.B * p.H) : std::string());
+    return as_dtype(t, x.scalar_type());
+  };
+  p.a = prep(a, "a", batched_params); p.k = prep(k, "k", batched_params); p.rest = prep(rest, "rest", batched_params);
+  if (p.damped) { p.c = prep(*c_, "c", batched_params); p.prev = prep(*prev_, "prev", batched_params); }
+  return p;
+}
+
 // ----------------------------------------------------------------------------------------------
 // Sparse assembly of the Hessian of one mesh into CSR values, both ways of
 // torchbend.energies.bending_hessian.assemble: per hinge (scatter of the 12x12 blocks) and per
@@ -261,11 +313,32 @@ static inline void scatter_blocks(T* values, const int64_t* base, const int64_t*
   }
 }
 
+// the block bases bp[0 .. m m) of an element (vertices ev[0 .. m)): each base of the vertex pair (a, b) lies in the
+// first scalar row of block row ev[a] with its 3 columns, so that the block's rows base + p row_len (p < 3) stay
+// inside that block row (checked by the assembly as it reads them, before their scatter)
+static inline void check_element_bases(const char* name, int64_t e, int m, const int64_t* bp, const int64_t* ev,
+                                       const int64_t* rs, const int64_t* rl) {
+  if (!torchbend::checks::kChecked) return;
+  int bad = 0;
+  for (int i = 0; i < m * m; ++i) {
+    int64_t v = ev[i / m];
+    bad |= int(bp[i] < rs[v]) | int(bp[i] > rs[v] + rl[v] - 3);
+  }
+  if (!bad) return;
+  for (int i = 0; i < m * m; ++i) {
+    int64_t v = ev[i / m], r0 = rs[v];
+    if (bp[i] < r0 || bp[i] > r0 + rl[v] - 3)
+      torchbend::checks::fail("assemble", name, "[", e, ", ", i, "] = ", bp[i], " is not a block of row ", v,
+                              " of the pattern (its first scalar row spans [", r0, ", ", r0 + rl[v], "))");
+  }
+}
+
 template <typename T>
 static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
                           Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
                           const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
-                          const int64_t* row_len, int64_t F, bool per_triangle, T* values, int64_t nnz, T* thout) {
+                          const int64_t* row_len, const int64_t* rs, int64_t F, bool per_triangle, T* values,
+                          int64_t nnz, T* thout) {
   std::vector<T> d1s(per_triangle ? H : 0);
   // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
   // vertex blocks include the face's 9, so that its scatter finds them in cache (a separate pass over the faces
@@ -295,6 +368,7 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
       load_hinge<T, W>(x, hinges + 4 * h, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
                       damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
+      check_element_bases("hinge_blocks", h, 4, hblk + 16 * h, hinges + 4 * h, rs, row_len);
       for (int va = 0; va < 4; ++va) {
         const int64_t* base = hblk + 16 * h + 4 * va;
         int64_t end = std::max(std::max(base[0], base[1]), std::max(base[2], base[3])) + 2 * row_len[hinges[4 * h + va]] + 3;
@@ -323,12 +397,74 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
           const int64_t* fh = feh + 3 * f;
           T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
           const int64_t* fv = faces + 3 * f;
+          check_element_bases("face_blocks", f, 3, fblk + 9 * f, fv, rs, row_len);
           face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
           scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
         }
     }
   }
   std::fill(values + zeroed, values + nnz, T(0));  // blocks of no hinge (none in a bending pattern)
+}
+
+// the arguments of `assemble` checked before any work (checks.h); returns them prepared (contiguous)
+struct AssembleArgs {
+  Prepared P;
+  torch::Tensor faces, face_edge_hinges, face_edge_signs, face_blocks, hinge_blocks, row_len;
+  std::vector<int64_t> rs;  // per vertex v, the CSR position of its block row's first entry (V + 1 values)
+};
+
+
+static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                                  torch::Tensor rest, const c10::optional<torch::Tensor>& c_,
+                                  const c10::optional<torch::Tensor>& prev_, int64_t model, torch::Tensor hinge_blocks,
+                                  torch::Tensor faces, torch::Tensor face_edge_hinges, torch::Tensor face_edge_signs,
+                                  torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz, bool per_triangle) {
+  const char* op = "assemble";
+  namespace ck = torchbend::checks;
+  ck::require(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, op, "x must be a CPU (V, 3) tensor (one mesh), got ",
+              ck::shape_str(x), " on ", x.device());
+  Prepared P = prepare(op, x, hinges, a, k, rest, c_, prev_, model, true, false);
+  hinges = P.hinges;
+  const int64_t V = P.V, H = P.H;
+  auto dev = x.device();
+  faces = ck::index_tensor(op, "faces", faces, dev, 3);
+  const int64_t F = faces.size(0);
+  auto per_face = [&](torch::Tensor t, const char* name, int64_t cols) {
+    t = ck::index_tensor(op, name, t, dev, cols);
+    ck::require(t.size(0) == F, op, name, " must have F = ", F, " rows (one per face), got ", t.size(0));
+    return t;
+  };
+  face_edge_hinges = per_face(face_edge_hinges, "face_edge_hinges", 3);
+  face_edge_signs = per_face(face_edge_signs, "face_edge_signs", 3);
+  face_blocks = per_face(face_blocks, "face_blocks", 9);
+  hinge_blocks = ck::index_tensor(op, "hinge_blocks", hinge_blocks, dev, 16);
+  ck::require(hinge_blocks.size(0) == H, op, "hinge_blocks must have H = ", H, " rows (one per hinge), got ",
+              hinge_blocks.size(0));
+  row_len = ck::index_tensor(op, "row_len", row_len, dev);
+  ck::require(row_len.dim() == 1 && row_len.size(0) == V, op, "row_len must have shape (V,) = (", V, ",), got ",
+              ck::shape_str(row_len));
+  ck::check_range(op, "faces", faces, 0, V, "x has V = " + std::to_string(V) + " vertices");
+  ck::check_range(op, "face_edge_hinges", face_edge_hinges, -1, H,
+                  "hinge indices of H = " + std::to_string(H) + " hinges, -1 on the boundary");
+  {
+    const int64_t* sg = face_edge_signs.data_ptr<int64_t>();
+    for (int64_t i = 0; i < 3 * F; ++i)
+      if (sg[i] != 1 && sg[i] != -1)
+        ck::fail(op, "face_edge_signs", ck::index_str(face_edge_signs, i), " = ", sg[i], " must be +1 or -1");
+  }
+  // the pattern: row_len[v] = 3 x (vertex blocks in block row v), nnz = 3 sum(row_len); each block base of an
+  // element's vertex pair (a, b) lies in the first scalar row of block row v_a with its 3 columns, so that the
+  // block's rows base + p row_len[v_a] (p < 3) stay inside that block row
+  ck::check_range(op, "row_len", row_len, 0, 3 * V + 1, "3 x the vertex blocks of a row of V = " +
+                  std::to_string(V) + " vertices");
+  const int64_t* rl = row_len.data_ptr<int64_t>();
+  std::vector<int64_t> rs(size_t(V) + 1, 0);
+  for (int64_t v = 0; v < V; ++v) {
+    if (rl[v] % 3) ck::fail(op, "row_len[", v, "] = ", rl[v], " must be a multiple of 3");
+    rs[size_t(v) + 1] = rs[size_t(v)] + 3 * rl[v];
+  }
+  ck::require(nnz == rs[size_t(V)], op, "nnz = ", nnz, " does not match the pattern: 3 sum(row_len) = ", rs[size_t(V)]);
+  return AssembleArgs{P, faces, face_edge_hinges, face_edge_signs, face_blocks, hinge_blocks, row_len, std::move(rs)};
 }
 
 // (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,), status); parameters as in
@@ -339,24 +475,16 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
                        torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
                        torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
                        bool per_triangle) {
-  TORCH_CHECK(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, "x must be a CPU (V, 3) tensor");
-  x = x.contiguous();
-  int64_t H = hinges.size(0), F = faces.size(0);
-  auto prep = [&](torch::Tensor t) {
-    t = as_dtype(t, x.scalar_type());
-    TORCH_CHECK(t.numel() == 1 || t.numel() == H, "a per-hinge parameter has ", t.numel(), " values; expected 1 or H");
-    return t;
-  };
-  auto idx = [](torch::Tensor t) { TORCH_CHECK(t.scalar_type() == torch::kLong, "index tensors must be int64"); return t.contiguous(); };
-  a = prep(a); k = prep(k); rest = prep(rest);
-  bool damped = c_.has_value();
-  torch::Tensor c, prev;
-  if (damped) { c = prep(*c_); prev = prep(*prev_); }
-  hinges = idx(hinges); hinge_blocks = idx(hinge_blocks); faces = idx(faces);
-  face_edge_hinges = idx(face_edge_hinges); face_edge_signs = idx(face_edge_signs); face_blocks = idx(face_blocks);
-  row_len = idx(row_len);
-  TORCH_CHECK(hinge_blocks.numel() == 16 * H && face_blocks.numel() == 9 * F && row_len.numel() == x.size(0),
-              "pattern does not match the mesh");
+  AssembleArgs A = assemble_args(x, hinges, a, k, rest, c_, prev_, model, hinge_blocks, faces, face_edge_hinges,
+                                 face_edge_signs, face_blocks, row_len, nnz, per_triangle);
+  const Prepared& P = A.P;
+  x = P.x; hinges = P.hinges;
+  const int64_t H = P.H, F = A.faces.size(0);
+  faces = A.faces; face_edge_hinges = A.face_edge_hinges; face_edge_signs = A.face_edge_signs;
+  face_blocks = A.face_blocks; hinge_blocks = A.hinge_blocks; row_len = A.row_len;
+  const bool damped = P.damped;
+  a = P.a; k = P.k; rest = P.rest;
+  torch::Tensor c = P.c, prev = P.prev;
   auto values = pooled_empty({nnz}, x.options()), theta = torch::empty({H}, x.options());  // zeroed in the pass
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
     Param<scalar_t> none{nullptr, 0, H};
@@ -365,7 +493,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
                             damped ? param<scalar_t>(prev, H) : none, damped, int(model),
                             hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
                             face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
-                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), F, per_triangle,
+                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), A.rs.data(), F, per_triangle,
                             values.data_ptr<scalar_t>(), nnz,
                             theta.data_ptr<scalar_t>());
   });
@@ -423,24 +551,34 @@ template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body
 }
 
 // gather the stencils (and, if vp is given, the directions) and the parameters of a tile; lanes past
-// nl get zeros (finite: theta = atan2(0, 0) = 0)
+// nl get zeros (finite: theta = atan2(0, 0) = 0).  The hinge indices are range-checked as they are read (the
+// check of the operators that make no other pass over them, bending_energy): a lane with an index outside
+// [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
+// (checks::check_range) before returning anything
 template <typename T>
-static inline void gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
-                               const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W], T (*Vd)[W],
-                               HingeTile<T, W>& P) {
+static inline int gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
+                              const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W], T (*Vd)[W],
+                              HingeTile<T, W>& P) {
+  const uint64_t uV = uint64_t(V);
+  int bad = 0;
   for (int l = 0; l < W; ++l) {
-    if (l >= nl) {
+    int64_t b = l < nl ? bs[l] : 0, h = l < nl ? hs[l] : 0;
+    const int64_t* q = hp + 4 * h;
+    const bool out = torchbend::checks::kChecked && l < nl && (uint64_t(q[0]) >= uV || uint64_t(q[1]) >= uV || uint64_t(q[2]) >= uV ||
+                                uint64_t(q[3]) >= uV);
+    if (l >= nl || out) {
+      bad |= int(out);
       for (int m = 0; m < 12; ++m) X[m][l] = T(0);
       if (vp) for (int m = 0; m < 12; ++m) Vd[m][l] = T(0);
       zero_params<T, W>(l, P);
       continue;
     }
-    int64_t b = bs[l], h = hs[l];
-    load_hinge<T, W>(xp + 3 * V * b, hp + 4 * h, X, l);
-    if (vp) load_hinge<T, W>(vp + 3 * V * b, hp + 4 * h, Vd, l);
+    load_hinge<T, W>(xp + 3 * V * b, q, X, l);
+    if (vp) load_hinge<T, W>(vp + 3 * V * b, q, Vd, l);
     load_params<T, W>(args, b, h, l, P);
     P.w[l] = w ? (*w)(b, h) : T(1);
   }
+  return bad;
 }
 
 // the first nl lanes of a tile's 12-vectors O to the per-hinge buffer rows bh0 ...
@@ -510,10 +648,11 @@ static Scratch scratch(size_t bytes) {
 struct ScatterPlan {
   int64_t S = 0, nb = 0, total = 0;   // block size, blocks per sample, sum of the ranges
   std::vector<int64_t> lo, off;       // per block: first vertex, offset of its accumulator (vertices)
+  int64_t vmin = 0, vmax = -1;        // the smallest and largest hinge index
   bool blocked = false;
 };
 
-static ScatterPlan scatter_plan(const int64_t* hp, int64_t H) {
+static ScatterPlan scatter_plan(const int64_t* hp, int64_t H, int64_t V) {
   ScatterPlan P;
   // about 32 blocks for mid-sized meshes (parallel slack), 512 .. 4096 hinges (a multiple of W)
   P.S = std::min<int64_t>(4096, std::max<int64_t>(512, ((H / 32 + W - 1) / W) * W));
@@ -529,6 +668,11 @@ static ScatterPlan scatter_plan(const int64_t* hp, int64_t H) {
       P.lo[j] = mn; hi[j] = mx;
     }
   });
+  for (int64_t j = 0; j < P.nb; ++j) {
+    P.vmin = j ? std::min(P.vmin, P.lo[j]) : P.lo[j];
+    P.vmax = std::max(P.vmax, hi[j]);
+  }
+  if (P.vmin < 0 || P.vmax >= V) return P;  // out of range: the caller raises (no sizes computed from them)
   for (int64_t j = 0; j < P.nb; ++j) P.off[j + 1] = P.off[j] + (hi[j] - P.lo[j] + 1);
   P.total = P.off[P.nb];
   P.blocked = P.total <= 2 * H;  // accumulators (3 values a vertex) at most half a 12-value-a-hinge buffer
@@ -537,11 +681,18 @@ static ScatterPlan scatter_plan(const int64_t* hp, int64_t H) {
 
 // out (B, V, 3) = per vertex, the sum of the 12-vectors O that body(bh0, nl, bs, hs, O) computes for the
 // tiles of hinges (see for_tiles; O[3 s + c][l]: component c of stencil slot s of lane l)
+// The plan's pass over the hinge indices is their range check (before any work: checks::check_range names the
+// first bad entry); the incidence lists, which only the unblocked path reads, are checked in full there.
 template <typename T, typename Body>
-static void scatter_tiles(int64_t B, int64_t H, int64_t V, const int64_t* hp, const int64_t* inc_ptr,
+static void scatter_tiles(const char* op, const torch::Tensor& hinges, int64_t B, int64_t V, const int64_t* inc_ptr,
                           const int64_t* inc_idx, T* out, Body&& body) {
-  ScatterPlan P = scatter_plan(hp, H);
+  const int64_t* hp = hinges.data_ptr<int64_t>();
+  const int64_t H = hinges.size(0);
+  ScatterPlan P = scatter_plan(hp, H, V);
+  if (H && (P.vmin < 0 || P.vmax >= V))
+    check_hinge_range(op, hinges, V);
   if (!P.blocked) {
+    torchbend::checks::check_incidence_content(op, inc_ptr, inc_idx, hp, V, H);  // before any work
     torch::Tensor buf = torch::empty({B, H, 12}, c10::CppTypeToScalarType<T>::value);
     T* bp = buf.data_ptr<T>();
     for_tiles(B, H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
@@ -594,47 +745,27 @@ static void scatter_tiles(int64_t B, int64_t H, int64_t V, const int64_t* hp, co
   });
 }
 
-struct Prepared {
-  torch::Tensor x, hinges, a, k, rest, c, prev;
-  std::vector<int64_t> batch;
-  int64_t B, V, H;
-  bool damped;
-};
-
-static Prepared prepare(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
-                        const c10::optional<torch::Tensor>& c_, const c10::optional<torch::Tensor>& prev_) {
-  TORCH_CHECK(x.device().is_cpu() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CPU (..., V, 3) tensor");
-  TORCH_CHECK(hinges.dim() == 2 && hinges.size(1) == 4 && hinges.scalar_type() == torch::kLong,
-              "hinges must be an int64 (H, 4) tensor");
-  Prepared p;
-  p.x = x.contiguous();
-  p.hinges = hinges.contiguous();
-  p.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
-  p.V = x.size(-2); p.H = hinges.size(0); p.B = 1;
-  for (auto s : p.batch) p.B *= s;
-  p.damped = c_.has_value();
-  auto prep = [&](torch::Tensor t) {
-    t = as_dtype(t, x.scalar_type());
-    int64_t n = t.numel();
-    TORCH_CHECK(n == 1 || n == p.H || n == p.B * p.H, "a per-hinge parameter has ", n, " values; expected 1, H or B*H");
-    return t;
-  };
-  p.a = prep(a); p.k = prep(k); p.rest = prep(rest);
-  if (p.damped) { p.c = prep(*c_); p.prev = prep(*prev_); }
-  return p;
-}
-
 static std::vector<int64_t> shape_with(const std::vector<int64_t>& batch, std::initializer_list<int64_t> tail) {
   std::vector<int64_t> s = batch;
   s.insert(s.end(), tail);
   return s;
 }
 
-static torch::Tensor prepare_weight(torch::Tensor weight, const Prepared& P) {
-  weight = as_dtype(weight, P.x.scalar_type());
-  TORCH_CHECK(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, "weight has ",
-              weight.numel(), " values; expected 1, H or B*H");
-  return weight;
+static torch::Tensor prepare_weight(const char* op, torch::Tensor weight, const Prepared& P) {
+  namespace ck = torchbend::checks;
+  ck::require(weight.device().is_cpu() && weight.is_floating_point(), op,
+              "weight must be a floating-point CPU tensor, got ", weight.scalar_type(), " on ", weight.device());
+  ck::require(weight.numel() == 1 || weight.numel() == P.H || weight.numel() == P.B * P.H, op, "weight has ",
+              weight.numel(), " values; expected 1, H = ", P.H, " or B*H = ", P.B * P.H);
+  return as_dtype(weight, P.x.scalar_type());
+}
+
+// a direction v of x's shape, dtype and device
+static void check_direction(const char* op, const torch::Tensor& v, const Prepared& P) {
+  torchbend::checks::require(v.sizes() == P.x.sizes() && v.scalar_type() == P.x.scalar_type() && v.device().is_cpu(),
+                             op, "v must be a CPU tensor of x's shape ", torchbend::checks::shape_str(P.x),
+                             " and dtype ", P.x.scalar_type(), ", got ", torchbend::checks::shape_str(v), " ",
+                             v.scalar_type(), " on ", v.device());
 }
 
 // (psi (..., H), theta (..., H), status): the per-hinge energies (summed by the caller per mesh or segment);
@@ -644,9 +775,11 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
                                                                  c10::optional<torch::Tensor> c,
                                                                  c10::optional<torch::Tensor> prev, int64_t model,
                                                                  bool check) {
-  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  Prepared P = prepare("bending_energy", x, hinges, a, k, rest, c, prev, model, false);
   auto psi = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(psi);
   if (check && finite_status(P.x, kBadX)) return {psi, theta, kBadX};
+  std::atomic<bool> bad_index{false};  // an index outside [0, V) met in the gather (which then reads nothing)
+  if (P.B == 0) check_hinge_range("bending_energy", P.hinges, P.V);  // no gather to check them in
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_energy", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);
@@ -661,7 +794,8 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
         alignas(64) T X[12][W];
         alignas(64) T TH[W], PS[W];
         HingeTile<T, W> Q;
-        gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q);
+        if (gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q))
+          bad_index.store(true, std::memory_order_relaxed);
         theta_tile<T, W>(X, TH);
         TB_LANES_AGG(W) {
           T d1, d2;
@@ -671,6 +805,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
       });
     });
   });
+  if (bad_index.load()) check_hinge_range("bending_energy", P.hinges, P.V);  // raises: nothing is returned
   return {psi, theta, fold_status(theta, model)};
 }
 
@@ -682,9 +817,10 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
     const c10::optional<torch::Tensor>& c, const c10::optional<torch::Tensor>& prev, int64_t model,
     torch::Tensor weight, const torch::Tensor& inc_ptr, const torch::Tensor& inc_idx, bool params, bool check,
     bool energies) {
-  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
-  weight = prepare_weight(weight, P);
-  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  const char* op = energies ? "bending_energy_gradient" : "bending_gradient";
+  Prepared P = prepare(op, x, hinges, a, k, rest, c, prev, model, false);
+  weight = prepare_weight(op, weight, P);
+  torchbend::checks::check_incidence(op, inc_ptr, inc_idx, P.V, P.H);
   auto gx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto gp = params ? torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options()) : torch::empty({0}, P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
@@ -702,7 +838,7 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
+      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
                        [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
         alignas(64) T X[12][W], G[12][W];
         alignas(64) T TH[W], S[W], PS[W], GP[4][W];
@@ -767,12 +903,12 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, t
                                                               c10::optional<torch::Tensor> prev, int64_t model,
                                                               torch::Tensor weight, torch::Tensor inc_ptr,
                                                               torch::Tensor inc_idx, bool check) {
-  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
-  TORCH_CHECK(v.sizes() == P.x.sizes() && v.scalar_type() == P.x.scalar_type() && v.device().is_cpu(),
-              "v must be a CPU tensor of x's shape and dtype");
+  const char* op = "bending_hvp";
+  Prepared P = prepare(op, x, hinges, a, k, rest, c, prev, model, false);
+  check_direction(op, v, P);
   v = v.contiguous();
-  weight = prepare_weight(weight, P);
-  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  weight = prepare_weight(op, weight, P);
+  torchbend::checks::check_incidence(op, inc_ptr, inc_idx, P.V, P.H);
   auto hv = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto theta = torch::empty(shape_with(P.batch, {P.H}), P.x.options());
   if (check) {
@@ -790,7 +926,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, t
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), hv.data_ptr<T>(),
+      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), hv.data_ptr<T>(),
                        [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
         alignas(64) T X[12][W], Vd[12][W], G[12][W];
         alignas(64) T TH[W], D1[W], D2[W], U[W];
@@ -827,21 +963,23 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
     torch::Tensor a, torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
     c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight, torch::Tensor inc_ptr,
     torch::Tensor inc_idx) {
-  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  const char* op = "bending_second_order";
+  namespace ck = torchbend::checks;
+  Prepared P = prepare(op, x, hinges, a, k, rest, c, prev, model, false);
   torch::Tensor v, tt;
   if (v_.has_value()) {
-    TORCH_CHECK(v_->sizes() == P.x.sizes() && v_->scalar_type() == P.x.scalar_type() && v_->device().is_cpu(),
-                "v must be a CPU tensor of x's shape and dtype");
+    check_direction(op, *v_, P);
     v = v_->contiguous();
   }
   if (t_.has_value()) {
+    ck::require(t_->device().is_cpu() && t_->is_floating_point() && t_->dim() >= 2 && t_->size(-1) == 4 &&
+                    t_->size(-2) == P.H && (t_->numel() == 4 * P.H || t_->numel() == 4 * P.B * P.H),
+                op, "t must be a floating-point CPU (H, 4) or (..., H, 4) tensor of x's batch, H = ", P.H, ", got ",
+                ck::shape_str(*t_));
     tt = as_dtype(*t_, P.x.scalar_type());
-    TORCH_CHECK(tt.device().is_cpu() && tt.dim() >= 2 && tt.size(-1) == 4 &&
-                (tt.numel() == 4 * P.H || tt.numel() == 4 * P.B * P.H),
-                "t must be a CPU (..., H, 4) tensor with H or B*H rows");
   }
-  weight = prepare_weight(weight, P);
-  TORCH_CHECK(inc_ptr.numel() == P.V + 1 && inc_idx.numel() == 4 * P.H, "incidence lists do not match the mesh");
+  weight = prepare_weight(op, weight, P);
+  ck::check_incidence(op, inc_ptr, inc_idx, P.V, P.H);
   auto dx = torch::empty(shape_with(P.batch, {P.V, 3}), P.x.options());
   auto dp = torch::empty(shape_with(P.batch, {P.H, 4}), P.x.options());
   auto dg = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(dg);
@@ -859,7 +997,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(P.B, P.H, V, hp, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), dx.data_ptr<T>(),
+      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), dx.data_ptr<T>(),
                        [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
         alignas(64) T X[12][W], Vd[12][W], G[12][W];
         alignas(64) T TH[W], U[W], TG[4][W], S1[W], S2[W], Z[4][W], DG[W];
@@ -1041,7 +1179,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model,
     c10::optional<torch::Tensor> out_, c10::optional<torch::Tensor> gout_, bool check) {
-  Prepared P = prepare(x, hinges, a, k, rest, c, prev);
+  Prepared P = prepare("hinge_hessians", x, hinges, a, k, rest, c, prev, model, true);
   auto out = output(out_, shape_with(P.batch, {P.H, 12, 12}), P.x, "out (blocks)");
   auto g = output(gout_, shape_with(P.batch, {P.H, 12}), P.x, "out (gradients)");
   TORCH_CHECK(disjoint(out, g), "the two out buffers overlap");
@@ -1277,12 +1415,18 @@ static void project_tile(const T* in, T* out, int nl, bool abs_mode) {
 // blocks invariant under translations of their 4 vertices, projected in the translations' complement, or by
 // mode 2 (reduced, hinge blocks only): a new tensor
 torch::Tensor project_blocks(torch::Tensor M, int64_t mode, bool hinge) {
-  TORCH_CHECK(M.device().is_cpu() && M.dim() >= 2 && M.size(-1) == M.size(-2) && (M.size(-1) == 9 || M.size(-1) == 12),
-              "project_blocks: M must be a CPU (..., n, n) tensor with n 9 or 12");
-  TORCH_CHECK(M.scalar_type() == torch::kFloat || M.scalar_type() == torch::kDouble,
-              "project_blocks: M must be float32 or float64");
-  TORCH_CHECK(mode >= 0 && mode <= 2 && (mode < 2 || (hinge && M.size(-1) == 12)),
-              "project_blocks: mode must be 0 (clamp), 1 (abs) or, for hinge blocks, 2 (reduced)");
+  const char* op = "project_blocks";
+  namespace ck = torchbend::checks;
+  ck::require(M.device().is_cpu() && M.dim() >= 2 && M.size(-1) == M.size(-2) && (M.size(-1) == 9 || M.size(-1) == 12),
+              op, "M must be a CPU (..., n, n) tensor with n 9 or 12, got ", ck::shape_str(M), " on ", M.device());
+  ck::require(M.scalar_type() == torch::kFloat || M.scalar_type() == torch::kDouble, op,
+              "M must be float32 or float64, got ", M.scalar_type());
+  ck::require(mode >= 0 && mode <= 2 && (mode < 2 || (hinge && M.size(-1) == 12)), op,
+              "mode must be 0 (clamp), 1 (abs) or, for 12x12 hinge blocks, 2 (reduced), got ", mode);
+  if (finite_status(M.contiguous(), 1)) {
+    auto bad = M.isfinite().logical_not().reshape({-1, M.size(-1) * M.size(-1)}).any(1).nonzero();
+    ck::fail(op, "M holds non-finite values (first in block ", bad[0][0].item<int64_t>(), " of the flattened batch)");
+  }
   const bool abs_mode = mode == 1;
   M = M.contiguous();
   const int64_t n = M.size(-1), count = n ? M.numel() / (n * n) : 0;
@@ -1304,7 +1448,27 @@ torch::Tensor project_blocks(torch::Tensor M, int64_t mode, bool hinge) {
   return out;
 }
 
+// the argument checks alone (checks.h), for benchmarks/bm_checks.py and the tests: the first flat position of
+// the int64 tensor t outside [lo, hi) or -1; the incidence-list check of the gradient operators
+static int64_t first_outside(torch::Tensor t, int64_t lo, int64_t hi) {
+  return torchbend::checks::first_outside(torchbend::checks::index_tensor("first_outside", "t", t, t.device()), lo, hi);
+}
+
+static void check_incidence(torch::Tensor ptr, torch::Tensor idx, int64_t V, int64_t H) {
+  torchbend::checks::check_incidence("check_incidence", ptr, idx, V, H);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("first_outside", &first_outside, "the first flat position of an int64 tensor outside [lo, hi), or -1");
+  m.def("check_incidence", &check_incidence, "the incidence-list check of the gradient operators");
+  m.def("check_assemble", [](torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                             c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model,
+                             torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
+                             torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
+                             bool per_triangle) {
+          assemble_args(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges, face_edge_signs,
+                        face_blocks, row_len, nnz, per_triangle);
+        }, "the argument checks of assemble alone");
   m.def("bending_hessians", &bending_hessians, "fused gather, angle, psi and per-hinge blocks");
   m.def("assemble", &assemble, "CSR values of the bending Hessian of one mesh, per hinge or per triangle");
   m.def("bending_energy", &bending_energy, "per-hinge energies and angles");

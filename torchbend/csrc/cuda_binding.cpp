@@ -6,6 +6,7 @@
 #include <c10/core/DeviceGuard.h>
 
 #include "bending_cuda.h"
+#include "checks.h"
 
 namespace {
 
@@ -22,30 +23,39 @@ struct Args {
   std::vector<int64_t> batch;
 };
 
-Args prepare(const torch::Tensor& x, const torch::Tensor& hinges, const torch::Tensor& a, const torch::Tensor& k,
-             const torch::Tensor& rest, const c10::optional<torch::Tensor>& c, const c10::optional<torch::Tensor>& prev,
-             int64_t model) {
-  TORCH_CHECK(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, "x must be a CUDA (..., V, 3) tensor");
-  TORCH_CHECK(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, "x must be float32 or float64");
-  TORCH_CHECK(hinges.device() == x.device() && hinges.scalar_type() == torch::kLong && hinges.dim() == 2 &&
-              hinges.size(1) == 4, "hinges must be an int64 (H, 4) tensor on x's device");
+// the shared arguments, checked before any work (checks.h: a ValueError naming the operator, the argument and
+// its first offending entry): x a CUDA float32/float64 (..., V, 3) tensor, hinges int64 (H, 4) on x's device with
+// vertex indices in [0, V), per-hinge parameters on x's device with 1, H or B*H values, c and prev both or neither
+Args prepare(const char* op, const torch::Tensor& x, const torch::Tensor& hinges, const torch::Tensor& a,
+             const torch::Tensor& k, const torch::Tensor& rest, const c10::optional<torch::Tensor>& c,
+             const c10::optional<torch::Tensor>& prev, int64_t model) {
+  namespace ck = torchbend::checks;
+  ck::require(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CUDA (..., V, 3) tensor, got ",
+              ck::shape_str(x), " on ", x.device());
+  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
+              "x must be float32 or float64, got ", x.scalar_type());
+  ck::require(model >= 0 && model <= 2, op, "model code must be 0 (quadratic), 1 (tan) or 2 (sin), got ", model);
+  ck::require(c.has_value() == prev.has_value(), op, "the viscous term needs both c and prev (got ",
+              c.has_value() ? "c without prev" : "prev without c", ")");
   Args r;
-  r.x = x.contiguous();
-  r.hinges = hinges.contiguous();
+  r.hinges = ck::index_tensor(op, "hinges", hinges, x.device(), 4);
   r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
   for (auto s : r.batch) r.B *= s;
   r.V = x.size(-2);
   r.H = hinges.size(0);
-  auto prep = [&](const torch::Tensor& t) {
-    TORCH_CHECK(t.device() == x.device(), "parameters must be on x's device");
-    auto u = t.to(x.scalar_type()).contiguous();
-    TORCH_CHECK(u.numel() == 1 || u.numel() == r.H || u.numel() == r.B * r.H, "a per-hinge parameter has ",
-                u.numel(), " values; expected 1, H or B*H");
-    return u;
+  ck::check_range(op, "hinges", r.hinges, 0, r.V, "x has V = " + std::to_string(r.V) + " vertices");
+  r.x = x.contiguous();
+  auto prep = [&](const torch::Tensor& t, const char* name) {
+    ck::require(t.device() == x.device(), op, name, " must be on x's device (", x.device(), "), got ", t.device());
+    ck::require(t.is_floating_point() || t.scalar_type() == torch::kLong || t.scalar_type() == torch::kInt, op, name,
+                " must be a real tensor, got ", t.scalar_type());
+    ck::require(t.numel() == 1 || t.numel() == r.H || t.numel() == r.B * r.H, op, name, " has ", t.numel(),
+                " values; expected 1, H = ", r.H, " or B*H = ", r.B * r.H);
+    return t.to(x.scalar_type()).contiguous();
   };
-  r.a = prep(a); r.k = prep(k); r.rest = prep(rest);
+  r.a = prep(a, "a"); r.k = prep(k, "k"); r.rest = prep(rest, "rest");
   bool damped = c.has_value();
-  if (damped) { r.c = prep(*c); r.prev = prep(*prev); }
+  if (damped) { r.c = prep(*c, "c"); r.prev = prep(*prev, "prev"); }
   tb_param none{nullptr, 0};
   r.args = tb_hinge_args{tparam(r.a), tparam(r.k), tparam(r.rest), damped ? tparam(r.c) : none,
                          damped ? tparam(r.prev) : none, damped ? 1 : 0, int(model)};
@@ -64,18 +74,25 @@ std::tuple<torch::Tensor, torch::Tensor> energy(torch::Tensor x, torch::Tensor h
                                                 torch::Tensor rest, c10::optional<torch::Tensor> c,
                                                 c10::optional<torch::Tensor> prev, int64_t model, int64_t stream) {
   c10::DeviceGuard guard(x.device());
-  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  Args r = prepare("bending_energy", x, hinges, a, k, rest, c, prev, model);
   auto psi = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(psi);
   check(tb_cuda_energy(dtype_code(r.x), r.x.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H, r.args,
                        psi.data_ptr(), theta.data_ptr(), as_stream(stream)), "energy");
   return {psi, theta};
 }
 
-torch::Tensor weight_of(const torch::Tensor& w, const Args& r) {
-  auto u = w.to(r.x.scalar_type()).contiguous();
-  TORCH_CHECK(u.device() == r.x.device() && (u.numel() == 1 || u.numel() == r.H || u.numel() == r.B * r.H),
-              "weight must be on x's device with 1, H or B*H values");
-  return u;
+torch::Tensor weight_of(const char* op, const torch::Tensor& w, const Args& r) {
+  torchbend::checks::require(w.device() == r.x.device() && w.is_floating_point() &&
+                                 (w.numel() == 1 || w.numel() == r.H || w.numel() == r.B * r.H),
+                             op, "weight must be a floating-point tensor on x's device with 1, H = ", r.H,
+                             " or B*H = ", r.B * r.H, " values, got ", w.numel(), " on ", w.device());
+  return w.to(r.x.scalar_type()).contiguous();
+}
+
+void check_direction(const char* op, const torch::Tensor& v, const torch::Tensor& x) {
+  torchbend::checks::require(v.sizes() == x.sizes() && v.scalar_type() == x.scalar_type() && v.device() == x.device(),
+                             op, "v must have x's shape ", torchbend::checks::shape_str(x), ", dtype and device, got ",
+                             torchbend::checks::shape_str(v), " ", v.scalar_type(), " on ", v.device());
 }
 
 // (w dE/dx, w dpsi/dparams or empty, psi or empty, theta); with `energy` the per-hinge energies psi come from the
@@ -85,8 +102,8 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> gradient(
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
     bool params, bool energy, int64_t stream) {
   c10::DeviceGuard guard(x.device());
-  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
-  auto w = weight_of(weight, r);
+  Args r = prepare("bending_gradient", x, hinges, a, k, rest, c, prev, model);
+  auto w = weight_of("bending_gradient", weight, r);
   auto gx = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
   auto gp = params ? torch::empty(with(r.batch, {r.H, 4}), r.x.options()) : torch::empty({0}, r.x.options());
   auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
@@ -102,11 +119,10 @@ std::tuple<torch::Tensor, torch::Tensor> hvp(torch::Tensor x, torch::Tensor v, t
                                              c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight,
                                              int64_t stream) {
   c10::DeviceGuard guard(x.device());
-  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
-  TORCH_CHECK(v.sizes() == x.sizes() && v.scalar_type() == x.scalar_type() && v.device() == x.device(),
-              "v must have x's shape, dtype and device");
+  Args r = prepare("bending_hvp", x, hinges, a, k, rest, c, prev, model);
+  check_direction("bending_hvp", v, x);
   auto vc = v.contiguous();
-  auto w = weight_of(weight, r);
+  auto w = weight_of("bending_hvp", weight, r);
   auto hv = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
   auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
   check(tb_cuda_hvp(dtype_code(r.x), r.x.data_ptr(), vc.data_ptr(), r.hinges.data_ptr<int64_t>(), r.B, r.V, r.H,
@@ -119,20 +135,21 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> second_or
     torch::Tensor a, torch::Tensor k, torch::Tensor rest, c10::optional<torch::Tensor> c,
     c10::optional<torch::Tensor> prev, int64_t model, torch::Tensor weight, int64_t stream) {
   c10::DeviceGuard guard(x.device());
-  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  Args r = prepare("bending_second_order", x, hinges, a, k, rest, c, prev, model);
   torch::Tensor vc, tc;
   if (v.has_value()) {
-    TORCH_CHECK(v->sizes() == x.sizes() && v->scalar_type() == x.scalar_type() && v->device() == x.device(),
-                "v must have x's shape, dtype and device");
+    check_direction("bending_second_order", *v, x);
     vc = v->contiguous();
   }
   if (t.has_value()) {
+    torchbend::checks::require(t->device() == x.device() && t->is_floating_point() && t->dim() >= 2 &&
+                                   t->size(-1) == 4 && t->size(-2) == r.H &&
+                                   (t->numel() == 4 * r.H || t->numel() == 4 * r.B * r.H),
+                               "bending_second_order", "t must be a floating-point (H, 4) or (..., H, 4) tensor of x's "
+                               "batch on x's device, H = ", r.H, ", got ", torchbend::checks::shape_str(*t));
     tc = t->to(r.x.scalar_type()).contiguous();
-    TORCH_CHECK(tc.device() == x.device() && tc.dim() >= 2 && tc.size(-1) == 4 &&
-                (tc.numel() == 4 * r.H || tc.numel() == 4 * r.B * r.H),
-                "t must be a (..., H, 4) tensor on x's device with H or B*H rows");
   }
-  auto w = weight_of(weight, r);
+  auto w = weight_of("bending_second_order", weight, r);
   auto dx = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
   auto dp = torch::empty(with(r.batch, {r.H, 4}), r.x.options());
   auto dg = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(dg);
@@ -147,7 +164,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> hinge_hes
     torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model, int64_t stream) {
   c10::DeviceGuard guard(x.device());
-  Args r = prepare(x, hinges, a, k, rest, c, prev, model);
+  Args r = prepare("hinge_hessians", x, hinges, a, k, rest, c, prev, model);
   auto blocks = torch::empty(with(r.batch, {r.H, 12, 12}), r.x.options());
   auto grads = torch::empty(with(r.batch, {r.H, 12}), r.x.options());
   auto d2 = torch::empty(with(r.batch, {r.H}), r.x.options()), theta = torch::empty_like(d2);
