@@ -248,10 +248,10 @@ def _single(s1, s2, dtype, rest=REST):
 
 
 def test_arap_floor_policy():
-    """ARAP's cone: exact above ``s2 = sqrt(eps)``, the floored value below, PSD when projected."""
+    """ARAP's cone: exact above ``s2 = eps``, the floored value below, PSD when projected."""
     faces = FACES3[:1]
     for dtype in DTYPES:
-        floor = torch.finfo(dtype).eps ** 0.5
+        floor = torch.finfo(dtype).eps
         # above the floor: the exact F-space Hessian (autograd of the plain density, float64)
         rest, x = _single(1.25, 4 * floor, dtype)
         mem = _mem(rest, "arap", faces)
@@ -261,13 +261,13 @@ def test_arap_floor_policy():
         coef = (mem.rest_areas[0] * THICK).double()
         M = (Q[0].double() * l[0].double()) @ Q[0].double().T
         assert rel(M, coef * Hf) <= (1e-10 if dtype == F64 else 1e-4)
-        # below: normal-2 eigenvalue frozen at 2 mu (1 - 1/floor), twist with both floored where s1 is
+        # below: normal-2 eigenvalue frozen at 2 mu (1 - 1/floor), twist exact (s1 is above the floor)
         for s2 in (floor / 8, 0.0):
             rest, x = _single(1.25, s2, dtype)
             l, _ = mem.element_eigensystems(x)
             l = l[0].double() / coef
             assert abs(l[5] - 2 * MU * (1 - 1 / floor)) <= 1e-6 * 2 * MU / floor
-            assert abs(l[2] - 2 * MU * (1 - 2 / (1.25 + floor))) <= 1e-5 * 2 * MU
+            assert abs(l[2] - 2 * MU * (1 - 2 / (1.25 + s2))) <= 1e-5 * 2 * MU
             assert torch.isfinite(mem.hessian(x).to_dense()).all()
             assert torch.linalg.eigvalsh(mem.element_hessians(x, project="clamp").double()).min() >= -1e-6 * abs(l).max()
 

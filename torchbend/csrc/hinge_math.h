@@ -252,20 +252,41 @@ template <typename T, int W> TB_HD static inline void halves_tile(const T (*X)[W
 }
 
 // ---- bend angle and psi --------------------------------------------------------------------------
+// sin(t/2) and cos(t/2) to a few ulps for t in [-pi, pi], near +-pi too (torchbend.ops.psi.half_angle_sincos):
+// for |t| > pi/2 from the complement w = (pi - |t|)/2, formed exactly (pi_hi - |t| by Sterbenz, then the
+// tail pi_lo), sin(t/2) = sign(t) cos(w), cos(t/2) = sin(w): t/2 rounded (and a reduction by pi/2 that keeps
+// too few digits of pi) would make the tiny cosine near +-pi wrong in most of its digits.  One tb_sincos of
+// an argument in [-pi/4, pi/4]; branch-free.
+template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
+  const T pi_hi = T(3.14159265358979323846);
+  const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
+  T a = t < T(0) ? -t : t;
+  bool big = a > T(0.5) * pi_hi;
+  T w = T(0.5) * ((pi_hi - a) + pi_lo);
+  T sn, cs;
+  tb_sincos(big ? w : T(0.5) * t, sn, cs);
+  s = big ? (t < T(0) ? -cs : cs) : sn;
+  c = big ? sn : cs;
+}
+
 // phi(theta') - phi(ref) and phi', phi'' at theta' (torchbend.ops.psi.phi_difference): model 0 quadratic,
 // 1 tan, 2 sin.  theta' = ref + wrap(theta - ref) (wrap into (-pi, pi]) for quadratic and sin, theta for tan;
-// the difference is written without cancellation (2 sin((t-r)/2) / (cos(t/2) cos(r/2)) for tan,
-// 4 cos((t+r)/4) sin((t-r)/4) for sin).  Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.
+// the difference is written without cancellation (tan: 2 sin((t-r)/2) / (cos(t/2) cos(r/2)) where t and r
+// have the same sign, 2 (sin(t/2) cos(r/2) - sin(r/2) cos(t/2)) / (cos(t/2) cos(r/2)) where they differ,
+// two terms of one sign, the half angles from tb_half_sincos; sin: 4 cos((t+r)/4) sin((t-r)/4)).
+// Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.
 template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
   const T pi = T(3.14159265358979323846), two_pi = T(6.28318530717958647692);
   T delta = t - ref;
   if (M == 1) {
     T sh, ch, sd, cd, sr, cr;
-    tb_sincos(T(0.5) * t, sh, ch);
+    tb_half_sincos(t, sh, ch);
+    tb_half_sincos(ref, sr, cr);
     tb_sincos(T(0.5) * delta, sd, cd);
-    tb_sincos(T(0.5) * ref, sr, cr);
+    bool opposite = (t < T(0)) != (ref < T(0));
+    T num = opposite ? sh * cr - sr * ch : sd;
     T u = sh / ch, s2 = T(1) + u * u;
-    d = T(2) * sd / (ch * cr); f1 = s2; f2 = s2 * u;
+    d = T(2) * num / (ch * cr); f1 = s2; f2 = s2 * u;
     return;
   }
   T turns = tb_ceilv((delta - pi) / two_pi);  // theta' = theta - 2 pi turns
@@ -279,6 +300,63 @@ template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T re
   d = T(4) * ca * sq; f1 = sign * ch; f2 = T(-0.5) * sign * sh;
 }
 
+// ---- the bend angle of a stencil -------------------------------------------------------------------
+// A power of two p with m p in [1, 2) (m clamped to [2^-1000, 2^1000] for double, [2^-120, 2^120] for
+// float first: finite, nonzero scales for every finite m >= 0).  Exponent arithmetic on the bits (a
+// bit copy by __builtin_memcpy, host and device): it vectorizes.
+TB_HD static TB_FORCEINLINE double tb_pow2_recip(double m) {
+  m = m < 0x1p-1000 ? 0x1p-1000 : (m > 0x1p1000 ? 0x1p1000 : m);
+  uint64_t b;
+  __builtin_memcpy(&b, &m, sizeof b);
+  b = 0x7fe0000000000000ull - (b & 0x7ff0000000000000ull);  // exponent 1023 - (E - 1023)
+  double r;
+  __builtin_memcpy(&r, &b, sizeof r);
+  return r;
+}
+TB_HD static TB_FORCEINLINE float tb_pow2_recip(float m) {
+  m = m < 0x1p-120f ? 0x1p-120f : (m > 0x1p120f ? 0x1p120f : m);
+  uint32_t b;
+  __builtin_memcpy(&b, &m, sizeof b);
+  b = 0x7f000000u - (b & 0x7f800000u);
+  float r;
+  __builtin_memcpy(&r, &b, sizeof r);
+  return r;
+}
+template <typename T> TB_HD static TB_FORCEINLINE T tb_absv(T v) { return v < T(0) ? -v : v; }
+
+// The type the bend angle is computed in: double for float stencils on the CPU (the products below span
+// up to five lengths; in double every finite float stencil fits, and the angle is rounded once), the
+// stencil's own type on the GPU (where double is slow on many devices; the scaling below still keeps
+// every product in range, at float accuracy).
+template <typename T> struct ThetaType { using type = double; };
+#if defined(__CUDACC__)
+template <> struct ThetaType<float> { using type = float; };
+#endif
+
+// theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e (the SPEC formula), of lane
+// l of the stencils X (torchbend.ops.hinge._stencil_theta): the edges x_k - x0 are scaled by the power of two
+// that brings their largest component into [1, 2) (exact; the angle is the unscaled one bit for bit wherever
+// that did not over- or underflow), so that no scale of the input overflows or underflows the products of
+// five lengths.  The one formula of every kernel, so that angles at the rest state vanish bit for bit.
+template <typename T, int W> TB_HD static TB_FORCEINLINE T stencil_theta(const T (*X)[W], int l) {
+  using C = typename ThetaType<T>::type;
+  C e[3], u[3], w[3];
+  for (int m = 0; m < 3; ++m) {
+    C x0 = C(X[m][l]);
+    e[m] = C(X[3 + m][l]) - x0; u[m] = C(X[6 + m][l]) - x0; w[m] = C(X[9 + m][l]) - x0;
+  }
+  C mx = tb_absv(e[0]);
+  for (int m = 1; m < 3; ++m) mx = tb_max(mx, tb_absv(e[m]));
+  for (int m = 0; m < 3; ++m) mx = tb_max(tb_max(mx, tb_absv(u[m])), tb_absv(w[m]));
+  C p = tb_pow2_recip(mx);
+  for (int m = 0; m < 3; ++m) { e[m] *= p; u[m] *= p; w[m] *= p; }
+  C NA[3], NB[3], NN[3];
+  cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
+  C elen = tb_sqrt(dot(e, e));
+  C inv = elen > C(0) ? C(1) / elen : C(0);
+  return T(tb_atan2v(dot(e, NN) * inv, dot(NA, NB)));
+}
+
 template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {
   if (model == 0) phi_diff<0>(t, ref, d, f1, f2);
   else if (model == 1) phi_diff<1>(t, ref, d, f1, f2);
@@ -289,8 +367,8 @@ template <typename T> TB_HD static inline void phi_difference(int model, T t, T 
 template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_ref(T r, T& p1, T& p2) {
   if (M == 0) { p1 = T(1); p2 = T(0); return; }
   T s, c;
+  if (M == 1) { tb_half_sincos(r, s, c); T u = s / c; p1 = T(1) + u * u; p2 = p1 * u; return; }
   tb_sincos(T(0.5) * r, s, c);
-  if (M == 1) { T u = s / c; p1 = T(1) + u * u; p2 = p1 * u; return; }
   p1 = c; p2 = T(-0.5) * s;
 }
 
@@ -307,22 +385,13 @@ template <typename T, int W> TB_HD static inline void load_hinge(const T* xb, co
 }
 
 // theta, psi' (d1) and psi'' (d2) of lane l of the stencils X at its bend angle
-// theta = atan2(e_hat . (nA x nB), nA . nB), nA = e x (x2 - x0), nB = (x3 - x0) x e (the SPEC formula, as
-// torchbend.ops.hinge); psi = a (k (phi - phi(rest))^2 + c (phi - phi(prev))^2) as torchbend.ops.psi, each
+// theta by stencil_theta; psi = a (k (phi - phi(rest))^2 + c (phi - phi(prev))^2) as torchbend.ops.psi, each
 // term on the branch of its reference angle, the viscous term only if damped.  The caller checks theta
 // for folded tan hinges (|theta| >= pi), where psi' and psi'' are meaningless.
 template <typename T, int W>
 TB_HD static inline void hinge_psi(const T (*X)[W], int l, int model, T a, T k, T rest, bool damped, T c, T prev,
                                    T& theta, T& d1, T& d2) {
-  T e[3], u[3], w[3];
-  for (int m = 0; m < 3; ++m) {
-    e[m] = X[3 + m][l] - X[m][l]; u[m] = X[6 + m][l] - X[m][l]; w[m] = X[9 + m][l] - X[m][l];
-  }
-  T NA[3], NB[3], NN[3];
-  cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
-  T elen = tb_sqrt(dot(e, e));
-  T inv = elen > T(0) ? T(1) / elen : T(0);
-  theta = tb_atan2v(dot(e, NN) * inv, dot(NA, NB));
+  theta = stencil_theta<T, W>(X, l);
   T dr, f1, f2;
   phi_difference(model, theta, rest, dr, f1, f2);
   T kd = k * dr, s = kd, h2 = k * f1 * f1 + kd * f2;

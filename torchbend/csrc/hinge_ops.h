@@ -23,16 +23,10 @@ template <typename T> TB_HD static inline T phi_prime(int model, T t) {
   return p1;
 }
 
-// bend angle of lane l of the stencils X: theta = atan2(e_hat . (nA x nB), nA . nB) (the SPEC formula)
+// bend angle of lane l of the stencils X: theta = atan2(e_hat . (nA x nB), nA . nB) (the SPEC formula, scaled:
+// stencil_theta)
 template <typename T, int W> TB_HD static TB_FORCEINLINE T hinge_theta(const T (*X)[W], int l) {
-  V3<T> x0{X[0][l], X[1][l], X[2][l]};
-  V3<T> e = sub3(V3<T>{X[3][l], X[4][l], X[5][l]}, x0);
-  V3<T> u = sub3(V3<T>{X[6][l], X[7][l], X[8][l]}, x0);
-  V3<T> w = sub3(V3<T>{X[9][l], X[10][l], X[11][l]}, x0);
-  V3<T> NA = cross3(e, u), NB = cross3(w, e);
-  T elen = tb_sqrt(dot3(e, e));
-  T inv = elen > T(0) ? T(1) / elen : T(0);
-  return tb_atan2v(dot3(e, cross3(NA, NB)) * inv, dot3(NA, NB));
+  return stencil_theta<T, W>(X, l);
 }
 
 // the bend angles of the W lanes of a tile

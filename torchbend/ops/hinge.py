@@ -229,13 +229,42 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
 
 
 def _theta(e: Vec, nA: Vec, nB: Vec, ee: Tensor | None = None) -> Tensor:
-    """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)``; the single formula used everywhere,
-    so that angles (and hence energies and gradients) at the rest state vanish bit for bit (``ee = e . e``
-    if already computed)."""
+    """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (``ee = e . e`` if already computed)."""
     elen = (_dot(e, e) if ee is None else ee).sqrt()
     pos = (elen > 0).to(elen.dtype)
     inv = pos / (elen + (1.0 - pos))  # 1/|e|, 0 for a collapsed edge (arithmetic: torch.where is slow)
     return torch.atan2(_dot(e, _cross(nA, nB)) * inv, _dot(nA, nB))
+
+
+_EXP_CLAMP = 1000  # |log2| of the largest stencil scale factor (float64's exponents reach +-1022)
+
+
+def _stencil_theta(xs) -> Tensor:
+    """The bend angle of SoA stencils: the single formula used everywhere (:func:`hinge_angle_soa`,
+    :func:`hinge_angle_gradient_hvp_soa`; the compiled ``stencil_theta`` does the same), so that angles
+    (and hence energies and gradients) at the rest state vanish bit for bit.
+
+    Scale range.  ``e . (nA x nB)`` is a product of five lengths and ``nA . nB`` of four: in the input's
+    dtype they would overflow or underflow for edges beyond ~1e+-7 (float32) or ~1e+-61 (float64), which
+    gives wrong angles or NaN.  So the edges ``x_k - x0`` are scaled per hinge by the power of two that
+    brings their largest component into [1, 2) (exact: the angle is bit for bit the unscaled one wherever
+    that did not over- or underflow), and float32 (and half) stencils are evaluated in float64, from the
+    exact float64 differences, then rounded once: every finite float32 stencil gets its angle to about
+    half an ulp, float64 stencils with any finite edges (a tiny edge in a huge stencil is degenerate
+    geometry, not a scale)."""
+    x0, x1, x2, x3 = xs
+    dtype = x0[0].dtype
+    if dtype != torch.float64:
+        return _stencil_theta(tuple(tuple(c.double() for c in v) for v in xs)).to(dtype)
+    e, u, w = _sub(x1, x0), _sub(x2, x0), _sub(x3, x0)
+    m = e[0].abs()
+    for c in (e[1], e[2], *u, *w):
+        m = torch.maximum(m, c.abs())
+    ex = torch.frexp(m)[1].clamp(-_EXP_CLAMP, _EXP_CLAMP)  # m = f 2^ex, f in [0.5, 1) (0 for m = 0)
+    p = torch.ldexp(torch.ones_like(m), 1 - ex)  # m p in [1, 2)
+    e, u, w = _scale(e, p), _scale(u, p), _scale(w, p)
+    # nA = e0 x (x2 - x0), nB = (x3 - x1) x e0 = (x3 - x0) x e0
+    return _theta(e, _cross(e, u), _cross(w, e))
 
 
 def _halves(xs) -> tuple[_HalfHinge, _HalfHinge, Vec, Tensor]:
@@ -258,20 +287,17 @@ def _gradient(hA: _HalfHinge, hB: _HalfHinge) -> tuple[Vec, Vec, Vec, Vec]:
 
 def hinge_angle_soa(xs) -> Tensor:
     """``theta: (..., H)`` from SoA stencils (see :func:`to_soa`)."""
-    x0, x1, x2, x3 = xs
-    e = _sub(x1, x0)
-    # nA = e0 x (x2 - x0), nB = (x3 - x1) x e0 = (x3 - x0) x e0
-    return _theta(e, _cross(e, _sub(x2, x0)), _cross(_sub(x3, x0), e))
+    return _stencil_theta(xs)
 
 
 def hinge_angle_gradient_hvp_soa(xs, vs=None):
     """``(theta, grad theta, Hess(theta) v)`` on SoA stencils; ``vs=None`` skips the HVP.
 
     ``grad`` and ``Hv`` are 4-tuples (per stencil vertex) of component triples ``(..., H)``."""
-    hA, hB, e, ee = _halves(xs)
-    # the SPEC formula with the same operations as hinge_angle_soa (hA.u = x2 - x0, hB.u = x3 - x0), so that
-    # angles at the rest state vanish bit for bit; the half-hinge normals N are formed differently
-    theta = _theta(e, _cross(e, hA.u), _cross(hB.u, e), ee)
+    hA, hB, _, _ = _halves(xs)
+    # the SPEC formula as hinge_angle_soa evaluates it, so that angles at the rest state vanish bit for bit
+    # (scaled, float32 in float64: _stencil_theta); the half-hinge normals N are formed differently
+    theta = _stencil_theta(xs)
     grad = _gradient(hA, hB)
     if vs is None:
         return theta, grad, None

@@ -24,7 +24,7 @@ from torch import Tensor
 from .._checks import is_traced
 from ..options import Option
 
-__all__ = ["BendingModel", "phi", "phi_difference", "check_fold", "psi_derivatives", "psi_theta_derivatives", "contract_hessian",
+__all__ = ["BendingModel", "phi", "phi_difference", "half_angle_sincos", "check_fold", "psi_derivatives", "psi_theta_derivatives", "contract_hessian",
            "THETA", "K", "REST", "C", "PREV"]
 
 
@@ -43,7 +43,8 @@ def phi(model: BendingModel, theta: Tensor, order: int = 2) -> tuple[Tensor, ...
     if model is BendingModel.QUADRATIC:
         out = (theta, torch.ones_like(theta), torch.zeros_like(theta))
     elif model is BendingModel.TAN:
-        t = torch.tan(0.5 * theta)
+        sh, ch = half_angle_sincos(theta)
+        t = sh / ch
         sec2 = 1.0 + t * t
         out = (2.0 * t, sec2, sec2 * t)
     elif model is BendingModel.SIN:
@@ -54,11 +55,36 @@ def phi(model: BendingModel, theta: Tensor, order: int = 2) -> tuple[Tensor, ...
     return out[: order + 1]
 
 
+def half_angle_sincos(theta: Tensor) -> tuple[Tensor, Tensor]:
+    """``(sin(theta/2), cos(theta/2))`` to a few ulps for every ``theta`` in [-pi, pi], near +-pi too.
+
+    ``cos(theta/2)`` vanishes at +-pi, where ``theta/2`` rounded to the dtype is off by up to an ulp of
+    pi/2 (and an argument reduction by pi/2 may keep too few digits of pi): relative to the tiny cosine
+    that is a large error.  For ``|theta| > pi/2`` both come from the complement
+    ``w = (pi - |theta|)/2`` instead, formed exactly (``pi_hi - |theta|`` is exact by Sterbenz, then the
+    tail ``pi_lo``): ``sin(theta/2) = sign(theta) cos(w)``, ``cos(theta/2) = sin(w)``.  One sine and one
+    cosine, of an argument in [-pi/4, pi/4] (no argument reduction)."""
+    hi, lo = _PI_SPLIT[theta.dtype] if theta.dtype in _PI_SPLIT else _PI_SPLIT[torch.float64]
+    a = theta.abs()
+    big = a > 0.5 * _PI
+    w = 0.5 * ((hi - a) + lo)
+    arg = torch.where(big, w, 0.5 * theta)
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    return torch.where(big, torch.copysign(cs, theta), sn), torch.where(big, sn, cs)
+
+
 # parameter slots of psi
 THETA, K, REST, C, PREV = range(5)
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
+# pi = hi + lo per dtype (hi = pi rounded to the dtype, lo = the rest rounded): half_angle_sincos
+_PI_SPLIT = {
+    torch.float64: (math.pi, 1.2246467991473532e-16),
+    torch.float32: (3.1415927410125732, -8.742278000372485e-08),
+    torch.float16: (3.140625, 9.676535897932385e-04),
+    torch.bfloat16: (3.140625, 9.676535897932385e-04),
+}
 
 
 def phi_difference(model: BendingModel, theta: Tensor, ref) -> tuple[Tensor, Tensor, Tensor]:
@@ -67,16 +93,24 @@ def phi_difference(model: BendingModel, theta: Tensor, ref) -> tuple[Tensor, Ten
     ``theta' = ref + wrap(theta - ref)`` (``wrap`` into (-pi, pi]) for ``quadratic`` and ``sin``, so that
     their energies are continuous where a hinge turns through +-pi; ``theta' = theta`` for ``tan``
     (its barrier at +-pi is the point).  The difference is formed without cancellation:
-    ``2 tan(t/2) - 2 tan(r/2) = 2 sin((t - r)/2) / (cos(t/2) cos(r/2))`` and
+    ``2 tan(t/2) - 2 tan(r/2) = 2 sin((t - r)/2) / (cos(t/2) cos(r/2))`` where ``t`` and ``r`` have the same
+    sign (``t - r`` is then exact or correctly rounded with ``|t - r| < pi``), and
+    ``2 (sin(t/2) cos(r/2) - sin(r/2) cos(t/2)) / (cos(t/2) cos(r/2))`` where their signs differ (two terms
+    of one sign: no cancellation; there ``sin((t - r)/2)`` would be the sine of an angle near pi formed
+    from the rounded ``t - r``, which near +-pi on opposite sides loses everything); the half-angle sines
+    and cosines come from :func:`half_angle_sincos`, accurate near +-pi.  Likewise
     ``2 sin(t/2) - 2 sin(r/2) = 4 cos((t + r)/4) sin((t - r)/4)``, so ``psi`` and ``psi'`` keep their
     relative accuracy when ``theta`` is close to the reference."""
     delta = theta - ref
     if model is BendingModel.TAN:
-        h = 0.5 * theta
-        ct = torch.cos(h)
-        t = torch.sin(h) / ct
+        ref_t = torch.as_tensor(ref, dtype=theta.dtype, device=theta.device)
+        sh, ch = half_angle_sincos(theta)
+        sr, cr = half_angle_sincos(ref_t)
+        opposite = (theta < 0) != (ref_t < 0)
+        num = torch.where(opposite, sh * cr - sr * ch, torch.sin(0.5 * delta))
+        t = sh / ch
         sec2 = 1.0 + t * t
-        return 2.0 * torch.sin(0.5 * delta) / (ct * torch.cos(0.5 * ref)), sec2, sec2 * t
+        return 2.0 * num / (ch * cr), sec2, sec2 * t
     turns = torch.ceil((delta - _PI) / _TWO_PI)  # theta' = theta - 2 pi turns; 0 unless |theta - ref| > pi
     wrapped = turns != 0
     dw = torch.where(wrapped, delta - _TWO_PI * turns, delta)
