@@ -117,6 +117,8 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
     from tqdm import tqdm
 
     sol, kind = cfg.solver, cfg.scene.kind
+    ckpt = os.path.join(out_dir, "checkpoint.pt")
+    ck, changed = _checkpoint(ckpt, stats["config"]) if resume else ({}, [])  # checked before the scene is built
     if kind == "robot":
         if device is not None and torch.device(device).type != "cpu":
             raise ValueError("robot scenes run on the CPU (--device cpu)")
@@ -130,14 +132,7 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
     kw: dict[str, Any] = dict(hessian=sol.hessian, linear_solver=sol.linear_solver, tol=sol.tol or 1e-6,
                               max_iters=sol.max_iters or 30)
     state, start = ClothState(x0, torch.zeros_like(x0)), 0
-    ckpt = os.path.join(out_dir, "checkpoint.pt")
     if resume:
-        ck, changed = cli.resume_checkpoint(ckpt, stats["config"], {"x": torch.Tensor, "v": torch.Tensor,
-                                                                     "steps": list, "pin_error": list},
-                                            ignore=("solver.steps",))
-        other = [k for k in changed if k == "scene.kind" or k == "mesh" or k.startswith("mesh.")]
-        if other:
-            raise ConfigError(f"--resume: {ckpt} is of another scene (config differs at {', '.join(other)})")
         for key in ("x", "v"):
             if tuple(ck[key].shape) != tuple(x0.shape):
                 raise ConfigError(f"--resume: {ckpt} holds {key} of shape {tuple(ck[key].shape)}, this scene "
@@ -176,6 +171,17 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
     stats["edge_length"] = float(_mean_edge(x0, faces))
     title = f"{name or kind}: step {n_steps}, t = {n_steps * dt:.3g} s"
     snapshot(os.path.join(out_dir, "snapshot.png"), [([(state.x, faces)], colliders)], titles=[title])
+
+
+def _checkpoint(path: str, config: dict) -> tuple[dict, list[str]]:
+    """The checkpoint ``--resume`` continues a scene of ``config`` from, and the config keys that
+    differ; :class:`ConfigError` for a checkpoint of another script, scene kind or mesh."""
+    ck, changed = cli.resume_checkpoint(path, config, {"x": torch.Tensor, "v": torch.Tensor, "steps": list,
+                                                       "pin_error": list}, ignore=("solver.steps",))
+    other = [k for k in changed if k == "scene.kind" or k == "mesh" or k.startswith("mesh.")]
+    if other:
+        raise ConfigError(f"--resume: {path} is of another scene (config differs at {', '.join(other)})")
+    return ck, changed
 
 
 def _tip(x, x0) -> float:
