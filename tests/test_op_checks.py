@@ -367,8 +367,41 @@ def bad_value(name, c):
     if top is None:  # block bases: outside [0, nnz) is always wrong
         top = c.pat.nnz
     return rng.choice([top, top + 1, -1, -rng.randrange(1, 10**6), 2**62, 2**63 - 1, -2**63, rng.randrange(top, 10**12)])
+def blocks(bad):
+    n = rng.choice([9, 12, 5])
+    M = torch.randn(rng.choice([0, 1, 3, 17]), n, n, dtype=rng.choice([torch.float32, torch.float64]))
+    M = M + M.transpose(-1, -2)
+    mode, hinge = rng.choice(["clamp", "abs"]), rng.random() < 0.5
+    if bad == "nan" and M.numel():
+        M.view(-1)[rng.randrange(M.numel())] = rng.choice([float("nan"), float("inf"), -float("inf")])
+    elif bad == "shape":
+        M = M[..., :-1]
+    elif bad == "mode":
+        mode = rng.choice(["bogus", "reduced" if n != 12 else "gauss_newton", ""])
+    elif bad == "dtype":
+        M = M.to(torch.int64)
+    elif bad == "rank":
+        M = M.reshape(-1)
+    return M, mode, hinge
 valid = caught = 0
 for it in range(n):
+    if rng.random() < 0.15:
+        bad = rng.choice(["nan", "shape", "mode", "dtype", "rank", "valid"])
+        M, mode, hinge = blocks(bad)
+        print(it, "project_blocks", bad, tuple(M.shape), M.dtype, mode, hinge, flush=True)
+        try:
+            torch.ops.torchbend.project_blocks(M, mode, hinge)
+        except ValueError as e:
+            if bad == "valid" or (bad == "nan" and M.numel() == 0):
+                print("valid call raised:", e, flush=True)
+                sys.exit(2)
+            caught += 1
+            continue
+        if bad != "valid" and not (bad == "nan" and M.numel() == 0):
+            print("not caught", flush=True)
+            sys.exit(3)
+        valid += 1
+        continue
     c = rng.choice(cases)
     ops = BENDING if c.x.dim() == 2 and not c.shuffled else [o for o in BENDING if o != "assemble"]
     op = rng.choice(ops)

@@ -316,13 +316,14 @@ static inline void scatter_blocks(T* values, const int64_t* base, const int64_t*
 // the block bases bp[0 .. m m) of an element (vertices ev[0 .. m)): each base of the vertex pair (a, b) lies in the
 // first scalar row of block row ev[a] with its 3 columns, so that the block's rows base + p row_len (p < 3) stay
 // inside that block row (checked by the assembly as it reads them, before their scatter)
-static inline void check_element_bases(const char* name, int64_t e, int m, const int64_t* bp, const int64_t* ev,
+template <int m>
+static inline void check_element_bases(const char* name, int64_t e, const int64_t* bp, const int64_t* ev,
                                        const int64_t* rs, const int64_t* rl) {
   if (!torchbend::checks::kChecked) return;
   int bad = 0;
-  for (int i = 0; i < m * m; ++i) {
-    int64_t v = ev[i / m];
-    bad |= int(bp[i] < rs[v]) | int(bp[i] > rs[v] + rl[v] - 3);
+  for (int a = 0; a < m; ++a) {
+    const int64_t lo = rs[ev[a]], hi = lo + rl[ev[a]] - 3;
+    for (int b = 0; b < m; ++b) bad |= int(bp[m * a + b] < lo) | int(bp[m * a + b] > hi);
   }
   if (!bad) return;
   for (int i = 0; i < m * m; ++i) {
@@ -368,7 +369,7 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
       load_hinge<T, W>(x, hinges + 4 * h, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
                       damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
-      check_element_bases("hinge_blocks", h, 4, hblk + 16 * h, hinges + 4 * h, rs, row_len);
+      check_element_bases<4>("hinge_blocks", h, hblk + 16 * h, hinges + 4 * h, rs, row_len);
       for (int va = 0; va < 4; ++va) {
         const int64_t* base = hblk + 16 * h + 4 * va;
         int64_t end = std::max(std::max(base[0], base[1]), std::max(base[2], base[3])) + 2 * row_len[hinges[4 * h + va]] + 3;
@@ -397,7 +398,7 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
           const int64_t* fh = feh + 3 * f;
           T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
           const int64_t* fv = faces + 3 * f;
-          check_element_bases("face_blocks", f, 3, fblk + 9 * f, fv, rs, row_len);
+          check_element_bases<3>("face_blocks", f, fblk + 9 * f, fv, rs, row_len);
           face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
           scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
         }
@@ -448,7 +449,9 @@ static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::
                   "hinge indices of H = " + std::to_string(H) + " hinges, -1 on the boundary");
   {
     const int64_t* sg = face_edge_signs.data_ptr<int64_t>();
-    for (int64_t i = 0; i < 3 * F; ++i)
+    int bad = 0;
+    for (int64_t i = 0; i < 3 * F; ++i) bad |= int(sg[i] != 1) & int(sg[i] != -1);
+    for (int64_t i = 0; bad && i < 3 * F; ++i)
       if (sg[i] != 1 && sg[i] != -1)
         ck::fail(op, "face_edge_signs", ck::index_str(face_edge_signs, i), " = ", sg[i], " must be +1 or -1");
   }
