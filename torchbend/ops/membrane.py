@@ -433,6 +433,8 @@ def check_finite_values(model: MembraneModel, what: str, values: Tensor, F: Tens
     if is_traced(values) or is_traced(F):
         return
     v = values.detach()
+    if v.numel() == 0:  # an empty batch or no faces: nothing can overflow
+        return
     v = v.reshape(v.shape[: F.ndim - 2] + (-1,))
     bad = ~torch.isfinite(v).all(-1)
     if bool(bad.any()):

@@ -52,7 +52,7 @@ def scatter(g4: Tensor, elements: Tensor, vertex_count: int) -> Tensor:
     ``m = 4`` or faces ``m = 3``) into ``(..., V, 3)``."""
     batch = g4.shape[:-3]
     out = g4.new_zeros(batch + (vertex_count, 3))
-    return out.index_add(-2, elements.reshape(-1), g4.reshape(batch + (-1, 3)))
+    return out.index_add(-2, elements.reshape(-1), g4.flatten(-3, -2))  # (..., n m, 3), also for n m = 0
 
 
 def gather_soa(x: Tensor, hinges: Tensor) -> tuple:
