@@ -93,7 +93,7 @@ def check_network_size(count: int, what: str) -> int:
 
 
 def resume_run(path: str, cfg: dict, log, *pairs, ignore=("train.steps",), map_location=None,
-               hint: str = "no key") -> int:
+               hint: str = "the same config") -> int:
     """Continue a run from the checkpoint at ``path`` (``--resume``): the ``(module or optimizer,
     checkpoint key)`` ``pairs`` restored (:func:`torchbend.scenes.cli.restore`), a warning naming
     the config keys that differ from the checkpoint's (but ``ignore``); returns the step reached.

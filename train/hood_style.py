@@ -331,7 +331,7 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     start = 0
     if a.resume:
         start = resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device,
-                           hint="the mesh passed to main")
+                           hint="the same config: another mesh passed to main?")
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     batch, rollout, steps, log_every = int(t["batch"]), int(t["rollout"]), int(t["steps"]), int(t["log_every"])

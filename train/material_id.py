@@ -139,7 +139,7 @@ def resume(path: str, cfg: dict, log_k: torch.Tensor, shift: torch.Tensor | None
     script or one that does not fit (another beam resolution)."""
     ck, changed = cli.resume_checkpoint(path, cfg, {"log_k": torch.Tensor, "optimizer": dict,
                                                     "shift": (torch.Tensor, type(None))}, ignore=("identify.steps",))
-    differs = f"config differs at {', '.join(changed) or 'no key'}"
+    differs = f"config differs at {', '.join(changed)}" if changed else "the same config"
     if ck["log_k"].shape != log_k.shape:
         raise ConfigError(f"--resume: {path} does not fit this run ({differs}): log_k of shape {tuple(ck['log_k'].shape)}")
     if shift is not None and ck.get("shift") is not None and ck["shift"].shape != shift.shape:

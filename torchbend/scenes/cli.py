@@ -276,11 +276,11 @@ def _check_optimizer_state(opt: torch.optim.Optimizer) -> None:
 
 
 def restore(path: str, changed: Iterable[str], *pairs: tuple[Any, Any], what: str = "network",
-            hint: str = "no key", flag: str = "--resume") -> None:
+            hint: str = "the same config", flag: str = "--resume") -> None:
     """Load each ``(module or optimizer, state dict)`` of ``pairs`` from the checkpoint at ``path``.
     A state that does not fit (another mesh or network size) is a :class:`ConfigError`:
     ``--resume: PATH does not fit this network (config differs at model.hidden): ...``, naming the
-    config keys ``changed`` (:func:`resume_checkpoint`; ``hint`` when none differs)."""
+    config keys ``changed`` (:func:`resume_checkpoint`; ``hint`` in their place when none differs)."""
     try:
         for obj, state in pairs:
             obj.load_state_dict(state)
@@ -289,8 +289,8 @@ def restore(path: str, changed: Iterable[str], *pairs: tuple[Any, Any], what: st
     except (RuntimeError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
         text = str(e).strip()
         first = text.splitlines()[-1].strip() if text else type(e).__name__
-        raise ConfigError(f"{flag}: {path} does not fit this {what} (config differs at "
-                          f"{', '.join(changed) or hint}): {first}") from None
+        differs = f"config differs at {', '.join(changed)}" if changed else hint
+        raise ConfigError(f"{flag}: {path} does not fit this {what} ({differs}): {first}") from None
 
 
 def changed_keys(old: Any, new: Any, ignore: Iterable[str] = (), prefix: str = "") -> list[str]:
