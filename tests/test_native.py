@@ -131,10 +131,12 @@ def test_native_float32_batched_and_degenerate(kernel):
     fused, eager = _both(lambda: bend.hinge_hessians(xb))
     assert fused.shape == (3, bend.hinge_count, 12, 12)
     assert bool(torch.isfinite(fused).all())
-    assert rel(fused, eager) <= 1e-15
+    # each path lies within a few ulps of a 40-digit reference (benchmarks/accuracy.py), in rounding that depends
+    # on the CPU's vector width and FMA contraction: normwise, they differ by at most twice that
+    assert rel(fused, eager) <= 16 * torch.finfo(F64).eps
     b32 = tb.BendingEnergy(faces, rest.float(), model="tan", stiffness=1e-2)
     f32, e32 = _both(lambda: b32.hinge_hessians(xb.float()))
-    assert f32.dtype == torch.float32 and rel(f32, e32) <= 1e-6
+    assert f32.dtype == torch.float32 and rel(f32, e32) <= 16 * torch.finfo(torch.float32).eps
     assert rel(f32.double(), eager) <= 1e-5
 
 
