@@ -43,7 +43,7 @@ _KERNELS: dict = {}
 """The Python kernel of every operator by name (what the dispatcher calls for CPU and CUDA tensors)."""
 
 
-_MODELS = ("quadratic", "tan", "sin")
+_MODELS = tuple(kernels.native.MODEL_CODE)  # the model names the kernels take
 
 
 def _model(op: str, model: str) -> str:

@@ -343,20 +343,15 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
   namespace ck = torchbend::checks;
   // the index arguments are checked as the assembly reads them, each before its first use (one pass over them
   // that the assembly makes anyway); the first offending entry in memory order is named
-  auto bad_hinge = [&]() {
-    for (int64_t i = 0; i < 4 * H; ++i)
-      if (uint64_t(hinges[i]) >= uint64_t(V))
-        ck::fail("assemble", "hinges[", i / 4, ", ", i % 4, "] = ", hinges[i], " is out of range [0, ", V,
-                 ") (x has V = ", V, " vertices)");
+  auto view = [](const int64_t* p, int64_t n, int64_t m) {  // the caller's array as a tensor (no copy)
+    return torch::from_blob(const_cast<int64_t*>(p), {n, m}, torch::kLong);
   };
+  auto bad_hinge = [&]() { check_hinge_range("assemble", view(hinges, H, 4), V); };
   auto bad_face = [&]() {
-    for (int64_t i = 0; i < 3 * F; ++i) {
-      if (uint64_t(faces[i]) >= uint64_t(V))
-        ck::fail("assemble", "faces[", i / 3, ", ", i % 3, "] = ", faces[i], " is out of range [0, ", V,
-                 ") (x has V = ", V, " vertices)");
+    ck::check_range("assemble", "faces", view(faces, F, 3), 0, V, "x has V = " + std::to_string(V) + " vertices");
+    for (int64_t i = 0; i < 3 * F; ++i)
       if (fes[i] != 1 && fes[i] != -1)
         ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
-    }
   };
   std::vector<T> d1s(per_triangle ? H : 0);
   // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
@@ -1477,27 +1472,7 @@ torch::Tensor project_blocks(torch::Tensor M, int64_t mode, bool hinge) {
   return out;
 }
 
-// the argument checks alone (checks.h), for benchmarks/bm_checks.py and the tests: the first flat position of
-// the int64 tensor t outside [lo, hi) or -1; the incidence-list check of the gradient operators
-static int64_t first_outside(torch::Tensor t, int64_t lo, int64_t hi) {
-  return torchbend::checks::first_outside(torchbend::checks::index_tensor("first_outside", "t", t, t.device()), lo, hi);
-}
-
-static void check_incidence(torch::Tensor ptr, torch::Tensor idx, int64_t V, int64_t H) {
-  torchbend::checks::check_incidence("check_incidence", ptr, idx, V, H);
-}
-
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("first_outside", &first_outside, "the first flat position of an int64 tensor outside [lo, hi), or -1");
-  m.def("check_incidence", &check_incidence, "the incidence-list check of the gradient operators");
-  m.def("check_assemble", [](torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
-                             c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model,
-                             torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
-                             torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
-                             bool per_triangle) {
-          assemble_args(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges, face_edge_signs,
-                        face_blocks, row_len, nnz, per_triangle);
-        }, "the argument checks of assemble alone");
   m.def("bending_hessians", &bending_hessians, "fused gather, angle, psi and per-hinge blocks");
   m.def("assemble", &assemble, "CSR values of the bending Hessian of one mesh, per hinge or per triangle");
   m.def("bending_energy", &bending_energy, "per-hinge energies and angles");
