@@ -12,8 +12,9 @@ r"""Linear solves for Newton directions on the free degrees of freedom.
 * :func:`pcg`: preconditioned conjugate gradients in torch on any device, truncated at negative
   curvature (Steihaug), bounded, with no host round trip per iteration on a GPU.
 * Preconditioners (:class:`Preconditioner`): block-Jacobi (torch, any device, SPD by construction),
-  incomplete LU (``scipy.sparse.linalg.spilu``, CPU) and smoothed-aggregation AMG (the optional
-  ``pyamg``, CPU); ``"auto"`` is incomplete LU for CPU tensors and block-Jacobi on other devices.
+  an incomplete ``L |D| L^T`` factorisation (from ``scipy.sparse.linalg.spilu``, CPU; symmetric positive
+  definite by construction, see :func:`ilu`) and smoothed-aggregation AMG (the optional ``pyamg``, CPU);
+  ``"auto"`` is the incomplete factorisation for CPU tensors and block-Jacobi on other devices.
 
 The direct solver works on the CPU (the matrix is copied there); CG runs on the device of the
 positions, and only the CPU preconditioners (``ilu``, ``amg``) copy vectors to the host, once per
@@ -66,7 +67,8 @@ def has_pyamg() -> bool:
 
 class Preconditioner(Option):
     """CG preconditioner: ``auto`` (incomplete LU for CPU tensors, block-Jacobi on other devices),
-    ``block_jacobi`` (3x3 vertex blocks, torch, any device), ``ilu`` (``scipy`` ``spilu``, CPU) or
+    ``block_jacobi`` (3x3 vertex blocks, torch, any device), ``ilu`` (incomplete ``L |D| L^T`` from
+    ``scipy`` ``spilu``, CPU) or
     ``amg`` (``pyamg`` smoothed aggregation, CPU; needs ``pyamg``)."""
 
     __label__ = "preconditioner"
@@ -447,14 +449,35 @@ def _host(fn: Callable[[np.ndarray], np.ndarray], like: Tensor) -> Apply:
 
 
 def ilu(A: sp.spmatrix, like: Tensor, *, drop_tol: float = 1e-4, fill_factor: float = 10.0) -> Apply | None:
-    """Incomplete LU (``scipy.sparse.linalg.spilu``, symmetric ordering) of the free Hessian ``A`` as a
-    preconditioner on torch vectors like ``like`` (CPU work); ``None`` if the factorisation fails."""
+    """Incomplete ``L |D| L^T`` factorisation of the free Hessian ``A`` as a symmetric positive definite
+    preconditioner on torch vectors like ``like`` (CPU work); ``None`` if the factorisation fails.
+
+    ``scipy.sparse.linalg.spilu`` (symmetric ordering, no pivoting: ``P A P^T ~ L U``) supplies the unit lower
+    factor ``L`` and the pivots ``D = diag(U)``; the preconditioner is ``P^T (L |D| L^T)^-1 P``.  The
+    incomplete LU's own inverse ``U^-1 L^-1`` is not symmetric once entries are dropped (on a thin stiff
+    sheet its preconditioned spectrum has imaginary parts near 1), and CG, whose recurrences assume a
+    symmetric preconditioner, can then stall for thousands of iterations; ``L |D| L^T`` is symmetric and
+    positive definite by construction, also on an indefinite Hessian (negative pivots enter as ``|d|``)."""
     try:
         fac = spla.spilu(sp.csc_matrix(A), drop_tol=drop_tol, fill_factor=fill_factor,
                          permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
         return None
-    return _host(fac.solve, like)
+    perm = np.asarray(fac.perm_c)
+    d = np.abs(fac.U.diagonal())
+    if not np.array_equal(np.asarray(fac.perm_r), perm) or not (np.all(np.isfinite(d)) and d.min(initial=1.0) > 0):
+        return None  # a row interchange or a zero pivot: not a symmetric factorisation
+    lower = sp.csr_matrix(fac.L)
+    upper = sp.csr_matrix(lower.T)
+
+    def solve(r: np.ndarray) -> np.ndarray:
+        y = np.empty_like(r)
+        y[perm] = r  # P r
+        y = spla.spsolve_triangular(lower, y, lower=True, unit_diagonal=True) / d
+        w = spla.spsolve_triangular(upper, y, lower=False, unit_diagonal=True)
+        return w[perm]  # P^T w
+
+    return _host(solve, like)
 
 
 def amg(A: sp.spmatrix, like: Tensor) -> Apply | None:

@@ -16,8 +16,8 @@ the free ones with the Hessian option ``hessian=``, a :class:`torchbend.options.
 projection; membranes get the nearest one they support, colliders drop their concave curvature term
 whenever a projection is asked for), assembled once per iteration on the positions' device, by a
 sparse direct solve on the CPU (symmetric-mode LU, which also tells whether the matrix is positive
-definite) or by preconditioned CG on the positions' device (incomplete LU on the CPU, block-Jacobi
-elsewhere), bounded and truncated at negative curvature (:mod:`torchbend.sim.linear`).  A direction that is not a descent direction (possible with the
+definite) or by preconditioned CG on the positions' device (an incomplete ``L |D| L^T``
+factorisation on the CPU, block-Jacobi elsewhere), bounded and truncated at negative curvature (:mod:`torchbend.sim.linear`).  A direction that is not a descent direction (possible with the
 indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo backtracking
 (:mod:`torchbend.sim.line_search`) guarantees that the potential never increases beyond its round-off.
 
@@ -139,7 +139,8 @@ class SolveInfo:
     the solve that produced it.  ``stop_reason``: ``"residual"`` or ``"round-off floor"`` (converged),
     ``"max_iters"``, ``"line_search"``, ``"time_limit"``, ``"callback"``, ``"non_finite"``,
     ``"evaluation_error"`` (an energy raised a ``ValueError``), ``"rigid_body_modes"`` (unbounded
-    below); ``message`` says it in words, with counts aggregated over sub-solves.  ``minimum``: True
+    below), ``"stalled"`` (the pseudo-transient relaxation came to rest at a state the static solve does
+    not converge from; repeating that solve would repeat its result); ``message`` says it in words, with counts aggregated over sub-solves.  ``minimum``: True
     when the exact Hessian on the free DOFs was checked positive semi-definite there, False when a
     negative eigenvalue ``min_eigenvalue`` [N/m] remains, None when not checked.
     ``negative_curvature_steps``: steps taken along negative-curvature directions.
@@ -928,6 +929,7 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     static_kw = ctl.newton_kw()
     step_ctl = replace(ctl, tol=1e-6, max_iters=30, check_minimum=False, callback=None)
     converged, stopped = None, ""
+    last_static: Tensor | None = None
     for k in range(max_relax_steps):
         if ctl.deadline is not None and time.perf_counter() > ctl.deadline:
             stopped = "time_limit"
@@ -939,6 +941,10 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
             continue
         xk, dt, evaluated = state.x, dt * 1.5, False
         if k % 5 == 4:
+            if last_static is not None and torch.equal(xk, last_static):
+                stopped = "stalled"  # the relaxation no longer moves: the static solve would repeat itself
+                break
+            last_static = xk
             x, info = _newton(model, xk, option=option, linear=linear, inertia=None, bend_kw={}, **static_kw)
             infos.append(info)
             candidates.append((x, info))
@@ -968,7 +974,9 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     elif info.stop_reason in ("residual", "round-off floor", ""):
         out.stop_reason = "max_iters"  # the relaxation budget ran out after that state
     why = (f"time limit of {ctl.time_limit} s reached" if stopped == "time_limit" else
-           "stopped by the callback" if stopped == "callback" else f"{max_relax_steps} relaxation steps tried")
+           "stopped by the callback" if stopped == "callback" else
+           "the relaxation came to rest where the static solve does not converge" if stopped == "stalled" else
+           f"{max_relax_steps} relaxation steps tried")
     out.message = (f"no convergence: {out.iterations} Newton iterations in {out.solves} solves (continuation); "
                    f"{why}; returned the best state (potential {info.energy:.6e} J, residual {info.residual:.3e} N)")
     return x, out
