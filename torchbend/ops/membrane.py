@@ -154,7 +154,16 @@ def deformation(x: Tensor, faces: Tensor, D: Tensor) -> tuple[Tensor, Tensor]:
     e1, e2 = _edges(x, faces)
     W = D[..., 1:, :]
     detW = W[..., 0, 0] * W[..., 1, 1] - W[..., 0, 1] * W[..., 1, 0]
-    return _from_edges(e1, e2, D), torch.linalg.cross(e1, e2, dim=-1) * detW[..., None]
+    return _from_edges(e1, e2, D), _cross_rounded_once(e1, e2) * detW[..., None]
+
+
+def _cross_rounded_once(a: Tensor, b: Tensor) -> Tensor:
+    """``a x b`` of ``(..., 3)``; below float64 evaluated in float64 and rounded once: the products of two
+    float32 numbers are exact there, so the cross product of nearly parallel edges (a strongly compressed
+    triangle, whose second stretch it gives) keeps its own relative accuracy instead of ``eps |a| |b|``."""
+    if a.dtype == torch.float64 or not a.is_floating_point():
+        return torch.linalg.cross(a, b, dim=-1)
+    return torch.linalg.cross(a.double(), b.double(), dim=-1).to(a.dtype)
 
 
 def _hypot3(v: Tensor) -> Tensor:
