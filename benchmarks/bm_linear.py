@@ -67,9 +67,8 @@ def drape_state(n: int, warm: int):
     return model, state, cfg["solver"]["dt"]
 
 
-def potential(model, x, option, dt=None, bend_kw=None):
-    inertia = None if dt is None else (x, dt)
-    return newton._Potential(model, x, Projection.parse(option), inertia, bend_kw or {})
+def potential(model, x, option):
+    return newton._Potential(model, x, Projection.parse(option))
 
 
 def best_seconds(fn, repeats=3) -> tuple[float, Any]:
@@ -96,11 +95,9 @@ def matrices(warm: int):
     for n, w in ((41, warm), (81, 0)):
         model, state, dt = drape_state(n, w)
         x_hat = state.x + dt * state.v
-        bend = model.bending
-        assert bend is not None
-        bend_kw = {"theta_prev": bend.angles(state.x), "dt": dt} if bend.damping is not None else {}
+        ctx = tb.StepContext.for_step(model.terms, state.x, state.v, dt)
         for option in ("exact", "gauss_newton"):
-            phi = newton._Potential(model, x_hat, Projection.parse(option), (x_hat, dt), bend_kw)
+            phi = newton._Potential(model, x_hat, Projection.parse(option), ctx)
             where = f"step {w}" if w else "start"
             mats.append((f"drape {n}x{n} {where}, {option}", phi.hessian_op.to_scipy(phi.free_hessian(x_hat)), phi, x_hat))
     return mats

@@ -217,7 +217,7 @@ def test_large_time_step_does_not_tunnel(monkeypatch):
     over = (x0[:, 0] ** 2 + x0[:, 1] ** 2).sqrt() < 0.5 * sphere.radius  # vertices above the sphere's cap
     assert (state.x[over, 2] > 0).all()
     # the same step without the bound: Newton starts at x_hat and the cloth passes through the sphere
-    monkeypatch.setattr(model, "max_step", lambda x, dx: 1.0)
+    monkeypatch.setattr(model, "max_step", lambda x, dx, ctx=None: 1.0)
     tunnelled, info = implicit_euler_step(model, ClothState(x0, v0), 1.0, max_iters=100, max_substep_depth=0)
     assert info.converged and (tunnelled.x[over, 2] < -sphere.radius).all()
 
@@ -272,7 +272,7 @@ def test_escape_and_roundoff_steps_respect_the_bound():
     cloth = cloth + torch.tensor([0.0, 0.0, 0.01], dtype=F64)
     plane = Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1e-3)
     model = ClothModel(faces, cloth, density=0.2, pinned=[0], colliders=[plane])
-    phi = newton._Potential(model, cloth, tb.Projection.NONE, None, {})
+    phi = newton._Potential(model, cloth, tb.Projection.NONE)
     gf = phi.free_gradient(cloth)
     energy, _ = phi.value(cloth)
     down = torch.zeros_like(cloth)
@@ -285,8 +285,8 @@ def test_escape_and_roundoff_steps_respect_the_bound():
     assert float(signed_distance(plane, out.x).min()) >= -tau * (1 + 1e-9)
     # without the bound the same escape step sinks the cloth far below the plane
     model_free = ClothModel(faces, cloth, density=0.2, pinned=[0], colliders=[plane])
-    model_free.max_step = lambda x, dx: 1.0  # type: ignore[method-assign]
-    phi_free = newton._Potential(model_free, cloth, tb.Projection.NONE, None, {})
+    model_free.max_step = lambda x, dx, ctx=None: 1.0  # type: ignore[method-assign]
+    phi_free = newton._Potential(model_free, cloth, tb.Projection.NONE)
     unbounded = newton._escape(phi_free, cloth, v, gf, energy, 0.0)
     assert unbounded is not None and float(signed_distance(plane, unbounded.x).min()) < -10 * tau
     # a round-off step that the bound would shorten is not taken whole

@@ -14,6 +14,7 @@ from torchbend import ClothModel, ClothState, implicit_euler_step, solve_static
 from torchbend.options import Projection
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.sim import linear, newton
+from torchbend.sim.terms import InertiaTerm, StepContext
 
 from .test_solver import CONFIGS, DevicelessFactories, cantilever
 
@@ -171,7 +172,7 @@ def test_ilu_preconditioner_is_symmetric_positive_definite_on_a_thin_stiff_sheet
     model, rest = thin_stiff_strip()
     x = rest.clone()
     x[:, 2] -= 0.02 * (rest[:, 0] / 0.2) ** 2  # a sagging strip
-    phi = newton._Potential(model, x, Projection.GAUSS_NEWTON, None, {})
+    phi = newton._Potential(model, x, Projection.GAUSS_NEWTON)
     A = phi.free_hessian(x)
     As = sp.csr_matrix(phi.hessian_op.to_scipy(A))
     n = As.get_shape()[0]
@@ -254,7 +255,7 @@ def test_cg_direction_retries_block_jacobi_after_a_breakdown(monkeypatch):
     direction comes from block-Jacobi CG and matches the direct one."""
     model, rest, _ = cantilever(6, 3)
     x = rest + 1e-3 * torch.randn_like(rest) * (~model.pinned)[:, None]
-    phi = newton._Potential(model, x, Projection.CLAMP, None, {})
+    phi = newton._Potential(model, x, Projection.CLAMP)
     gf = phi.free_gradient(x)
     p_direct, _ = phi.direct_direction(x, gf)
     A, b = phi.free_hessian(x), -torch.as_tensor(gf)
@@ -306,13 +307,15 @@ def test_free_hessian_matches_model_hessian(option):
     x[:, 2] -= 0.05  # some vertices inside the sphere's margin: collider blocks
     assert float(model.colliders[0].depth(x).max()) > 0
     free = (~model.pinned).repeat_interleave(3)
-    w = torch.rand(free.shape[0], dtype=F64)
     assert model.bending is not None
-    bend_kw = {"theta_prev": model.bending.angles(x0), "dt": 0.01}
+    dt = 0.01
+    ctx = StepContext.for_step(model.terms, x0, 0.1 * torch.randn_like(x0), dt)  # lagged angles, inertia
+    terms = model.terms + (InertiaTerm(model.mass),)
     fh = linear.FreeHessian(model, free)
-    A = fh.assemble(x, option, bend_kw, w)
+    A = fh.assemble(x, terms, ctx, option)
     assert A.layout == torch.sparse_csr and A.device == x.device and A.dtype == x.dtype
-    ref = model.hessian(x, option, bend_kw) + sp.diags(w.numpy())
+    w = (model.mass / dt**2).repeat_interleave(3)
+    ref = model.hessian(x, option, ctx) + sp.diags(w.numpy())
     ref = ref.tocsr()[free.numpy()][:, free.numpy()].toarray()
     got = fh.to_scipy(A).toarray()
     assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
@@ -321,8 +324,8 @@ def test_free_hessian_matches_model_hessian(option):
     blocks = fh.diagonal_blocks(A).numpy()
     assert np.array_equal(blocks[1], got[3:6, 3:6])
     # the pattern is kept: a second assembly at another state scatters into it
-    A2 = fh.assemble(x0, option, bend_kw, None)
-    ref2 = model.hessian(x0, option, bend_kw).tocsr()[free.numpy()][:, free.numpy()].toarray()
+    A2 = fh.assemble(x0, model.terms, ctx, option)
+    ref2 = model.hessian(x0, option, ctx).tocsr()[free.numpy()][:, free.numpy()].toarray()
     assert np.abs(fh.to_scipy(A2).toarray() - ref2).max() <= 1e-12 * np.abs(ref2).max()
 
 
@@ -330,7 +333,7 @@ def test_cg_direction_matches_direct_direction():
     model, rest, _ = cantilever(6, 3)
     x = rest + 1e-3 * torch.randn_like(rest) * (~model.pinned)[:, None]
     for option in (Projection.CLAMP, Projection.NONE):
-        phi = newton._Potential(model, x, option, None, {})
+        phi = newton._Potential(model, x, option)
         gf = phi.free_gradient(x)
         p_direct, shifts = phi.direct_direction(x, gf)
         assert shifts == 0 and phi.positive_definite is True and phi.linear_method == "lu"
@@ -356,7 +359,7 @@ def test_without_the_optional_back_ends(monkeypatch):
     assert np.linalg.norm(res.p - np.linalg.solve(A.toarray(), b)) <= 1e-10 * np.linalg.norm(res.p)
     assert linear.cholesky_solve(A, b) is None and linear.amg(A, torch.as_tensor(b)) is None
     model, rest, _ = cantilever(5, 3)
-    phi = newton._Potential(model, rest, Projection.CLAMP, None, {})
+    phi = newton._Potential(model, rest, Projection.CLAMP)
     M, used = linear.make_preconditioner("amg", phi.free_hessian(rest), phi.hessian_op)
     assert used is linear.Preconditioner.BLOCK_JACOBI
     monkeypatch.setattr(newton._Potential, "preconditioner", "amg", raising=False)
@@ -368,7 +371,7 @@ def test_without_the_optional_back_ends(monkeypatch):
 
 def test_unknown_preconditioner_is_a_value_error():
     model, rest, _ = cantilever(4, 3)
-    phi = newton._Potential(model, rest, Projection.NONE, None, {})
+    phi = newton._Potential(model, rest, Projection.NONE)
     A = phi.free_hessian(rest)
     with pytest.raises(ValueError, match="preconditioner must be one of"):
         linear.make_preconditioner("jacobi", A, phi.hessian_op)
@@ -401,7 +404,7 @@ def test_cg_path_follows_the_device_and_reads_the_host_only_every_few_iterations
     the stopping test read once every ``check_every`` iterations."""
     model, rest, _ = cantilever(8, 3, young=1e9, t=1e-3)  # stiff: many block-Jacobi iterations
     x = rest + 1e-4 * torch.randn_like(rest) * (~model.pinned)[:, None]
-    phi = newton._Potential(model, x, Projection.CLAMP, None, {})
+    phi = newton._Potential(model, x, Projection.CLAMP)
     phi.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
     gf = phi.free_gradient(x)
     copies = {}

@@ -33,7 +33,16 @@ from .mesh import HingeTopology, PackedMeshes, pack_meshes
 from .ops.membrane import MembraneModel
 from .ops.psi import BendingModel
 from .options import Assembly, Backend, Projection
-from .sim import ClothModel, ClothState, SolveInfo, implicit_euler_step, solve_static, solve_static_adjoint
+from .sim import (
+    ClothModel,
+    ClothState,
+    EnergyTerm,
+    SolveInfo,
+    StepContext,
+    implicit_euler_step,
+    solve_static,
+    solve_static_adjoint,
+)
 
 try:
     __version__ = version("torchbend")
@@ -49,6 +58,7 @@ __all__ = [
     "ClothLoss",
     "ClothModel",
     "ClothState",
+    "EnergyTerm",
     "HingeTopology",
     "MembraneEnergy",
     "MembraneModel",
@@ -57,6 +67,7 @@ __all__ = [
     "Projection",
     "SolveInfo",
     "Sphere",
+    "StepContext",
     "__version__",
     "bending_stiffness_from_hood",
     "hinge_angles",

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from ..options import Option, Projection
+from .terms import as_csr
 
 __all__ = ["Preconditioner", "DirectResult", "CGResult", "FreeHessian", "direct_solve", "lu_solve", "cholesky_solve",
            "pcg", "block_jacobi", "ilu", "amg", "make_preconditioner", "cg_iteration_bound", "has_cholespy", "has_pyamg"]
@@ -113,6 +114,18 @@ class _Pattern:
         self.scipy_indices = (keys % nf, crow)
 
 
+def _same_patterns(a: tuple, b: tuple) -> bool:
+    """Whether two tuples of CSR ``(crow, col)`` index pairs are equal (the same tensors: at once)."""
+    if len(a) != len(b):
+        return False
+    for (ra, ca), (rb, cb) in zip(a, b):
+        if ra is rb and ca is cb:
+            continue
+        if ra.shape != rb.shape or ca.shape != cb.shape or not (torch.equal(ra, rb) and torch.equal(ca, cb)):
+            return False
+    return True
+
+
 def _csr_indices(H: Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Row and column index of every stored value of a torch sparse CSR matrix (NumPy, CPU)."""
     crow = H.crow_indices().cpu().numpy()
@@ -126,10 +139,10 @@ class FreeHessian:
     """The Hessian of a model's potential on its free DOFs, one torch sparse CSR ``(nf, nf)`` [N/m].
 
     ``free_mask``: ``(3V,)`` bool, whole vertices (pinned vertices drop their three DOFs).  The terms
-    are those of :meth:`ClothModel.hessian` (membrane and bending CSR matrices, collider 3x3 blocks)
-    plus an optional ``(3V,)`` diagonal; the summed pattern (every free vertex keeps its diagonal
-    block) and the scatter positions of each term are built on first use and rebuilt when the number
-    of values a term stores changes (the energies keep their CSR patterns per topology).  Use :meth:`for_model` to share one per model and pinned set."""
+    are :class:`~torchbend.sim.terms.EnergyTerm` objects (sparse matrices, or per-vertex 3x3 blocks);
+    the summed pattern (every free vertex keeps its diagonal
+    block) and the scatter positions of each term are built on first use and rebuilt when a term's pattern
+    changes (the energies keep their CSR patterns per topology).  Use :meth:`for_model` to share one per model and pinned set."""
 
     def __init__(self, model, free_mask: Tensor):
         self._model = weakref.ref(model)  # weak: the per-model cache must not keep its key alive
@@ -139,7 +152,7 @@ class FreeHessian:
             raise ValueError(f"FreeHessian: free_mask must be a (3V,) bool mask of whole vertices, got shape "
                              f"{tuple(free_mask.shape)}")
         self._pattern: _Pattern | None = None
-        self._term_nnz: tuple = ()
+        self._term_index: tuple = ()
 
     @classmethod
     def for_model(cls, model, free_mask: Tensor) -> FreeHessian:
@@ -165,39 +178,29 @@ class FreeHessian:
         """The number of free DOFs ``nf``."""
         return int(self._free.sum())
 
-    def _terms(self, x: Tensor, option: Projection, bend_kw: dict) -> list[Tensor]:
-        from ..energies.membrane import MEMBRANE_PROJECTIONS
-
-        m = self.model
-        out = []
-        if m.membrane is not None:
-            out.append(m.membrane.hessian(x, project=option.restricted(MEMBRANE_PROJECTIONS)))
-        if m.bending is not None:
-            out.append(m.bending.hessian(x, project=option, **bend_kw))
-        return out
-
-    def assemble(self, x: Tensor, option: Projection, bend_kw: dict | None = None,
-                 diagonal: Tensor | None = None) -> Tensor:
-        """The free Hessian at ``x (V, 3)`` [m] plus ``diag(diagonal)`` (``(3V,)``, e.g. ``m/dt^2``), a
-        torch sparse CSR ``(nf, nf)`` on ``x``'s device in ``x``'s dtype."""
-        terms = self._terms(x, option, bend_kw or {})
-        nnz = tuple(int(H.values().shape[0]) for H in terms)
-        if self._pattern is None or nnz != self._term_nnz or self._pattern.device != x.device:
-            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in terms], x.device)
-            self._term_nnz = nnz
+    def assemble(self, x: Tensor, terms, ctx, option: Projection) -> Tensor:
+        """The free Hessian at ``x (V, 3)`` [m] of the sum of ``terms`` (:class:`~torchbend.sim.terms.EnergyTerm`,
+        e.g. the model's and a time step's inertia) in the step context ``ctx``, each with the projection
+        ``option``: a torch sparse CSR ``(nf, nf)`` on ``x``'s device in ``x``'s dtype.  Terms with per-vertex
+        blocks (:meth:`~torchbend.sim.terms.EnergyTerm.vertex_blocks`: colliders, inertia) go to the diagonal
+        blocks; the others' sparse matrices are scattered through the summed pattern."""
+        matrices, blocks = [], None
+        for t in terms:
+            b = t.vertex_blocks(x, ctx, option)
+            if b is None:
+                matrices.append(as_csr(t.hessian(x, ctx, option)))
+            else:
+                blocks = b if blocks is None else blocks + b
+        index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
+        if self._pattern is None or self._pattern.device != x.device or not _same_patterns(index, self._term_index):
+            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in matrices], x.device)
+            self._term_index = index
         pat = self._pattern
         values = x.new_zeros(pat.nnz)
-        for H, keep, pos in zip(terms, pat.term_keep, pat.term_pos):
+        for H, keep, pos in zip(matrices, pat.term_keep, pat.term_pos):
             values.index_add_(0, pos, H.values().detach().to(x.dtype)[keep])
-        blocks = None
-        for c in self.model.colliders:
-            b = c.hessian_blocks(x, project=option)
-            blocks = b if blocks is None else blocks + b
-        if diagonal is not None:
-            d = torch.diag_embed(diagonal.reshape(-1, 3).to(x.dtype))
-            blocks = d if blocks is None else blocks + d
         if blocks is not None:
-            values.index_add_(0, pat.block_pos.reshape(-1), blocks.detach()[pat.free_vertices].reshape(-1))
+            values.index_add_(0, pat.block_pos.reshape(-1), blocks.detach().to(x.dtype)[pat.free_vertices].reshape(-1))
         return _csr(pat.crow, pat.col, values, pat.n)
 
     def diagonal_blocks(self, A: Tensor) -> Tensor:

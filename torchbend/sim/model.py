@@ -2,9 +2,11 @@ r"""Static data of a cloth scene and its potential: :class:`ClothModel` and :cla
 
 The potential of a static equilibrium is
 
-    Phi(x) = E_membrane(x) + E_bending(x) + sum_c E_c(x) - sum_i m_i g . x_i        [J]
+    Phi(x) = E_membrane(x) + E_bending(x) + sum_c E_c(x) - sum_i m_i g . x_i + sum_t E_t(x)      [J]
 
-over positions ``x (V, 3)`` [m]: only the terms a model declares are built and evaluated.  Lumped
+over positions ``x (V, 3)`` [m], a sum of :class:`~torchbend.sim.terms.EnergyTerm` objects
+(:attr:`ClothModel.terms`): only the terms a model declares are built and evaluated, and a term of
+one's own is one more entry of ``terms=``.  Lumped
 masses ``m_i`` [kg] are a third of the rest-area mass of each incident triangle.  Every tensor the
 model creates (masses, the pinned mask, gravity, Hessian blocks) lives on the device and in the
 dtype of the rest positions (or of the positions ``x`` it is evaluated at); the ``scipy.sparse``
@@ -22,10 +24,11 @@ from torch import Tensor
 from .._checks import positive, vec3
 from ..energies.bending import BendingEnergy
 from ..energies.colliders import Collider
-from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
+from ..energies.membrane import MembraneEnergy
 from ..energies.sparse import to_scipy
 from ..mesh.topology import lumped_areas, mesh_and_rest
 from ..options import Projection
+from .terms import BendingTerm, ColliderTerm, EnergyTerm, GravityTerm, MembraneTerm, StepContext, as_csr
 
 __all__ = ["ClothModel", "ClothState"]
 
@@ -44,6 +47,9 @@ class ClothModel:
     Args:
         faces: ``(F, 3)`` int triangles (or a :class:`~torchbend.mesh.HingeTopology`).
         rest_positions: ``(V, 3)`` [m]; its device and dtype are those of every tensor of the model.
+        terms: energy terms: :class:`~torchbend.EnergyTerm` instances (one's own, see the README's "Adding an
+            energy term"), and for the built-in ones a :class:`~torchbend.BendingEnergy`,
+            :class:`~torchbend.MembraneEnergy` or collider, which is the same as passing it by keyword.
         bending: a :class:`~torchbend.BendingEnergy` over the same mesh, or ``None``.
         membrane: a :class:`~torchbend.MembraneEnergy` over the same mesh, or ``None``.
         density: areal density [kg/m^2] (> 0): lumped masses, 1/3 of each triangle's rest-area mass per vertex.
@@ -62,19 +68,24 @@ class ClothModel:
         gravity: ``(3,)`` [m/s^2].
         pinned: ``(V,)`` bool.
         colliders: tuple of colliders.
+        terms: every term of the potential, in evaluation order: membrane, bending, gravity, the colliders,
+            then the ``EnergyTerm`` instances given (built from the attributes above on each access, so that
+            assigning e.g. ``colliders`` or ``gravity`` changes them).
         contact_depth: see above [m] (computed from the rest edges on first use when not given).
 
     A model may be built on the ``meta`` device (shapes only): the checks that need values are
     then skipped, and it cannot be solved.
     """
 
-    def __init__(self, faces, rest_positions, *, bending: BendingEnergy | None = None,
+    def __init__(self, faces, rest_positions, *, terms=(), bending: BendingEnergy | None = None,
                  membrane: MembraneEnergy | None = None, density: float = 0.1,
                  gravity=(0.0, 0.0, -9.81), pinned=None, colliders=(), contact_depth: float | None = None):
         topo, rest = mesh_and_rest(faces, rest_positions)
         V = topo.vertex_count
         density = positive(density, "density")
+        bending, membrane, colliders, extra = _split_terms(terms, bending, membrane, colliders)
         _check_terms(V, bending, membrane)
+        self.extra_terms = extra
         self.topology = topo
         self.rest_positions = rest
         self.bending, self.membrane = bending, membrane
@@ -101,116 +112,118 @@ class ClothModel:
             self._contact_depth = self.CONTACT_DEPTH * length if length > 0 else 1.0
         return self._contact_depth
 
-    def max_step(self, x: Tensor, dx: Tensor) -> float:
-        """The largest fraction ``alpha`` in ``(0, 1]`` of the step ``dx (V, 3)`` [m] from ``x (V, 3)`` [m]
-        that no collider forbids: the minimum over colliders and vertices of
-        :meth:`Collider.max_step <torchbend.energies.colliders.Collider.max_step>` with
-        ``depth = contact_depth`` (continuous, closed form: no vertex tunnels through a collider on the
-        segment ``x + t alpha dx``, ``t`` in ``[0, 1]``; a vertex outside sinks at most
-        ``contact_depth`` below the surface, one inside at most doubles its depth).  ``1.0`` without
-        colliders (nothing is evaluated)."""
-        if not self.colliders or x.shape[0] == 0:
-            return 1.0
-        tau = self.contact_depth
-        alpha = torch.stack([c.max_step(x, dx, depth=tau).min() for c in self.colliders]).min()
-        return float(alpha)
-
     def external_force(self, dtype=None) -> Tensor:
         """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses')."""
         return (self.mass[:, None] * self.gravity[None, :]).to(dtype or self.mass.dtype)
 
+    @property
+    def terms(self) -> tuple[EnergyTerm, ...]:
+        """The terms of the potential (class docstring)."""
+        out: list[EnergyTerm] = []
+        if self.membrane is not None:
+            out.append(MembraneTerm(self.membrane))
+        if self.bending is not None:
+            out.append(BendingTerm(self.bending))
+        out.append(GravityTerm(self.mass, self.gravity))
+        if self.colliders:
+            depth = lambda: self.contact_depth  # noqa: E731 - evaluated by a step bound only
+            out.extend(ColliderTerm(c, depth, name=f"collider{i}") for i, c in enumerate(self.colliders))
+        out.extend(self.extra_terms)
+        return tuple(out)
+
+    def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext | None = None) -> float:
+        """The largest fraction ``alpha`` in ``(0, 1]`` of the step ``dx (V, 3)`` [m] from ``x (V, 3)`` [m]
+        that no term forbids (:meth:`EnergyTerm.max_step`): for the colliders, the minimum over colliders
+        and vertices of :meth:`Collider.max_step <torchbend.energies.colliders.Collider.max_step>` with
+        ``depth = contact_depth`` (continuous, closed form: no vertex tunnels through a collider on the
+        segment ``x + t alpha dx``, ``t`` in ``[0, 1]``; a vertex outside sinks at most
+        ``contact_depth`` below the surface, one inside at most doubles its depth).  ``1.0`` when no term
+        bounds steps (nothing is evaluated for the built-in elastic terms and gravity)."""
+        if x.shape[0] == 0:
+            return 1.0
+        ctx = ctx or StepContext()
+        alpha = 1.0
+        for t in self.terms:
+            if type(t).max_step is not EnergyTerm.max_step:
+                alpha = min(alpha, float(t.max_step(x, dx, ctx)))
+        return alpha
+
     # ---------------------------------------------------------------- potential and derivatives
-    def energies(self, x: Tensor, bend_kw: dict | None = None) -> dict:
-        """Per-term energies [J] at ``x (V, 3)`` [m] (only the declared terms): keys ``membrane``,
-        ``bending``, ``gravity``, ``collider0``, ...  ``bend_kw`` go to the bending energy (e.g. the
-        viscous ``theta_prev``, ``dt``)."""
-        bend_kw = bend_kw or {}
-        out = {}
-        if self.membrane is not None:
-            out["membrane"] = float(self.membrane(x))
-        if self.bending is not None:
-            out["bending"] = float(self.bending(x, **bend_kw))
-        out["gravity"] = float(-(self.external_force(x.dtype) * x).sum())
-        for i, c in enumerate(self.colliders):
-            out[f"collider{i}"] = float(c.energy(x))
-        return out
+    def energies(self, x: Tensor, ctx: StepContext | None = None) -> dict:
+        """Per-term energies [J] at ``x (V, 3)`` [m], keyed by term name: ``membrane``, ``bending``,
+        ``gravity``, ``collider0``, ..., then one's own terms.  ``ctx``: the :class:`StepContext` of a
+        time step (the viscous bending term's lagged angles), default static."""
+        ctx = ctx or StepContext()
+        return {t.name: float(t.energy(x, ctx)) for t in self.terms}
 
-    def potential(self, x: Tensor, bend_kw: dict | None = None) -> float:
+    def potential(self, x: Tensor, ctx: StepContext | None = None) -> float:
         """The potential ``Phi(x)`` [J]: the sum of :meth:`energies`."""
-        return sum(self.energies(x, bend_kw).values())
+        return sum(self.energies(x, ctx).values())
 
-    def gradient(self, x: Tensor, bend_kw: dict | None = None) -> Tensor:
+    def gradient(self, x: Tensor, ctx: StepContext | None = None) -> Tensor:
         """``dPhi/dx`` ``(V, 3)`` [N] (minus the net force on each vertex)."""
-        g = -self.external_force(x.dtype).clone()
-        if self.membrane is not None:
-            g = g + self.membrane.gradient(x)
-        if self.bending is not None:
-            g = g + self.bending.gradient(x, **(bend_kw or {}))
-        for c in self.colliders:
-            g = g + c.gradient(x)
+        ctx = ctx or StepContext()
+        g = torch.zeros_like(x)
+        for t in self.terms:
+            g = g + t.gradient(x, ctx)
         return g
 
-    def hessian(self, x: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> sp.csr_matrix:
+    def _projection(self, term: EnergyTerm, option: Projection, contact) -> Projection:
+        return Projection.parse(contact) if (term.contact and contact is not None) else option
+
+    def hessian(self, x: Tensor, option: Projection | str, ctx: StepContext | None = None, *,
+                contact=None) -> sp.csr_matrix:
         """``scipy.sparse`` CSR Hessian ``(3V, 3V)`` [N/m] of the potential (without inertia) at ``x (V, 3)``.
 
-        ``option``: a :class:`torchbend.options.Projection` (or its name) for the bending term; the membrane gets the
-        nearest one it supports, colliders drop their curvature term for every member but ``NONE``.
-        ``contact``: a projection for the colliders alone (default: ``option``), e.g. ``"clamp"`` for
+        ``option``: a :class:`torchbend.options.Projection` (or its name) for every term (the membrane gets the
+        nearest one it supports, colliders drop their curvature term for every member but ``NONE``).
+        ``contact``: a projection for the contact terms alone (default: ``option``), e.g. ``"clamp"`` for
         PSD contact blocks (as IPC projects every contact Hessian) under an otherwise exact Hessian:
         the exact penalty curvature ``-k d Hess s`` is negative definite in the tangent plane of a
         curved collider and grows with the penetration ``d``."""
         option = Projection.parse(option)
+        ctx = ctx or StepContext()
         n = 3 * self.vertex_count
         H = sp.csr_matrix((n, n))
-        if self.membrane is not None:
-            H = H + to_scipy(self.membrane.hessian(x, project=option.restricted(MEMBRANE_PROJECTIONS)))
-        if self.bending is not None:
-            H = H + to_scipy(self.bending.hessian(x, project=option, **(bend_kw or {})))
-        if self.colliders:
-            H = H + _block_diagonal_csr(self.contact_blocks(x, option if contact is None else contact).detach().cpu().numpy())
+        for t in self.terms:
+            blocks = t.vertex_blocks(x, ctx, self._projection(t, option, contact))
+            if blocks is not None:
+                H = H + _block_diagonal_csr(blocks.detach().cpu().numpy())
+            else:
+                H = H + to_scipy(as_csr(t.hessian(x, ctx, self._projection(t, option, contact))))
         return H.tocsr()
 
     def contact_blocks(self, x: Tensor, project) -> Tensor:
-        """The colliders' per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m] summed (zeros without
-        colliders); ``project`` as in :meth:`Collider.hessian_blocks
+        """The contact terms' per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m] summed (zeros without
+        them); ``project`` as in :meth:`Collider.hessian_blocks
         <torchbend.energies.colliders.Collider.hessian_blocks>`."""
-        if not self.colliders:
-            return x.new_zeros(x.shape[0], 3, 3)
-        blocks = self.colliders[0].hessian_blocks(x, project=project)
-        for c in self.colliders[1:]:
-            blocks = blocks + c.hessian_blocks(x, project=project)
-        return blocks
+        out = x.new_zeros(x.shape[0], 3, 3)
+        ctx = StepContext()
+        for t in self.terms:
+            if t.contact:
+                out = out + t.block_diagonal(x, ctx, Projection.parse(project))
+        return out
 
-    def hvp(self, x: Tensor, v: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> Tensor:
+    def hvp(self, x: Tensor, v: Tensor, option: Projection | str, ctx: StepContext | None = None, *,
+            contact=None) -> Tensor:
         """Hessian-vector product ``H(x) v`` ``(V, 3)`` [N] for a direction ``v (V, 3)`` [m] (``option``,
         ``contact`` as in :meth:`hessian`)."""
         option = Projection.parse(option)
+        ctx = ctx or StepContext()
         out = torch.zeros_like(x)
-        if self.membrane is not None:
-            out = out + self.membrane.hvp(x, v, project=option.restricted(MEMBRANE_PROJECTIONS))
-        if self.bending is not None:
-            out = out + self.bending.hvp(x, v, project=option, **(bend_kw or {}))
-        if self.colliders:
-            out = out + (self.contact_blocks(x, option if contact is None else contact) @ v[..., None])[..., 0]
+        for t in self.terms:
+            out = out + t.hvp(x, v, ctx, self._projection(t, option, contact))
         return out
 
-    def block_diagonal(self, x: Tensor, option: Projection | str, bend_kw: dict | None = None, *, contact=None) -> Tensor:
+    def block_diagonal(self, x: Tensor, option: Projection | str, ctx: StepContext | None = None, *,
+                       contact=None) -> Tensor:
         """Per-vertex 3x3 diagonal blocks of the Hessian ``(V, 3, 3)`` [N/m] (block-Jacobi
         preconditioner; ``option``, ``contact`` as in :meth:`hessian`)."""
         option = Projection.parse(option)
-        V = self.vertex_count
-        out = x.new_zeros(V, 3, 3)
-        if self.membrane is not None:
-            He = self.membrane.element_hessians(x, project=option.restricted(MEMBRANE_PROJECTIONS)).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
-            diag = torch.stack([He[:, k, :, k, :] for k in range(3)], 1)  # (T, 3, 3, 3)
-            out = out.index_add(0, self.membrane.faces.reshape(-1), diag.reshape(-1, 3, 3))
-        if self.bending is not None:
-            Hb = self.bending.hinge_hessians(x, project=option, **(bend_kw or {}))
-            Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
-            diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
-            out = out.index_add(0, self.bending.hinges.reshape(-1), diag.reshape(-1, 3, 3))
-        if self.colliders:
-            out = out + self.contact_blocks(x, option if contact is None else contact)
+        ctx = ctx or StepContext()
+        out = x.new_zeros(self.vertex_count, 3, 3)
+        for t in self.terms:
+            out = out + t.block_diagonal(x, ctx, self._projection(t, option, contact))
         return out
 
 
@@ -220,6 +233,39 @@ def _gravity(gravity) -> tuple[float, float, float]:
     if isinstance(gravity, Tensor):
         gravity = gravity.detach().reshape(-1).tolist()
     return vec3(gravity, "gravity")
+
+
+def _split_terms(terms, bending, membrane, colliders) -> tuple:
+    """``terms=`` sorted into the shorthands (a bending or membrane energy, colliders) and one's own
+    :class:`EnergyTerm` instances; a second bending or membrane energy is a ``ValueError``."""
+    if isinstance(terms, (EnergyTerm, BendingEnergy, MembraneEnergy, Collider)):
+        terms = (terms,)
+    colliders, extra = list(colliders), []
+    for i, t in enumerate(terms):
+        if isinstance(t, BendingEnergy):
+            if bending is not None:
+                raise ValueError(f"terms[{i}] is a second bending energy (one BendingEnergy per model)")
+            bending = t
+        elif isinstance(t, MembraneEnergy):
+            if membrane is not None:
+                raise ValueError(f"terms[{i}] is a second membrane energy (one MembraneEnergy per model)")
+            membrane = t
+        elif isinstance(t, Collider):
+            colliders.append(t)
+        elif isinstance(t, EnergyTerm):
+            extra.append(t)
+        else:
+            raise ValueError(f"terms[{i}] must be an EnergyTerm, a BendingEnergy, a MembraneEnergy or a collider, "
+                             f"got {type(t).__name__}")
+    names = [t.name for t in extra]
+    reserved = {"membrane", "bending", "gravity", "inertia"} | {f"collider{i}" for i in range(len(colliders))}
+    for i, name in enumerate(names):
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"terms: an EnergyTerm needs a non-empty string name, got {name!r}")
+        if name in reserved or name in names[:i]:
+            raise ValueError(f"terms: the name {name!r} of {type(extra[i]).__name__} is already taken "
+                             f"(set its `name` attribute to a unique one)")
+    return bending, membrane, tuple(colliders), tuple(extra)
 
 
 def _check_terms(V: int, bending, membrane) -> None:

@@ -100,6 +100,7 @@ from .curvature import curvature_tolerance, smallest_eigenpair
 from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
+from .terms import InertiaTerm, StepContext
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
 
@@ -175,26 +176,23 @@ class SolveInfo:
 
 # -------------------------------------------------------------------- Newton
 class _Potential:
-    """The (incremental) potential of a solve, restricted to the free DOFs.
+    """The (incremental) potential of a solve, restricted to the free DOFs: the model's terms, and for a
+    time step the inertia (:class:`~torchbend.sim.terms.InertiaTerm`), evaluated in the step's
+    :class:`~torchbend.sim.terms.StepContext` ``ctx`` (static: ``StepContext()``).
 
-    ``inertia``: ``None`` (static) or ``(x_hat (V, 3) [m], dt [s])``; ``w`` is then the per-DOF
-    ``m / dt^2`` ``(3V,)`` [kg/s^2].  ``free_mask``: ``(3V,)`` bool on the positions' device;
-    ``free``: the same as a NumPy array (indexing the CPU copies of the linear algebra).
-    ``max_cg_iters``: the bound on CG iterations per direction (None: automatic);
-    ``inertial_force``: ``(3V,)`` [N] the inertial force ``M (x_n - x_hat)/dt^2`` of the start of a
-    time step (None for a static solve), part of the force scale."""
+    ``free_mask``: ``(3V,)`` bool on the positions' device; ``free``: the same as a NumPy array
+    (indexing the CPU copies of the linear algebra).  ``max_cg_iters``: the bound on CG iterations per
+    direction (None: automatic)."""
 
     max_cg_iters: int | None = None
-    inertial_force: Tensor | None = None
 
-    def __init__(self, model: ClothModel, x: Tensor, option: Projection, inertia: tuple | None, bend_kw: dict):
-        self.model, self.option, self.bend_kw = model, option, bend_kw
+    def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None):
+        self.model, self.option = model, option
+        self.ctx = ctx or StepContext()
+        terms = model.terms
+        self.terms = terms + (InertiaTerm(model.mass),) if self.ctx.dynamic else terms
         self.free_mask = (~model.pinned).to(x.device).repeat_interleave(3)
         self.free = self.free_mask.cpu().numpy()
-        self.w: Tensor | None = None
-        if inertia is not None:
-            self.x_hat, dt = inertia
-            self.w = model.mass.to(device=x.device, dtype=x.dtype).repeat_interleave(3) / (dt * dt)
         # linear algebra: the free Hessian's assembler (pattern shared per model) and what the last
         # direction found: positive definite (None: unknown), a direction of negative curvature (CG,
         # (nf,) on x's device), the factorisation / preconditioner used
@@ -205,50 +203,43 @@ class _Potential:
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
 
     def value(self, y: Tensor) -> tuple[float, dict]:
-        """``(Phi(y) [J], per-term energies)``; the inertial term is ``"inertia"``."""
-        e = self.model.energies(y, self.bend_kw)
-        if self.w is not None:
-            e["inertia"] = float(0.5 * (self.w * ((y - self.x_hat).reshape(-1)) ** 2).sum())
+        """``(Phi(y) [J], per-term energies)`` (the inertial term of a step is ``"inertia"``)."""
+        e = {t.name: float(t.energy(y, self.ctx)) for t in self.terms}
         return sum(e.values()), e
 
     def gradient(self, y: Tensor) -> Tensor:
         """``dPhi/dy`` flat ``(3V,)`` [N]."""
-        g = self.model.gradient(y, self.bend_kw).reshape(-1)
-        if self.w is not None:
-            g = g + self.w * (y - self.x_hat).reshape(-1)
-        return g
+        g = torch.zeros_like(y)
+        for t in self.terms:
+            g = g + t.gradient(y, self.ctx)
+        return g.reshape(-1)
 
     def free_gradient(self, y: Tensor) -> np.ndarray:
         """The gradient on the free DOFs (NumPy, CPU)."""
         return self.gradient(y).cpu().numpy()[self.free]
 
     def force_magnitudes(self, y: Tensor) -> Tensor:
-        """Per-DOF sum of the magnitudes of the forces acting at ``y``, flat ``(3V,)`` [N]: gravity, each
-        energy term's force, the inertial forces of a time step (see the module docstring)."""
-        model = self.model
-        out = model.external_force(y.dtype).to(y.device).abs()
-        if model.membrane is not None:
-            out = out + model.membrane.gradient(y).abs()
-        if model.bending is not None:
-            out = out + model.bending.gradient(y, **self.bend_kw).abs()
-        for c in model.colliders:
-            out = out + c.gradient(y).abs()
-        out = out.reshape(-1)
-        if self.w is not None:
-            out = out + (self.w * (y - self.x_hat).reshape(-1)).abs()
-        if self.inertial_force is not None:
-            out = out + self.inertial_force.abs()
-        return out
+        """Per-DOF sum of the magnitudes of the forces acting at ``y``, flat ``(3V,)`` [N]: each term's
+        (:meth:`EnergyTerm.force_magnitudes`: gravity, the elastic forces, the inertial forces of a time
+        step; see the module docstring)."""
+        out = torch.zeros_like(y)
+        for t in self.terms:
+            out = out + t.force_magnitudes(y, self.ctx)
+        return out.reshape(-1)
 
     def gradient_roundoff(self, y: Tensor) -> float:
         """An estimate [N] of the round-off of ``|g_free|`` at ``y``: ``eps |(|B| |y|)_free|`` with ``B``
-        the per-vertex 3x3 Hessian blocks (and the inertia ``w``), the force error caused by rounding the
+        the per-vertex 3x3 Hessian blocks (with the inertia's), the force error caused by rounding the
         coordinates."""
-        B = self.model.block_diagonal(y, self.option, self.bend_kw).abs()
-        if self.w is not None:
-            B = B + torch.diag_embed(self.w.reshape(-1, 3))
+        B = torch.zeros(y.shape[0], 3, 3, dtype=y.dtype, device=y.device)
+        for t in self.terms:
+            B = B + t.block_diagonal(y, self.ctx, self.option).abs()
         r = (B @ y.abs()[..., None])[..., 0].reshape(-1)[self.free_mask]
         return float(torch.finfo(y.dtype).eps * r.norm())
+
+    def max_step(self, y: Tensor, dy: Tensor) -> float:
+        """The largest safe fraction of the step ``dy`` from ``y`` (the terms' :meth:`EnergyTerm.max_step`)."""
+        return self.model.max_step(y, dy, self.ctx)
 
     def full(self, p: np.ndarray, like: Tensor) -> Tensor:
         """Free-DOF values ``p`` as a ``(V, 3)`` tensor like ``like`` (zero on pinned DOFs)."""
@@ -259,7 +250,7 @@ class _Potential:
     def free_hessian(self, x: Tensor) -> Tensor:
         """The free Hessian of the potential at ``x`` (with the inertia ``m/dt^2``), torch sparse CSR
         ``(nf, nf)`` [N/m] on ``x``'s device."""
-        return self.hessian_op.assemble(x, self.option, self.bend_kw, self.w)
+        return self.hessian_op.assemble(x, self.terms, self.ctx, self.option)
 
     def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
@@ -381,7 +372,7 @@ def _roundoff_step(phi: _Potential, x: Tensor, p: np.ndarray, energy: float, res
     within ``noise`` [J] and the residual drops, and no collider bounds the step (a step the collider
     step bound would shorten is never taken whole).  Returns ``(step, free gradient there)`` or None."""
     dx = phi.full(p, x)
-    if phi.model.max_step(x, dx) < 1.0:
+    if phi.max_step(x, dx) < 1.0:
         return None
     y = x + dx
     try:
@@ -398,7 +389,7 @@ def _roundoff_step(phi: _Potential, x: Tensor, p: np.ndarray, energy: float, res
 def _curvature(phi: _Potential, x: Tensor) -> tuple[float, np.ndarray, float] | None:
     """``(lambda_min [N/m], unit eigenvector on the free DOFs, round-off tolerance [N/m])`` of the exact
     Hessian of the potential on the free DOFs at ``x``; None when it could not be computed."""
-    Hf = phi.hessian_op.to_scipy(phi.hessian_op.assemble(x, Projection.NONE, phi.bend_kw, phi.w)).tocsr()
+    Hf = phi.hessian_op.to_scipy(phi.hessian_op.assemble(x, phi.terms, phi.ctx, Projection.NONE)).tocsr()
     pair = smallest_eigenpair(Hf)
     if pair is None:
         return None
@@ -424,7 +415,7 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
         signs.append(-signs[0])
     best: LineSearchResult | None = None
     for s in signs:
-        alpha, found = phi.model.max_step(x, s * d), None
+        alpha, found = phi.max_step(x, s * d), None
         for _ in range(max_steps):
             y = x + (s * alpha) * d
             try:
@@ -442,21 +433,22 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
 
 
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
-            max_iters: int, inertia: tuple | None, bend_kw: dict, inertial_force: Tensor | None = None,
+            max_iters: int, ctx: StepContext | None = None,
             check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
             time_limit: float | None = None, max_cg_iters: int | None = None,
             max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
-    """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified).  Returns ``(x, info)``:
-    the converged iterate, or the best one on failure (module docstring).  ``deadline``: a
-    ``time.perf_counter()`` value past which the solve stops (``time_limit`` [s], for the message)."""
-    phi = _Potential(model, x0, option, inertia, bend_kw)
+    """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified) in the step context
+    ``ctx`` (None: static).  Returns ``(x, info)``: the converged iterate, or the best one on failure
+    (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
+    (``time_limit`` [s], for the message)."""
+    phi = _Potential(model, x0, option, ctx)
     phi.max_cg_iters = max_cg_iters
-    phi.inertial_force = inertial_force
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
-    return run.solve(x0.detach().clone(), unbounded=(inertia is None and not model.colliders
-                                                     and not bool(model.pinned.any())
-                                                     and bool((model.gravity != 0).any())))
+    # unbounded below: a static potential with gravity and nothing that holds the cloth in place
+    unbounded = (not phi.ctx.dynamic and not bool(model.pinned.any()) and bool((model.gravity != 0).any())
+                 and not any(t.confines for t in phi.terms))
+    return run.solve(x0.detach().clone(), unbounded=unbounded)
 
 
 class _Stop(Exception):
@@ -654,7 +646,7 @@ class _NewtonRun:
         dx = phi.full(p, x)
         step = armijo_backtracking(phi.value, x, dx, energy, terms, slope,
                                    lambda y: float(np.linalg.norm(phi.free_gradient(y))) < res,
-                                   max_steps=self.max_line_search, alpha_max=phi.model.max_step(x, dx))
+                                   max_steps=self.max_line_search, alpha_max=phi.max_step(x, dx))
         if step is not None:
             return step
         info.line_search_failures += 1
@@ -830,11 +822,11 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     kw = ctl.newton_kw()
     if mode == "auto":
         kw["max_iters"] = min(ctl.max_iters, _AUTO_FIRST_ITERS)
-    x, info = _newton(model, x0, option=option, linear=linear, inertia=None, bend_kw={}, **kw)
+    x, info = _newton(model, x0, option=option, linear=linear, **kw)
     if mode == "auto" and info.stop_reason == "max_iters" and _converging(info) and ctl.max_iters > kw["max_iters"]:
         # the first attempt is on its way (a steadily falling residual): let it finish before softening anything
         first = info
-        x, info = _newton(model, x, option=option, linear=linear, inertia=None, bend_kw={},
+        x, info = _newton(model, x, option=option, linear=linear,
                           **dict(kw, max_iters=ctl.max_iters - kw["max_iters"]))
         merged = _aggregate([first, info], info)  # its best iterate is at least the first attempt's
         merged.seconds = first.seconds + info.seconds
@@ -896,12 +888,12 @@ def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, opt
     infos, x = [first], x_start
     stage_kw = dict(ctl.newton_kw(), tol=max(ctl.tol, 1e-6), check_minimum=False, callback=None)
     for factor in _HOMOTOPY_FACTORS:
-        x, info = _newton(_softened(model, factor), x, option=option, linear=linear, inertia=None, bend_kw={},
+        x, info = _newton(_softened(model, factor), x, option=option, linear=linear,
                           **stage_kw)
         infos.append(info)
         if info.stop_reason in _FINAL_STOPS:
             break
-    x, info = _newton(model, x, option=option, linear=linear, inertia=None, bend_kw={}, **ctl.newton_kw())
+    x, info = _newton(model, x, option=option, linear=linear, **ctl.newton_kw())
     infos.append(info)
     if not info.converged and not info.energy < first.energy:  # never return a worse state than the start's
         x, info = x_start, first
@@ -945,7 +937,7 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
                 stopped = "stalled"  # the relaxation no longer moves: the static solve would repeat itself
                 break
             last_static = xk
-            x, info = _newton(model, xk, option=option, linear=linear, inertia=None, bend_kw={}, **static_kw)
+            x, info = _newton(model, xk, option=option, linear=linear, **static_kw)
             infos.append(info)
             candidates.append((x, info))
             evaluated = True
@@ -955,7 +947,7 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
                 break
     if converged is None and not evaluated:  # the last relaxed state, evaluated only
         kw = dict(static_kw, max_iters=0, check_minimum=False, callback=None, deadline=None)
-        x, info = _newton(model, xk, option=option, linear=linear, inertia=None, bend_kw={}, **kw)
+        x, info = _newton(model, xk, option=option, linear=linear, **kw)
         info.solves = 0
         candidates.append((x, info))
     seconds = first.seconds + (time.perf_counter() - t0)
@@ -1054,16 +1046,12 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
     x_n, v_n = state.x, state.v
     pinned = model.pinned.to(x_n.device)[:, None]
     v_n = torch.where(pinned, torch.zeros_like(v_n), v_n)
-    x_hat = x_n + dt * v_n
-    bend_kw = {}
-    if model.bending is not None and model.bending.damping is not None:
-        bend_kw = {"theta_prev": model.bending.angles(x_n).detach(), "dt": dt}
-    mass = model.mass.to(device=x_n.device, dtype=x_n.dtype)
-    inertial_force = -(mass[:, None] * v_n / dt).reshape(-1)  # M (x_n - x_hat) / dt^2
-    # Newton starts at x_hat, or with colliders at the point of the segment x_n -> x_hat where the
-    # step bound stops it (x_hat of a large step may lie through a collider: never start there)
-    x0 = x_n + model.max_step(x_n, x_hat - x_n) * (x_hat - x_n) if model.colliders else x_hat
-    x, info = _newton(model, x0, option=option, linear=linear, inertia=(x_hat, dt), bend_kw=bend_kw,
-                      inertial_force=inertial_force, **ctl.newton_kw())
+    ctx = StepContext.for_step(model.terms, x_n, v_n, dt)  # the terms' lagged data (e.g. viscous hinge angles)
+    x_hat = ctx.x_hat
+    assert x_hat is not None
+    # Newton starts at x_hat, or where a term's step bound (a collider's) stops it on the segment
+    # x_n -> x_hat (x_hat of a large step may lie through a collider: never start there)
+    x0 = x_n + model.max_step(x_n, x_hat - x_n, ctx) * (x_hat - x_n)
+    x, info = _newton(model, x0, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())
     v = torch.where(pinned, torch.zeros_like(v_n), (x - x_n) / dt)
     return ClothState(x=x, v=v), info

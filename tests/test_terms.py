@@ -1,0 +1,178 @@
+"""The energy-term protocol (torchbend/sim/terms.py): a term of one's own, written with the documented protocol
+only, in ClothModel, solve_static, implicit_euler_step and solve_static_adjoint, against closed forms.
+
+Zero-length springs ``k_i |x_i - a_i|^2 / 2`` with ``k_i = kappa m_i`` and anchors ``a = rest + c`` (a rigid
+translation of the rest state) under gravity have the equilibrium ``x = rest + c + g / kappa``: a translation,
+so the membrane and the bending stay at rest and exert no force, and the closed form holds with them in the
+model.  The same for an implicit-Euler step from ``(rest, v0)`` with uniform ``v0``:
+``x = (x_hat / dt^2 + kappa a + g) / (1 / dt^2 + kappa)`` per vertex."""
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+import torchbend as tb
+
+F64 = torch.float64
+KAPPA = 40.0  # [1/s^2]: k_i / m_i
+SHIFT = torch.tensor([0.01, -0.02, 0.03], dtype=F64)  # [m]: anchors = rest + SHIFT
+G = torch.tensor([0.0, 0.0, -9.81], dtype=F64)
+
+
+class AnchorSprings(tb.EnergyTerm):
+    """The README's example: per-vertex 3x3 Hessian blocks."""
+
+    name = "anchors"
+
+    def __init__(self, k, a):
+        self.k, self.a = k, a
+
+    def energy(self, x, ctx):
+        return 0.5 * (self.k[:, None] * (x - self.a) ** 2).sum()
+
+    def gradient(self, x, ctx):
+        return self.k[:, None] * (x - self.a)
+
+    def vertex_blocks(self, x, ctx, projection=None):
+        return self.k[:, None, None] * torch.eye(3, dtype=x.dtype, device=x.device)
+
+
+class CoupledAnchorSprings(tb.EnergyTerm):
+    """The same springs, with the energy only (autograd derivatives) and the Hessian as a general ``(3V, 3V)``
+    sparse COO matrix (the path of a term that couples vertices)."""
+
+    name = "coupled"
+
+    def __init__(self, k, a):
+        self.k, self.a = k, a
+
+    def energy(self, x, ctx):
+        return 0.5 * (self.k[:, None] * (x - self.a) ** 2).sum()
+
+    def hessian(self, x, ctx, projection=None):
+        n = 3 * x.shape[0]
+        i = torch.arange(n, device=x.device)
+        return torch.sparse_coo_tensor(torch.stack((i, i)), self.k.repeat_interleave(3).to(x.dtype), (n, n),
+                                       check_invariants=False)
+
+
+def sheet(n: int = 6):
+    rest, faces = tb.scenes.grid(n, n, (0.3, 0.3), dtype=F64)
+    mem = tb.MembraneEnergy(faces, rest, young=2e5, poisson=0.3, thickness=5e-4)
+    bend = tb.BendingEnergy(faces, rest, stiffness=1e-5)
+    return rest, faces, mem, bend
+
+
+def springs_model(kind: type = AnchorSprings, **kw):
+    rest, faces, mem, bend = sheet()
+    probe = tb.ClothModel(faces, rest, density=0.2)
+    springs = kind(KAPPA * probe.mass, rest + SHIFT)
+    return tb.ClothModel(faces, rest, density=0.2, terms=[mem, bend, springs], **kw), rest, springs
+
+
+@pytest.mark.parametrize("kind", [AnchorSprings, CoupledAnchorSprings])
+@pytest.mark.parametrize("linear_solver", ["direct", "cg"])
+def test_own_term_static_equilibrium_is_the_closed_form(kind, linear_solver):
+    model, rest, _ = springs_model(kind)
+    assert [t.name for t in model.terms] == ["membrane", "bending", "gravity", kind.name]
+    x, info = tb.solve_static(model, rest, linear_solver=linear_solver)
+    assert info.converged, info.message
+    expected = rest + SHIFT + G / KAPPA
+    assert float((x - expected).abs().max()) <= 1e-9 * float((expected - rest).abs().max())
+    assert set(info.energies) == {"membrane", "bending", "gravity", kind.name}
+
+
+def test_own_term_implicit_step_is_the_closed_form():
+    model, rest, _ = springs_model()
+    v0 = torch.tensor([0.1, 0.0, -0.05], dtype=F64).expand_as(rest).clone()
+    dt = 0.02
+    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), v0), dt)
+    assert info.converged, info.message
+    x_hat = rest + dt * v0
+    expected = (x_hat / dt**2 + KAPPA * (rest + SHIFT) + G) / (1 / dt**2 + KAPPA)
+    assert float((state.x - expected).abs().max()) <= 1e-9 * float((expected - rest).abs().max())
+    assert torch.allclose(state.v, (state.x - rest) / dt, rtol=1e-12, atol=0)
+
+
+def test_own_term_in_the_adjoint():
+    """``L = sum_i m_i . x_i``: ``dL/da = kappa M lambda`` with ``H lambda = M 1``; the membrane and bending are
+    translation invariant, so ``lambda = 1 / kappa`` and ``dL/da_i = m_i`` in each component."""
+    model, rest, springs = springs_model()
+    springs.a = springs.a.clone().requires_grad_(True)
+    x, info = tb.solve_static_adjoint(model, rest, [springs.a])
+    assert info.converged, info.message
+    (model.mass[:, None] * x).sum().backward()
+    grad = springs.a.grad
+    assert grad is not None
+    expected = model.mass[:, None].expand_as(grad)
+    assert float((grad - expected).abs().max()) <= 1e-8 * float(expected.abs().max())
+
+
+def test_default_derivatives_of_a_term_are_autograd():
+    model, rest, _ = springs_model(CoupledAnchorSprings)
+    term = model.terms[-1]
+    assert isinstance(term, CoupledAnchorSprings)
+    x = rest + 1e-2 * torch.randn_like(rest, generator=torch.Generator().manual_seed(0))
+    ctx = tb.StepContext()
+    assert torch.allclose(term.gradient(x, ctx), term.k[:, None] * (x - term.a), rtol=1e-13, atol=0)
+    v = torch.randn_like(x, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(term.hvp(x, v, ctx), term.k[:, None] * v, rtol=1e-13, atol=0)
+    blocks = term.block_diagonal(x, ctx)
+    assert torch.allclose(blocks, term.k[:, None, None] * torch.eye(3, dtype=F64), rtol=1e-13, atol=0)
+    # the model's Hessian, HVP and gradient include the term
+    H = model.hessian(x, "exact")
+    without = tb.ClothModel(model.topology, rest, density=0.2, membrane=model.membrane, bending=model.bending)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        diff = (H - without.hessian(x, "exact")).toarray()
+    assert abs(diff - torch.diag(term.k.repeat_interleave(3)).numpy()).max() <= 1e-9 * float(term.k.max())
+    assert torch.allclose(model.gradient(x) - without.gradient(x), term.k[:, None] * (x - term.a), rtol=1e-9,
+                          atol=1e-12)
+
+
+def test_a_term_without_a_hessian_says_what_to_define():
+    class EnergyOnly(tb.EnergyTerm):
+        name = "energy_only"
+
+        def energy(self, x, ctx):
+            return (x**4).sum()
+
+    rest, faces, _, _ = sheet()
+    model = tb.ClothModel(faces, rest, terms=[EnergyOnly()], pinned=[0])
+    with pytest.raises(NotImplementedError, match=r"EnergyOnly \('energy_only'\) must define hessian"):
+        tb.solve_static(model, rest)
+
+
+def test_terms_argument_is_checked():
+    rest, faces, mem, bend = sheet()
+    with pytest.raises(ValueError, match=r"terms\[1\] must be an EnergyTerm"):
+        tb.ClothModel(faces, rest, terms=[mem, "springs"])
+    with pytest.raises(ValueError, match=r"terms\[0\] is a second bending energy"):
+        tb.ClothModel(faces, rest, terms=[bend], bending=bend)
+    a = AnchorSprings(torch.ones(len(rest), dtype=F64), rest)
+    b = AnchorSprings(torch.ones(len(rest), dtype=F64), rest)
+    with pytest.raises(ValueError, match=r"the name 'anchors' .* is already taken"):
+        tb.ClothModel(faces, rest, terms=[a, b])
+    b.name = "gravity"
+    with pytest.raises(ValueError, match=r"the name 'gravity' .* is already taken"):
+        tb.ClothModel(faces, rest, terms=[b])
+    # the shorthands and terms= build the same model
+    sphere = tb.Sphere((0, 0, -1), 0.5)
+    m1 = tb.ClothModel(faces, rest, terms=[mem, bend, sphere])
+    m2 = tb.ClothModel(faces, rest, membrane=mem, bending=bend, colliders=[sphere])
+    assert [t.name for t in m1.terms] == [t.name for t in m2.terms] == ["membrane", "bending", "gravity", "collider0"]
+    assert m1.membrane is mem and m1.bending is bend and m1.colliders == (sphere,)
+
+
+def test_a_confining_term_lifts_the_rigid_body_diagnosis():
+    """Without pins or colliders a cloth under gravity is unbounded below, unless a term confines it."""
+    rest, faces, mem, _ = sheet()
+    free = tb.ClothModel(faces, rest, membrane=mem)
+    _, info = tb.solve_static(free, rest)
+    assert info.stop_reason == "rigid_body_modes"
+    model, rest, _ = springs_model()
+    assert not bool(model.pinned.any())
+    _, info = tb.solve_static(model, rest)
+    assert info.converged and info.stop_reason != "rigid_body_modes"

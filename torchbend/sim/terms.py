@@ -1,0 +1,312 @@
+r"""Energy terms of a cloth potential: the protocol the solvers iterate (:class:`EnergyTerm`), what a
+time step gives every term (:class:`StepContext`), and the built-in terms.
+
+A potential over positions ``x (V, 3)`` [m] is a sum of terms.  The solvers (:func:`~torchbend.solve_static`,
+:func:`~torchbend.implicit_euler_step`, :func:`~torchbend.solve_static_adjoint`) and
+:class:`~torchbend.ClothModel` only call the methods below, so a term of one's own plugs into all of them:
+
+========================================  ===================================================================
+``energy(x, ctx)``                        the term's energy [J], a 0-d tensor (required)
+``gradient(x, ctx)``                      ``dE/dx (V, 3)`` [N]; default: autograd of ``energy``
+``hvp(x, v, ctx, projection=None)``       ``H v (V, 3)``; default: double backward of ``energy`` (exact)
+``hessian(x, ctx, projection=None)``      ``(3V, 3V)`` torch sparse matrix [N/m]; default: from ``vertex_blocks``
+``vertex_blocks(x, ctx, projection)``     optional: ``(V, 3, 3)`` when the Hessian is block diagonal per vertex
+``max_step(x, dx, ctx)``                  the largest safe fraction of a step ``dx`` in ``(0, 1]``; default 1
+``begin_step(ctx)``                       stores lagged data of a time step in ``ctx.lagged[name]``
+``force_magnitudes(x, ctx)``              ``(V, 3)`` [N] magnitudes for the stopping test; default ``|gradient|``
+========================================  ===================================================================
+
+``projection`` is ``None`` (the exact Hessian) or a :class:`~torchbend.options.Projection`; a term that has no
+projection of its own returns its exact Hessian for every one (a term whose Hessian may be indefinite should
+project it, or the projected solvers lose their positive definite matrix).  ``name`` keys the term in
+:meth:`ClothModel.energies <torchbend.ClothModel.energies>`; ``confines`` says whether the term can hold a cloth
+that has no pinned vertex in place (a collider, a spring to fixed points: True, the default; gravity and the
+elastic terms, which are translation invariant or linear: False); ``contact`` marks the terms that the ``contact=``
+projection of :meth:`ClothModel.hessian <torchbend.ClothModel.hessian>` applies to.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from ..energies.bending import BendingEnergy
+from ..energies.colliders import Collider
+from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
+from ..options import Projection
+
+__all__ = ["EnergyTerm", "StepContext", "BendingTerm", "MembraneTerm", "GravityTerm", "ColliderTerm", "InertiaTerm",
+           "as_csr", "sparse_from_vertex_blocks"]
+
+
+@dataclass
+class StepContext:
+    """What a time step gives every term: the start positions ``x_prev (V, 3)`` [m] and velocities
+    ``v_prev (V, 3)`` [m/s], the step ``dt`` [s], the inertial target ``x_hat = x_prev + dt v_prev`` [m],
+    and ``lagged``: per-term data of the step, keyed by term name (filled by :meth:`EnergyTerm.begin_step`,
+    e.g. the previous hinge angles of a viscous bending term).  A static solve uses ``StepContext()``."""
+
+    x_prev: Tensor | None = None
+    v_prev: Tensor | None = None
+    dt: float | None = None
+    x_hat: Tensor | None = None
+    lagged: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether this is a time step (``dt`` given)."""
+        return self.dt is not None
+
+    @classmethod
+    def for_step(cls, terms, x_prev: Tensor, v_prev: Tensor, dt: float) -> StepContext:
+        """The context of a step of ``dt`` [s] from ``(x_prev, v_prev)``, with every term's
+        :meth:`~EnergyTerm.begin_step` called."""
+        ctx = cls(x_prev=x_prev, v_prev=v_prev, dt=float(dt), x_hat=x_prev + dt * v_prev)
+        for t in terms:
+            t.begin_step(ctx)
+        return ctx
+
+
+def as_csr(H: Tensor) -> Tensor:
+    """A term's Hessian as a torch sparse CSR matrix (from COO, CSR or a dense ``(3V, 3V)`` tensor)."""
+    if H.layout == torch.sparse_csr:
+        return H
+    if H.layout == torch.sparse_coo:
+        H = H.coalesce()
+    return H.to_sparse_csr()
+
+
+def sparse_from_vertex_blocks(blocks: Tensor) -> Tensor:
+    """The ``(3V, 3V)`` torch sparse CSR matrix with the ``(V, 3, 3)`` ``blocks`` on its diagonal."""
+    import warnings
+
+    V = blocks.shape[0]
+    dev = blocks.device
+    cols = (3 * torch.arange(V, device=dev)[:, None, None] + torch.arange(3, device=dev)).expand(V, 3, 3)
+    crow = torch.arange(0, 9 * V + 1, 3, device=dev)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, cols.reshape(-1), blocks.reshape(-1), size=(3 * V, 3 * V))
+
+
+class EnergyTerm:
+    """A term of the potential (module docstring).  Subclass it and define :meth:`energy`, and for the
+    solvers' exact second-order steps :meth:`hessian` or :meth:`vertex_blocks`; the other methods have
+    defaults (autograd for the derivatives)."""
+
+    name: str = "term"
+    confines: bool = True
+    contact: bool = False
+
+    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
+        raise NotImplementedError(f"{type(self).__name__} must define energy(x, ctx)")
+
+    def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self.energy(y, ctx), y)
+        return g
+
+    def hvp(self, x: Tensor, v: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        blocks = self.vertex_blocks(x, ctx, projection)
+        if blocks is not None:
+            return (blocks @ v[..., None])[..., 0]
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self.energy(y, ctx), y, create_graph=True)
+            (hv,) = torch.autograd.grad(g, y, v, allow_unused=True)
+        return torch.zeros_like(x) if hv is None else hv
+
+    def vertex_blocks(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor | None:
+        """``(V, 3, 3)`` [N/m] when the Hessian is block diagonal per vertex, else None (the default)."""
+        return None
+
+    def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        blocks = self.vertex_blocks(x, ctx, projection)
+        if blocks is None:
+            raise NotImplementedError(f"{type(self).__name__} ({self.name!r}) must define hessian(x, ctx, projection) "
+                                      f"or vertex_blocks(x, ctx, projection) for the solvers")
+        return sparse_from_vertex_blocks(blocks)
+
+    def block_diagonal(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        """The ``(V, 3, 3)`` diagonal blocks of :meth:`hessian` [N/m] (block-Jacobi, round-off estimates)."""
+        blocks = self.vertex_blocks(x, ctx, projection)
+        if blocks is not None:
+            return blocks
+        H = self.hessian(x, ctx, projection).to_sparse_coo().coalesce()
+        (r, c), val = H.indices(), H.values()
+        keep = (r // 3) == (c // 3)
+        out = x.new_zeros(x.shape[0] * 9)
+        return out.index_add(0, 9 * (r[keep] // 3) + 3 * (r[keep] % 3) + c[keep] % 3, val[keep].to(x.dtype)).reshape(-1, 3, 3)
+
+    def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
+        return 1.0
+
+    def begin_step(self, ctx: StepContext) -> None:
+        return None
+
+    def force_magnitudes(self, x: Tensor, ctx: StepContext) -> Tensor:
+        return self.gradient(x, ctx).abs()
+
+
+def _projection(projection) -> Projection:
+    return Projection.NONE if projection is None else Projection.parse(projection)
+
+
+class BendingTerm(EnergyTerm):
+    """A :class:`~torchbend.BendingEnergy` as a term; a viscous one lags the hinge angles of the start of
+    each step (``ctx.lagged["bending"]``)."""
+
+    contact = False
+    confines = False
+
+    def __init__(self, energy: BendingEnergy, name: str = "bending"):
+        self.module, self.name = energy, name
+
+    def _kw(self, ctx: StepContext) -> dict:
+        return ctx.lagged.get(self.name, {}) if ctx.dynamic else {}
+
+    def begin_step(self, ctx: StepContext) -> None:
+        if self.module.damping is not None and ctx.x_prev is not None:
+            ctx.lagged[self.name] = {"theta_prev": self.module.angles(ctx.x_prev).detach(), "dt": ctx.dt}
+
+    def energy(self, x, ctx):
+        return self.module(x, **self._kw(ctx))
+
+    def gradient(self, x, ctx):
+        return self.module.gradient(x, **self._kw(ctx))
+
+    def hvp(self, x, v, ctx, projection=None):
+        return self.module.hvp(x, v, project=_projection(projection), **self._kw(ctx))
+
+    def hessian(self, x, ctx, projection=None):
+        return self.module.hessian(x, project=_projection(projection), **self._kw(ctx))
+
+    def block_diagonal(self, x, ctx, projection=None):
+        Hb = self.module.hinge_hessians(x, project=_projection(projection), **self._kw(ctx))
+        Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
+        diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
+        return x.new_zeros(x.shape[0], 3, 3).index_add(0, self.module.hinges.reshape(-1), diag.reshape(-1, 3, 3))
+
+
+class MembraneTerm(EnergyTerm):
+    """A :class:`~torchbend.MembraneEnergy` as a term (a projection it does not support is mapped to the
+    nearest one it does)."""
+
+    contact = False
+    confines = False
+
+    def __init__(self, energy: MembraneEnergy, name: str = "membrane"):
+        self.module, self.name = energy, name
+
+    def energy(self, x, ctx):
+        return self.module(x)
+
+    def gradient(self, x, ctx):
+        return self.module.gradient(x)
+
+    def hvp(self, x, v, ctx, projection=None):
+        return self.module.hvp(x, v, project=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
+
+    def hessian(self, x, ctx, projection=None):
+        return self.module.hessian(x, project=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
+
+    def block_diagonal(self, x, ctx, projection=None):
+        p = _projection(projection).restricted(MEMBRANE_PROJECTIONS)
+        He = self.module.element_hessians(x, project=p).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
+        diag = torch.stack([He[:, k, :, k, :] for k in range(3)], 1)  # (T, 3, 3, 3)
+        return x.new_zeros(x.shape[0], 3, 3).index_add(0, self.module.faces.reshape(-1), diag.reshape(-1, 3, 3))
+
+
+class GravityTerm(EnergyTerm):
+    """``-sum_i m_i g . x_i`` [J] for lumped masses ``mass (V,)`` [kg] and ``gravity (3,)`` [m/s^2]."""
+
+    contact = False
+    confines = False
+
+    def __init__(self, mass: Tensor, gravity: Tensor, name: str = "gravity"):
+        self.mass, self.gravity, self.name = mass, gravity, name
+
+    def force(self, dtype=None) -> Tensor:
+        """``m_i g (V, 3)`` [N]."""
+        return (self.mass[:, None] * self.gravity[None, :]).to(dtype or self.mass.dtype)
+
+    def energy(self, x, ctx):
+        return -(self.force(x.dtype) * x).sum()
+
+    def gradient(self, x, ctx):
+        return -self.force(x.dtype).clone()
+
+    def vertex_blocks(self, x, ctx, projection=None):
+        return x.new_zeros(x.shape[0], 3, 3)
+
+    def force_magnitudes(self, x, ctx):
+        return self.force(x.dtype).abs()
+
+
+class ColliderTerm(EnergyTerm):
+    """A collider (:class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule`) as a
+    term: per-vertex Hessian blocks (the curvature term dropped for every projection), and the continuous
+    step bound with penetration ``depth`` [m]."""
+
+    contact = True
+    confines = True
+
+    def __init__(self, collider: Collider, depth: float | Callable[[], float], name: str = "collider"):
+        self.collider, self._depth, self.name = collider, depth, name
+
+    @property
+    def depth(self) -> float:
+        """The penetration [m] a vertex may reach in one step (a callable given is evaluated on first use)."""
+        return float(self._depth() if callable(self._depth) else self._depth)
+
+    def energy(self, x, ctx):
+        return self.collider.energy(x)
+
+    def gradient(self, x, ctx):
+        return self.collider.gradient(x)
+
+    def vertex_blocks(self, x, ctx, projection=None):
+        return self.collider.hessian_blocks(x, project=_projection(projection))
+
+    def max_step(self, x, dx, ctx):
+        return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
+
+
+class InertiaTerm(EnergyTerm):
+    """The inertia of an implicit-Euler step, ``sum_i m_i |x_i - x_hat_i|^2 / (2 dt^2)`` [J] (zero in a
+    static context); its force magnitudes include the inertial force ``m_i v_prev_i / dt`` of the step's start."""
+
+    contact = False
+    confines = True
+
+    def __init__(self, mass: Tensor, name: str = "inertia"):
+        self.mass, self.name = mass, name
+
+    def _w(self, x: Tensor, ctx: StepContext) -> Tensor:
+        assert ctx.dt is not None
+        return self.mass.to(device=x.device, dtype=x.dtype)[:, None] / (ctx.dt * ctx.dt)
+
+    def energy(self, x, ctx):
+        if not ctx.dynamic or ctx.x_hat is None:
+            return x.new_zeros(())
+        return 0.5 * (self._w(x, ctx) * (x - ctx.x_hat) ** 2).sum()
+
+    def gradient(self, x, ctx):
+        if not ctx.dynamic or ctx.x_hat is None:
+            return torch.zeros_like(x)
+        return self._w(x, ctx) * (x - ctx.x_hat)
+
+    def vertex_blocks(self, x, ctx, projection=None):
+        if not ctx.dynamic:
+            return x.new_zeros(x.shape[0], 3, 3)
+        return torch.diag_embed(self._w(x, ctx).expand(-1, 3))
+
+    def force_magnitudes(self, x, ctx):
+        out = self.gradient(x, ctx).abs()
+        if ctx.dynamic and ctx.v_prev is not None:
+            assert ctx.dt is not None
+            out = out + (self.mass.to(device=x.device, dtype=x.dtype)[:, None] * ctx.v_prev / ctx.dt).abs()
+        return out
