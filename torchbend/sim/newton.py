@@ -82,7 +82,6 @@ NumPy/SciPy on the CPU and its results are moved back explicitly.
 """
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import operator
@@ -100,7 +99,7 @@ from .curvature import curvature_tolerance, smallest_eigenpair
 from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
-from .terms import InertiaTerm, StepContext
+from .terms import InertiaTerm, StepContext, softens
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
 
@@ -186,10 +185,13 @@ class _Potential:
 
     max_cg_iters: int | None = None
 
-    def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None):
+    def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None,
+                 soften: float | None = None):
         self.model, self.option = model, option
         self.ctx = ctx or StepContext()
         terms = model.terms
+        if soften is not None:
+            terms = tuple((t.softened(soften) or t) if softens(t) else t for t in terms)
         self.terms = terms + (InertiaTerm(model.mass),) if self.ctx.dynamic else terms
         self.free_mask = (~model.pinned).to(x.device).repeat_interleave(3)
         self.free = self.free_mask.cpu().numpy()
@@ -433,15 +435,16 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
 
 
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
-            max_iters: int, ctx: StepContext | None = None,
+            max_iters: int, ctx: StepContext | None = None, soften: float | None = None,
             check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
             time_limit: float | None = None, max_cg_iters: int | None = None,
             max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
     """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified) in the step context
-    ``ctx`` (None: static).  Returns ``(x, info)``: the converged iterate, or the best one on failure
+    ``ctx`` (None: static), with the terms that take part in the stiffness homotopy scaled by ``soften``
+    (:meth:`~torchbend.sim.terms.EnergyTerm.softened`; None: as they are).  Returns ``(x, info)``: the converged iterate, or the best one on failure
     (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
     (``time_limit`` [s], for the message)."""
-    phi = _Potential(model, x0, option, ctx)
+    phi = _Potential(model, x0, option, ctx, soften)
     phi.max_cg_iters = max_cg_iters
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
@@ -833,7 +836,7 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
         info = merged
     if info.converged or mode is None or info.stop_reason in _FINAL_STOPS:
         return x, info
-    if mode in ("auto", "membrane") and model.membrane is not None:
+    if mode in ("auto", "membrane") and any(softens(t) for t in model.terms):
         x, info = _membrane_homotopy(model, x, info, option, linear, ctl)
         if info.converged or mode == "membrane" or info.stop_reason in _FINAL_STOPS:
             return x, info
@@ -867,18 +870,6 @@ def _continuation_mode(continuation) -> str | None:
     raise ValueError(f"continuation must be 'auto', 'membrane', 'relaxation', True, False or None, got {continuation!r}")
 
 
-def _softened(model: ClothModel, factor: float) -> ClothModel:
-    """A shallow copy of ``model`` whose membrane moduli are scaled by ``factor`` (``model`` unchanged)."""
-    mem = copy.copy(model.membrane)
-    assert mem is not None
-    mem._buffers = dict(mem._buffers)  # noqa: SLF001 - own buffer dict: the user's module keeps its moduli
-    mem.mu = mem.mu * factor
-    mem.lam = mem.lam * factor
-    out = copy.copy(model)
-    out.membrane = mem
-    return out
-
-
 def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection,
                        linear: LinearSolver, ctl: _Controls) -> tuple[Tensor, SolveInfo]:
     """The membrane-stiffness homotopy of :func:`solve_static` from ``x_start`` (the best iterate of the
@@ -888,8 +879,7 @@ def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, opt
     infos, x = [first], x_start
     stage_kw = dict(ctl.newton_kw(), tol=max(ctl.tol, 1e-6), check_minimum=False, callback=None)
     for factor in _HOMOTOPY_FACTORS:
-        x, info = _newton(_softened(model, factor), x, option=option, linear=linear,
-                          **stage_kw)
+        x, info = _newton(model, x, option=option, linear=linear, soften=factor, **stage_kw)
         infos.append(info)
         if info.stop_reason in _FINAL_STOPS:
             break

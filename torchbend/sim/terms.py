@@ -26,6 +26,7 @@ projection of :meth:`ClothModel.hessian <torchbend.ClothModel.hessian>` applies 
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -38,7 +39,7 @@ from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..options import Projection
 
 __all__ = ["EnergyTerm", "StepContext", "BendingTerm", "MembraneTerm", "GravityTerm", "ColliderTerm", "InertiaTerm",
-           "as_csr", "sparse_from_vertex_blocks"]
+           "as_csr", "softens", "sparse_from_vertex_blocks"]
 
 
 @dataclass
@@ -150,6 +151,16 @@ class EnergyTerm:
     def force_magnitudes(self, x: Tensor, ctx: StepContext) -> Tensor:
         return self.gradient(x, ctx).abs()
 
+    def softened(self, factor: float) -> EnergyTerm | None:
+        """The term with its stiffness scaled by ``factor`` for the stiffness homotopy of
+        :func:`~torchbend.solve_static` (``continuation``), or None (the default): not part of it."""
+        return None
+
+
+def softens(term: EnergyTerm) -> bool:
+    """Whether ``term`` takes part in the stiffness homotopy (defines :meth:`EnergyTerm.softened`)."""
+    return type(term).softened is not EnergyTerm.softened
+
 
 def _projection(projection) -> Projection:
     return Projection.NONE if projection is None else Projection.parse(projection)
@@ -212,6 +223,14 @@ class MembraneTerm(EnergyTerm):
 
     def hessian(self, x, ctx, projection=None):
         return self.module.hessian(x, project=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
+
+    def softened(self, factor: float) -> MembraneTerm:
+        """The membrane with its moduli scaled by ``factor`` (a copy: the user's module keeps its own)."""
+        mem = copy.copy(self.module)
+        mem._buffers = dict(mem._buffers)  # noqa: SLF001 - own buffer dict: the user's module keeps its moduli
+        mem.mu = mem.mu * factor
+        mem.lam = mem.lam * factor
+        return MembraneTerm(mem, self.name)
 
     def block_diagonal(self, x, ctx, projection=None):
         p = _projection(projection).restricted(MEMBRANE_PROJECTIONS)
