@@ -313,9 +313,22 @@ static inline void scatter_blocks(T* values, const int64_t* base, const int64_t*
   }
 }
 
-// the block bases bp[0 .. m m) of an element (vertices ev[0 .. m)): each base of the vertex pair (a, b) lies in the
-// first scalar row of block row ev[a] with its 3 columns, so that the block's rows base + p row_len (p < 3) stay
-// inside that block row (checked by the assembly as it reads them, before their scatter)
+// names the first base bp[i] of an element (vertices ev[0 .. m)) outside the first scalar row of its block row
+// ev[i / m] with its 3 columns (so that the block's rows base + p row_len (p < 3) would leave that block row)
+template <int m>
+[[noreturn, gnu::cold, gnu::noinline]] static void report_element_bases(const char* name, int64_t e, const int64_t* bp, const int64_t* ev,
+                                              const int64_t* rs, const int64_t* rl) {
+  for (int i = 0; i < m * m; ++i) {
+    int64_t v = ev[i / m], r0 = rs[v];
+    if (bp[i] < r0 || bp[i] > r0 + rl[v] - 3)
+      torchbend::checks::fail("assemble", name, "[", e, ", ", i, "] = ", bp[i], " is not a block of row ", v,
+                              " of the pattern (its first scalar row spans [", r0, ", ", r0 + rl[v], "))");
+  }
+  torchbend::checks::fail("assemble", name, "[", e, "]: a block base outside its block row");
+}
+
+// the block bases bp[0 .. m m) of an element checked against its block rows (checked by the assembly as it reads
+// them, before their scatter; the hinges' check is fused into the assembly's reach loop)
 template <int m>
 static inline void check_element_bases(const char* name, int64_t e, const int64_t* bp, const int64_t* ev,
                                        const int64_t* rs, const int64_t* rl) {
@@ -325,17 +338,28 @@ static inline void check_element_bases(const char* name, int64_t e, const int64_
     const int64_t lo = rs[ev[a]], hi = lo + rl[ev[a]] - 3;
     for (int b = 0; b < m; ++b) bad |= int(bp[m * a + b] < lo) | int(bp[m * a + b] > hi);
   }
-  if (!bad) return;
-  for (int i = 0; i < m * m; ++i) {
-    int64_t v = ev[i / m], r0 = rs[v];
-    if (bp[i] < r0 || bp[i] > r0 + rl[v] - 3)
-      torchbend::checks::fail("assemble", name, "[", e, ", ", i, "] = ", bp[i], " is not a block of row ", v,
-                              " of the pattern (its first scalar row spans [", r0, ", ", r0 + rl[v], "))");
-  }
+  if (bad) report_element_bases<m>(name, e, bp, ev, rs, rl);
+}
+
+// the failure paths of assemble_impl's fused index checks, out of line (the hot loop keeps only the tests)
+static torch::Tensor index_view(const int64_t* p, int64_t n, int64_t m) {  // the caller's array as a tensor (no copy)
+  return torch::from_blob(const_cast<int64_t*>(p), {n, m}, torch::kLong);
+}
+
+[[gnu::cold, gnu::noinline]] static void assemble_bad_hinges(const int64_t* hinges, int64_t H, int64_t V) {
+  check_hinge_range("assemble", index_view(hinges, H, 4), V);
+}
+
+[[gnu::cold, gnu::noinline]] static void assemble_bad_faces(const int64_t* faces, const int64_t* fes, int64_t F, int64_t V) {
+  namespace ck = torchbend::checks;
+  ck::check_range("assemble", "faces", index_view(faces, F, 3), 0, V, "x has V = " + std::to_string(V) + " vertices");
+  for (int64_t i = 0; i < 3 * F; ++i)
+    if (fes[i] != 1 && fes[i] != -1)
+      ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
 }
 
 template <typename T>
-static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
+[[gnu::flatten]] static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
                           Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
                           const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
                           const int64_t* row_len, const int64_t* rs, int64_t V, int64_t F, bool per_triangle,
@@ -343,16 +367,8 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
   namespace ck = torchbend::checks;
   // the index arguments are checked as the assembly reads them, each before its first use (one pass over them
   // that the assembly makes anyway); the first offending entry in memory order is named
-  auto view = [](const int64_t* p, int64_t n, int64_t m) {  // the caller's array as a tensor (no copy)
-    return torch::from_blob(const_cast<int64_t*>(p), {n, m}, torch::kLong);
-  };
-  auto bad_hinge = [&]() { check_hinge_range("assemble", view(hinges, H, 4), V); };
-  auto bad_face = [&]() {
-    ck::check_range("assemble", "faces", view(faces, F, 3), 0, V, "x has V = " + std::to_string(V) + " vertices");
-    for (int64_t i = 0; i < 3 * F; ++i)
-      if (fes[i] != 1 && fes[i] != -1)
-        ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
-  };
+  auto bad_hinge = [&]() { assemble_bad_hinges(hinges, H, V); };
+  auto bad_face = [&]() { assemble_bad_faces(faces, fes, F, V); };
   std::vector<T> d1s(per_triangle ? H : 0);
   // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
   // vertex blocks include the face's 9, so that its scatter finds them in cache (a separate pass over the faces
@@ -394,12 +410,18 @@ static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T>
       load_hinge<T, W>(x, q, X, l);
       hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
                       damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
-      check_element_bases<4>("hinge_blocks", h, hblk + 16 * h, hinges + 4 * h, rs, row_len);
+      // the reach of the hinge's blocks, and (fused, from the same loads) whether every base of block row q[va]
+      // lies in that row's first scalar row with its 3 columns (check_element_bases names the first that does not)
+      int bad = 0;
       for (int va = 0; va < 4; ++va) {
         const int64_t* base = hblk + 16 * h + 4 * va;
-        int64_t end = std::max(std::max(base[0], base[1]), std::max(base[2], base[3])) + 2 * row_len[hinges[4 * h + va]] + 3;
-        reach = std::max(reach, end);
+        const int64_t lo = std::min(std::min(base[0], base[1]), std::min(base[2], base[3]));
+        const int64_t hi = std::max(std::max(base[0], base[1]), std::max(base[2], base[3]));
+        const int64_t rl = row_len[q[va]];
+        if (ck::kChecked) bad |= int(lo < rs[q[va]]) | int(hi > rs[q[va]] + rl - 3);
+        reach = std::max(reach, hi + 2 * rl + 3);
       }
+      if (bad) report_element_bases<4>("hinge_blocks", h, hblk + 16 * h, q, rs, row_len);
     }
     if (reach > zeroed) { std::fill(values + zeroed, values + reach, T(0)); zeroed = reach; }
     if (!per_triangle) {
