@@ -143,15 +143,6 @@ def cg_section(mats) -> None:
         print("\n    ".join(row), flush=True)
 
 
-def run_with(preconditioner, fn):
-    old = getattr(newton._Potential, "preconditioner", None)
-    newton._Potential.preconditioner = preconditioner  # type: ignore[attr-defined]
-    try:
-        return fn()
-    finally:
-        newton._Potential.preconditioner = old  # type: ignore[attr-defined]
-
-
 def solve_section(warm: int) -> None:
     configs = [("direct", None), ("cg", "auto"), ("cg", "block_jacobi"), ("cg", "ilu")]
     if linear.has_pyamg():
@@ -172,7 +163,8 @@ def solve_section(warm: int) -> None:
     for name, fn in cases:
         base = None
         for ls, pre in configs:
-            sec, (_, info) = best_seconds(lambda fn=fn, ls=ls, pre=pre: run_with(pre, lambda: fn(ls)))
+            solver = tb.LinearSolver(ls, preconditioner=pre or "auto")
+            sec, (_, info) = best_seconds(lambda fn=fn, solver=solver: fn(solver))
             base = sec if base is None else base
             label = ls if pre is None else f"cg/{pre}"
             print(f"{name:40s} {label:16s} {'ok ' if info.converged else 'NO '} {info.iterations:3d} Newton "

@@ -270,7 +270,7 @@ def test_cg_direction_retries_block_jacobi_after_a_breakdown(monkeypatch):
     assert broken.breakdown and float(b @ broken.x) > 0  # a descent direction, but a poor one
     assert np.linalg.norm(broken.x.numpy() - p_direct) > 1e-2 * np.linalg.norm(p_direct)
     monkeypatch.setattr(linear, "ilu", lambda A, like, **kw: indefinite)
-    phi.preconditioner = "ilu"  # type: ignore[attr-defined]
+    phi.linear = newton.LinearSolver("cg", preconditioner="ilu")
     p_cg, _ = phi.cg_direction(x, gf, relative_residual=0.0)
     assert phi.linear_method == "cg/block_jacobi"
     assert np.linalg.norm(p_cg - p_direct) <= 1e-6 * np.linalg.norm(p_direct)
@@ -338,12 +338,11 @@ def test_cg_direction_matches_direct_direction():
         p_direct, shifts = phi.direct_direction(x, gf)
         assert shifts == 0 and phi.positive_definite is True and phi.linear_method == "lu"
         for pre in ("auto", "block_jacobi", "ilu"):
-            phi.preconditioner = pre  # type: ignore[attr-defined]
+            phi.linear = newton.LinearSolver("cg", preconditioner=pre)
             p_cg, its = phi.cg_direction(x, gf, relative_residual=0.0)  # the tightest forcing term
             assert its >= 1 and phi.linear_method.startswith("cg/")
             assert np.linalg.norm(p_cg - p_direct) <= 1e-6 * np.linalg.norm(p_direct), (option, pre)
-        phi.max_cg_iters = 2  # type: ignore[attr-defined]
-        phi.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
+        phi = newton._Potential(model, x, option, linear=newton.LinearSolver("cg", "block_jacobi", max_cg_iters=2))
         p2, its = phi.cg_direction(x, gf, relative_residual=0.0)
         assert its <= 2 and float(gf @ p2) < 0  # truncated, still a descent direction
 
@@ -362,9 +361,7 @@ def test_without_the_optional_back_ends(monkeypatch):
     phi = newton._Potential(model, rest, Projection.CLAMP)
     M, used = linear.make_preconditioner("amg", phi.free_hessian(rest), phi.hessian_op)
     assert used is linear.Preconditioner.BLOCK_JACOBI
-    monkeypatch.setattr(newton._Potential, "preconditioner", "amg", raising=False)
-    monkeypatch.setattr(newton._Potential, "cholesky", True, raising=False)
-    for solver in ("cg", "direct"):
+    for solver in (newton.LinearSolver("cg", preconditioner="amg"), newton.LinearSolver("direct", cholesky=True)):
         x, info = solve_static(model, rest, linear_solver=solver, tol=1e-8)
         assert info.converged, (solver, info.message)
 
@@ -379,6 +376,39 @@ def test_unknown_preconditioner_is_a_value_error():
     partial[1] = False  # one coordinate of a vertex: the free DOFs must be whole vertices
     with pytest.raises(ValueError, match="free_mask must be a"):
         linear.FreeHessian(model, partial)
+
+
+def test_linear_solver_options_object(monkeypatch):
+    """``tb.LinearSolver`` carries the linear-solve options into the solvers (no private attributes): the
+    preconditioner and the CG bound it names are the ones used; bad fields are ValueErrors naming them."""
+    import torchbend as tb
+
+    assert tb.LinearSolver.parse("cg") == tb.LinearSolver("cg") and tb.LinearSolver().is_direct
+    assert tb.LinearSolver.DIRECT is newton.LinearMethod.DIRECT
+    cases: tuple[tuple[dict, str], ...] = (({"method": "qr"}, "linear_solver must be one of"),
+                    ({"preconditioner": "jacobi"}, "preconditioner must be one of"),
+                    ({"cholesky": "yes"}, "cholesky must be True or False"),
+                    ({"max_cg_iters": 0}, "max_cg_iters must be an int >= 1"))
+    for kw, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            tb.LinearSolver(**kw)
+    model, rest, _ = cantilever(6, 3)
+    used, caps = [], []
+    real_make, real_pcg = newton.make_preconditioner, newton.pcg
+
+    def make(kind, A, fh):
+        used.append(linear.Preconditioner.parse(kind))
+        return real_make(kind, A, fh)
+
+    def pcg(apply, b, M, *, tol, maxiter, **kw):
+        caps.append(maxiter)
+        return real_pcg(apply, b, M, tol=tol, maxiter=maxiter, **kw)
+
+    monkeypatch.setattr(newton, "make_preconditioner", make)
+    monkeypatch.setattr(newton, "pcg", pcg)
+    tb.solve_static(model, rest, linear_solver=tb.LinearSolver("cg", preconditioner="block_jacobi", max_cg_iters=7),
+                    max_iters=3, continuation=False)
+    assert used and set(used) == {linear.Preconditioner.BLOCK_JACOBI} and set(caps) == {7}
 
 
 # -------------------------------------------------------------------- device-following
@@ -404,12 +434,11 @@ def test_cg_path_follows_the_device_and_reads_the_host_only_every_few_iterations
     the stopping test read once every ``check_every`` iterations."""
     model, rest, _ = cantilever(8, 3, young=1e9, t=1e-3)  # stiff: many block-Jacobi iterations
     x = rest + 1e-4 * torch.randn_like(rest) * (~model.pinned)[:, None]
-    phi = newton._Potential(model, x, Projection.CLAMP)
-    phi.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
-    gf = phi.free_gradient(x)
     copies = {}
     for cap in (4, 16):
-        phi.max_cg_iters = cap  # type: ignore[attr-defined]
+        phi = newton._Potential(model, x, Projection.CLAMP,
+                                linear=newton.LinearSolver("cg", preconditioner="block_jacobi", max_cg_iters=cap))
+        gf = phi.free_gradient(x)
         recorder, transfers = DevicelessFactories(), HostTransfers()
         with recorder:  # (one mode at a time: a nested mode would hide the calling frame)
             p, its = phi.cg_direction(x, gf, relative_residual=0.0)
@@ -429,17 +458,14 @@ def test_cg_path_follows_the_device_and_reads_the_host_only_every_few_iterations
     assert transfers.counts.get("__bool__", 0) <= 64 // 8 + 3  # the device-side stopping test, read every 8
     # and whole solves through that path leave nothing on a default device
     recorder = DevicelessFactories()
-    try:
-        newton._Potential.preconditioner = "block_jacobi"  # type: ignore[attr-defined]
-        with recorder:
-            m5, r5, _ = cantilever(5, 3)
-            x5, info = solve_static(m5, r5, linear_solver="cg", tol=1e-8)
-            assert info.converged, info.message
-            scene, x0 = drape_model(5)
-            state, info = implicit_euler_step(scene, ClothState(x0, torch.zeros_like(x0)), 0.01, linear_solver="cg")
-            assert info.converged, info.message
-    finally:
-        del newton._Potential.preconditioner  # type: ignore[attr-defined]
+    cg = newton.LinearSolver("cg", preconditioner="block_jacobi")
+    with recorder:
+        m5, r5, _ = cantilever(5, 3)
+        x5, info = solve_static(m5, r5, linear_solver=cg, tol=1e-8)
+        assert info.converged, info.message
+        scene, x0 = drape_model(5)
+        state, info = implicit_euler_step(scene, ClothState(x0, torch.zeros_like(x0)), 0.01, linear_solver=cg)
+        assert info.converged, info.message
     assert recorder.seen > 0 and recorder.calls == [], recorder.calls
 
 

@@ -176,3 +176,28 @@ def test_a_confining_term_lifts_the_rigid_body_diagnosis():
     assert not bool(model.pinned.any())
     _, info = tb.solve_static(model, rest)
     assert info.converged and info.stop_reason != "rigid_body_modes"
+
+
+def test_cloth_loss_of_the_model_terms_is_the_model_potential():
+    """``model.loss()`` composes the model's own term objects over a batch: per sample, its values are the
+    model's energies and its total the potential, and its autograd gradient is the model's gradient."""
+    model, rest, springs = springs_model()
+    model.colliders = (tb.Sphere((0.15, 0.15, -0.3), 0.3),)
+    gen = torch.Generator().manual_seed(3)
+    x = rest + 0.01 * torch.randn((4, *rest.shape), generator=gen, dtype=F64)
+    loss = model.loss(reduction="none")
+    assert set(loss.terms) == {"membrane", "bending", "gravity", "collider0", "anchors"}
+    total, values = loss(x)
+    for i in range(len(x)):
+        e = model.energies(x[i])
+        for name, v in e.items():
+            assert abs(float(values[name][i]) - v) <= 1e-13 * max(abs(v), 1e-30), name
+        assert abs(float(total[i]) - model.potential(x[i])) <= 1e-12 * sum(abs(v) for v in e.values())
+    y = x[1].clone().requires_grad_(True)
+    summed, _ = model.loss(reduction="sum")(y[None])
+    (g,) = torch.autograd.grad(summed, y)
+    ref = model.gradient(x[1])
+    assert float((g - ref).abs().max()) <= 1e-9 * float(ref.abs().max())
+    # an empty batch
+    empty, _ = model.loss()(x[:0])
+    assert float(empty) == 0.0

@@ -47,7 +47,7 @@ from ..ops.psi import BendingModel
 from ..options import Projection
 from ..robot import LinkCapsule, LinkPins, Robot, RobotScene
 from ..sim import ClothModel
-from ..sim.newton import LinearSolver
+from ..sim.newton import LinearMethod
 
 __all__ = [
     "ConfigError", "Section", "SceneConfig", "load_config", "validate", "apply_overrides", "build_scene",
@@ -399,7 +399,7 @@ class SolverSection(Section):
     load_steps: PositiveInt = 1
 
     _check_hessian = field_validator("hessian")(_option(Projection, "Hessian projection"))
-    _check_linear = field_validator("linear_solver")(_option(LinearSolver, "linear solver"))
+    _check_linear = field_validator("linear_solver")(_option(LinearMethod, "linear solver"))
 
 
 class OutputSection(Section):

@@ -26,9 +26,10 @@ from ..energies.bending import BendingEnergy
 from ..energies.colliders import Collider
 from ..energies.membrane import MembraneEnergy
 from ..energies.sparse import to_scipy
+from ..losses.cloth_loss import ClothLoss
 from ..mesh.topology import lumped_areas, mesh_and_rest
 from ..options import Projection
-from .terms import BendingTerm, ColliderTerm, EnergyTerm, GravityTerm, MembraneTerm, StepContext, as_csr
+from .terms import BendingTerm, ColliderTerm, EnergyTerm, GravityTerm, MembraneTerm, StepContext, TermLoss, as_csr
 
 __all__ = ["ClothModel", "ClothState"]
 
@@ -130,6 +131,14 @@ class ClothModel:
             out.extend(ColliderTerm(c, depth, name=f"collider{i}") for i, c in enumerate(self.colliders))
         out.extend(self.extra_terms)
         return tuple(out)
+
+    def loss(self, weights=None, *, reduction: str = "mean", ctx: StepContext | None = None) -> ClothLoss:
+        """The model's potential as a :class:`~torchbend.ClothLoss` over batches of positions ``(B, V, 3)``:
+        one :class:`~torchbend.sim.terms.TermLoss` per term of :attr:`terms`, named as the terms, so that
+        training and the solvers minimise the same term objects (for one state, ``loss(x)`` with
+        ``reduction="sum"`` equals :meth:`potential` to round-off).  ``weights``, ``reduction`` as in
+        ``ClothLoss``; ``ctx``: a time step's :class:`StepContext` (default static)."""
+        return ClothLoss({t.name: TermLoss(t, ctx) for t in self.terms}, weights, reduction=reduction)
 
     def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext | None = None) -> float:
         """The largest fraction ``alpha`` in ``(0, 1]`` of the step ``dx (V, 3)`` [m] from ``x (V, 3)`` [m]

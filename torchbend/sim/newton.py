@@ -87,7 +87,7 @@ import math
 import operator
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 import torch
@@ -101,7 +101,7 @@ from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solv
 from .model import ClothModel, ClothState
 from .terms import InertiaTerm, StepContext, softens
 
-__all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "solve_static", "implicit_euler_step"]
+__all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "LinearMethod", "solve_static", "implicit_euler_step"]
 
 _log = logging.getLogger("torchbend.sim")
 _INFO_AFTER_S = 5.0
@@ -114,13 +114,55 @@ _MAX_ESCAPES = 10
 """Negative-curvature steps at most per Newton solve."""
 
 
-class LinearSolver(Option):
+class LinearMethod(Option):
     """How Newton directions are solved: sparse direct factorisation or matrix-free CG."""
 
     __label__ = "linear_solver"
 
     DIRECT = "direct"
     CG = "cg"
+
+
+@dataclass(frozen=True)
+class LinearSolver:
+    """The linear solves of the Newton directions, ``linear_solver=`` of :func:`solve_static`,
+    :func:`implicit_euler_step` and :func:`~torchbend.solve_static_adjoint` (a string is the ``method``):
+
+    * ``method``: ``"direct"`` (sparse factorisation on the CPU) or ``"cg"`` (truncated preconditioned CG on
+      the positions' device);
+    * ``preconditioner`` (CG): ``"auto"`` (the incomplete ``L |D| L^T`` factorisation on the CPU,
+      block-Jacobi elsewhere), ``"block_jacobi"``, ``"ilu"`` or ``"amg"`` (needs ``pyamg``);
+    * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; LU when it fails);
+    * ``max_cg_iters`` (CG): iterations per direction at most (``None``: ``min(2 n, max(100, 20 sqrt(n)))``).
+
+    ``tb.LinearSolver("cg", preconditioner="amg")``; invalid values are a ``ValueError`` naming the field."""
+
+    method: LinearMethod | str = "direct"
+    preconditioner: Preconditioner | str = "auto"
+    cholesky: bool = False
+    max_cg_iters: int | None = None
+
+    DIRECT: ClassVar[LinearMethod] = LinearMethod.DIRECT
+    CG: ClassVar[LinearMethod] = LinearMethod.CG
+
+    def __post_init__(self):
+        object.__setattr__(self, "method", LinearMethod.parse(self.method))
+        object.__setattr__(self, "preconditioner", Preconditioner.parse(self.preconditioner))
+        if not isinstance(self.cholesky, bool):
+            raise ValueError(f"LinearSolver: cholesky must be True or False, got {self.cholesky!r}")
+        if self.max_cg_iters is not None:
+            object.__setattr__(self, "max_cg_iters", _int_at_least(self.max_cg_iters, "LinearSolver: max_cg_iters", 1))
+
+    @classmethod
+    def parse(cls, value) -> LinearSolver:
+        """A :class:`LinearSolver` from one, or from a method name (``"direct"``, ``"cg"``)."""
+        if isinstance(value, LinearSolver):
+            return value
+        return cls(method=value)
+
+    @property
+    def is_direct(self) -> bool:
+        return self.method is LinearMethod.DIRECT
 
 
 SOLVER_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.ABS, Projection.GAUSS_NEWTON,
@@ -186,8 +228,10 @@ class _Potential:
     max_cg_iters: int | None = None
 
     def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None,
-                 soften: float | None = None):
+                 soften: float | None = None, linear: LinearSolver | None = None):
         self.model, self.option = model, option
+        self.linear = linear or LinearSolver()
+        self.max_cg_iters = self.linear.max_cg_iters
         self.ctx = ctx or StepContext()
         terms = model.terms
         if soften is not None:
@@ -256,10 +300,10 @@ class _Potential:
 
     def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
-        sparse Cholesky first if the ``cholesky`` attribute is true); ``(p, Levenberg shifts)``; sets
+        sparse Cholesky first if ``linear.cholesky``); ``(p, Levenberg shifts)``; sets
         ``positive_definite`` and ``linear_method``."""
         res = direct_solve(self.hessian_op.to_scipy(self.free_hessian(x)), -gf,
-                           cholesky=bool(getattr(self, "cholesky", False)))
+                           cholesky=self.linear.cholesky)
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
         return res.p, res.shifts
 
@@ -267,8 +311,8 @@ class _Potential:
         """Newton direction by truncated preconditioned CG (:func:`~torchbend.sim.linear.pcg`) on the
         assembled free Hessian, on ``x``'s device, to the forcing term ``min(0.1, sqrt(|g| / scale)) / 100``
         (at least 1e-10 and 100 eps of ``x``'s dtype),
-        at most ``max_cg_iters`` iterations (attribute; ``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
-        The preconditioner is the ``preconditioner`` attribute (default ``"auto"``); if its CG breaks down on a
+        at most ``max_cg_iters`` iterations (``None``: :func:`~torchbend.sim.linear.cg_iteration_bound`).
+        The preconditioner is ``linear.preconditioner`` (:class:`LinearSolver`); if its CG breaks down on a
         projected Hessian or near a minimum (``near_minimum``: the incomplete factorisation is not positive
         definite) or its direction is not a descent direction,
         block-Jacobi (SPD) is tried, and of the two descent directions the one with the lower quadratic model
@@ -277,9 +321,8 @@ class _Potential:
         A = self.free_hessian(x)
         b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
         tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10, 100 * torch.finfo(x.dtype).eps)
-        maxiter = cg_iteration_bound(len(gf), getattr(self, "max_cg_iters", None))
-        kind = getattr(self, "preconditioner", None) or Preconditioner.AUTO
-        M, used = make_preconditioner(kind, A, self.hessian_op)
+        maxiter = cg_iteration_bound(len(gf), self.max_cg_iters)
+        M, used = make_preconditioner(self.linear.preconditioner, A, self.hessian_op)
         res = pcg(lambda d: A @ d, b, M, tol=tol, maxiter=maxiter)
         iterations = res.iterations
         # a breakdown on a matrix expected positive (semi-)definite (a projected Hessian, or the exact one after
@@ -307,7 +350,7 @@ def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver,
                info: SolveInfo) -> tuple[np.ndarray, float]:
     """A descent direction on the free DOFs and its slope ``g . p`` [J]; a direction that is not one
     (or not finite) is replaced by the steepest-descent step ``-g min(1, 1/|g|)``."""
-    if linear is LinearSolver.DIRECT:
+    if linear.is_direct:
         p, shifts = phi.direct_direction(x, gf)
         info.regularized_steps += shifts
     else:
@@ -444,8 +487,9 @@ def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: Linear
     (:meth:`~torchbend.sim.terms.EnergyTerm.softened`; None: as they are).  Returns ``(x, info)``: the converged iterate, or the best one on failure
     (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
     (``time_limit`` [s], for the message)."""
-    phi = _Potential(model, x0, option, ctx, soften)
-    phi.max_cg_iters = max_cg_iters
+    phi = _Potential(model, x0, option, ctx, soften, linear)
+    if max_cg_iters is not None:
+        phi.max_cg_iters = max_cg_iters
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
     # unbounded below: a static potential with gravity and nothing that holds the cloth in place
@@ -775,7 +819,7 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
     return out
 
 
-def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str = "direct",
+def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str | LinearSolver = "direct",
                  tol: float = 1e-9, max_iters: int = 50, continuation: bool | str = "auto",
                  max_relax_steps: int = 200, check_minimum: bool = True, callback: Callable | None = None,
                  time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[Tensor, SolveInfo]:
@@ -783,7 +827,8 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
 
     ``hessian``: a :class:`torchbend.options.Projection` (``"exact"``, ``"clamp"``, ``"abs"``,
     ``"gauss_newton"``, ``"reduced"``) for the Newton matrix; ``linear_solver``: ``"direct"`` (sparse
-    factorisation) or ``"cg"`` (:class:`LinearSolver`).  ``tol`` (> 0) is relative to the force scale
+    factorisation), ``"cg"``, or a :class:`LinearSolver` (``tb.LinearSolver("cg", preconditioner="amg")``:
+    the preconditioner, Cholesky, the CG bound).  ``tol`` (> 0) is relative to the force scale
     (stop when ``|g_free| <= tol F`` [N], ``F`` the magnitude of all forces acting, internal ones
     included) unless the residual has reached its round-off floor: see the module docstring; the
     default suits shells from ``Y t = 1e2`` to ``1e7`` N/m.  ``max_iters``: Newton iterations per
@@ -965,7 +1010,7 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
 
 
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hessian: str = "exact",
-                        linear_solver: str = "direct", tol: float = 1e-6, max_iters: int = 30,
+                        linear_solver: str | LinearSolver = "direct", tol: float = 1e-6, max_iters: int = 30,
                         max_substep_depth: int = 3, check_minimum: bool = False, callback: Callable | None = None,
                         time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):

@@ -39,7 +39,7 @@ from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..options import Projection
 
 __all__ = ["EnergyTerm", "StepContext", "BendingTerm", "MembraneTerm", "GravityTerm", "ColliderTerm", "InertiaTerm",
-           "as_csr", "softens", "sparse_from_vertex_blocks"]
+           "TermLoss", "as_csr", "softens", "sparse_from_vertex_blocks"]
 
 
 @dataclass
@@ -329,3 +329,30 @@ class InertiaTerm(EnergyTerm):
             assert ctx.dt is not None
             out = out + (self.mass.to(device=x.device, dtype=x.dtype)[:, None] * ctx.v_prev / ctx.dt).abs()
         return out
+
+
+class TermLoss(torch.nn.Module):
+    """An :class:`EnergyTerm` as a loss module of :class:`~torchbend.ClothLoss`: positions ``x (..., V, 3)``
+    [m] to per-sample energies ``(...,)`` [J], evaluated in the step context ``ctx`` (default static), so that
+    training minimises the same term objects the solver does (:meth:`ClothModel.loss
+    <torchbend.ClothModel.loss>`).  The built-in elastic terms take a batch at once; other terms are
+    evaluated sample by sample."""
+
+    def __init__(self, term: EnergyTerm, ctx: StepContext | None = None):
+        super().__init__()
+        self.term, self.ctx = term, ctx or StepContext()
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.dim() == 2:
+            return self.term.energy(x, self.ctx)
+        batch = x.shape[:-2]
+        if isinstance(self.term, (BendingTerm, MembraneTerm)):
+            return self.term.energy(x, self.ctx)
+        flat = x.reshape(-1, *x.shape[-2:])
+        if flat.shape[0] == 0:
+            return x.new_zeros(batch)
+        return torch.stack([self.term.energy(xi, self.ctx) for xi in flat]).reshape(batch)
+
+    def extra_repr(self) -> str:
+        return f"term={self.term.name!r} ({type(self.term).__name__})"
+
