@@ -288,6 +288,7 @@ def test_hood_style_without_cuda_names_the_device(tmp_path):
     assert not os.listdir(tmp_path)  # nothing ran
 
 
+@pytest.mark.slow  # about a minute on 2 cores (two minutes beside another CPU-bound job): -m slow
 def test_drape_net_trains_on_the_shipped_skirt_with_its_waist_pinned(tmp_path):
     """configs/train_skirt.yaml: the shipped garment in a training config (``mesh: asset:skirt.obj`` with a
     pin region); the loss decreases and the network never moves the pinned waist ring."""
