@@ -124,15 +124,15 @@ def run_size(hinges: int, dtype, repeat: int, native: bool = False) -> None:
     line = "  projections (eager blocks, incl. evaluation)"
     eager_proj = {}
     for p in ("clamp", "abs", "gauss_newton", "reduced"):
-        eager_proj[p] = timeit(lambda p=p: bend.hinge_hessians(x, project=p, backend="eager"), max(1, repeat // 2))
+        eager_proj[p] = timeit(lambda p=p: bend.hinge_hessians(x, projection=p, backend="eager"), max(1, repeat // 2))
         line += f"  {p} {eager_proj[p] * 1e3:8.1f} ms"
     print(line)
     if nat:
         line = "  projections (native blocks + Jacobi, incl. evaluation)"
         for p in ("clamp", "abs", "reduced"):
-            t = timeit(lambda p=p: bend.hinge_hessians(x, project=p, backend="native"), max(repeat, 5))
-            want = bend.hinge_hessians(x, project=p, backend="eager")
-            err = float((bend.hinge_hessians(x, project=p, backend="native") - want).norm() / want.norm())
+            t = timeit(lambda p=p: bend.hinge_hessians(x, projection=p, backend="native"), max(repeat, 5))
+            want = bend.hinge_hessians(x, projection=p, backend="eager")
+            err = float((bend.hinge_hessians(x, projection=p, backend="native") - want).norm() / want.norm())
             line += f"  {p} {t * 1e3:8.1f} ms ({eager_proj[p] / t:4.1f}x eager, rel. diff {err:.0e})"
         print(line)
 
@@ -154,7 +154,7 @@ def drape_report() -> None:
     for thr in (1e-6, 1e-3, 1e-2, 1e-1):
         share = (ratio > thr).float().mean()
         print(f"  share with |lambda_min| > {thr:g} |lambda|_max: {100 * share:.1f}%")
-    gn = bend.hinge_hessians(x, project="gauss_newton")
+    gn = bend.hinge_hessians(x, projection="gauss_newton")
     lost = (Hb - gn).flatten(1).norm(dim=1) / Hb.flatten(1).norm(dim=1)
     print(f"  gauss_newton drops a median {100 * lost.median():.1f}% (max {100 * lost.max():.1f}%) of each block (Frobenius)")
 

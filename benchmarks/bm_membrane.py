@@ -3,7 +3,7 @@
     python benchmarks/bm_membrane.py                # 1e3, 1e4, 1e5 triangles, float64
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
-  closed form  : MembraneEnergy.element_hessians(x, project="clamp") (eigenvalues clamped in F-space);
+  closed form  : MembraneEnergy.element_hessians(x, projection="clamp") (eigenvalues clamped in F-space);
   eigh (F)     : the same F-space Hessian rebuilt densely, torch.linalg.eigh (6x6), clamp, map with dF/dx;
   eigh (x)     : the unprojected 9x9 position-space blocks, torch.linalg.eigh (9x9), clamp (a different,
                  generic projection that many codes use).
@@ -43,11 +43,11 @@ def numerical_x_projection(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor
 
 def measure(mem: MembraneEnergy, x: torch.Tensor, repeat: int) -> str:
     """One row: the three projections timed on ``x``, and the closed form against eigh (F)."""
-    t_c = timeit(lambda: mem.element_hessians(x, project="clamp"), repeat)
+    t_c = timeit(lambda: mem.element_hessians(x, projection="clamp"), repeat)
     t_f = timeit(lambda: numerical_f_projection(mem, x), repeat)
     t_x = timeit(lambda: numerical_x_projection(mem, x), repeat)
     ref = numerical_f_projection(mem, x)
-    err = float((mem.element_hessians(x, project="clamp") - ref).norm() / ref.norm())
+    err = float((mem.element_hessians(x, projection="clamp") - ref).norm() / ref.norm())
     return (f"{mem.face_count:>10d} {mem.model.value:>20s} {t_c * 1e3:10.2f}ms {t_f * 1e3:8.2f}ms {t_x * 1e3:8.2f}ms "
             f"{t_f / t_c:8.2f}x {t_x / t_c:8.2f}x  closed vs eigh(F) rel. diff {err:.1e}")
 

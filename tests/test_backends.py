@@ -42,9 +42,9 @@ def _entry_points(bend, mem, x):
         "mem.hessian": lambda: mem.hessian(x),
     }
     for p in ("clamp", "abs", "gauss_newton", "reduced"):
-        calls[f"bend.hvp {p}"] = lambda p=p: bend.hvp(x, v, project=p)
-        calls[f"bend.hinge_hessians {p}"] = lambda p=p: bend.hinge_hessians(x, project=p)
-        calls[f"bend.hessian {p}"] = lambda p=p: bend.hessian(x, project=p)
+        calls[f"bend.hvp {p}"] = lambda p=p: bend.hvp(x, v, projection=p)
+        calls[f"bend.hinge_hessians {p}"] = lambda p=p: bend.hinge_hessians(x, projection=p)
+        calls[f"bend.hessian {p}"] = lambda p=p: bend.hessian(x, projection=p)
     return calls
 
 

@@ -220,7 +220,7 @@ def test_arap_hessian_finite_at_collapse(dtype):
         H = mem.element_hessians(x)
         assert torch.isfinite(H).all()
         for project in ("clamp", "abs"):
-            Hp = mem.element_hessians(x, project=project)[0].double()
+            Hp = mem.element_hessians(x, projection=project)[0].double()
             assert torch.isfinite(Hp).all()
             assert float(torch.linalg.eigvalsh(Hp).min()) >= -1e-6 * float(Hp.abs().max())
         assert torch.isfinite(mem.hessian(x).to_dense()).all()

@@ -22,13 +22,13 @@ def _call(bend, x, entry):
         "gradient": lambda: bend.gradient(x),
         "backward": lambda: torch.autograd.grad(bend(x.clone().requires_grad_()), x, allow_unused=True),
         "hvp": lambda: bend.hvp(x, v),
-        "hvp_clamp": lambda: bend.hvp(x, v, project="clamp"),
-        "hvp_gauss_newton": lambda: bend.hvp(x, v, project="gauss_newton"),
+        "hvp_clamp": lambda: bend.hvp(x, v, projection="clamp"),
+        "hvp_gauss_newton": lambda: bend.hvp(x, v, projection="gauss_newton"),
         "hinge_hessians": lambda: bend.hinge_hessians(x),
-        "hinge_hessians_abs": lambda: bend.hinge_hessians(x, project="abs"),
+        "hinge_hessians_abs": lambda: bend.hinge_hessians(x, projection="abs"),
         "hessian_triangle": lambda: bend.hessian(x),
         "hessian_hinge": lambda: bend.hessian(x, assembly="hinge"),
-        "hessian_clamp": lambda: bend.hessian(x, project="clamp"),
+        "hessian_clamp": lambda: bend.hessian(x, projection="clamp"),
     }[entry]()
 
 
@@ -183,7 +183,7 @@ def test_tan_is_not_unwrapped():
 
 # ------------------------------------------------------------------------------ meshes without hinges, errors
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("kw", [{}, {"assembly": "hinge"}, {"project": "clamp"}, {"project": "gauss_newton"}])
+@pytest.mark.parametrize("kw", [{}, {"assembly": "hinge"}, {"projection": "clamp"}, {"projection": "gauss_newton"}])
 def test_mesh_without_hinges_gives_zero_hessian(kw, backend):
     x, faces = tb.scenes.single_hinge(0.3, dtype=torch.float64)
     bend = tb.BendingEnergy(faces[:1], x[:3], backend=backend)

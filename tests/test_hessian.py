@@ -142,15 +142,15 @@ def test_projections_are_psd_and_consistent(sheet, model, project):
     rest, faces, x = sheet
     x = x + 0.2 * torch.randn_like(x)  # strongly bent: indefinite blocks
     bend = _bend(rest, faces, model)
-    P = bend.hinge_hessians(x, project=project)
+    P = bend.hinge_hessians(x, projection=project)
     L = torch.linalg.eigvalsh(P)
     norms = P.flatten(-2).norm(dim=-1)
     assert (L.min(-1).values >= -1e-12 * norms).all()
     assert (P - P.transpose(-1, -2)).abs().max() <= 1e-13 * P.abs().max()
     # the assembled projected Hessian and the matrix-free projected HVP agree
     v = torch.randn_like(x)
-    Hp = bend.hessian(x, project=project)
-    assert rel(Hp.to_dense() @ v.reshape(-1), bend.hvp(x, v, project=project).reshape(-1)) <= 1e-13
+    Hp = bend.hessian(x, projection=project)
+    assert rel(Hp.to_dense() @ v.reshape(-1), bend.hvp(x, v, projection=project).reshape(-1)) <= 1e-13
     for j in range(3):  # every projection keeps translations in the null space
         t = torch.zeros(12, dtype=F64)
         t[j::3] = 1
@@ -174,7 +174,7 @@ def test_exact_blocks_are_indefinite_and_projections_leave_psd_blocks_unchanged(
 def test_gauss_newton_is_the_clamped_rank_one_term(sheet):
     rest, faces, x = sheet
     bend = _bend(rest, faces, "sin")
-    P = bend.hinge_hessians(x, project="gauss_newton")
+    P = bend.hinge_hessians(x, projection="gauss_newton")
     x4 = x[bend.hinges]
     _, g4 = geometry.hinge_angle_and_gradient(x4)
     g = g4.flatten(-2)
@@ -189,10 +189,10 @@ def test_bad_hessian_arguments(sheet):
     rest, faces, x = sheet
     bend = _bend(rest, faces, "tan")
     with pytest.raises(ValueError, match="unknown Hessian projection 'eig'"):
-        bend.hessian(x, project="eig")
+        bend.hessian(x, projection="eig")
     with pytest.raises(ValueError, match="unknown assembly 'edge'"):
         bend.hessian(x, assembly="edge")
     with pytest.raises(ValueError, match="one mesh"):
         bend.hessian(torch.stack([x, x]))
     with pytest.raises(ValueError, match="unknown Hessian projection"):
-        bend.hvp(x, x, project="nearest")
+        bend.hvp(x, x, projection="nearest")

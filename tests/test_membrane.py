@@ -141,13 +141,13 @@ def test_projected_element_hessians_are_psd(cloth, model, project):
     n = x.numel()
     Hr = torch.func.hessian(lambda y: plain_energy(mem, y))(x).reshape(n, n)
     assert rel(mem.hessian(x).to_dense(), Hr) < 1e-12
-    P = mem.element_hessians(x, project=project)
+    P = mem.element_hessians(x, projection=project)
     L = torch.linalg.eigvalsh(P)
     assert (L.min(-1).values >= -1e-12 * P.flatten(-2).norm(dim=-1)).all()
     v = torch.randn_like(x)
-    Hp = mem.hessian(x, project=project).to_dense()
+    Hp = mem.hessian(x, projection=project).to_dense()
     assert torch.linalg.eigvalsh(Hp).min() >= -1e-10 * Hp.norm()
-    assert rel(Hp @ v.reshape(-1), mem.hvp(x, v, project=project).reshape(-1)) < 1e-12
+    assert rel(Hp @ v.reshape(-1), mem.hvp(x, v, projection=project).reshape(-1)) < 1e-12
     assert (torch.linalg.eigvalsh(He).min(-1).values < 0).any() or model == "arap"
 
 
@@ -184,7 +184,7 @@ def test_bad_membrane_input(cloth):
     with pytest.raises(ValueError, match="non-finite"):
         mem(torch.full_like(rest, math.nan))
     with pytest.raises(ValueError, match="unknown membrane projection"):
-        mem.hvp(x, x, project="gauss_newton")
+        mem.hvp(x, x, projection="gauss_newton")
 
 
 def test_membrane_batched_and_float32(cloth):

@@ -124,10 +124,10 @@ def _entry_points(mem, x):
         "forward": lambda: mem(x),
         "gradient": lambda: mem.gradient(x),
         "hvp": lambda: mem.hvp(x, v),
-        "hvp_clamp": lambda: mem.hvp(x, v, project="clamp"),
+        "hvp_clamp": lambda: mem.hvp(x, v, projection="clamp"),
         "element_hessians": lambda: mem.element_hessians(x),
-        "element_hessians_clamp": lambda: mem.element_hessians(x, project="clamp"),
-        "element_hessians_abs": lambda: mem.element_hessians(x, project="abs"),
+        "element_hessians_clamp": lambda: mem.element_hessians(x, projection="clamp"),
+        "element_hessians_abs": lambda: mem.element_hessians(x, projection="abs"),
         "element_eigensystems": lambda: mem.element_eigensystems(x),
         "hessian": lambda: mem.hessian(x).to_dense(),
         "autograd_hvp": lambda: torch.autograd.grad(mem.gradient(x.requires_grad_()), x, v)[0],
@@ -150,7 +150,7 @@ def test_collapsed_triangles_finite(model, case, dtype):
         out = out if isinstance(out, tuple) else (out,)
         assert all(bool(torch.isfinite(o).all()) for o in out), name
     for project in ("clamp", "abs"):
-        P = mem.element_hessians(x, project=project).double()
+        P = mem.element_hessians(x, projection=project).double()
         L = torch.linalg.eigvalsh(P)
         assert (L.min(-1).values >= -1e-5 * L.abs().max(-1).values).all(), project
     _, Q = mem.element_eigensystems(x)
@@ -269,7 +269,7 @@ def test_arap_floor_policy():
             assert abs(l[5] - 2 * MU * (1 - 1 / floor)) <= 1e-6 * 2 * MU / floor
             assert abs(l[2] - 2 * MU * (1 - 2 / (1.25 + s2))) <= 1e-5 * 2 * MU
             assert torch.isfinite(mem.hessian(x).to_dense()).all()
-            assert torch.linalg.eigvalsh(mem.element_hessians(x, project="clamp").double()).min() >= -1e-6 * abs(l).max()
+            assert torch.linalg.eigvalsh(mem.element_hessians(x, projection="clamp").double()).min() >= -1e-6 * abs(l).max()
 
 
 @pytest.mark.parametrize("model", UNDEFINED)

@@ -41,7 +41,7 @@ def test_native_blocks_match_eager_and_torch_func(kernel, sheet, model):
     assert rel(fused, _per_hinge_reference(bend, x, kw)) <= 1e-12
     # everything built on the blocks follows: hinge assembly, projections
     for project in (None, "clamp", "abs", "reduced"):
-        a, b = _both(lambda project=project: bend.hessian(x, assembly="hinge", project=project).to_dense())
+        a, b = _both(lambda project=project: bend.hessian(x, assembly="hinge", projection=project).to_dense())
         assert rel(a, b) <= 1e-14
 
 
@@ -115,10 +115,10 @@ def test_native_projection_of_hinge_blocks(kernel, dtype):
         native.project_blocks(Hb[..., 3:, 3:].contiguous(), "reduced", False)
     tol = 1e-13 if dtype == F64 else 1e-4
     for project in ("clamp", "abs", "reduced"):
-        a, b = _both(lambda project=project: bend.hinge_hessians(x, project=project))
+        a, b = _both(lambda project=project: bend.hinge_hessians(x, projection=project))
         assert rel(a, b) <= tol
         v = torch.randn(x.shape, generator=gen, dtype=F64).to(dtype)
-        a, b = _both(lambda project=project, v=v: bend.hvp(x, v, project=project))
+        a, b = _both(lambda project=project, v=v: bend.hvp(x, v, projection=project))
         assert rel(a, b) <= tol
 
 
@@ -160,11 +160,11 @@ def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
     fused, eager = _both(lambda: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01))
     assert fused.shape == (2, bend.hinge_count, 12, 12) and rel(fused, eager) <= 1e-15
     for project in ("gauss_newton", "reduced"):
-        a, b = _both(lambda project=project: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, project=project))
+        a, b = _both(lambda project=project: bend.hinge_hessians(xb, theta_prev=prev, dt=0.01, projection=project))
         assert rel(a, b) <= 1e-14
     v = torch.randn(xb.shape, generator=gen, dtype=F64)
     for project in ("clamp", "gauss_newton"):
-        a, b = _both(lambda project=project: bend.hvp(xb, v, theta_prev=prev, dt=0.01, project=project))
+        a, b = _both(lambda project=project: bend.hvp(xb, v, theta_prev=prev, dt=0.01, projection=project))
         assert rel(a, b) <= 1e-14
     bad = xb.clone()
     bad[1, 4, 2] = float("nan")

@@ -135,7 +135,7 @@ def test_colliders_derivatives_match_autograd():
         H = torch.func.hessian(lambda z, c=c: c.energy(z))(x).reshape(150, 150)
         blocks = torch.block_diag(*c.hessian_blocks(x))
         assert float((blocks - H).norm()) <= 1e-10 * max(float(H.norm()), 1.0)
-        assert (torch.linalg.eigvalsh(c.hessian_blocks(x, project="clamp")) >= -1e-12).all()
+        assert (torch.linalg.eigvalsh(c.hessian_blocks(x, projection="clamp")) >= -1e-12).all()
 
 
 SIM_DIR = os.path.dirname(os.path.abspath(str(tb.sim.__file__)))
@@ -221,7 +221,7 @@ def test_collider_hessian_is_block_diagonal():
     model = ClothModel(faces, rest, colliders=colliders)
     for option in (Projection.NONE, Projection.CLAMP):
         H = model.hessian(x, option)
-        blocks = colliders[0].hessian_blocks(x, project=option) + colliders[1].hessian_blocks(x, project=option)
+        blocks = colliders[0].hessian_blocks(x, projection=option) + colliders[1].hessian_blocks(x, projection=option)
         assert H.shape == (120, 120)
         assert torch.equal(torch.from_numpy(H.toarray()), torch.block_diag(*blocks))
 

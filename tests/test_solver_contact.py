@@ -232,7 +232,7 @@ def test_contact_projection_of_the_model_hessian():
     exact = model.hessian(x, tb.options.Projection.NONE)
     mixed = model.hessian(x, tb.options.Projection.NONE, contact="clamp")
     diff = torch.from_numpy((exact - mixed).toarray())
-    curvature = torch.block_diag(*(sphere.hessian_blocks(x, project="none") - sphere.hessian_blocks(x, project="clamp")))
+    curvature = torch.block_diag(*(sphere.hessian_blocks(x, projection="none") - sphere.hessian_blocks(x, projection="clamp")))
     assert float((diff - curvature).abs().max()) <= 1e-12 * float(curvature.abs().max())
     assert float(curvature.abs().max()) > 0
     v = torch.randn_like(x, generator=torch.Generator().manual_seed(3))

@@ -201,3 +201,26 @@ def test_cloth_loss_of_the_model_terms_is_the_model_potential():
     # an empty batch
     empty, _ = model.loss()(x[:0])
     assert float(empty) == 0.0
+
+
+def test_projection_keyword_and_its_deprecated_alias():
+    """``projection=`` everywhere a Hessian is projected; ``project=`` gives the same result with a
+    DeprecationWarning, and the two disagreeing is a ValueError."""
+    rest, faces, mem, bend = sheet()
+    x = rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+    v = torch.randn_like(x)
+    sphere = tb.Sphere((0.15, 0.15, -0.2), 0.25)
+    calls = [(bend.hessian, (x,), "BendingEnergy.hessian"), (bend.hvp, (x, v), "BendingEnergy.hvp"),
+             (bend.hinge_hessians, (x,), "BendingEnergy.hinge_hessians"),
+             (mem.hessian, (x,), "MembraneEnergy.hessian"), (mem.hvp, (x, v), "MembraneEnergy.hvp"),
+             (mem.element_hessians, (x,), "MembraneEnergy.element_hessians"),
+             (sphere.hessian_blocks, (x,), "Collider.hessian_blocks")]
+    for fn, args, where in calls:
+        new = fn(*args, projection="clamp")
+        with pytest.warns(DeprecationWarning, match=rf"{where}: project= is deprecated, use projection="):
+            old = fn(*args, project="clamp")
+        dense = (lambda t: t.to_dense()) if new.layout != torch.strided else (lambda t: t)
+        assert torch.equal(dense(new), dense(old)), where
+        with pytest.raises(ValueError, match=rf"{where}: projection='abs' and project='clamp' disagree"), \
+                pytest.warns(DeprecationWarning):
+            fn(*args, projection="abs", project="clamp")

@@ -79,12 +79,12 @@ def test_bending_hvp_and_blocks(mesh, backend, model, dtype):
     v0, v2 = torch.randn_like(x0), torch.randn_like(x2)
     _like(bend.hvp(x0, v0), bend.hvp(x2, v2), dtype)
     for project in PROJECTIONS:
-        _like(bend.hvp(x0, v0, project=project), bend.hvp(x2, v2, project=project), dtype)
+        _like(bend.hvp(x0, v0, projection=project), bend.hvp(x2, v2, projection=project), dtype)
     blocks = bend.hinge_hessians(x0)
     _like(blocks, bend.hinge_hessians(x2), dtype)
     assert blocks.shape == (0, bend.hinge_count, 12, 12)
     for project in PROJECTIONS:
-        _like(bend.hinge_hessians(x0, project=project), bend.hinge_hessians(x2, project=project), dtype)
+        _like(bend.hinge_hessians(x0, projection=project), bend.hinge_hessians(x2, projection=project), dtype)
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -145,7 +145,7 @@ def test_bending_without_hinges(backend):
     for B in (0, 2):
         x = rest + 0.1 * torch.randn(B, 3, 3, dtype=torch.float64)
         assert bend(x).shape == (B,) and bool((bend(x) == 0).all())
-        for out in (bend.gradient(x), bend.hvp(x, x), bend.hvp(x, x, project="clamp"), bend.hvp(x, x, project="gauss_newton")):
+        for out in (bend.gradient(x), bend.hvp(x, x), bend.hvp(x, x, projection="clamp"), bend.hvp(x, x, projection="gauss_newton")):
             assert out.shape == (B, 3, 3) and bool((out == 0).all())
         assert bend.hinge_hessians(x).shape == (B, 0, 12, 12)
 
@@ -176,9 +176,9 @@ def test_membrane_every_method(mesh, model, dtype):
     _like(mem(x0), mem(x2), dtype)
     _like(mem.gradient(x0), mem.gradient(x2), dtype)
     for project in (None, "clamp", "abs"):
-        _like(mem.hvp(x0, v0, project=project), mem.hvp(x2, v2, project=project), dtype)
-        He = mem.element_hessians(x0, project=project)
-        _like(He, mem.element_hessians(x2, project=project), dtype)
+        _like(mem.hvp(x0, v0, projection=project), mem.hvp(x2, v2, projection=project), dtype)
+        He = mem.element_hessians(x0, projection=project)
+        _like(He, mem.element_hessians(x2, projection=project), dtype)
         assert He.shape == (0, mem.face_count, 9, 9)
     (l0, Q0), (l2, Q2) = mem.element_eigensystems(x0), mem.element_eigensystems(x2)
     _like(l0, l2, dtype)

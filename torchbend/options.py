@@ -1,6 +1,6 @@
 """Closed sets of options (enums) and the one helper that parses them.
 
-Every option the library takes as a string (``model="tan"``, ``project="clamp"``,
+Every option the library takes as a string (``model="tan"``, ``projection="clamp"``,
 ``assembly="triangle"``, ``backend="auto"``, ...) is a ``str`` enum deriving from :class:`Option`, so
 ``Projection("clamp") == "clamp"`` and an unknown value is a ``ValueError`` that lists the allowed
 ones.  :class:`Projection` is shared by every energy and the solver; each says which members it
@@ -12,7 +12,7 @@ import enum
 from collections.abc import Iterable
 from typing import TypeVar
 
-__all__ = ["Option", "Projection", "Assembly", "Backend", "parse_option"]
+__all__ = ["Option", "Projection", "Assembly", "Backend", "parse_option", "projection_argument"]
 
 E = TypeVar("E", bound="Option")
 
@@ -85,6 +85,20 @@ class Projection(Option):
         """This projection if ``supported``, else the PSD projection ``clamp`` (used by the solver to
         give each energy the nearest projection it supports)."""
         return self if self in set(supported) else Projection.CLAMP
+
+
+def projection_argument(projection, project, where: str, *, old: str = "project") -> Projection:
+    """The projection of a call that takes ``projection=`` and, for one release, the deprecated alias
+    ``project=`` (or ``hessian=`` for the solvers: ``old``): the alias warns (``DeprecationWarning``), and
+    both given with different values is a ``ValueError`` naming ``where``."""
+    if project is not None:
+        import warnings
+
+        warnings.warn(f"{where}: {old}= is deprecated, use projection=", DeprecationWarning, stacklevel=3)
+        if projection is not None and Projection.parse(projection) is not Projection.parse(project):
+            raise ValueError(f"{where}: projection={projection!r} and {old}={project!r} disagree; give projection= only")
+        projection = project
+    return Projection.parse(projection)
 
 
 class Assembly(Option):

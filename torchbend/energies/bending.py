@@ -38,7 +38,7 @@ from ..mesh.topology import HingeTopology, mesh_and_rest
 from ..ops.hinge import hinge_angle
 from ..ops.psi import BendingModel
 from ..ops.stencil import gather
-from ..options import Assembly, Backend, Projection
+from ..options import Assembly, Backend, Projection, projection_argument
 from . import _bending_fn as fn
 from . import bending_hessian as hs
 from .params import HingeParams, hinge_parameter, module_tensor, rest_hinge_weights
@@ -190,13 +190,14 @@ class BendingEnergy(nn.Module):
         return fn.bending_gradient_raw(x, module_tensor(self, "hinges"), *p.astuple(), model=self.model, impl=impl,
                                        inc=self._incidence(), check=self.check_finite)
 
-    def hvp(self, x: Tensor, v: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
-            backend=None) -> Tensor:
+    def hvp(self, x: Tensor, v: Tensor, *, projection=None, theta_prev: Tensor | None = None, dt: float | None = None,
+            backend=None, project=None) -> Tensor:
         """Hessian-vector product ``(d^2E/dx^2) v: (..., V, 3)``, closed form, ``v`` shaped like ``x``.
 
         Unprojected, per hinge ``psi'' (grad theta . v) grad theta + psi' (Hess theta) v`` with no 12x12 matrix;
-        ``project`` (:class:`~torchbend.options.Projection`) applies the projection of :meth:`hessian`."""
-        projection = Projection.NONE if project is None else Projection.parse(project)
+        ``projection`` (:class:`~torchbend.options.Projection`) applies the projection of :meth:`hessian`
+        (``project=``: its deprecated alias)."""
+        projection = projection_argument(projection, project, "BendingEnergy.hvp")
         if projection is Projection.NONE:
             p, impl = self._kernel("hvp", x, theta_prev, dt, backend)
             v = check_direction(v, x, self.check_finite and impl is None)  # the compiled operator checks v itself
@@ -206,22 +207,25 @@ class BendingEnergy(nn.Module):
         v = check_direction(v, x, self.check_finite)
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
 
-    def hinge_hessians(self, x: Tensor, *, project=None, theta_prev: Tensor | None = None, dt: float | None = None,
-                       backend=None) -> Tensor:
+    def hinge_hessians(self, x: Tensor, *, projection=None, theta_prev: Tensor | None = None, dt: float | None = None,
+                       backend=None, project=None) -> Tensor:
         """Per-hinge energy Hessians ``(..., H, 12, 12)`` [J/m^2] in stencil order (flat ``3*k + j``):
-        ``psi'' g g^T + psi' Hess(theta)`` (paper eqs. 3, 5, 6), optionally projected per block."""
+        ``psi'' g g^T + psi' Hess(theta)`` (paper eqs. 3, 5, 6), optionally projected per block (``projection``;
+        ``project=``: its deprecated alias)."""
+        projection = projection_argument(projection, project, "BendingEnergy.hinge_hessians")
         p, backend = self._bind(x, backend, theta_prev, dt)
-        return hs.hinge_hessians(x, self.hinges, p, self.model, Projection.parse(project), backend)
+        return hs.hinge_hessians(x, self.hinges, p, self.model, projection, backend)
 
-    def hessian(self, x: Tensor, *, project=None, assembly: str | Assembly = "triangle",
-                theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
+    def hessian(self, x: Tensor, *, projection=None, assembly: str | Assembly = "triangle",
+                theta_prev: Tensor | None = None, dt: float | None = None, backend=None, project=None) -> Tensor:
         """Assembled Hessian, a torch sparse CSR tensor ``(3V, 3V)``, of one mesh ``x: (V, 3)``.
 
         ``assembly="triangle"`` is the paper's per-triangle refactoring (eq. 7), ``"hinge"`` scatters the
         12x12 blocks: the same matrix.  The CSR pattern is built once and kept on the module.  See
         :func:`torchbend.energies.bending_hessian.assemble` for the projections; :func:`torchbend.to_scipy`
         converts."""
-        projection, how = Projection.parse(project), Assembly.parse(assembly)
+        projection = projection_argument(projection, project, "BendingEnergy.hessian")
+        how = Assembly.parse(assembly)
         p, backend = self._bind(x, backend, theta_prev, dt)
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")

@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from .._checks import nonnegative, positive, vec3
-from ..options import Projection
+from ..options import Projection, projection_argument
 
 __all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 
@@ -100,10 +100,12 @@ class Collider:
         """First ``t >= 0`` with ``s(x + t dx) = -D`` ``(V,)`` (``inf`` if never); ``D`` as in the module docstring."""
         raise NotImplementedError
 
-    def hessian_blocks(self, x: Tensor, project=None) -> Tensor:
-        """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; any ``project`` but ``None``/``"none"``
-        drops the curvature term (PSD for convex colliders)."""
-        exact = Projection.parse(project, what="collider projection") is Projection.NONE
+    def hessian_blocks(self, x: Tensor, projection=None, *, project=None) -> Tensor:
+        """Per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m]; any ``projection`` but ``None``/``"none"``
+        drops the curvature term (PSD for convex colliders); ``project=``: its deprecated alias."""
+        if project is not None:
+            projection = projection_argument(projection, project, "Collider.hessian_blocks")
+        exact = Projection.parse(projection, what="collider projection") is Projection.NONE
         s, n, curv = self._sd(x)
         d = (self.margin - s).clamp_min(0)
         active = (d > 0).to(x.dtype)

@@ -23,7 +23,7 @@ from ..ops.membrane import (
     rest_shape_matrices,
 )
 from ..ops.projection import project_eigenvalues
-from ..options import Projection
+from ..options import Projection, projection_argument
 from . import _membrane_fn as fn
 from .materials import lame_parameters
 from .sparse import StencilPattern
@@ -113,10 +113,10 @@ class MembraneEnergy(nn.Module):
         D, coef, mu, lam = self._args(x, "gradient", backend)
         return fn.gradient_function(self.model).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu, lam)
 
-    def _eigen(self, x: Tensor, op: str, project, backend, v=None):
+    def _eigen(self, x: Tensor, op: str, projection, backend, v=None):
         """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D, v)``; ``v`` (an HVP's
         direction) is checked with the inputs, before any work."""
-        projection = Projection.parse(project, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
+        projection = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, op, backend)
         if v is not None:
             v = check_direction(v, x, self.check_finite)
@@ -138,27 +138,33 @@ class MembraneEnergy(nn.Module):
         """``F: (..., T, 3, 2)``."""
         return deformation_gradient(x, self.faces, self._args(x, "deformation_gradients")[0])
 
-    def element_hessians(self, x: Tensor, *, project=None, backend=None) -> Tensor:
+    def element_hessians(self, x: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
         """Position-space element Hessians ``(..., T, 9, 9)`` [N/m] (flat index ``3*k + j``, face order):
-        ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first."""
-        l, Q, D, _ = self._eigen(x, "element_hessians", project, backend)
+        ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first
+        (``projection``; ``project=``: its deprecated alias)."""
+        projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
+        l, Q, D, _ = self._eigen(x, "element_hessians", projection, backend)
         # z_k = B^T q_k: (Q_k D^T)^T as a 9-vector over (vertex, axis)
         Qm = Q.transpose(-1, -2).unflatten(-1, (3, 2))  # (..., T, 6 modes, 3, 2)
         Z = (Qm @ D.transpose(-1, -2)[..., None, :, :]).transpose(-1, -2).flatten(-2)  # (..., T, 6, 9)
         return (Z.transpose(-1, -2) * l[..., None, :]) @ Z
 
-    def hvp(self, x: Tensor, v: Tensor, *, project=None, backend=None) -> Tensor:
-        """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected)."""
-        l, Q, D, vc = self._eigen(x, "hvp", project, backend, v)
+    def hvp(self, x: Tensor, v: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
+        """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected:
+        ``projection``; ``project=``: its deprecated alias)."""
+        projection = projection_argument(projection, project, "MembraneEnergy.hvp")
+        l, Q, D, vc = self._eigen(x, "hvp", projection, backend, v)
         assert vc is not None  # _eigen returns the checked direction when given one
         dF = deformation_gradient(vc, self.faces, D).flatten(-2)
         return fn.to_vertices(fn.hvp_faces(l, Q, dF), D, self.faces, x.shape[-2])
 
-    def hessian(self, x: Tensor, *, project=None, backend=None) -> Tensor:
-        """Assembled Hessian, torch sparse CSR ``(3V, 3V)``, for one mesh ``x: (V, 3)``."""
+    def hessian(self, x: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
+        """Assembled Hessian, torch sparse CSR ``(3V, 3V)``, for one mesh ``x: (V, 3)`` (``projection``;
+        ``project=``: its deprecated alias)."""
+        projection = projection_argument(projection, project, "MembraneEnergy.hessian")
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
-        He = self.element_hessians(x, project=project, backend=backend)
+        He = self.element_hessians(x, projection=projection, backend=backend)
         if self._pattern is None:
             self._pattern = StencilPattern(self.topology.faces.numpy(), self.vertex_count)
         pat = self._pattern

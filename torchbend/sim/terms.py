@@ -190,13 +190,13 @@ class BendingTerm(EnergyTerm):
         return self.module.gradient(x, **self._kw(ctx))
 
     def hvp(self, x, v, ctx, projection=None):
-        return self.module.hvp(x, v, project=_projection(projection), **self._kw(ctx))
+        return self.module.hvp(x, v, projection=_projection(projection), **self._kw(ctx))
 
     def hessian(self, x, ctx, projection=None):
-        return self.module.hessian(x, project=_projection(projection), **self._kw(ctx))
+        return self.module.hessian(x, projection=_projection(projection), **self._kw(ctx))
 
     def block_diagonal(self, x, ctx, projection=None):
-        Hb = self.module.hinge_hessians(x, project=_projection(projection), **self._kw(ctx))
+        Hb = self.module.hinge_hessians(x, projection=_projection(projection), **self._kw(ctx))
         Hb = Hb.unflatten(-1, (4, 3)).unflatten(-3, (4, 3))
         diag = torch.stack([Hb[:, k, :, k, :] for k in range(4)], 1)
         return x.new_zeros(x.shape[0], 3, 3).index_add(0, self.module.hinges.reshape(-1), diag.reshape(-1, 3, 3))
@@ -219,10 +219,10 @@ class MembraneTerm(EnergyTerm):
         return self.module.gradient(x)
 
     def hvp(self, x, v, ctx, projection=None):
-        return self.module.hvp(x, v, project=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
+        return self.module.hvp(x, v, projection=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
 
     def hessian(self, x, ctx, projection=None):
-        return self.module.hessian(x, project=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
+        return self.module.hessian(x, projection=_projection(projection).restricted(MEMBRANE_PROJECTIONS))
 
     def softened(self, factor: float) -> MembraneTerm:
         """The membrane with its moduli scaled by ``factor`` (a copy: the user's module keeps its own)."""
@@ -234,7 +234,7 @@ class MembraneTerm(EnergyTerm):
 
     def block_diagonal(self, x, ctx, projection=None):
         p = _projection(projection).restricted(MEMBRANE_PROJECTIONS)
-        He = self.module.element_hessians(x, project=p).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
+        He = self.module.element_hessians(x, projection=p).unflatten(-1, (3, 3)).unflatten(-3, (3, 3))
         diag = torch.stack([He[:, k, :, k, :] for k in range(3)], 1)  # (T, 3, 3, 3)
         return x.new_zeros(x.shape[0], 3, 3).index_add(0, self.module.faces.reshape(-1), diag.reshape(-1, 3, 3))
 
@@ -288,7 +288,7 @@ class ColliderTerm(EnergyTerm):
         return self.collider.gradient(x)
 
     def vertex_blocks(self, x, ctx, projection=None):
-        return self.collider.hessian_blocks(x, project=_projection(projection))
+        return self.collider.hessian_blocks(x, projection=_projection(projection))
 
     def max_step(self, x, dx, ctx):
         return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
