@@ -62,7 +62,7 @@ def drape_state(n: int, warm: int):
             state = ClothState(x, v)
         else:
             for _ in range(warm):
-                state, _info = implicit_euler_step(model, state, cfg["solver"]["dt"], hessian="gauss_newton")
+                state, _info = implicit_euler_step(model, state, cfg["solver"]["dt"], projection="gauss_newton")
             torch.save((state.x, state.v), path)
     return model, state, cfg["solver"]["dt"]
 
@@ -88,7 +88,7 @@ def matrices(warm: int):
     for option in ("exact", "clamp"):
         phi = potential(model, rest, option)
         mats.append((f"strip 20x4 stiff, rest, {option}", phi.hessian_op.to_scipy(phi.free_hessian(rest)), phi, rest))
-    x, info = solve_static(model, rest, hessian="exact")
+    x, info = solve_static(model, rest, projection="exact")
     phi = potential(model, x, "exact")
     mats.append((f"strip 20x4 stiff, equilibrium ({'converged' if info.converged else 'NOT converged'}), exact",
                  phi.hessian_op.to_scipy(phi.free_hessian(x)), phi, x))
@@ -153,13 +153,13 @@ def solve_section(warm: int) -> None:
     for h in ("exact", "clamp"):
         # the default tol stalls at the round-off floor (50 iterations, see issue 16); tol 1e-7 converges
         cases.append((f"strip 20x4 stiff, static {h}, tol 1e-9",
-                      lambda ls, h=h: solve_static(model, rest, hessian=h, linear_solver=ls)))
+                      lambda ls, h=h: solve_static(model, rest, projection=h, linear_solver=ls)))
         cases.append((f"strip 20x4 stiff, static {h}, tol 1e-7",
-                      lambda ls, h=h: solve_static(model, rest, hessian=h, linear_solver=ls, tol=1e-7)))
+                      lambda ls, h=h: solve_static(model, rest, projection=h, linear_solver=ls, tol=1e-7)))
     dmodel, state, dt = drape_state(41, warm)
     for h in ("exact", "gauss_newton"):
         cases.append((f"drape 41x41 step {warm} -> {warm + 1}, {h}",
-                      lambda ls, h=h: implicit_euler_step(dmodel, state, dt, hessian=h, linear_solver=ls, max_iters=50)))
+                      lambda ls, h=h: implicit_euler_step(dmodel, state, dt, projection=h, linear_solver=ls, max_iters=50)))
     for name, fn in cases:
         base = None
         for ls, pre in configs:

@@ -99,7 +99,7 @@ def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> st
     with shares.active():
         for _ in range(steps):
             t0 = time.perf_counter()
-            state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], hessian=hessian,
+            state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], projection=hessian,
                                               linear_solver=linear_solver, max_iters=cfg["solver"]["max_iters"])
             secs.append(time.perf_counter() - t0)
             its.append(info.iterations)
@@ -119,7 +119,7 @@ def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str, t
     shares = TimeShares()
     t0 = time.perf_counter()
     with shares.active():
-        _, info = solve_static(model, x0, hessian=hessian, linear_solver=linear_solver, time_limit=time_limit)
+        _, info = solve_static(model, x0, projection=hessian, linear_solver=linear_solver, time_limit=time_limit)
     secs = time.perf_counter() - t0
     return (f"{nx:>3d}x{ny:<2d} t={thickness:.1e} {hessian:>13s} {linear_solver:>6s} {info.iterations:5d} "
             f"{secs:9.2f}s {shares.percent(secs)}  {'yes' if info.converged else 'NO: ' + info.stop_reason}")
@@ -143,7 +143,7 @@ def sweep(cases: str) -> None:
         for hessian in sw.HESSIANS:
             for lin in sw.SOLVERS:
                 t0 = time.perf_counter()
-                x, info = solve_static(model, rest, hessian=hessian, linear_solver=lin)
+                x, info = solve_static(model, rest, projection=hessian, linear_solver=lin)
                 secs = time.perf_counter() - t0
                 err = float((x - x_ref).norm() / (x_ref - rest).norm())
                 good = info.converged and err <= 1e-6

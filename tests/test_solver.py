@@ -100,7 +100,7 @@ def test_drape_no_penetration_energy_monotone(hessian):
     edge = 1.0 / 10
     its = []
     for _ in range(40):
-        state, info = implicit_euler_step(model, state, 0.01, hessian=hessian)
+        state, info = implicit_euler_step(model, state, 0.01, projection=hessian)
         assert info.converged, info.message
         hist = info.energy_history
         assert all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(hist, hist[1:], strict=False))
@@ -243,8 +243,8 @@ def test_bad_solver_input():
         Sphere((0, 0, 0), -1.0)
     with pytest.raises(ValueError, match="Capsule.radius must be positive"):
         Capsule((0, 0, 0), (1, 0, 0), 0.0)
-    with pytest.raises(ValueError, match="hessian must be one of"):
-        solve_static(model, rest, hessian="newton")
+    with pytest.raises(ValueError, match="projection must be one of"):
+        solve_static(model, rest, projection="newton")
     with pytest.raises(ValueError, match="linear_solver must be"):
         solve_static(model, rest, linear_solver="lu")
     with pytest.raises(ValueError, match="state.v must have shape"):

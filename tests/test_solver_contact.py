@@ -254,7 +254,7 @@ def test_drape_41_at_60_hz_converges_every_step_in_few_iterations():
     sol = cfg["solver"]
     state, its = ClothState(x0, torch.zeros_like(x0)), []
     for _ in range(120):
-        state, info = implicit_euler_step(model, state, 1 / 60, hessian=sol["hessian"], linear_solver=sol["linear_solver"],
+        state, info = implicit_euler_step(model, state, 1 / 60, projection=sol["hessian"], linear_solver=sol["linear_solver"],
                                           tol=sol["tol"], max_iters=sol["max_iters"])
         assert info.converged and info.substeps == 1, info.message
         its.append(info.iterations)

@@ -198,7 +198,7 @@ def test_thin_stiff_strip_converges_alike_from_starts_a_few_ulps_apart(hessian, 
     model, rest = thin_stiff_strip(pattern)
     xs = []
     for k in range(4):
-        x, info = solve_static(model, rest * (1 + k * 4e-16), hessian=hessian, linear_solver="cg")
+        x, info = solve_static(model, rest * (1 + k * 4e-16), projection=hessian, linear_solver="cg")
         assert info.converged, f"start {k}: {info.message}"
         assert info.iterations <= 300, f"start {k}: {info.iterations} Newton iterations"
         xs.append(x)
@@ -474,13 +474,13 @@ def test_cg_path_follows_the_device_and_reads_the_host_only_every_few_iterations
 @pytest.mark.parametrize("hessian", ["exact", "clamp"])
 def test_cg_solve_on_cuda_matches_cpu(hessian):
     model, rest, _ = cantilever(11, 3)
-    x_cpu, info_cpu = solve_static(model, rest, hessian=hessian, linear_solver="cg", tol=1e-9)
+    x_cpu, info_cpu = solve_static(model, rest, projection=hessian, linear_solver="cg", tol=1e-9)
     dev = torch.device("cuda")
     bend, mem = model.bending, model.membrane
     assert bend is not None and mem is not None
     gpu = ClothModel(model.topology.faces, rest.to(dev), bending=bend.to(dev), membrane=mem.to(dev),
                      density=model.density, pinned=model.pinned.to(dev))
-    x_gpu, info_gpu = solve_static(gpu, rest.to(dev), hessian=hessian, linear_solver="cg", tol=1e-9)
+    x_gpu, info_gpu = solve_static(gpu, rest.to(dev), projection=hessian, linear_solver="cg", tol=1e-9)
     assert info_cpu.converged and info_gpu.converged, (info_cpu.message, info_gpu.message)
     assert x_gpu.device.type == "cuda"
     assert float((x_gpu.cpu() - x_cpu).norm() / (x_cpu - rest).norm()) <= 1e-7

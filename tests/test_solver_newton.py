@@ -284,7 +284,7 @@ def test_upright_strip_beyond_its_buckling_length_buckles():
 def test_projected_hessians_do_not_claim_minima():
     model, rest, _ = cantilever(11, 3)
     for hessian in ("clamp", "gauss_newton"):
-        _, info = solve_static(model, rest, hessian=hessian)
+        _, info = solve_static(model, rest, projection=hessian)
         assert info.converged and info.minimum is None and math.isnan(info.min_eigenvalue)
 
 

@@ -152,7 +152,7 @@ KNOWN_GAPS: set[tuple] = set()  # cases expected to fail, marked strict xfail; n
 def check(yt, t, res, pattern, hessian, solver):
     model, rest, _ = scene(yt, t, *res, pattern)
     x_ref = reference(yt, t, *res, pattern)
-    x, info = solve_static(model, rest, hessian=hessian, linear_solver=solver)
+    x, info = solve_static(model, rest, projection=hessian, linear_solver=solver)
     assert info.converged, f"Y t={yt:g}, t={t:g}, {res}, {pattern}, {hessian}/{solver}: {info.message}"
     rel = float((x - x_ref).norm() / (x_ref - rest).norm())
     assert rel <= 1e-6, f"Y t={yt:g}, t={t:g}, {res}, {pattern}, {hessian}/{solver}: relative displacement error {rel:.2e}"

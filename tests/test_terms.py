@@ -224,3 +224,16 @@ def test_projection_keyword_and_its_deprecated_alias():
         with pytest.raises(ValueError, match=rf"{where}: projection='abs' and project='clamp' disagree"), \
                 pytest.warns(DeprecationWarning):
             fn(*args, projection="abs", project="clamp")
+
+
+def test_solver_projection_keyword_and_its_deprecated_alias():
+    model, rest, _ = springs_model()
+    x_new, info_new = tb.solve_static(model, rest, projection="clamp")
+    with pytest.warns(DeprecationWarning, match="solve_static: hessian= is deprecated, use projection="):
+        x_old, info_old = tb.solve_static(model, rest, hessian="clamp")
+    assert info_new.converged and torch.equal(x_new, x_old) and info_new.iterations == info_old.iterations
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    with pytest.warns(DeprecationWarning, match="implicit_euler_step: hessian= is deprecated"):
+        tb.implicit_euler_step(model, state, 0.01, hessian="gauss_newton")
+    with pytest.raises(ValueError, match="projection='clamp' and hessian='abs' disagree"), pytest.warns(DeprecationWarning):
+        tb.solve_static(model, rest, projection="clamp", hessian="abs")

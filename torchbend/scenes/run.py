@@ -129,7 +129,7 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
         model, x0, faces = build_scene(cfg, resolution=resolution, device=device)
     os.makedirs(os.path.join(out_dir, "frames"), exist_ok=True)
     dt, n_steps = sol.dt, steps if steps is not None else sol.steps
-    kw: dict[str, Any] = dict(hessian=sol.hessian, linear_solver=sol.linear_solver, tol=sol.tol or 1e-6,
+    kw: dict[str, Any] = dict(projection=sol.hessian, linear_solver=sol.linear_solver, tol=sol.tol or 1e-6,
                               max_iters=sol.max_iters or 30)
     state, start = ClothState(x0, torch.zeros_like(x0)), 0
     if resume:
@@ -205,7 +205,7 @@ def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name)
         for k in range(1, n_load + 1):
             model.gravity = g_full * (k / n_load)
             final = k == n_load
-            x, info = solve_static(model, x, hessian=sol.hessian, linear_solver=sol.linear_solver,
+            x, info = solve_static(model, x, projection=sol.hessian, linear_solver=sol.linear_solver,
                                    tol=tol if final else 1e-6, max_iters=max_iters, continuation=True)
             t_solve += info.seconds
             total_its += info.iterations
@@ -215,7 +215,7 @@ def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name)
         tip = _tip(x, x0)
         # the same mesh's linear response: a small load, scaled back (tip / linear: geometric nonlinearity)
         model.gravity = g_full * LINEAR_LOAD
-        x_lin, info_lin = solve_static(model, x0, hessian=sol.hessian, linear_solver=sol.linear_solver, tol=tol,
+        x_lin, info_lin = solve_static(model, x0, projection=sol.hessian, linear_solver=sol.linear_solver, tol=tol,
                                        max_iters=max_iters, continuation=True)
         linear = _tip(x_lin, x0) / LINEAR_LOAD if info_lin.converged else float("nan")
         model.gravity = g_full

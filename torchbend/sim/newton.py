@@ -11,7 +11,7 @@ then sets ``v = (x - x_n)/dt``.  The viscous bending term of the paper (``k_d/dt
 ``theta_prev`` = the angles of ``x_n``) is included when the bending module has ``damping``.
 
 Newton iteration: pinned degrees of freedom are eliminated; the direction solves ``H p = -g`` on
-the free ones with the Hessian option ``hessian=``, a :class:`torchbend.options.Projection`
+the free ones with the Hessian option ``projection=``, a :class:`torchbend.options.Projection`
 (``"exact"`` = ``none``, ``"clamp"``, ``"abs"``, ``"gauss_newton"``, ``"reduced"``: the bending
 projection; membranes get the nearest one they support, colliders drop their concave curvature term
 whenever a projection is asked for), assembled once per iteration on the positions' device, by a
@@ -54,7 +54,7 @@ minimum; the line search keeps the potential decreasing), and takes the first tw
 the round-off whatever the residual (a soft mode's error left by the linear convergence does not
 show above a stiff membrane's round-off).
 
-**Minima, not saddles.**  With the exact Hessian (``hessian="exact"``) and ``check_minimum``, a point
+**Minima, not saddles.**  With the exact Hessian (``projection="exact"``) and ``check_minimum``, a point
 that passes a stopping test is checked for negative curvature: the smallest eigenvalue of the exact
 Hessian on the free DOFs (:mod:`torchbend.sim.curvature`).  Below ``-1e3 eps ||H||_inf`` the solver
 takes a line-searched step along the eigenvector (the sign with ``g . d <= 0``, both signs when
@@ -94,7 +94,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_positions, positive
-from ..options import Option, Projection
+from ..options import Option, Projection, projection_argument
 from .curvature import curvature_tolerance, smallest_eigenpair
 from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
@@ -167,7 +167,7 @@ class LinearSolver:
 
 SOLVER_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.ABS, Projection.GAUSS_NEWTON,
                                 Projection.REDUCED})
-"""``hessian=`` options of the solvers (``"exact"`` is ``none``): the bending projection; membranes get
+"""``projection=`` options of the solvers (``"exact"`` is ``none``): the bending projection; membranes get
 the nearest one they support (:meth:`Projection.restricted`), colliders drop their curvature term."""
 
 
@@ -752,8 +752,11 @@ def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
     return check_positions(x, model.vertex_count, name)
 
 
-def _parse_options(hessian, linear_solver) -> tuple[Projection, LinearSolver]:
-    return (Projection.parse(hessian, what="hessian", supported=SOLVER_PROJECTIONS),
+def _parse_options(projection, hessian, linear_solver, where: str) -> tuple[Projection, LinearSolver]:
+    """The solvers' projection (``projection=``, or the deprecated ``hessian=``; default exact) and linear solver."""
+    if hessian is not None:
+        projection = projection_argument(projection, hessian, where, old="hessian")
+    return (Projection.parse(projection, what="projection", supported=SOLVER_PROJECTIONS),
             LinearSolver.parse(linear_solver))
 
 
@@ -819,16 +822,19 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
     return out
 
 
-def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver: str | LinearSolver = "direct",
+def solve_static(model: ClothModel, x0, *, projection: str | Projection | None = None,
+                 linear_solver: str | LinearSolver = "direct",
                  tol: float = 1e-9, max_iters: int = 50, continuation: bool | str = "auto",
                  max_relax_steps: int = 200, check_minimum: bool = True, callback: Callable | None = None,
-                 time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[Tensor, SolveInfo]:
+                 time_limit: float | None = None, max_cg_iters: int | None = None,
+                 hessian: str | Projection | None = None) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
 
-    ``hessian``: a :class:`torchbend.options.Projection` (``"exact"``, ``"clamp"``, ``"abs"``,
+    ``projection``: a :class:`torchbend.options.Projection` (``"exact"``, the default, ``"clamp"``, ``"abs"``,
     ``"gauss_newton"``, ``"reduced"``) for the Newton matrix; ``linear_solver``: ``"direct"`` (sparse
     factorisation), ``"cg"``, or a :class:`LinearSolver` (``tb.LinearSolver("cg", preconditioner="amg")``:
-    the preconditioner, Cholesky, the CG bound).  ``tol`` (> 0) is relative to the force scale
+    the preconditioner, Cholesky, the CG bound); ``hessian=``: the deprecated alias of ``projection=``
+    (``DeprecationWarning``).  ``tol`` (> 0) is relative to the force scale
     (stop when ``|g_free| <= tol F`` [N], ``F`` the magnitude of all forces acting, internal ones
     included) unless the residual has reached its round-off floor: see the module docstring; the
     default suits shells from ``Y t = 1e2`` to ``1e7`` N/m.  ``max_iters``: Newton iterations per
@@ -850,7 +856,7 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
       (then ``"relaxation"`` if that fails too), ``"relaxation"`` otherwise;
     * ``False`` / ``None``: Newton only.
 
-    ``info.iterations`` counts every Newton iteration of every solve.  ``check_minimum`` (with ``hessian="exact"``): at a stationary
+    ``info.iterations`` counts every Newton iteration of every solve.  ``check_minimum`` (with ``projection="exact"``): at a stationary
     point, check the exact Hessian for negative curvature and step off saddles (``info.minimum``).
     ``callback(iteration, x, info)``: called after every Newton iterate, True stops the solve;
     ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
@@ -863,7 +869,7 @@ def solve_static(model: ClothModel, x0, *, hessian: str = "exact", linear_solver
     is False and ``info.stop_reason`` / ``info.message`` say why; ``info`` describes the returned
     state.  ``x0`` is never modified.  Invalid arguments raise ``ValueError`` naming them."""
     x0 = _prepare_x(model, x0)
-    option, linear = _parse_options(hessian, linear_solver)
+    option, linear = _parse_options(projection, hessian, linear_solver, "solve_static")
     ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
     max_relax_steps = _int_at_least(max_relax_steps, "max_relax_steps", 0)
     mode = _continuation_mode(continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
@@ -1009,14 +1015,15 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     return x, out
 
 
-def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hessian: str = "exact",
-                        linear_solver: str | LinearSolver = "direct", tol: float = 1e-6, max_iters: int = 30,
+def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *,
+                        projection: str | Projection | None = None, linear_solver: str | LinearSolver = "direct", tol: float = 1e-6, max_iters: int = 30,
                         max_substep_depth: int = 3, check_minimum: bool = False, callback: Callable | None = None,
-                        time_limit: float | None = None, max_cg_iters: int | None = None) -> tuple[ClothState, SolveInfo]:
+                        time_limit: float | None = None, max_cg_iters: int | None = None,
+                        hessian: str | Projection | None = None) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):
     Newton on the incremental potential.
 
-    ``hessian``, ``linear_solver``, ``tol``, ``max_iters``, ``callback``, ``time_limit``,
+    ``projection``, ``linear_solver``, ``tol``, ``max_iters``, ``callback``, ``time_limit``,
     ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
     forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
     inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
@@ -1034,7 +1041,7 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *, hess
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
     _prepare_x(model, state.x, "state.x")
     _prepare_x(model, state.v, "state.v")
-    option, linear = _parse_options(hessian, linear_solver)
+    option, linear = _parse_options(projection, hessian, linear_solver, "implicit_euler_step")
     ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
     depth = _int_at_least(max_substep_depth, "max_substep_depth", 0)
     return _euler_step(model, state, dt, option, linear, ctl, depth)
