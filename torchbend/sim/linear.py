@@ -115,15 +115,9 @@ class _Pattern:
 
 
 def _same_patterns(a: tuple, b: tuple) -> bool:
-    """Whether two tuples of CSR ``(crow, col)`` index pairs are equal (the same tensors: at once)."""
-    if len(a) != len(b):
-        return False
-    for (ra, ca), (rb, cb) in zip(a, b):
-        if ra is rb and ca is cb:
-            continue
-        if ra.shape != rb.shape or ca.shape != cb.shape or not (torch.equal(ra, rb) and torch.equal(ca, cb)):
-            return False
-    return True
+    """Whether two tuples of CSR ``(crow, col)`` index pairs are equal (``torch.equal`` returns at once for
+    views of one storage: the energies' cached patterns)."""
+    return len(a) == len(b) and all(torch.equal(ra, rb) and torch.equal(ca, cb) for (ra, ca), (rb, cb) in zip(a, b))
 
 
 def _csr_indices(H: Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -29,7 +29,16 @@ from ..energies.sparse import to_scipy
 from ..losses.cloth_loss import ClothLoss
 from ..mesh.topology import lumped_areas, mesh_and_rest
 from ..options import Projection
-from .terms import BendingTerm, ColliderTerm, EnergyTerm, GravityTerm, MembraneTerm, StepContext, TermLoss, as_csr
+from .terms import (
+    BendingTerm,
+    ColliderTerm,
+    EnergyTerm,
+    GravityTerm,
+    MembraneTerm,
+    StepContext,
+    TermLoss,
+    as_csr,
+)
 
 __all__ = ["ClothModel", "ClothState"]
 
@@ -114,8 +123,8 @@ class ClothModel:
         return self._contact_depth
 
     def external_force(self, dtype=None) -> Tensor:
-        """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses')."""
-        return (self.mass[:, None] * self.gravity[None, :]).to(dtype or self.mass.dtype)
+        """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses'): the gravity term's."""
+        return GravityTerm(self.mass, self.gravity).force(dtype)
 
     @property
     def terms(self) -> tuple[EnergyTerm, ...]:
@@ -195,11 +204,12 @@ class ClothModel:
         n = 3 * self.vertex_count
         H = sp.csr_matrix((n, n))
         for t in self.terms:
-            blocks = t.vertex_blocks(x, ctx, self._projection(t, option, contact))
+            projection = self._projection(t, option, contact)
+            blocks = t.vertex_blocks(x, ctx, projection)
             if blocks is not None:
                 H = H + _block_diagonal_csr(blocks.detach().cpu().numpy())
             else:
-                H = H + to_scipy(as_csr(t.hessian(x, ctx, self._projection(t, option, contact))))
+                H = H + to_scipy(as_csr(t.hessian(x, ctx, projection)))
         return H.tocsr()
 
     def contact_blocks(self, x: Tensor, project) -> Tensor:

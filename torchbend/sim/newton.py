@@ -222,16 +222,12 @@ class _Potential:
     :class:`~torchbend.sim.terms.StepContext` ``ctx`` (static: ``StepContext()``).
 
     ``free_mask``: ``(3V,)`` bool on the positions' device; ``free``: the same as a NumPy array
-    (indexing the CPU copies of the linear algebra).  ``max_cg_iters``: the bound on CG iterations per
-    direction (None: automatic)."""
-
-    max_cg_iters: int | None = None
+    (indexing the CPU copies of the linear algebra).  ``linear``: the :class:`LinearSolver` options."""
 
     def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None,
                  soften: float | None = None, linear: LinearSolver | None = None):
         self.model, self.option = model, option
         self.linear = linear or LinearSolver()
-        self.max_cg_iters = self.linear.max_cg_iters
         self.ctx = ctx or StepContext()
         terms = model.terms
         if soften is not None:
@@ -247,6 +243,11 @@ class _Potential:
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
+
+    @property
+    def max_cg_iters(self) -> int | None:
+        """The bound on CG iterations per direction (None: automatic), ``linear.max_cg_iters``."""
+        return self.linear.max_cg_iters
 
     def value(self, y: Tensor) -> tuple[float, dict]:
         """``(Phi(y) [J], per-term energies)`` (the inertial term of a step is ``"inertia"``)."""
@@ -487,9 +488,9 @@ def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: Linear
     (:meth:`~torchbend.sim.terms.EnergyTerm.softened`; None: as they are).  Returns ``(x, info)``: the converged iterate, or the best one on failure
     (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
     (``time_limit`` [s], for the message)."""
+    if max_cg_iters is not None:  # the solvers' keyword, over the LinearSolver's own bound
+        linear = replace(linear, max_cg_iters=max_cg_iters)
     phi = _Potential(model, x0, option, ctx, soften, linear)
-    if max_cg_iters is not None:
-        phi.max_cg_iters = max_cg_iters
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
     # unbounded below: a static potential with gravity and nothing that holds the cloth in place
