@@ -15,10 +15,10 @@ if "torch" not in sys.modules:  # set before the OpenMP runtime starts; the user
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-import torchbend as tb  # noqa: E402
-from torchbend.testing import plain_bending_energy  # noqa: E402
+from .helpers import DEVICES, DTYPES, MODELS, curved_sheet, reference_hessian, rel  # noqa: E402
 
-MODELS = ["quadratic", "tan", "sin"]
+# MODELS, rel and reference_hessian stay importable from here for the test files that still do
+__all__ = ["MODELS", "reference_hessian", "rel"]
 
 
 @pytest.fixture(autouse=True)
@@ -28,23 +28,17 @@ def _seed():
 
 @pytest.fixture
 def sheet():
-    """A small random curved sheet (irregular triangles, boundary) and a perturbed state."""
-    rest, faces = tb.scenes.random_curved_sheet(5, 4, amplitude=0.3, seed=3, dtype=torch.float64)
-    gen = torch.Generator().manual_seed(7)
-    x = rest + 0.05 * torch.randn(rest.shape, generator=gen, dtype=torch.float64)
-    return rest, faces, x
+    """A small random curved sheet (irregular triangles, boundary) and a perturbed state (float64)."""
+    return curved_sheet()
 
 
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.detach(), b.detach()
-    return float((a - b).norm() / b.norm())
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """``cpu``, and ``cuda`` where a CUDA device exists (marked ``gpu``; skipped elsewhere)."""
+    return torch.device(request.param)
 
 
-def reference_hessian(bend: tb.BendingEnergy, x: torch.Tensor) -> torch.Tensor:
-    """``(3V, 3V)`` torch.func Hessian of the plain autograd energy with ``bend``'s parameters."""
-    n = x.numel()
-
-    def energy(y):
-        return plain_bending_energy(y, bend.hinges, bend.weights, bend.stiffness, bend.rest_angles, bend.model)
-
-    return torch.func.hessian(energy)(x).reshape(n, n)
+@pytest.fixture(params=DTYPES, ids=lambda d: str(d).removeprefix("torch."))
+def dtype(request) -> torch.dtype:
+    """``torch.float64`` and ``torch.float32``."""
+    return request.param

@@ -12,7 +12,7 @@ from torchbend.ops import hinge as geometry
 from torchbend.options import Backend
 from torchbend.testing import plain_bending_energy, plain_hinge_angles
 
-from .conftest import MODELS, reference_hessian, rel
+from .helpers import MODELS, reference_hessian, rel
 
 F64 = torch.float64
 

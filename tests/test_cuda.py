@@ -8,15 +8,14 @@ import torch
 import torchbend as tb
 from torchbend.backends import cuda
 
-requires_gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+from .helpers import MODELS, requires_gpu, round_off, second_order_case
 
 # The CI check that the CUDA part builds, links, imports and registers every kernel (no GPU needed) is
 # tests/test_build.py::test_cuda_module_builds_imports_and_registers_every_kernel.
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("model", ["tan", "quadratic", "sin"])
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("model", MODELS)
 @pytest.mark.gpu
 @requires_gpu
 def test_cuda_ops_match_eager(dtype, model, damped):
@@ -31,7 +30,7 @@ def test_cuda_ops_match_eager(dtype, model, damped):
     x, d = x.to(dev), torch.randn(x.shape, dtype=dtype, generator=gen).to(dev)
     ex = {"theta_prev": bend.angles(x) + 0.01, "dt": 0.1} if damped else {}
     p, _ = bend._bind(x, "eager", ex.get("theta_prev"), ex.get("dt"))
-    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    tol = round_off(dtype)
 
     def close(a, r):
         assert float((a - r).norm()) <= tol * float(r.norm()) + 1e-30
@@ -102,8 +101,7 @@ def test_cuda_default_path_matches_eager_through_autograd(model):
 
 @pytest.mark.parametrize("per_hinge", [False, True])
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("model", ["tan", "quadratic", "sin"])
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("model", MODELS)
 @pytest.mark.gpu
 @requires_gpu
 def test_cuda_second_order_matches_cpu(dtype, model, damped, per_hinge):
@@ -112,15 +110,13 @@ def test_cuda_second_order_matches_cpu(dtype, model, damped, per_hinge):
     weights, directions in x and in (k, rest, c, prev), each of them absent in turn."""
     from torchbend.backends import native
 
-    from .test_native_second_order import _case
-
     if native.load() is None:
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
-    p = _case(model, damped, dtype, per_hinge)
+    p = second_order_case(model, damped, dtype, per_hinge)
     inc = native.incidence(p["hinges"], p["V"])
     names = ("x", "hinges", "a", "k", "rest", "c", "prev", "v", "t", "w")
     q: dict[str, Any] = {n: (None if p[n] is None else p[n].cuda()) for n in names}
-    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    tol = round_off(dtype)
     for use_v, use_t in ((True, True), (True, False), (False, True)):
         ref = native.bending_second_order(p["x"], p["v"] if use_v else None, p["t"] if use_t else None, p["hinges"],
                                           p["a"], p["k"], p["rest"], p["c"], p["prev"], model, p["w"], inc)

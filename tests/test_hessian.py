@@ -2,54 +2,29 @@
 import pytest
 import torch
 
-import torchbend as tb
-from torchbend import BendingEnergy, to_scipy
+from torchbend import to_scipy
 from torchbend.energies.sparse import HessianPattern
 from torchbend.ops import hinge as geometry
 from torchbend.ops.projection import project_blocks
 from torchbend.options import Projection as HessianProjection
-from torchbend.testing import plain_bending_energy
 
-from .conftest import MODELS, reference_hessian, rel
+from .helpers import MESHES, MODELS, mesh_cases, per_hinge_reference, random_bending, reference_hessian, rel
 
 F64 = torch.float64
 PROJECTIONS = ["clamp", "abs", "gauss_newton", "reduced"]
-
-
-def _bend(rest, faces, model, damped=False):
-    H = tb.HingeTopology.from_faces(faces).hinge_count
-    gen = torch.Generator().manual_seed(3)
-    k = 0.5 + torch.rand(H, generator=gen, dtype=F64)
-    return BendingEnergy(faces, rest, model=model, stiffness=k, damping=0.2 if damped else None)
-
-
-def _per_hinge_reference(bend, x, kw):
-    """torch.func.hessian of the plain per-hinge energy, vmapped over hinges."""
-    idx = torch.arange(4)[None]
-    c = None if not kw else (bend.damping / kw["dt"]).expand(bend.hinge_count)
-    prev = kw.get("theta_prev")
-
-    def e(y4, a, k, r, cc, pp):
-        return plain_bending_energy(y4, idx, a[None], k[None], r[None], bend.model,
-                                    None if cc is None else cc[None], None if pp is None else pp[None])
-
-    k = bend.stiffness.expand(bend.hinge_count)
-    dims = (0, 0, 0, 0, None if c is None else 0, None if prev is None else 0)
-    Hr = torch.func.vmap(torch.func.hessian(e), in_dims=dims)(x[bend.hinges], bend.weights, k, bend.rest_angles, c, prev)
-    return Hr.reshape(-1, 12, 12)
 
 
 @pytest.mark.parametrize("damped", [False, True])
 @pytest.mark.parametrize("model", MODELS)
 def test_hinge_hessians_match_torch_func(sheet, model, damped):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, model, damped)
+    bend = random_bending(rest, faces, model, damped)
     kw = {}
     if damped:
         kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, dtype=F64), "dt": 0.05}
     Hb = bend.hinge_hessians(x, **kw)
     assert Hb.shape == (bend.hinge_count, 12, 12)
-    Hr = _per_hinge_reference(bend, x, kw)
+    Hr = per_hinge_reference(bend, x, kw)
     assert rel(Hb, Hr) <= 1e-12
     per_block = (Hb - Hr).flatten(1).norm(dim=1) / Hr.flatten(1).norm(dim=1)
     assert per_block.max() <= 1e-12
@@ -62,31 +37,20 @@ def test_hinge_hessians_match_torch_func(sheet, model, damped):
 
 def test_hinge_hessians_batched(sheet):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, "tan")
+    bend = random_bending(rest, faces, "tan")
     xb = torch.stack([x, rest + 0.01])
     Hb = bend.hinge_hessians(xb)
     assert Hb.shape == (2, bend.hinge_count, 12, 12)
     assert rel(Hb[1], bend.hinge_hessians(rest + 0.01)) < 1e-15
 
 
-def _meshes():
-    sheet, fs = tb.scenes.random_curved_sheet(5, 4, amplitude=0.3, seed=3, dtype=F64)
-    ico, fi = tb.scenes.icosphere(1, dtype=F64)
-    cyl, fc = tb.scenes.cylinder(7, 4, dtype=F64)
-    # a random vertex permutation mixes the global edge orientations relative to the faces
-    gen = torch.Generator().manual_seed(1)
-    perm = torch.randperm(sheet.shape[0], generator=gen)
-    inv = torch.argsort(perm)
-    return {"sheet": (sheet, fs), "icosphere": (ico, fi), "cylinder": (cyl, fc), "permuted": (sheet[perm], inv[fs])}
-
-
-@pytest.mark.parametrize("mesh", ["sheet", "icosphere", "cylinder", "permuted"])
+@pytest.mark.parametrize("mesh", MESHES)
 @pytest.mark.parametrize("model", MODELS)
 def test_assembly_paths_agree_and_match_dense_reference(mesh, model):
-    rest, faces = _meshes()[mesh]
+    rest, faces = mesh_cases()[mesh]
     gen = torch.Generator().manual_seed(2)
     x = rest + 0.05 * torch.randn(rest.shape, generator=gen, dtype=F64)
-    bend = _bend(rest, faces, model)
+    bend = random_bending(rest, faces, model)
     signs = bend.topology.face_edge_signs[bend.topology.face_edge_hinges >= 0]
     assert (signs > 0).any() and (signs < 0).any()  # both orientations occur
     Ht = bend.hessian(x, assembly="triangle")
@@ -106,7 +70,7 @@ def test_assembly_paths_agree_and_match_dense_reference(mesh, model):
 
 def test_pattern_is_cached_per_module(sheet):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, "tan")
+    bend = random_bending(rest, faces, "tan")
     bend.hessian(x)
     p1 = bend._pattern
     bend.hessian(x)
@@ -141,7 +105,7 @@ def test_pattern_is_cached_per_module(sheet):
 def test_projections_are_psd_and_consistent(sheet, model, project):
     rest, faces, x = sheet
     x = x + 0.2 * torch.randn_like(x)  # strongly bent: indefinite blocks
-    bend = _bend(rest, faces, model)
+    bend = random_bending(rest, faces, model)
     P = bend.hinge_hessians(x, projection=project)
     L = torch.linalg.eigvalsh(P)
     norms = P.flatten(-2).norm(dim=-1)
@@ -160,7 +124,7 @@ def test_projections_are_psd_and_consistent(sheet, model, project):
 def test_exact_blocks_are_indefinite_and_projections_leave_psd_blocks_unchanged(sheet):
     rest, faces, x = sheet
     x = x + 0.2 * torch.randn_like(x)
-    bend = _bend(rest, faces, "tan")
+    bend = random_bending(rest, faces, "tan")
     Hb = bend.hinge_hessians(x)
     assert (torch.linalg.eigvalsh(Hb).min(-1).values < -1e-10).any()  # something to project
     psd = project_blocks(Hb, HessianProjection.CLAMP)
@@ -173,7 +137,7 @@ def test_exact_blocks_are_indefinite_and_projections_leave_psd_blocks_unchanged(
 
 def test_gauss_newton_is_the_clamped_rank_one_term(sheet):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, "sin")
+    bend = random_bending(rest, faces, "sin")
     P = bend.hinge_hessians(x, projection="gauss_newton")
     x4 = x[bend.hinges]
     _, g4 = geometry.hinge_angle_and_gradient(x4)
@@ -187,7 +151,7 @@ def test_gauss_newton_is_the_clamped_rank_one_term(sheet):
 
 def test_bad_hessian_arguments(sheet):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, "tan")
+    bend = random_bending(rest, faces, "tan")
     with pytest.raises(ValueError, match="unknown Hessian projection 'eig'"):
         bend.hessian(x, projection="eig")
     with pytest.raises(ValueError, match="unknown assembly 'edge'"):

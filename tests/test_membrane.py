@@ -8,7 +8,7 @@ import torchbend as tb
 from torchbend import MembraneEnergy, MembraneModel
 from torchbend.ops.membrane import deformation_gradient, eigensystem
 
-from .conftest import rel
+from .helpers import rel
 
 F64 = torch.float64
 MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]

@@ -14,7 +14,7 @@ import torch
 from torchbend import MembraneEnergy, MembraneModel
 from torchbend.ops.membrane import eigensystem
 
-from .conftest import rel
+from .helpers import rel
 
 F32, F64 = torch.float32, torch.float64
 DTYPES = [F32, F64]

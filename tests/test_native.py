@@ -10,8 +10,7 @@ import torchbend as tb
 from torchbend.backends import native
 from torchbend.testing import plain_bending_energy
 
-from .conftest import MODELS, rel
-from .test_hessian import _bend, _meshes, _per_hinge_reference
+from .helpers import MESHES, MODELS, mesh_cases, per_hinge_reference, random_bending, rel
 
 F64 = torch.float64
 
@@ -34,11 +33,11 @@ def _both(fn):
 @pytest.mark.parametrize("model", MODELS)
 def test_native_blocks_match_eager_and_torch_func(kernel, sheet, model):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, model, damped=True)
+    bend = random_bending(rest, faces, model, damped=True)
     kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, dtype=F64), "dt": 0.05}
     fused, eager = _both(lambda: bend.hinge_hessians(x, **kw))
     assert rel(fused, eager) <= 1e-15
-    assert rel(fused, _per_hinge_reference(bend, x, kw)) <= 1e-12
+    assert rel(fused, per_hinge_reference(bend, x, kw)) <= 1e-12
     # everything built on the blocks follows: hinge assembly, projections
     for project in (None, "clamp", "abs", "reduced"):
         a, b = _both(lambda project=project: bend.hessian(x, assembly="hinge", projection=project).to_dense())
@@ -54,7 +53,6 @@ def _eigh_projection(M: torch.Tensor, abs_mode: bool) -> torch.Tensor:
     return (Q * (L.abs() if abs_mode else L.clamp_min(0))[..., None, :]) @ Q.transpose(-1, -2) * s
 
 
-@pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_native_projection_jacobi_matches_eigh(kernel, dtype):
     """The compiled PSD projections (cyclic Jacobi, 8 blocks at a time): clamp and abs of symmetric 9x9 and
     12x12 blocks equal eigh's to a few eps of the block norm, whatever the scale (1e-200, 1e200), for zero
@@ -85,7 +83,6 @@ def test_native_projection_jacobi_matches_eigh(kernel, dtype):
         assert rel(native.project_blocks(A[0, 2:3], "clamp"), A[0, 2:3]) <= 50 * eps
 
 
-@pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_native_projection_of_hinge_blocks(kernel, dtype):
     """Hinge blocks are projected in the 9-dimensional complement of the translations (the same matrix as the
     12x12 projection, a smaller eigenproblem): equal to eigh's clamp / abs of the full blocks, the translations
@@ -142,7 +139,7 @@ def test_native_float32_batched_and_degenerate(kernel):
 
 def test_native_falls_back_when_a_graph_is_recorded(kernel, sheet):
     rest, faces, x = sheet
-    bend = _bend(rest, faces, "tan")
+    bend = random_bending(rest, faces, "tan")
     xg = x.clone().requires_grad_()
     Hb = bend.hinge_hessians(xg)  # differentiable: the eager path runs
     assert Hb.requires_grad
@@ -184,15 +181,15 @@ def test_native_backend_option_per_module_and_call(kernel, sheet):
         tb.BendingEnergy(faces, rest, backend="cuda")
 
 
-@pytest.mark.parametrize("mesh", ["sheet", "icosphere", "cylinder", "permuted"])
+@pytest.mark.parametrize("mesh", MESHES)
 @pytest.mark.parametrize("model", MODELS)
 def test_native_assembly_both_paths_match_eager(kernel, mesh, model):
     """The C++ per-hinge and per-triangle assemblies (conditional transpose, mixed edge orientations,
     boundaries, damping) give the eager matrices and the torch.func Hessian of the plain energy."""
-    rest, faces = _meshes()[mesh]
+    rest, faces = mesh_cases()[mesh]
     gen = torch.Generator().manual_seed(2)
     x = rest + 0.05 * torch.randn(rest.shape, generator=gen, dtype=F64)
-    bend = _bend(rest, faces, model, damped=True)
+    bend = random_bending(rest, faces, model, damped=True)
     kw = {"theta_prev": bend.angles(x) + 0.03 * torch.randn(bend.hinge_count, generator=gen, dtype=F64), "dt": 0.05}
     for assembly in ("hinge", "triangle"):
         fused, eager = _both(lambda assembly=assembly: bend.hessian(x, assembly=assembly, **kw).to_dense())
@@ -326,7 +323,6 @@ def test_native_vertex_sums_deterministic_across_threads(kernel, perm, batch):
     assert rel(one[3], hv) <= 1e-12
 
 
-@pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_native_blocks_same_bits_aligned_or_not(kernel, dtype):
     """A full tile of blocks is transposed in registers into a 64-byte aligned output, a partial tile or an
     unaligned out= buffer is copied lane by lane: the same bits either way."""

@@ -2,7 +2,6 @@
 backward with directions in the positions and in the per-hinge parameters (k, rest, c, prev), against the
 eager ``_second_order`` of the autograd Function and against torch.func of the plain autograd energy.
 Skipped only where no C++ toolchain exists."""
-from typing import Any
 
 import pytest
 import torch
@@ -13,7 +12,7 @@ from torchbend.energies._bending_fn import _second_order
 from torchbend.ops.psi import BendingModel
 from torchbend.testing import plain_bending_energy
 
-from .conftest import MODELS, rel
+from .helpers import MODELS, rel, second_order_case
 
 F64 = torch.float64
 
@@ -22,30 +21,6 @@ F64 = torch.float64
 def kernel():
     if native.load() is None:
         pytest.skip(f"C++ kernel could not be built here: {native.build_error()}")
-
-
-def _case(model: str, damped: bool, dtype, per_hinge: bool, batch: tuple = (2,), seed: int = 0) -> dict[str, Any]:
-    """A random curved sheet, positions ``(*batch, V, 3)`` and parameters: scalars or per hinge (``k``),
-    per-hinge rest angles, per-sample ``prev``; directions ``v`` and ``t (*batch, H, 4)``; weights ``w (*batch, H)``."""
-    rest_x, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=seed + 1, dtype=F64)
-    topo = tb.HingeTopology.from_faces(faces)
-    hinges = topo.hinges
-    H = hinges.shape[0]
-    gen = torch.Generator().manual_seed(seed)
-    x = rest_x + 0.05 * torch.randn(batch + rest_x.shape, generator=gen, dtype=F64)
-    a = 0.5 + torch.rand(H, generator=gen, dtype=F64)
-    k = (0.5 + torch.rand(H, generator=gen, dtype=F64)) if per_hinge else torch.tensor([0.7], dtype=F64)
-    rest = tb.hinge_angles(rest_x, topo) + 0.1 * torch.randn(H, generator=gen, dtype=F64)
-    c = prev = None
-    if damped:
-        c = (0.2 + torch.rand(H, generator=gen, dtype=F64)) if per_hinge else torch.tensor([0.3], dtype=F64)
-        prev = tb.hinge_angles(x, topo) + 0.05 * torch.randn(batch + (H,), generator=gen, dtype=F64)
-    v = torch.randn(x.shape, generator=gen, dtype=F64)
-    t = torch.randn(batch + (H, 4), generator=gen, dtype=F64)
-    w = 0.5 + torch.rand(batch + (H,), generator=gen, dtype=F64)
-    cast = (lambda z: None if z is None else z.to(dtype))  # noqa: E731
-    return dict(x=cast(x), hinges=hinges, a=cast(a), k=cast(k), rest=cast(rest), c=cast(c), prev=cast(prev),
-                v=cast(v), t=cast(t), w=cast(w), model=model, V=x.shape[-2])
 
 
 def _expanded(p: dict, batch: tuple) -> list:
@@ -98,11 +73,10 @@ def _native(p: dict, use_v: bool = True, use_t: bool = True):
 @pytest.mark.parametrize("per_hinge", [False, True])
 @pytest.mark.parametrize("damped", [False, True])
 @pytest.mark.parametrize("model", MODELS)
-@pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_second_order_matches_torch_func(kernel, dtype, model, damped, per_hinge):
     """Batched positions (2, V, 3), per-sample prev, per-hinge weights: dx, dp and dg against torch.func of the
     plain energy in float64 (float32: the kernel in float32 against the float64 reference)."""
-    p = _case(model, damped, dtype, per_hinge)
+    p = second_order_case(model, damped, dtype, per_hinge)
     dx, dp, dg = _native(p)
     assert dx.dtype == dtype and dx.shape == p["x"].shape
     assert dp.shape == p["t"].shape and dg.shape == p["w"].shape
@@ -118,7 +92,7 @@ def test_second_order_matches_torch_func(kernel, dtype, model, damped, per_hinge
 @pytest.mark.parametrize("model", MODELS)
 def test_second_order_partial_directions(kernel, model):
     """v or t None: the same as zero directions (and both None: zeros)."""
-    p = _case(model, True, F64, True, seed=3)
+    p = second_order_case(model, True, F64, True, seed=3)
     for use_v, use_t in ((True, False), (False, True)):
         got = _native(p, use_v, use_t)
         ref = _reference(p, use_v, use_t)
@@ -133,7 +107,7 @@ def test_second_order_partial_directions(kernel, model):
 def test_second_order_matches_eager_double_backward(kernel, model, damped):
     """Against ``_second_order`` of the autograd Function (its eager double backward, no tangent of gE), with a
     per-mesh cotangent gE and a single mesh (unbatched x)."""
-    p = _case(model, damped, F64, True, batch=(), seed=5)
+    p = second_order_case(model, damped, F64, True, batch=(), seed=5)
     gE = torch.tensor(1.7, dtype=F64)
     params = _expanded(p, ())
     saved = (gE, p["x"], p["hinges"], None, p["a"], *params)
@@ -152,7 +126,7 @@ def test_second_order_matches_eager_double_backward(kernel, model, damped):
 
 def test_second_order_hvp_consistency_and_unbatched_tangents(kernel):
     """Without tangents the position part is the HVP kernel's; tangents given as (H, 4) apply to every sample."""
-    p = _case("tan", True, F64, True, seed=7)
+    p = second_order_case("tan", True, F64, True, seed=7)
     inc = native.incidence(p["hinges"], p["V"])
     hv = native.bending_hvp(p["x"], p["v"], p["hinges"], p["a"], p["k"], p["rest"], p["c"], p["prev"], "tan", p["w"],
                             inc)

@@ -2,12 +2,10 @@
 import json
 import math
 import os
-import sys
 from typing import cast
 
 import pytest
 import torch
-from torch.overrides import TorchFunctionMode
 
 import torchbend as tb
 from torchbend import Capsule, ClothModel, ClothState, Plane, Sphere, implicit_euler_step, solve_static
@@ -15,23 +13,9 @@ from torchbend.options import Projection
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config
 
+from .helpers import CONFIGS, SIM_DIR, DevicelessFactories, cantilever, tip
+
 F64 = torch.float64
-CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
-
-
-def cantilever(nx, ny, *, L=0.2, W=0.05, young=5e7, nu=0.3, t=1e-2, rho=1000.0):
-    rest, faces = tb.scenes.grid(nx, ny, (L, W), dtype=F64)
-    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(young, t, nu))
-    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=young, poisson=nu, thickness=t)
-    columns = rest[:, 0].unique()
-    pinned = rest[:, 0] <= columns[1] + 1e-12
-    model = ClothModel(faces, rest, bending=bend, membrane=mem, density=rho * t, gravity=(0, 0, -9.81), pinned=pinned)
-    kirchhoff = rho * t * 9.81 * (L - columns[1].item()) ** 4 / (8 * young * t**3 / (12 * (1 - nu**2)))
-    return model, rest, kirchhoff
-
-
-def tip(x, rest):
-    return float(-(x[:, 2] - rest[:, 2])[rest[:, 0] >= rest[:, 0].max() - 1e-12].mean())
 
 
 def test_static_cantilever_converges_and_solvers_agree():
@@ -136,35 +120,6 @@ def test_colliders_derivatives_match_autograd():
         blocks = torch.block_diag(*c.hessian_blocks(x))
         assert float((blocks - H).norm()) <= 1e-10 * max(float(H.norm()), 1.0)
         assert (torch.linalg.eigvalsh(c.hessian_blocks(x, projection="clamp")) >= -1e-12).all()
-
-
-SIM_DIR = os.path.dirname(os.path.abspath(str(tb.sim.__file__)))
-TORCH_DIR = os.path.dirname(os.path.abspath(str(torch.__file__)))
-FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.eye, torch.arange, torch.linspace, torch.tensor,
-             torch.as_tensor, torch.scalar_tensor, torch.rand, torch.randn}
-
-
-class DevicelessFactories(TorchFunctionMode):
-    """Records the tensor factory calls made from ``torchbend/sim`` without an explicit ``device=``
-    (such a tensor lands on the CPU whatever the device of the positions)."""
-
-    def __init__(self):
-        super().__init__()
-        self.calls: list = []
-        self.seen = 0
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        if func in FACTORIES:
-            frame = sys._getframe(1)
-            while frame is not None and frame.f_code.co_filename.startswith(TORCH_DIR):
-                frame = frame.f_back
-            if frame is not None and frame.f_code.co_filename.startswith(SIM_DIR):
-                self.seen += 1
-                keeps_device = func is torch.as_tensor and bool(args) and isinstance(args[0], torch.Tensor)
-                if kwargs.get("device") is None and not keeps_device:
-                    self.calls.append(f"torch.{func.__name__} at {os.path.basename(frame.f_code.co_filename)}:{frame.f_lineno}")
-        return func(*args, **kwargs)
 
 
 def test_model_tensors_live_on_the_device_of_the_rest_positions():

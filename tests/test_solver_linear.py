@@ -16,10 +16,9 @@ from torchbend.scenes.config import build_scene, load_config
 from torchbend.sim import linear, newton
 from torchbend.sim.terms import InertiaTerm, StepContext
 
-from .test_solver import CONFIGS, DevicelessFactories, cantilever
+from .helpers import CONFIGS, DevicelessFactories, cantilever, requires_gpu
 
 F64 = torch.float64
-requires_gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 requires_cholespy = pytest.mark.skipif(not linear.has_cholespy(), reason="cholespy not installed")
 
 

@@ -18,7 +18,7 @@ from torchbend.sim import newton
 from torchbend.sim.curvature import count_below, curvature_tolerance, smallest_eigenpair
 from torchbend.testing import plain_bending_energy
 
-from .test_solver import CONFIGS, cantilever, tip
+from .helpers import CONFIGS, cantilever, tip
 
 F64 = torch.float64
 
