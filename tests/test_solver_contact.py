@@ -9,7 +9,7 @@ import torch
 
 import torchbend as tb
 from torchbend import Capsule, ClothModel, ClothState, Plane, Sphere, implicit_euler_step
-from torchbend.scenes.config import build_scene, load_config
+from torchbend.scenes.config import build_scene, load_config, read_config
 from torchbend.sim import newton
 from torchbend.sim.line_search import armijo_backtracking
 
@@ -249,13 +249,12 @@ def test_drape_41_at_60_hz_converges_every_step_in_few_iterations():
     """The dynamics acceptance: the 41x41 sphere drape, 120 steps of 1/60 s with the scene's solver
     options (exact Hessian, direct solver, tol 1e-6, at most 50 iterations): every step converges
     without substeps, about 5 Newton iterations per step on average (16 before the step bound)."""
-    cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    cfg = read_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     model, x0, _ = build_scene(cfg, resolution=(41, 41))
-    sol = cfg["solver"]
+    options = cfg.solver.newton_options()
     state, its = ClothState(x0, torch.zeros_like(x0)), []
     for _ in range(120):
-        state, info = implicit_euler_step(model, state, 1 / 60, projection=sol["hessian"], linear_solver=sol["linear_solver"],
-                                          tol=sol["tol"], max_iters=sol["max_iters"])
+        state, info = implicit_euler_step(model, state, 1 / 60, options)
         assert info.converged and info.substeps == 1, info.message
         its.append(info.iterations)
     print(f"41x41 drape at 60 Hz: {sum(its) / len(its):.2f} Newton iterations per step (max {max(its)})")

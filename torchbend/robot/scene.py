@@ -156,11 +156,12 @@ class RobotScene:
         x[self.pins.vertices] = self.pins.positions(q).to(x.dtype)
         return x
 
-    def step(self, state: ClothState, q_next, dt: float, **kw) -> tuple[ClothState, SolveInfo]:
-        """One implicit-Euler step to the joint vector ``q_next`` at the end of the step."""
+    def step(self, state: ClothState, q_next, dt: float, options=None, **kw) -> tuple[ClothState, SolveInfo]:
+        """One implicit-Euler step to the joint vector ``q_next`` at the end of the step (``options``, ``kw``:
+        those of :func:`~torchbend.implicit_euler_step`)."""
         q_next = self.robot.check_joints(q_next, "q_next").detach()
         x = self.place(state.x, q_next)
-        return implicit_euler_step(self.model_at(q_next), ClothState(x, state.v), dt, **kw)
+        return implicit_euler_step(self.model_at(q_next), ClothState(x, state.v), dt, options, **kw)
 
     def solve_static(self, q, x0: Tensor, params=(), **solve_kw) -> tuple[Tensor, SolveInfo]:
         """Static equilibrium ``(V, 3)`` with the robot at ``q (J,)``, differentiable with respect to

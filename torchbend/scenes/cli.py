@@ -32,7 +32,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .config import SEED_LIMIT, ConfigError, one_line, short_repr
+from .schema import SEED_LIMIT
+from .wording import ConfigError, one_line, short_repr
 
 __all__ = ["add_common_args", "parse_args", "setup_logging", "resolve_device", "seed_everything", "save_checkpoint",
            "load_checkpoint", "resume_checkpoint", "restore", "changed_keys", "run_main", "LOG_LEVELS",

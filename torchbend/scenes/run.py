@@ -26,8 +26,9 @@ Config keys (every section optional; schema and defaults: :class:`torchbend.scen
 ``thicknesses`` for static sweeps, or ``volumetric_density`` [kg/m^3] instead of ``density``);
 ``bending`` (``model``, ``stiffness`` [N m] or ``from_material: true``, ``damping``); ``membrane``
 (``model``); ``colliders`` (list of ``{type: sphere|plane|capsule, ...}``); ``gravity``; ``solver``
-(``dt``, ``steps``, ``hessian``, ``linear_solver``, ``tol``, ``max_iters``, ``load_steps`` for static
-scenes: gravity ramped in that many equal increments); ``output`` (``every``); ``robot`` (``urdf``,
+(``dt``, ``steps``, ``load_steps`` for static scenes: gravity ramped in that many equal increments, and
+the fields of :class:`torchbend.NewtonOptions` one to one: ``projection``, ``linear_solver``, ``tol``,
+``max_iters``, ``check_minimum``, ``time_limit``, ``continuation``, ``max_relax_steps``, ``max_substep_depth``); ``output`` (``every``); ``robot`` (``urdf``,
 ``pins``, ``capsules``, ``trajectory``).  Unknown keys and invalid values raise ``ValueError``
 naming the key's path (``unknown config key 'solver.tol_x'``).
 
@@ -56,7 +57,6 @@ import json
 import logging
 import os
 import time
-from typing import Any
 
 import torch
 
@@ -129,8 +129,7 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
         model, x0, faces = build_scene(cfg, resolution=resolution, device=device)
     os.makedirs(os.path.join(out_dir, "frames"), exist_ok=True)
     dt, n_steps = sol.dt, steps if steps is not None else sol.steps
-    kw: dict[str, Any] = dict(projection=sol.hessian, linear_solver=sol.linear_solver, tol=sol.tol or 1e-6,
-                              max_iters=sol.max_iters or 30)
+    options = sol.newton_options()  # the solver section, field by field (defaults: those of a time step)
     state, start = ClothState(x0, torch.zeros_like(x0)), 0
     if resume:
         for key in ("x", "v"):
@@ -150,12 +149,12 @@ def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, 
     for i in tqdm(range(start + 1, n_steps + 1), desc="steps", disable=not progress, initial=start, total=n_steps):
         if kind == "robot":
             q = trajectory(keyframes, i * dt)
-            state, info = scene.step(state, q, dt, **kw)
+            state, info = scene.step(state, q, dt, options)
             err = float((state.x[scene.pins.vertices] - scene.pins.positions(q)).norm(dim=-1).max())
             stats["pin_error"].append(err)
             extra = {"q": q.tolist(), "pin_error": err}
         else:
-            state, info = implicit_euler_step(model, state, dt, **kw)
+            state, info = implicit_euler_step(model, state, dt, options)
             extra = {}
         stats["steps"].append(_info_dict(info, step=i, **extra))
         if not info.converged:
@@ -192,7 +191,9 @@ def _tip(x, x0) -> float:
 def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name) -> None:
     mat = cfg.material
     thicknesses = mat.thicknesses or [mat.thickness]
-    tol, max_iters = sol.tol or 1e-9, sol.max_iters or 50
+    options = sol.newton_options()  # the solver section, field by field (defaults: those of a static solve)
+    # the intermediate load steps need no more than an approximate equilibrium to start the next one from
+    intermediate = options.replace(tol=1e-6)
     shown = []
     for j, t in enumerate(thicknesses):
         model, x0, faces = build_scene(cfg, thickness=float(t), resolution=resolution, device=device)
@@ -205,8 +206,7 @@ def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name)
         for k in range(1, n_load + 1):
             model.gravity = g_full * (k / n_load)
             final = k == n_load
-            x, info = solve_static(model, x, projection=sol.hessian, linear_solver=sol.linear_solver,
-                                   tol=tol if final else 1e-6, max_iters=max_iters, continuation=True)
+            x, info = solve_static(model, x, options if final else intermediate)
             t_solve += info.seconds
             total_its += info.iterations
         info.seconds, info.iterations = t_solve, total_its
@@ -215,8 +215,7 @@ def _run_static(cfg: SceneConfig, out_dir, stats, sol, resolution, device, name)
         tip = _tip(x, x0)
         # the same mesh's linear response: a small load, scaled back (tip / linear: geometric nonlinearity)
         model.gravity = g_full * LINEAR_LOAD
-        x_lin, info_lin = solve_static(model, x0, projection=sol.hessian, linear_solver=sol.linear_solver, tol=tol,
-                                       max_iters=max_iters, continuation=True)
+        x_lin, info_lin = solve_static(model, x0, options)
         linear = _tip(x_lin, x0) / LINEAR_LOAD if info_lin.converged else float("nan")
         model.gravity = g_full
         d = mat.young * float(t) ** 3 / (12 * (1 - mat.poisson ** 2))

@@ -84,24 +84,34 @@ from __future__ import annotations
 
 import logging
 import math
-import operator
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, ClassVar
+from typing import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .._checks import check_positions, positive
-from ..options import Option, Projection, projection_argument
+from .._checks import check_positions
+from ..options import Projection
 from .curvature import curvature_tolerance, smallest_eigenpair
 from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
+from .options import (
+    UNSET,
+    Controls,
+    LinearMethod,
+    LinearSolver,
+    NewtonOptions,
+    continuation_mode,
+    positive_value,
+    resolve_options,
+)
 from .terms import InertiaTerm, StepContext, softens
 
-__all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "LinearMethod", "solve_static", "implicit_euler_step"]
+__all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "LinearMethod", "NewtonOptions", "solve_static",
+           "implicit_euler_step"]
 
 _log = logging.getLogger("torchbend.sim")
 _INFO_AFTER_S = 5.0
@@ -112,63 +122,6 @@ _SLOW_STEPS = 5
 """Full steps in a row that do not halve the residual after which a projected Hessian gives way to the exact one."""
 _MAX_ESCAPES = 10
 """Negative-curvature steps at most per Newton solve."""
-
-
-class LinearMethod(Option):
-    """How Newton directions are solved: sparse direct factorisation or matrix-free CG."""
-
-    __label__ = "linear_solver"
-
-    DIRECT = "direct"
-    CG = "cg"
-
-
-@dataclass(frozen=True)
-class LinearSolver:
-    """The linear solves of the Newton directions, ``linear_solver=`` of :func:`solve_static`,
-    :func:`implicit_euler_step` and :func:`~torchbend.solve_static_adjoint` (a string is the ``method``):
-
-    * ``method``: ``"direct"`` (sparse factorisation on the CPU) or ``"cg"`` (truncated preconditioned CG on
-      the positions' device);
-    * ``preconditioner`` (CG): ``"auto"`` (the incomplete ``L |D| L^T`` factorisation on the CPU,
-      block-Jacobi elsewhere), ``"block_jacobi"``, ``"ilu"`` or ``"amg"`` (needs ``pyamg``);
-    * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; LU when it fails);
-    * ``max_cg_iters`` (CG): iterations per direction at most (``None``: ``min(2 n, max(100, 20 sqrt(n)))``).
-
-    ``tb.LinearSolver("cg", preconditioner="amg")``; invalid values are a ``ValueError`` naming the field."""
-
-    method: LinearMethod | str = "direct"
-    preconditioner: Preconditioner | str = "auto"
-    cholesky: bool = False
-    max_cg_iters: int | None = None
-
-    DIRECT: ClassVar[LinearMethod] = LinearMethod.DIRECT
-    CG: ClassVar[LinearMethod] = LinearMethod.CG
-
-    def __post_init__(self):
-        object.__setattr__(self, "method", LinearMethod.parse(self.method))
-        object.__setattr__(self, "preconditioner", Preconditioner.parse(self.preconditioner))
-        if not isinstance(self.cholesky, bool):
-            raise ValueError(f"LinearSolver: cholesky must be True or False, got {self.cholesky!r}")
-        if self.max_cg_iters is not None:
-            object.__setattr__(self, "max_cg_iters", _int_at_least(self.max_cg_iters, "LinearSolver: max_cg_iters", 1))
-
-    @classmethod
-    def parse(cls, value) -> LinearSolver:
-        """A :class:`LinearSolver` from one, or from a method name (``"direct"``, ``"cg"``)."""
-        if isinstance(value, LinearSolver):
-            return value
-        return cls(method=value)
-
-    @property
-    def is_direct(self) -> bool:
-        return self.method is LinearMethod.DIRECT
-
-
-SOLVER_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.ABS, Projection.GAUSS_NEWTON,
-                                Projection.REDUCED})
-"""``projection=`` options of the solvers (``"exact"`` is ``none``): the bending projection; membranes get
-the nearest one they support (:meth:`Projection.restricted`), colliders drop their curvature term."""
 
 
 @dataclass
@@ -753,64 +706,6 @@ def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
     return check_positions(x, model.vertex_count, name)
 
 
-def _parse_options(projection, hessian, linear_solver, where: str) -> tuple[Projection, LinearSolver]:
-    """The solvers' projection (``projection=``, or the deprecated ``hessian=``; default exact) and linear solver."""
-    if hessian is not None:
-        projection = projection_argument(projection, hessian, where, old="hessian")
-    return (Projection.parse(projection, what="projection", supported=SOLVER_PROJECTIONS),
-            LinearSolver.parse(linear_solver))
-
-
-def _int_at_least(value, name: str, minimum: int) -> int:
-    """``value`` as an ``int >= minimum`` (a bool or a float is a ``ValueError`` naming ``name``)."""
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
-    try:
-        v = operator.index(value)
-    except TypeError:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}") from None
-    if v < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {v}")
-    return v
-
-
-def _positive(value, name: str) -> float:
-    try:
-        return positive(value, name)
-    except TypeError:
-        raise ValueError(f"{name} must be positive and finite, got {value!r}") from None
-
-
-@dataclass
-class _Controls:
-    """The validated controls shared by every sub-solve of a public call."""
-
-    tol: float
-    max_iters: int
-    time_limit: float | None
-    deadline: float | None
-    max_cg_iters: int | None
-    callback: Callable | None
-    check_minimum: bool
-
-    def newton_kw(self) -> dict[str, Any]:
-        return {"tol": self.tol, "max_iters": self.max_iters, "callback": self.callback, "deadline": self.deadline,
-                "time_limit": self.time_limit, "max_cg_iters": self.max_cg_iters, "check_minimum": self.check_minimum}
-
-
-def _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum) -> _Controls:
-    tol = _positive(tol, "tol")
-    max_iters = _int_at_least(max_iters, "max_iters", 0)
-    if time_limit is not None:
-        time_limit = _positive(time_limit, "time_limit")
-    if max_cg_iters is not None:
-        max_cg_iters = _int_at_least(max_cg_iters, "max_cg_iters", 1)
-    if callback is not None and not callable(callback):
-        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
-    deadline = None if time_limit is None else time.perf_counter() + time_limit
-    return _Controls(tol, max_iters, time_limit, deadline, max_cg_iters, callback, bool(check_minimum))
-
-
 def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
     """``returned`` (the info of the solve whose state is returned) with the counters of all ``infos``."""
     out = replace(returned)
@@ -823,14 +718,15 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
     return out
 
 
-def solve_static(model: ClothModel, x0, *, projection: str | Projection | None = None,
-                 linear_solver: str | LinearSolver = "direct",
-                 tol: float = 1e-9, max_iters: int = 50, continuation: bool | str = "auto",
-                 max_relax_steps: int = 200, check_minimum: bool = True, callback: Callable | None = None,
-                 time_limit: float | None = None, max_cg_iters: int | None = None,
-                 hessian: str | Projection | None = None) -> tuple[Tensor, SolveInfo]:
+def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
+                 projection: str | Projection = UNSET, linear_solver: str | LinearSolver = UNSET,
+                 tol: float = UNSET, max_iters: int = UNSET, continuation: bool | str | None = UNSET,
+                 max_relax_steps: int = UNSET, check_minimum: bool = UNSET, callback: Callable | None = None,
+                 time_limit: float | None = UNSET, max_cg_iters: int | None = UNSET,
+                 hessian: str | Projection | None = UNSET) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
 
+    ``options``: a :class:`NewtonOptions` (every control below; a keyword given here overrides its field).
     ``projection``: a :class:`torchbend.options.Projection` (``"exact"``, the default, ``"clamp"``, ``"abs"``,
     ``"gauss_newton"``, ``"reduced"``) for the Newton matrix; ``linear_solver``: ``"direct"`` (sparse
     factorisation), ``"cg"``, or a :class:`LinearSolver` (``tb.LinearSolver("cg", preconditioner="amg")``:
@@ -870,10 +766,12 @@ def solve_static(model: ClothModel, x0, *, projection: str | Projection | None =
     is False and ``info.stop_reason`` / ``info.message`` say why; ``info`` describes the returned
     state.  ``x0`` is never modified.  Invalid arguments raise ``ValueError`` naming them."""
     x0 = _prepare_x(model, x0)
-    option, linear = _parse_options(projection, hessian, linear_solver, "solve_static")
-    ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
-    max_relax_steps = _int_at_least(max_relax_steps, "max_relax_steps", 0)
-    mode = _continuation_mode(continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
+    opts, ctl = resolve_options(options, "solve_static", "static", hessian=hessian, max_cg_iters=max_cg_iters,
+                                callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
+                                max_iters=max_iters, continuation=continuation, max_relax_steps=max_relax_steps,
+                                check_minimum=check_minimum, time_limit=time_limit)
+    option, linear, max_relax_steps = opts.option, opts.linear, opts.max_relax_steps
+    mode = continuation_mode(opts.continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
     kw = ctl.newton_kw()
     if mode == "auto":
         kw["max_iters"] = min(ctl.max_iters, _AUTO_FIRST_ITERS)
@@ -912,18 +810,8 @@ def _converging(info: SolveInfo) -> bool:
     return len(h) > 5 and h[-1] <= min(h) and h[-1] <= 0.1 * min(h[:-5]) and h[-1] < 1e-3 * max(h)
 
 
-def _continuation_mode(continuation) -> str | None:
-    if continuation is None or continuation is False:
-        return None
-    if continuation is True:
-        return "auto"
-    if continuation in ("auto", "membrane", "relaxation"):
-        return continuation
-    raise ValueError(f"continuation must be 'auto', 'membrane', 'relaxation', True, False or None, got {continuation!r}")
-
-
 def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection,
-                       linear: LinearSolver, ctl: _Controls) -> tuple[Tensor, SolveInfo]:
+                       linear: LinearSolver, ctl: Controls) -> tuple[Tensor, SolveInfo]:
     """The membrane-stiffness homotopy of :func:`solve_static` from ``x_start`` (the best iterate of the
     failed first solve ``first``).  Returns the final solve's state (converged or its best iterate)
     with the counters of all solves."""
@@ -952,7 +840,7 @@ def _membrane_homotopy(model: ClothModel, x_start: Tensor, first: SolveInfo, opt
 
 
 def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: Projection, linear: LinearSolver,
-                  ctl: _Controls, max_relax_steps: int) -> tuple[Tensor, SolveInfo]:
+                  ctl: Controls, max_relax_steps: int) -> tuple[Tensor, SolveInfo]:
     """Pseudo-transient continuation after a failed static solve (see :func:`solve_static`), from that
     solve's best iterate ``x_start``.  Returns the converged state, or the best one of all static
     Newton solves and of the last relaxed state."""
@@ -1016,16 +904,17 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     return x, out
 
 
-def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *,
-                        projection: str | Projection | None = None, linear_solver: str | LinearSolver = "direct", tol: float = 1e-6, max_iters: int = 30,
-                        max_substep_depth: int = 3, check_minimum: bool = False, callback: Callable | None = None,
-                        time_limit: float | None = None, max_cg_iters: int | None = None,
-                        hessian: str | Projection | None = None) -> tuple[ClothState, SolveInfo]:
+def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options: NewtonOptions | None = None, *,
+                        projection: str | Projection = UNSET, linear_solver: str | LinearSolver = UNSET,
+                        tol: float = UNSET, max_iters: int = UNSET, max_substep_depth: int = UNSET,
+                        check_minimum: bool = UNSET, callback: Callable | None = None,
+                        time_limit: float | None = UNSET, max_cg_iters: int | None = UNSET,
+                        hessian: str | Projection | None = UNSET) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):
     Newton on the incremental potential.
 
-    ``projection``, ``linear_solver``, ``tol``, ``max_iters``, ``callback``, ``time_limit``,
-    ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
+    ``options``, ``projection``, ``linear_solver``, ``tol`` (default ``1e-6``), ``max_iters`` (default 30),
+    ``callback``, ``time_limit``, ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
     forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
     inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
     Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous term uses
@@ -1037,19 +926,20 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, *,
     step is returned with ``info.converged = False`` (the halves' end state when the first half
     succeeded, else the best iterate of the full step) with the consistent velocity
     ``v = (x - x_start)/dt_step``, never the old state; ``state`` is never modified."""
-    dt = _positive(dt, "dt")
+    dt = positive_value(dt, "dt")
     if not isinstance(state, ClothState):
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
     _prepare_x(model, state.x, "state.x")
     _prepare_x(model, state.v, "state.v")
-    option, linear = _parse_options(projection, hessian, linear_solver, "implicit_euler_step")
-    ctl = _controls(tol, max_iters, time_limit, max_cg_iters, callback, check_minimum)
-    depth = _int_at_least(max_substep_depth, "max_substep_depth", 0)
-    return _euler_step(model, state, dt, option, linear, ctl, depth)
+    opts, ctl = resolve_options(options, "implicit_euler_step", "step", hessian=hessian, max_cg_iters=max_cg_iters,
+                                callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
+                                max_iters=max_iters, max_substep_depth=max_substep_depth,
+                                check_minimum=check_minimum, time_limit=time_limit)
+    return _euler_step(model, state, dt, opts.option, opts.linear, ctl, opts.max_substep_depth)
 
 
 def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Projection, linear: LinearSolver,
-                ctl: _Controls, depth: int) -> tuple[ClothState, SolveInfo]:
+                ctl: Controls, depth: int) -> tuple[ClothState, SolveInfo]:
     """:func:`implicit_euler_step` after validation (recursive halving)."""
     t0 = time.perf_counter()
     new, info = _euler_solve(model, state, dt, option, linear, ctl)
@@ -1084,7 +974,7 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
 
 
 def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projection, linear: LinearSolver,
-                 ctl: _Controls) -> tuple[ClothState, SolveInfo]:
+                 ctl: Controls) -> tuple[ClothState, SolveInfo]:
     """One Newton solve of a step: the converged or best state, with ``v = (x - x_n)/dt``."""
     x_n, v_n = state.x, state.v
     pinned = model.pinned.to(x_n.device)[:, None]
