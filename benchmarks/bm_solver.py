@@ -10,11 +10,12 @@ final energy, max penetration.  Beams (configs/beams.yaml): tip deflection and i
 plate theory per thickness and resolution, with Newton iterations.
 
 Time split (the paper's Table 1 reports the bending share: 4-6 % of the total time on the cloth-sphere,
-9-12 % on the beams): ``lin %`` is the linear solve (factorisation or CG with its preconditioner),
-``asm %`` the assembly of the free Hessian (every term's blocks and their scatter into one CSR),
-``bend %`` every call into the bending energy (energy, gradient, Hessian blocks and their assembly:
-the paper's "bending force evaluation and stiffness matrix assembly").  Measured by wrapping those
-functions with timers (nested calls counted once).  No assertions on time.
+9-12 % on the beams): ``bend %`` is every call into the bending energy (energy, gradient, HVP, Hessian blocks
+and their assembly: the paper's "bending force evaluation and stiffness matrix assembly"), ``mem %`` every
+call into the membrane energy; the rest of a step is gravity, the colliders, inertia, the scatter of the
+free Hessian and the linear solve.  Measured through the public API: the scene's energies are replaced by
+subclasses of :class:`~torchbend.BendingEnergy` and :class:`~torchbend.MembraneEnergy` with the same
+parameters whose public methods time themselves (nested calls counted once).  No assertions on time.
 
 Sweep (``--sweep full|corners``): the cantilever strips of ``tests/test_solver_sweep.py`` (Y t, t,
 resolution, triangulation pattern) for every Hessian option and linear solver with default solver options:
@@ -24,86 +25,95 @@ reference (run from the repository root: it imports the test module).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import time
-from collections import defaultdict
 
 import torch
 from common import machine
 
-import torchbend.sim.linear as linear_mod
-import torchbend.sim.newton as newton_mod
-from torchbend import BendingEnergy, ClothState, implicit_euler_step, solve_static
+from torchbend import BendingEnergy, ClothModel, ClothState, MembraneEnergy, implicit_euler_step, solve_static
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.scenes.run import run_config
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
 
 
-class TimeShares:
-    """Seconds spent in groups of functions while active (``with shares.active(): ...``).
-
-    Each group wraps attributes ``(owner, name)``; a call nested in another call of the same group
-    (e.g. ``BendingEnergy.hessian`` calling ``hinge_hessians``) is counted once."""
-
-    GROUPS = {
-        "lin": [(newton_mod, "direct_solve"), (newton_mod, "pcg"), (newton_mod, "make_preconditioner")],
-        "asm": [(linear_mod.FreeHessian, "assemble")],
-        "bend": [(BendingEnergy, name) for name in ("forward", "gradient", "hvp", "hessian", "hinge_hessians")],
-    }
+class Stopwatch:
+    """Seconds spent inside ``with watch:`` blocks; a block nested in another of the same watch counts once."""
 
     def __init__(self):
-        self.seconds: dict = defaultdict(float)
+        self.seconds, self._depth, self._t0 = 0.0, 0, 0.0
 
-    def _wrap(self, group: str, fn):
-        depth = {"n": 0}
+    def __enter__(self):
+        if self._depth == 0:
+            self._t0 = time.perf_counter()
+        self._depth += 1
 
-        def timed(*args, **kwargs):
-            if depth["n"]:
-                return fn(*args, **kwargs)
-            depth["n"] += 1
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self.seconds[group] += time.perf_counter() - t0
-                depth["n"] -= 1
+    def __exit__(self, *exc):
+        self._depth -= 1
+        if self._depth == 0:
+            self.seconds += time.perf_counter() - self._t0
 
-        return timed
 
-    @contextlib.contextmanager
-    def active(self):
-        saved = []
-        try:
-            for group, targets in self.GROUPS.items():
-                for owner, name in targets:
-                    fn = getattr(owner, name)
-                    saved.append((owner, name, owner.__dict__[name]))
-                    setattr(owner, name, self._wrap(group, fn))
-            yield self
-        finally:
-            for owner, name, original in reversed(saved):
-                setattr(owner, name, original)
+def _timed(cls, methods):
+    """A subclass of the energy class ``cls`` whose ``methods`` run inside ``self.watch`` (a :class:`Stopwatch`)."""
+
+    def timing(name):
+        def method(self, *args, **kwargs):
+            with self.watch:
+                return getattr(super(sub, self), name)(*args, **kwargs)
+
+        method.__name__ = name
+        return method
+
+    sub = type(f"Timed{cls.__name__}", (cls,), {name: timing(name) for name in methods})
+    return sub
+
+
+TimedBending = _timed(BendingEnergy, ("forward", "gradient", "hvp", "hessian", "hinge_hessians"))
+TimedMembrane = _timed(MembraneEnergy, ("forward", "gradient", "hvp", "hessian", "element_hessians"))
+
+
+class TimeShares:
+    """The shares of a solve's time spent in the bending and membrane energies of a model (module docstring):
+    :meth:`timed` gives the model with its energies replaced by timed copies (same parameters)."""
+
+    GROUPS = ("bend", "mem")
+
+    def __init__(self):
+        self.watches = {g: Stopwatch() for g in self.GROUPS}
+
+    def timed(self, model: ClothModel) -> ClothModel:
+        rest, b, m = model.rest_positions, model.bending, model.membrane
+        if b is not None:
+            model.bending = TimedBending(model.topology, rest, model=b.model, stiffness=b.stiffness,
+                                         rest_angles=b.rest_angles, damping=b.damping, backend=b.backend,
+                                         check_finite=b.check_finite)
+            model.bending.watch = self.watches["bend"]
+        if m is not None:
+            model.membrane = TimedMembrane(model.topology, rest, model=m.model, young=m.young, poisson=m.poisson,
+                                           thickness=m.thickness, backend=m.backend, check_finite=m.check_finite)
+            model.membrane.watch = self.watches["mem"]
+        return model
 
     def percent(self, total: float) -> str:
-        return " ".join(f"{100 * self.seconds[g] / total:5.1f}" for g in self.GROUPS)
+        return " ".join(f"{100 * self.watches[g].seconds / total:5.1f}" for g in self.GROUPS)
 
 
 def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> str:
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     model, x0, _ = build_scene(cfg, resolution=(n, n))
+    shares = TimeShares()
+    model = shares.timed(model)
     state = ClothState(x0, torch.zeros_like(x0))
     its, secs, ok = [], [], True
-    shares = TimeShares()
-    with shares.active():
-        for _ in range(steps):
-            t0 = time.perf_counter()
-            state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], projection=hessian,
-                                              linear_solver=linear_solver, max_iters=cfg["solver"]["max_iters"])
-            secs.append(time.perf_counter() - t0)
-            its.append(info.iterations)
-            ok &= info.converged
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        state, info = implicit_euler_step(model, state, cfg["solver"]["dt"], projection=hessian,
+                                          linear_solver=linear_solver, max_iters=cfg["solver"]["max_iters"])
+        secs.append(time.perf_counter() - t0)
+        its.append(info.iterations)
+        ok &= info.converged
     pen = float(model.colliders[0].depth(state.x).max())
     energy = model.potential(state.x)
     return (f"{n:>3d}x{n:<3d} {hessian:>13s} {linear_solver:>6s} {sum(its) / len(its):8.2f} {max(its):5d} "
@@ -117,9 +127,9 @@ def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str, t
     cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
     model, x0, _ = build_scene(cfg, thickness=thickness, resolution=(nx, ny))
     shares = TimeShares()
+    model = shares.timed(model)
     t0 = time.perf_counter()
-    with shares.active():
-        _, info = solve_static(model, x0, projection=hessian, linear_solver=linear_solver, time_limit=time_limit)
+    _, info = solve_static(model, x0, projection=hessian, linear_solver=linear_solver, time_limit=time_limit)
     secs = time.perf_counter() - t0
     return (f"{nx:>3d}x{ny:<2d} t={thickness:.1e} {hessian:>13s} {linear_solver:>6s} {info.iterations:5d} "
             f"{secs:9.2f}s {shares.percent(secs)}  {'yes' if info.converged else 'NO: ' + info.stop_reason}")
@@ -173,7 +183,7 @@ def main(argv=None) -> None:
     if a.drape:
         print(f"\ndrape: square cloth falling onto a sphere, {a.steps} implicit Euler steps of 0.005 s")
         print(f"{'mesh':>7s} {'hessian':>13s} {'linear':>6s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} "
-              f"{'lin %':>5s} {'asm %':>5s} {'bend%':>5s} {'final energy':>13s} {'pen./edge':>12s}  converged")
+              f"{'bend%':>5s} {'mem %':>5s} {'final energy':>13s} {'pen./edge':>12s}  converged")
         for n in a.drape:
             for h in a.hessians:
                 for lin in a.linear:
@@ -182,7 +192,7 @@ def main(argv=None) -> None:
         cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
         print("\nbeams: static equilibrium per option, default solver options (time split)")
         print(f"{'mesh':>6s} {'thickness':>9s} {'hessian':>13s} {'linear':>6s} {'its':>5s} {'seconds':>10s} "
-              f"{'lin %':>5s} {'asm %':>5s} {'bend%':>5s}  converged")
+              f"{'bend%':>5s} {'mem %':>5s}  converged")
         for res in a.split_beams:
             nx, ny = (int(v) for v in res.split("x"))
             for t in cfg["material"]["thicknesses"]:

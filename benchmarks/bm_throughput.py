@@ -346,11 +346,11 @@ def _short(e: BaseException) -> str:
 
 def default_backends(bend, x) -> dict:
     """``{op: "native" | "eager (reason)"}``: what the default path runs for each op here."""
-    p, _ = bend._bind(x, None)
+    params = tuple(t.to(x.dtype) for t in (bend.weights, bend.stiffness, bend.rest_angles))
     out = {}
     for op, name in NATIVE_OP.items():
-        why = backends.native_unavailable_reason(name, x, *p.tensors())
-        chosen = backends.select_backend(name, bend.backend, x, *p.tensors())
+        why = backends.native_unavailable_reason(name, x, *params)
+        chosen = backends.select_backend(name, bend.backend, x, *params)
         out[op] = str(getattr(chosen, "value", chosen)) + ("" if why is None else f" ({why})")
     return out
 

@@ -193,12 +193,20 @@ def measure_jit(ctx: Context) -> dict:
     return {"runs": [record(r)], "figures": {"jit_s": seconds(info["seconds"])}, "values": {"jit_s": info["seconds"]}}
 
 
-def measure_quickstart(ctx: Context) -> dict:
-    out = ctx.out("drape_net")
-    cmd = [ctx.python, "train/drape_net.py", "--out", out, "--no-progress"] + (["--steps", "100"] if ctx.quick else [])
-    r = checked(run(cmd, env=ctx.package_env, timeout=600), "quick start")
+def train_run(ctx: Context, script: str, quick_steps: int, timeout: float, what: str) -> tuple[dict, dict]:
+    """``python train/<script>.py`` into its own output folder (``quick_steps`` steps with ``--quick``):
+    the run's record and its ``history.json``."""
+    out = ctx.out(script)
+    cmd = [ctx.python, f"train/{script}.py", "--out", out, "--no-progress"]
+    cmd += ["--steps", str(quick_steps)] if ctx.quick else []
+    r = checked(run(cmd, env=ctx.package_env, timeout=timeout), what)
     with open(os.path.join(out, "history.json")) as f:
-        s = json.load(f)["summary"]
+        return r, json.load(f)
+
+
+def measure_quickstart(ctx: Context) -> dict:
+    r, history = train_run(ctx, "drape_net", 100, 600, "quick start")
+    s = history["summary"]
     checks = s["newton"]
     v = {"wall_s": r["wall"], "train_s": s["train_seconds"], "steps": s["steps_run"], "final_loss_J": s["final_loss"],
          "cap_gap_m": s["cap_gap"], "edge_length_m": s["edge_length"], "conditions": s["conditions"],
@@ -246,11 +254,7 @@ def measure_robot_fold(ctx: Context) -> dict:
 
 
 def measure_robot_drape(ctx: Context) -> dict:
-    out = ctx.out("robot_drape")
-    cmd = [ctx.python, "train/robot_drape.py", "--out", out, "--no-progress"] + (["--steps", "50"] if ctx.quick else [])
-    r = checked(run(cmd, env=ctx.package_env, timeout=900), "robot_drape")
-    with open(os.path.join(out, "history.json")) as f:
-        h = json.load(f)
+    r, h = train_run(ctx, "robot_drape", 50, 900, "robot_drape")
     rms = [e["rms_distance_to_equilibrium"] for e in h["eval"]]
     gaps = [e["energy_gap"] for e in h["eval"]]
     return {"runs": [record(r)],

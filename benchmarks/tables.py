@@ -52,7 +52,9 @@ def _cell(r: dict | None) -> str:
     return s if r.get("ok", True) else s + " (!)"
 
 
-def throughput_tables(result: dict) -> list:
+def _op_tables(result: dict, title: str, column: str, methods, cells_of) -> list:
+    """Per dtype a table ``| op | <column> | one cell per size |``; ``cells_of(rows, method, op, dtype, hinges)``
+    gives a row's cells, or ``None`` for no row."""
     rows = index(result)
     lines = []
     for dt in result["dtypes"]:
@@ -60,15 +62,32 @@ def throughput_tables(result: dict) -> list:
         if not cs:
             continue
         hs = [c["hinges"] for c in cs]
-        lines += [f"\n### {dt}: ns per hinge (median wall clock, lower is better)\n",
-                  "| op | method | " + " | ".join(f"{h:,}" for h in hs) + " |", "|" + "---|" * (2 + len(hs))]
+        lines += [f"\n### {dt}: {title}\n",
+                  f"| op | {column} | " + " | ".join(f"{h:,}" for h in hs) + " |", "|" + "---|" * (2 + len(hs))]
         for op in OPS:
-            for m in METHODS:
-                cells = [rows.get((m, op, dt, h)) for h in hs]
-                if all(c is None for c in cells):
-                    continue
-                name = f"**{m}**" if m == "torchbend" else m
-                lines.append(f"| {op} | {name} | " + " | ".join(_cell(c) for c in cells) + " |")
+            for m in methods:
+                cells = cells_of(rows, m, op, dt, hs)
+                if cells is not None:
+                    name = f"**{m}**" if m == "torchbend" else m
+                    lines.append(f"| {op} | {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _time_cells(rows, m, op, dt, hs) -> list | None:
+    cells = [rows.get((m, op, dt, h)) for h in hs]
+    return None if all(c is None for c in cells) else [_cell(c) for c in cells]
+
+
+def _speedup_cells(rows, m, op, dt, hs) -> list | None:
+    vals = [(ns(rows, m, op, dt, h), ns(rows, "torchbend", op, dt, h)) for h in hs]
+    if all(a is None for a, _ in vals):
+        return None
+    return ["—" if a is None or b is None else f"{a / b:,.1f}" for a, b in vals]
+
+
+def throughput_tables(result: dict) -> list:
+    rows = index(result)
+    lines = _op_tables(result, "ns per hinge (median wall clock, lower is better)", "method", METHODS, _time_cells)
     bad = [(k, r) for k, r in rows.items() if r.get("ns") is not None and not r.get("ok", True)]
     if bad:
         lines += ["", "(!) disagrees with the plain-autodiff reference beyond the tolerance: "
@@ -86,23 +105,8 @@ def throughput_tables(result: dict) -> list:
 
 def speedup_tables(result: dict) -> list:
     """Default path's speed-up over every other method (their ns / its ns)."""
-    rows = index(result)
-    lines = []
-    for dt in result["dtypes"]:
-        cs = configs(result, dt)
-        if not cs:
-            continue
-        hs = [c["hinges"] for c in cs]
-        lines += [f"\n### {dt}: speed-up of the default path (`torchbend`) over each method (x, higher is better)\n",
-                  "| op | over | " + " | ".join(f"{h:,}" for h in hs) + " |", "|" + "---|" * (2 + len(hs))]
-        for op in OPS:
-            for m in METHODS[1:]:
-                vals = [(ns(rows, m, op, dt, h), ns(rows, "torchbend", op, dt, h)) for h in hs]
-                if all(a is None for a, _ in vals):
-                    continue
-                cells = ["—" if a is None or b is None else f"{a / b:,.1f}" for a, b in vals]
-                lines.append(f"| {op} | {m} | " + " | ".join(cells) + " |")
-    return lines
+    return _op_tables(result, "speed-up of the default path (`torchbend`) over each method (x, higher is better)",
+                      "over", METHODS[1:], _speedup_cells)
 
 
 def floor_ns(result: dict, c: dict, op: str) -> tuple[float, float, float, float]:

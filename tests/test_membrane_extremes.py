@@ -14,10 +14,9 @@ import torch
 from torchbend import MembraneEnergy, MembraneModel
 from torchbend.ops.membrane import eigensystem
 
-from .helpers import rel
+from .helpers import DTYPES, rel
 
 F32, F64 = torch.float32, torch.float64
-DTYPES = [F32, F64]
 MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
 UNDEFINED = ["symmetric_dirichlet", "neohookean"]  # at J = 0
 YOUNG, NU, THICK = 1e5, 0.3, 1e-2
@@ -139,7 +138,6 @@ def _mem(rest, model, faces=FACES3):
 
 
 # ------------------------------------------------------------------------------ 1. collapsed triangles
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("case", COLLAPSES)
 @pytest.mark.parametrize("model", ["stvk", "arap"])
 def test_collapsed_triangles_finite(model, case, dtype):
@@ -157,7 +155,6 @@ def test_collapsed_triangles_finite(model, case, dtype):
     assert (Q.transpose(-1, -2) @ Q - torch.eye(6, dtype=dtype)).abs().max() <= 8 * torch.finfo(dtype).eps
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("case", COLLAPSES)
 def test_stvk_at_collapse_equals_autograd_of_plain_energy(case, dtype):
     """StVK is a polynomial in F: at J = 0 energy, gradient, Hessian (assembled, per element, as an
@@ -199,7 +196,6 @@ def _psi_f(model, f):
     return MU * (tr - 2 * torch.sqrt(tr + 2 * det.sqrt()) + 2)  # arap
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("case", COLLAPSES)
 @pytest.mark.parametrize("model", UNDEFINED)
 def test_undefined_models_raise_at_collapse_in_every_entry_point(model, case, dtype):
@@ -325,7 +321,6 @@ EIG_CASES = {
 }
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("case", list(EIG_CASES))
 @pytest.mark.parametrize("model", MODELS)
 def test_eigenvalues_to_a_few_ulps(model, case, dtype):
@@ -345,7 +340,6 @@ def test_eigenvalues_to_a_few_ulps(model, case, dtype):
     assert (err <= 8 * eps).all(), (err / eps).amax(0)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("model", MODELS)
 def test_eigenvalues_general_frames(model, dtype):
     """Rotated V (the columns of F nearly parallel when s2 << s1): ``s2`` is then only known to
@@ -361,7 +355,6 @@ def test_eigenvalues_general_frames(model, dtype):
         assert (err <= 8 * eps * (1 + 4 * s1 / s2)).all(), ((s1, s2), (err / eps).amax(0))
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 def test_thin_svd_columnwise_accurate(dtype):
     """``U diag(s) V^T`` gives back each column of ``F`` to a few ulps of that column, small ones
     included (``v1`` from ``atan2`` lost the short first column: ~4e5 ulps), ``s`` to a few ulps of

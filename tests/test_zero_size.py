@@ -12,9 +12,9 @@ import torchbend as tb
 from torchbend import losses as L
 from torchbend.backends import native
 
-MODELS = ["quadratic", "tan", "sin"]
+from .helpers import MODELS
+
 MEMBRANE_MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
-DTYPES = [torch.float32, torch.float64]
 PROJECTIONS = ["clamp", "abs", "gauss_newton", "reduced"]
 
 
@@ -24,6 +24,16 @@ def _backends():
 
 
 BACKENDS = list(_backends())
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    return request.param
+
+
+@pytest.fixture(params=MODELS)
+def bending_model(request) -> str:
+    return request.param
 
 
 @pytest.fixture(scope="module")
@@ -51,31 +61,28 @@ def _bending(faces, rest, model, backend, dtype, **kw) -> tb.BendingEnergy:
     return tb.BendingEnergy(faces, rest.to(dtype), model=model, backend=backend, **kw)
 
 
+@pytest.fixture
+def bending(mesh, backend, bending_model, dtype) -> tuple[tb.BendingEnergy, torch.Tensor, torch.Tensor]:
+    """A bending energy of ``mesh`` in ``dtype``, an empty batch and a batch of two (:func:`_states`)."""
+    rest, faces = mesh
+    return (_bending(faces, rest, bending_model, backend, dtype), *_states(rest, dtype))
+
+
 # ------------------------------------------------------------------------------------------- bending energy
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("model", MODELS)
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_bending_first_order(mesh, backend, model, dtype):
+def test_bending_first_order(bending, dtype):
     """Energy ``(0,)``, gradient ``(0, V, 3)`` and angles ``(0, H)``, eager and compiled."""
-    rest, faces = mesh
-    bend = _bending(faces, rest, model, backend, dtype)
-    x0, x2 = _states(rest, dtype)
+    bend, x0, x2 = bending
     _like(bend(x0), bend(x2), dtype)
     _like(bend.gradient(x0), bend.gradient(x2), dtype)
     _like(bend.angles(x0), bend.angles(x2), dtype)
     assert bend(x0).shape == (0,)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("model", MODELS)
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_bending_hvp_and_blocks(mesh, backend, model, dtype):
+def test_bending_hvp_and_blocks(bending, dtype):
     """HVP ``(0, V, 3)``, every projected HVP, and the per-hinge blocks ``(0, H, 12, 12)`` (plain and projected)."""
-    rest, faces = mesh
-    bend = _bending(faces, rest, model, backend, dtype)
-    x0, x2 = _states(rest, dtype)
+    bend, x0, x2 = bending
     v0, v2 = torch.randn_like(x0), torch.randn_like(x2)
     _like(bend.hvp(x0, v0), bend.hvp(x2, v2), dtype)
     for project in PROJECTIONS:
@@ -87,15 +94,12 @@ def test_bending_hvp_and_blocks(mesh, backend, model, dtype):
         _like(bend.hinge_hessians(x0, projection=project), bend.hinge_hessians(x2, projection=project), dtype)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-@pytest.mark.parametrize("model", MODELS)
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_bending_backward_and_double_backward(mesh, backend, model, dtype):
+def test_bending_backward_and_double_backward(mesh, backend, bending_model, dtype):
     """``backward`` gives ``x.grad (0, V, 3)`` and a zero stiffness gradient; the double backward (the HVP of
     ``create_graph=True``) gives ``(0, V, 3)`` too."""
     rest, faces = mesh
     k = torch.nn.Parameter(torch.tensor(0.7, dtype=dtype))
-    bend = _bending(faces, rest, model, backend, dtype, stiffness=k)
+    bend = _bending(faces, rest, bending_model, backend, dtype, stiffness=k)
     x0, _ = _states(rest, dtype)
     x = x0.clone().requires_grad_()
     bend(x).sum().backward()
@@ -115,7 +119,6 @@ def test_bending_backward_and_double_backward(mesh, backend, model, dtype):
     assert hv2.shape == x.shape
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_bending_viscous_and_packed(mesh, backend):
     """The viscous term (``theta_prev (0, H)``) and a packed module's per-mesh energies ``(0, M)``."""
     rest, faces = mesh
@@ -135,7 +138,6 @@ def test_bending_viscous_and_packed(mesh, backend):
     _like(pb.gradient(xp.expand(0, -1, -1).clone()), pb.gradient(xp.expand(2, -1, -1).clone()), torch.float64)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_bending_without_hinges(backend):
     """A mesh without interior edges (one triangle): every entry point gives zeros of the right shape,
     empty batch or not."""
@@ -166,7 +168,6 @@ def test_compiled_entry_points_really_run_compiled(mesh):
 # ------------------------------------------------------------------------------------------ membrane energy
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("model", MEMBRANE_MODELS)
 def test_membrane_every_method(mesh, model, dtype):
     rest, faces = mesh
