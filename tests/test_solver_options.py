@@ -103,9 +103,9 @@ def test_bad_options_are_value_errors_naming_the_field(kw, match):
 def test_options_must_be_newton_options():
     model, rest = _strip()
     with pytest.raises(ValueError, match="options must be a torchbend.NewtonOptions, got dict"):
-        tb.solve_static(model, rest, {"tol": 1e-8})
+        tb.solve_static(model, rest, {"tol": 1e-8})  # pyright: ignore[reportArgumentType]
     with pytest.raises(ValueError, match="options must be a torchbend.NewtonOptions"):
-        tb.implicit_euler_step(model, tb.ClothState(rest, torch.zeros_like(rest)), 0.01, "exact")
+        tb.implicit_euler_step(model, tb.ClothState(rest, torch.zeros_like(rest)), 0.01, "exact")  # pyright: ignore[reportArgumentType]
 
 
 def test_options_are_frozen_and_hashable():
