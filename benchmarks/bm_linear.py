@@ -35,7 +35,8 @@ import torchbend as tb
 from torchbend import ClothModel, ClothState, implicit_euler_step, solve_static
 from torchbend.options import Projection
 from torchbend.scenes.config import build_scene, load_config
-from torchbend.sim import linear, newton
+from torchbend.sim import linear
+from torchbend.sim.terms import InertiaTerm
 
 CONFIGS = os.path.join(os.path.dirname(__file__), "..", "configs")
 F64 = torch.float64
@@ -67,8 +68,19 @@ def drape_state(n: int, warm: int):
     return model, state, cfg["solver"]["dt"]
 
 
-def potential(model, x, option):
-    return newton._Potential(model, x, Projection.parse(option))
+class FreeMatrix:
+    """The free Hessian of ``model``'s potential (with a time step's inertia when ``ctx`` is one) as the solvers
+    assemble it: ``free_hessian(x)`` (torch sparse CSR ``(nf, nf)``) through ``hessian_op``, the model's
+    :class:`~torchbend.sim.linear.FreeHessian`."""
+
+    def __init__(self, model, x, option, ctx=None):
+        self.ctx = ctx or tb.StepContext()
+        self.option = Projection.parse(option)
+        self.terms = model.terms + ((InertiaTerm(model.mass),) if self.ctx.dynamic else ())
+        self.hessian_op = linear.FreeHessian.for_model(model, (~model.pinned).to(x.device).repeat_interleave(3))
+
+    def free_hessian(self, x):
+        return self.hessian_op.assemble(x, self.terms, self.ctx, self.option)
 
 
 def best_seconds(fn, repeats=3) -> tuple[float, Any]:
@@ -86,10 +98,10 @@ def matrices(warm: int):
     mats = []
     model, rest = stiff_strip()
     for option in ("exact", "clamp"):
-        phi = potential(model, rest, option)
+        phi = FreeMatrix(model, rest, option)
         mats.append((f"strip 20x4 stiff, rest, {option}", phi.hessian_op.to_scipy(phi.free_hessian(rest)), phi, rest))
     x, info = solve_static(model, rest, projection="exact")
-    phi = potential(model, x, "exact")
+    phi = FreeMatrix(model, x, "exact")
     mats.append((f"strip 20x4 stiff, equilibrium ({'converged' if info.converged else 'NOT converged'}), exact",
                  phi.hessian_op.to_scipy(phi.free_hessian(x)), phi, x))
     for n, w in ((41, warm), (81, 0)):
@@ -97,7 +109,7 @@ def matrices(warm: int):
         x_hat = state.x + dt * state.v
         ctx = tb.StepContext.for_step(model.terms, state.x, state.v, dt)
         for option in ("exact", "gauss_newton"):
-            phi = newton._Potential(model, x_hat, Projection.parse(option), ctx)
+            phi = FreeMatrix(model, x_hat, option, ctx)
             where = f"step {w}" if w else "start"
             mats.append((f"drape {n}x{n} {where}, {option}", phi.hessian_op.to_scipy(phi.free_hessian(x_hat)), phi, x_hat))
     return mats

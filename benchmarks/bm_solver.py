@@ -100,7 +100,10 @@ class TimeShares:
         return " ".join(f"{100 * self.watches[g].seconds / total:5.1f}" for g in self.GROUPS)
 
 
-def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> str:
+def drape_run(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> dict:
+    """``steps`` implicit Euler steps of the drape at ``n x n``: Newton iterations per step (mean, max), seconds
+    per step, the time shares (:class:`TimeShares`), the final potential [J], the penetration per edge length,
+    and whether every step converged."""
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     model, x0, _ = build_scene(cfg, resolution=(n, n))
     shares = TimeShares()
@@ -115,10 +118,17 @@ def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> st
         its.append(info.iterations)
         ok &= info.converged
     pen = float(model.colliders[0].depth(state.x).max())
-    energy = model.potential(state.x)
-    return (f"{n:>3d}x{n:<3d} {hessian:>13s} {linear_solver:>6s} {sum(its) / len(its):8.2f} {max(its):5d} "
-            f"{sum(secs) / len(secs) * 1e3:10.1f}ms {shares.percent(sum(secs))} "
-            f"{energy:13.6e} {pen / (1.0 / (n - 1)):12.2e}  {'yes' if ok else 'NO'}")
+    return {"mesh": f"{n}x{n}", "hessian": hessian, "linear": linear_solver, "its": sum(its) / len(its),
+            "max_its": max(its), "seconds": sum(secs) / len(secs), "shares": shares.percent(sum(secs)),
+            "energy": float(model.potential(state.x)), "penetration": pen / (1.0 / (n - 1)), "converged": ok}
+
+
+def drape(n: int, hessian: str, steps: int, linear_solver: str = "direct") -> str:
+    """One row of the drape table (:func:`drape_run`)."""
+    r = drape_run(n, hessian, steps, linear_solver)
+    return (f"{r['mesh']:>7s} {hessian:>13s} {linear_solver:>6s} {r['its']:8.2f} {r['max_its']:5d} "
+            f"{r['seconds'] * 1e3:10.1f}ms {r['shares']} "
+            f"{r['energy']:13.6e} {r['penetration']:12.2e}  {'yes' if r['converged'] else 'NO'}")
 
 
 def beam(nx: int, ny: int, thickness: float, hessian: str, linear_solver: str, time_limit: float = 60.0) -> str:

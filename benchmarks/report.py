@@ -123,8 +123,10 @@ def solver_section(sizes, steps) -> list:
              "|---|---|---|---|---|---|---|---|"]
     for n in sizes:
         for h in ["exact", "clamp", "abs", "gauss_newton"]:
-            parts = bm_solver.drape(n, h, steps).split()
-            lines.append("| " + " | ".join(parts[:8]) + " |")
+            r = bm_solver.drape_run(n, h, steps)
+            cells = [r["mesh"], h, f"{r['its']:.2f}", str(r["max_its"]), f"{r['seconds'] * 1e3:.1f} ms",
+                     f"{r['energy']:.6e}", f"{r['penetration']:.2e}", "yes" if r["converged"] else "NO"]
+            lines.append("| " + " | ".join(cells) + " |")
             print(lines[-1], flush=True)
     return lines
 
