@@ -1,14 +1,15 @@
-r"""Rigid colliders with a smooth one-sided penalty (analytic gradient and Hessian).
+r"""Rigid colliders with a smooth one-sided contact potential (analytic gradient and Hessian).
 
 Each collider has a signed distance ``s(x)`` (positive outside) and penalises every vertex closer
-than ``margin``::
+than ``margin`` by a contact law of :mod:`torchbend.energies.contact` (``law="penalty"``, the default, or
+``"barrier"`` with ``power``)::
 
-    E = sum_i  k/2 * max(0, margin - s(x_i))^2          [J],  k = stiffness [N/m]
+    E = sum_i  phi(d_i),   d_i = margin - s(x_i),   penalty: phi = k/2 max(0, d)^2  [J],  k = stiffness [N/m]
 
-    grad_i = -k d_i grad s,          Hess_i = k grad s grad s^T  -  k d_i Hess s        (d_i = margin - s > 0)
+    grad_i = -phi'(d_i) grad s,          Hess_i = phi''(d_i) grad s grad s^T  -  phi'(d_i) Hess s
 
 ``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
-term ``-k d Hess s`` is negative semi-definite; every projection but ``none``
+term ``-phi'(d) Hess s`` is negative semi-definite; every projection but ``none``
 (:class:`~torchbend.options.Projection`) drops it.  Units: positions [m].
 
 **Continuous step bound** (:meth:`Collider.max_step`, used by the solvers' line search against
@@ -43,23 +44,38 @@ from torch import Tensor
 
 from .._checks import nonnegative, positive, vec3
 from ..options import Projection, projection_argument
+from .contact import ContactLaw, contact_law
 
 __all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 
 
 @dataclass(frozen=True, kw_only=True)
 class Collider:
-    """Base of the rigid colliders: a signed distance and the one-sided penalty on it, with
-    ``stiffness`` [N/m] (> 0) and ``margin`` [m] (>= 0) as keyword arguments of every collider."""
+    """Base of the rigid colliders: a signed distance and the one-sided contact potential on it, with
+    ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier), ``margin`` [m] (>= 0), ``law``
+    (``"penalty"`` or ``"barrier"``, :mod:`torchbend.energies.contact`) and ``power`` (the barrier's, default
+    3) as keyword arguments of every collider."""
 
     stiffness: float = 1e4
     margin: float = 0.0
+    law: str = "penalty"
+    power: float | None = None
 
     def _check_penalty(self) -> None:
-        """Validate (and store as floats) the penalty ``stiffness`` (> 0) and ``margin`` (>= 0)."""
+        """Validate (and store as floats) ``stiffness`` (> 0), ``margin`` (>= 0), ``law`` and ``power``."""
         name = type(self).__name__
         object.__setattr__(self, "stiffness", positive(self.stiffness, f"{name}.stiffness"))
         object.__setattr__(self, "margin", nonnegative(self.margin, f"{name}.margin"))
+        try:
+            law = contact_law(self.law, self.stiffness, self.power)
+        except ValueError as e:
+            raise ValueError(f"{name}: {e}") from None
+        object.__setattr__(self, "power", law.power)
+
+    @property
+    def contact(self) -> ContactLaw:
+        """The collider's contact law (:mod:`torchbend.energies.contact`)."""
+        return contact_law(self.law, self.stiffness, self.power)
 
     def _sd(self, x: Tensor):  # pragma: no cover - abstract
         """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
@@ -70,13 +86,11 @@ class Collider:
         return self.margin - self._sd(x)[0]
 
     def energy(self, x: Tensor) -> Tensor:
-        d = (self.margin - self._sd(x)[0]).clamp_min(0)
-        return 0.5 * self.stiffness * (d * d).sum()
+        return self.contact.value(self.margin - self._sd(x)[0]).sum()
 
     def gradient(self, x: Tensor) -> Tensor:
         s, n, _ = self._sd(x)
-        d = (self.margin - s).clamp_min(0)
-        return -self.stiffness * d[:, None] * n
+        return -self.contact.slope(self.margin - s)[:, None] * n
 
     def max_step(self, x: Tensor, dx: Tensor, *, depth: float, safety: float = 0.9) -> Tensor:
         """Per-vertex largest step fractions ``(V,)`` in ``(0, 1]`` (dtype and device of ``x``) along
@@ -107,12 +121,7 @@ class Collider:
             projection = projection_argument(projection, project, "Collider.hessian_blocks")
         exact = Projection.parse(projection, what="collider projection") is Projection.NONE
         s, n, curv = self._sd(x)
-        d = (self.margin - s).clamp_min(0)
-        active = (d > 0).to(x.dtype)
-        H = self.stiffness * active[:, None, None] * n[:, :, None] * n[:, None, :]
-        if curv is not None and exact:
-            H = H - self.stiffness * d[:, None, None] * curv
-        return H
+        return self.contact.vertex_terms(self.margin - s, n, curv, exact)
 
 
 def _radial(p: Tensor, radius: float):
@@ -219,8 +228,10 @@ class Capsule(Collider):
         Tensor end points are kept as tensors: the collider's energy and gradient are then
         differentiable with respect to them (used to differentiate through contacts with robot links)."""
         if isinstance(a, Tensor) or isinstance(b, Tensor):
-            return _TensorCapsule(a, b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
-        return Capsule(a=a, b=b, radius=self.radius, stiffness=self.stiffness, margin=self.margin)
+            return _TensorCapsule(a, b, radius=self.radius, stiffness=self.stiffness, margin=self.margin, law=self.law,
+                                  power=self.power)
+        return Capsule(a=a, b=b, radius=self.radius, stiffness=self.stiffness, margin=self.margin, law=self.law,
+                       power=self.power)
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:
         return x.new_tensor(self.a), x.new_tensor(self.b)
@@ -239,11 +250,12 @@ class _TensorCapsule(Capsule):
 
     ends: tuple[Tensor, Tensor]
 
-    def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float):
+    def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float, law: str = "penalty",
+                 power: float | None = None):
         # an end point given as Python numbers is kept in float64 (cast to the positions' dtype per call)
         a, b = (e if isinstance(e, Tensor) else torch.as_tensor(e, dtype=torch.float64) for e in (a, b))
         super().__init__(a=tuple(a.detach().tolist()), b=tuple(b.detach().tolist()), radius=radius, stiffness=stiffness,
-                         margin=margin)
+                         margin=margin, law=law, power=power)
         object.__setattr__(self, "ends", (a, b))
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:

@@ -3,7 +3,10 @@ per-sample spheres, as in HOOD and SNUG.
 
 For cloth positions ``x (B, V, 3)`` [m] and every contact source::
 
-    E = k sum_i max(0, eps - s_i)^p          [J],   k = stiffness [J/m^p], p = power (default 3)
+    E = sum_i phi(eps - s_i),    phi(d) = k max(0, d)^p   [J],   k = stiffness [J/m^p], p = power (default 3)
+
+the power barrier of :mod:`torchbend.energies.contact` (``law="barrier"``; ``law="penalty"`` is
+``k/2 max(0, d)^2``, the solver colliders' default: the same module serves both)
 
 with ``s_i`` the signed distance of cloth vertex ``i`` from the body (positive outside):
 
@@ -14,16 +17,15 @@ with ``s_i`` the signed distance of cloth vertex ``i`` from the body (positive o
   millimetres.  The nearest vertex is chosen without gradient (a piecewise-constant index); the
   penalty is differentiable in ``x`` and in the body positions.
 * the project's colliders (:class:`~torchbend.Sphere`, :class:`~torchbend.Plane`,
-  :class:`~torchbend.Capsule`): their exact signed distance (their own ``stiffness`` and ``margin`` are
-  not used: this term's ``stiffness``, ``eps`` and ``power`` are);
+  :class:`~torchbend.Capsule`): their exact signed distance and their own ``margin`` (their ``stiffness``
+  and ``law`` are not used: this term's law is);
 * per-sample spheres ``sphere_center (B, 3)``, ``sphere_radius (B,)``: ``s_i = |x_i - c| - r``.
 
-``power=2, eps=0`` and ``stiffness = k_c / 2`` give the quadratic penalty ``k_c/2 max(0, -s)^2`` of the
-solver's colliders.
+``law="penalty", eps=0`` and ``stiffness = k_c`` give the quadratic penalty ``k_c/2 max(0, -s)^2`` of the
+solver's colliders (as ``power=2`` with ``stiffness = k_c / 2`` does).
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
@@ -31,6 +33,7 @@ from torch import Tensor
 
 from .._checks import nonnegative, positive
 from ..energies.colliders import Collider
+from ..energies.contact import ContactLaw, contact_law
 from ._base import LossTerm, check_points
 
 __all__ = ["BodyContact", "vertex_normals"]
@@ -78,7 +81,9 @@ class BodyContact(LossTerm):
     Args:
         stiffness: ``k`` [J/m^p] (> 0).
         eps: ``eps`` [m] (>= 0): the penalty acts below this distance from the body (default 4 mm).
-        power: ``p`` (finite, > 1; default 3, as HOOD and SNUG).
+        power: ``p`` (finite, > 1; default 3, as HOOD and SNUG) of the barrier.
+        law: ``"barrier"`` (default), ``"penalty"`` (``k/2 max(0, d)^2``) or a
+            :class:`~torchbend.energies.contact.ContactLaw`.
         body_faces: ``(Fb, 3)`` int faces of a body mesh whose positions every call passes as ``body``.
         colliders: static :class:`~torchbend.Sphere`/``Plane``/``Capsule`` colliders.
 
@@ -91,17 +96,16 @@ class BodyContact(LossTerm):
     inputs = ("body", "sphere_center", "sphere_radius")
     body_faces: Tensor | None
 
-    def __init__(self, *, stiffness: float, eps: float = 4e-3, power: float = 3.0, body_faces=None,
-                 colliders: Sequence[Collider] = ()):
+    def __init__(self, *, stiffness: float, eps: float = 4e-3, power: float | None = None, body_faces=None,
+                 colliders: Sequence[Collider] = (), law: str | ContactLaw = "barrier"):
         super().__init__()
         self.stiffness = positive(stiffness, "BodyContact: stiffness")
         self.eps = nonnegative(eps, "BodyContact: eps")
         try:
-            self.power = float(power)
-        except (TypeError, ValueError):
-            raise ValueError(f"BodyContact: power must be a number > 1, got {power!r}") from None
-        if not (self.power > 1 and math.isfinite(self.power)):
-            raise ValueError(f"BodyContact: power must be > 1 and finite (a differentiable penalty), got {power!r}")
+            self.law = contact_law(law, self.stiffness, power)
+        except ValueError as e:
+            raise ValueError(f"BodyContact: {e}") from None
+        self.power = self.law.power
         if body_faces is not None:
             f = torch.as_tensor(body_faces)
             if f.ndim != 2 or f.shape[1] != 3 or f.is_floating_point() or f.numel() == 0 or bool((f < 0).any()):
@@ -117,8 +121,8 @@ class BodyContact(LossTerm):
         self.colliders = colliders
 
     def _penalty(self, s: Tensor) -> Tensor:
-        """``k sum_i max(0, eps - s_i)^p`` over the last axis."""
-        return self.stiffness * (self.eps - s).clamp_min(0).pow(self.power).sum(-1)
+        """``sum_i phi(eps - s_i)`` over the last axis."""
+        return self.law.value(self.eps - s).sum(-1)
 
     def body_distance(self, x: Tensor, body: Tensor) -> Tensor:
         """Signed distances ``(B, V)`` or ``(V,)`` [m] of the cloth vertices from the body mesh (nearest body
@@ -184,5 +188,5 @@ class BodyContact(LossTerm):
 
     def extra_repr(self) -> str:
         body = "none" if self.body_faces is None else f"{self.body_faces.shape[0]} faces"
-        return (f"stiffness={self.stiffness:g}, eps={self.eps:g}, power={self.power:g}, body={body}, "
+        return (f"law={type(self.law).__name__}, stiffness={self.stiffness:g}, eps={self.eps:g}, power={self.power:g}, body={body}, "
                 f"colliders={len(self.colliders)}")

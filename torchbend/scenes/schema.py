@@ -271,12 +271,20 @@ class MembraneSection(Section):
 
 
 class _ColliderSpec(Section):
-    stiffness: Positive = 1e4  # [N/m]
+    stiffness: Positive = 1e4  # [N/m] (penalty), [J/m^p] (barrier)
     margin: NonNegative = 0.0  # [m]
+    law: Literal["penalty", "barrier"] = "penalty"  # torchbend.energies.contact
+    power: Annotated[float, Field(gt=1), BeforeValidator(_number)] | None = None  # the barrier's (default 3)
+
+    @model_validator(mode="after")
+    def _power_of_law(self):
+        if self.law == "penalty" and self.power is not None and self.power != 2:
+            raise ValueError("the penalty law has power 2: give law: barrier for another power")
+        return self
 
 
 class SphereSpec(_ColliderSpec):
-    """``{type: sphere, center, radius, stiffness, margin}`` (:class:`~torchbend.Sphere`)."""
+    """``{type: sphere, center, radius, stiffness, margin, law, power}`` (:class:`~torchbend.Sphere`)."""
 
     type: Literal["sphere"]
     center: Vec3 = (0.0, 0.0, 0.0)
@@ -284,7 +292,7 @@ class SphereSpec(_ColliderSpec):
 
 
 class PlaneSpec(_ColliderSpec):
-    """``{type: plane, point, normal, stiffness, margin}`` (:class:`~torchbend.Plane`)."""
+    """``{type: plane, point, normal, stiffness, margin, law, power}`` (:class:`~torchbend.Plane`)."""
 
     type: Literal["plane"]
     point: Vec3 = (0.0, 0.0, 0.0)
@@ -292,7 +300,7 @@ class PlaneSpec(_ColliderSpec):
 
 
 class CapsuleSpec(_ColliderSpec):
-    """``{type: capsule, a, b, radius, stiffness, margin}`` (:class:`~torchbend.Capsule`)."""
+    """``{type: capsule, a, b, radius, stiffness, margin, law, power}`` (:class:`~torchbend.Capsule`)."""
 
     type: Literal["capsule"]
     a: Vec3 = (0.0, 0.0, 0.0)
