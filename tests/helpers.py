@@ -22,6 +22,8 @@ CONFIGS = os.path.join(ROOT, "configs")
 
 F64, F32 = torch.float64, torch.float32
 MODELS = ["quadratic", "tan", "sin"]
+"""The bending models."""
+MEMBRANE_MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
 DTYPES = [F64, F32]
 
 # ------------------------------------------------------------------------------------------------ devices
@@ -83,10 +85,23 @@ def random_bending(rest: torch.Tensor, faces: torch.Tensor, model: str, damped: 
     return tb.BendingEnergy(faces, rest, model=model, stiffness=k, damping=0.2 if damped else None)
 
 
-def cantilever(nx, ny, *, L=0.2, W=0.05, young=5e7, nu=0.3, t=1e-2, rho=1000.0):
-    """``(model, rest, kirchhoff)``: an ``nx x ny`` grid of ``L x W`` [m] (StVK membrane, quadratic bending) clamped
-    along its first two columns, under gravity, and the Kirchhoff plate theory's tip deflection [m]."""
+def strip_mesh(nx: int, ny: int, pattern: str = "criss", L: float = 0.2, W: float = 0.05):
+    """``(rest, faces)`` of a flat ``L x W`` [m] grid of ``nx x ny`` vertices; ``pattern``: ``"criss"``
+    (alternating diagonals, :func:`torchbend.scenes.grid`) or ``"one_way"`` (every quad split along the same
+    diagonal)."""
     rest, faces = tb.scenes.grid(nx, ny, (L, W), dtype=F64)
+    if pattern == "one_way":
+        i, j = torch.meshgrid(torch.arange(nx - 1), torch.arange(ny - 1), indexing="ij")
+        a = (i + nx * j).reshape(-1)
+        b, c, d = a + 1, a + nx + 1, a + nx
+        faces = torch.cat((torch.stack((a, b, c), -1), torch.stack((a, c, d), -1)))
+    return rest, faces
+
+
+def cantilever(nx, ny, *, L=0.2, W=0.05, young=5e7, nu=0.3, t=1e-2, rho=1000.0, pattern="criss"):
+    """``(model, rest, kirchhoff)``: a :func:`strip_mesh` (StVK membrane, quadratic bending) clamped along its
+    first two columns, under gravity, and the Kirchhoff plate theory's tip deflection [m]."""
+    rest, faces = strip_mesh(nx, ny, pattern, L, W)
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(young, t, nu))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=young, poisson=nu, thickness=t)
     columns = rest[:, 0].unique()
@@ -188,15 +203,18 @@ class DevicelessFactories(TorchFunctionMode):
         return func(*args, **kwargs)
 
 
-# ------------------------------------------------------------------------------------------------ train/ scripts
+# ------------------------------------------------------------------------------------------------ scripts
 
 TRAIN_SIBLINGS = {"drape_net": ("common",), "material_id": ("common",), "hood_style": ("common",),
                   "robot_drape": ("common", "drape_net")}
 """The sibling scripts each ``train/`` script imports by plain name (``import common``)."""
 
 
-def _load_train_file(name: str) -> ModuleType:
-    path = os.path.join(ROOT, "train", f"{name}.py")
+def load_script(folder: str, name: str) -> ModuleType:
+    """``<folder>/<name>.py`` (``folder`` relative to the repository root) imported from its path, without
+    touching ``sys.path``, registered in ``sys.modules`` as ``name`` (the plain name its siblings import it by);
+    loaded once per process."""
+    path = os.path.join(ROOT, folder, f"{name}.py")
     loaded = sys.modules.get(name)
     if loaded is not None and getattr(loaded, "__file__", None) == path:
         return loaded
@@ -213,10 +231,13 @@ def _load_train_file(name: str) -> ModuleType:
 
 
 def train_script(name: str) -> ModuleType:
-    """``train/<name>.py`` imported from its path, without touching ``sys.path`` (loaded once per process).
-
-    The scripts import their siblings by plain name (``import common``, as ``python train/X.py`` allows), so
-    each is registered in ``sys.modules`` under that name, its siblings (:data:`TRAIN_SIBLINGS`) loaded first."""
+    """``train/<name>.py`` (:func:`load_script`), its siblings (:data:`TRAIN_SIBLINGS`) loaded first: the scripts
+    import them by plain name (``import common``, as ``python train/X.py`` allows)."""
     for sibling in TRAIN_SIBLINGS.get(name, ("common",) if name != "common" else ()):
-        _load_train_file(sibling)
-    return _load_train_file(name)
+        load_script("train", sibling)
+    return load_script("train", name)
+
+
+def benchmark_script(name: str) -> ModuleType:
+    """``benchmarks/<name>.py`` (:func:`load_script`; for the scripts that import no sibling)."""
+    return load_script("benchmarks", name)

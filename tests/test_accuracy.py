@@ -8,10 +8,6 @@ the angle's own derivatives tighter.  On the benchmark's Gaussian ``random`` hin
 Hessian used to reach 6 and 12 ulps, on needles (a triangle with a tiny angle) thousands; thresholds from
 ``python benchmarks/accuracy.py`` (benchmarks/results/accuracy_after.txt).  The reference needs mpmath
 (the ``bench`` extra)."""
-import importlib.util
-import os
-import sys
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -21,33 +17,16 @@ import torchbend as tb
 from torchbend.backends import native
 from torchbend.ops import hinge as geometry
 
+from .helpers import benchmark_script
+
 pytest.importorskip("mpmath")
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EPS = torch.finfo(torch.float64).eps
 N_RANDOM, N_WELL, N_NEEDLE, DIRECTIONS = 40, 24, 6, 2
 A_W, K = 1.7, 0.9
 
 
-def _load_accuracy() -> ModuleType:
-    """``benchmarks/accuracy.py`` imported from its path (registered as ``accuracy``)."""
-    path = os.path.join(ROOT, "benchmarks", "accuracy.py")
-    loaded = sys.modules.get("accuracy")
-    if loaded is not None and getattr(loaded, "__file__", None) == path:
-        return loaded
-    spec = importlib.util.spec_from_file_location("accuracy", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["accuracy"] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        del sys.modules["accuracy"]
-        raise
-    return module
-
-
-acc = _load_accuracy()
+acc = benchmark_script("accuracy")
 
 
 def _native_ok() -> bool:

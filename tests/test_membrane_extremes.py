@@ -15,9 +15,9 @@ from torchbend import MembraneEnergy, MembraneModel
 from torchbend.ops.membrane import eigensystem
 
 from .helpers import DTYPES, rel
+from .helpers import MEMBRANE_MODELS as MODELS
 
 F32, F64 = torch.float32, torch.float64
-MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
 UNDEFINED = ["symmetric_dirichlet", "neohookean"]  # at J = 0
 YOUNG, NU, THICK = 1e5, 0.3, 1e-2
 MU, LAM = YOUNG / (2 * (1 + NU)), YOUNG * NU / (1 - NU**2)

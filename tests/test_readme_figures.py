@@ -5,26 +5,18 @@ of ``benchmarks/results/readme_figures.json`` (a hand edit of either is caught);
 time or length, or a percentage, outside those markers and outside code is refused unless it is listed
 in ``ALLOWED`` below (settings and definitions, not measurements).
 """
-import importlib.util
 import json
 import os
 import re
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .helpers import ROOT, load_script
+
 README = os.path.join(ROOT, "README.md")
 
 
-def _load_script():
-    spec = importlib.util.spec_from_file_location("readme_figures", os.path.join(ROOT, "benchmarks", "readme_figures.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-figures_script = _load_script()
+figures_script = load_script("benchmarks", "readme_figures")
 MEASURING = os.environ.get("TORCHBEND_README_FIGURES") == "measuring"
 """Set while benchmarks/readme_figures.py times the test suite: it rewrites the JSON and README.md
 meanwhile, and runs the two comparisons below itself once it has."""

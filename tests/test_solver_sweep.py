@@ -18,35 +18,20 @@ import math
 import pytest
 import torch
 
-import torchbend as tb
 from torchbend import ClothModel, solve_static
 from torchbend.testing import plain_bending_energy
+
+from .helpers import cantilever, strip_mesh
 
 F64 = torch.float64
 L, W, NU, RHO = 0.2, 0.05, 0.3, 1000.0  # strip [m], Poisson ratio, volumetric density [kg/m^3]
 
 
-def strip(nx: int, ny: int, pattern: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat ``L x W`` strip; ``pattern``: ``"criss"`` (alternating diagonals, :func:`torchbend.scenes.grid`)
-    or ``"one_way"`` (every quad split along the same diagonal)."""
-    rest, faces = tb.scenes.grid(nx, ny, (L, W), dtype=F64)
-    if pattern == "one_way":
-        i, j = torch.meshgrid(torch.arange(nx - 1), torch.arange(ny - 1), indexing="ij")
-        a = (i + nx * j).reshape(-1)
-        b, c, d = a + 1, a + nx + 1, a + nx
-        faces = torch.cat((torch.stack((a, b, c), -1), torch.stack((a, c, d), -1)))
-    return rest, faces
-
-
 @functools.cache
 def scene(yt: float, t: float, nx: int, ny: int, pattern: str):
-    young = yt / t
-    rest, faces = strip(nx, ny, pattern)
-    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(young, t, NU))
-    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=young, poisson=NU, thickness=t)
-    pinned = rest[:, 0] <= rest[:, 0].unique()[1] + 1e-12
-    model = ClothModel(faces, rest, bending=bend, membrane=mem, density=RHO * t, gravity=(0, 0, -9.81), pinned=pinned)
-    return model, rest, faces
+    """``(model, rest, faces)``: the strip clamped along its first two columns (:func:`~tests.helpers.cantilever`)."""
+    model, rest, _ = cantilever(nx, ny, L=L, W=W, young=yt / t, nu=NU, t=t, rho=RHO, pattern=pattern)
+    return model, rest, strip_mesh(nx, ny, pattern, L, W)[1]
 
 
 def plain_elements(model: ClothModel, rest, faces, young: float, t: float):

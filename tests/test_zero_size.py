@@ -12,9 +12,8 @@ import torchbend as tb
 from torchbend import losses as L
 from torchbend.backends import native
 
-from .helpers import MODELS
+from .helpers import MEMBRANE_MODELS, MODELS
 
-MEMBRANE_MODELS = ["stvk", "arap", "symmetric_dirichlet", "neohookean"]
 PROJECTIONS = ["clamp", "abs", "gauss_newton", "reduced"]
 
 
