@@ -18,6 +18,7 @@ from .schema import (
     FileMesh,
     GridMesh,
     KeyframeSpec,
+    PhysicsConfig,
     PinRegion,
     RobotSection,
     SceneConfig,
@@ -28,7 +29,7 @@ from .schema import (
 from .wording import ConfigError, short_repr
 
 __all__ = [
-    "build_scene", "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes",
+    "build_model", "build_colliders", "build_scene", "build_mesh", "build_collider", "build_robot_scene", "parse_robot", "check_keyframes",
     "RobotConfig", "build_pins",
 ]
 
@@ -145,24 +146,35 @@ def build_collider(spec):
     return kinds[spec.type](**spec.model_dump(exclude={"type"}))
 
 
-def _build(cfg: SceneConfig, thickness, resolution, device):
-    dtype = torch.float64
-    rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=dtype, device=device)
-    # the cheap checks (pins, robot, colliders) before the energies are built
-    pinned = build_pins(cfg.mesh, rest, resolution=resolution)
-    rc = None
-    if cfg.robot is not None:
-        rc = parse_robot(cfg.robot, rest)
-        if pinned is None:
-            pinned = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
-        pinned = pinned.clone()
-        pinned[rc.vertices] = True
-    colliders = []
-    for i, c in enumerate(cfg.colliders):
+def build_colliders(specs, where: str = "colliders") -> list:
+    """The colliders of a ``colliders`` list (validated specs); :class:`ConfigError` naming the entry."""
+    out = []
+    for i, c in enumerate(specs):
         try:
-            colliders.append(build_collider(c))
+            out.append(build_collider(c))
         except ValueError as e:
-            raise ConfigError(f"config key 'colliders[{i}]': {e}") from None
+            raise ConfigError(f"config key '{where}[{i}]': {e}") from None
+    return out
+
+
+def build_model(cfg, *, mesh: tuple[Tensor, Tensor] | None = None, pinned: Tensor | None = None,
+                thickness: float | None = None, resolution: tuple | None = None, dtype=torch.float64,
+                device=None, colliders=None) -> ClothModel:
+    """The :class:`~torchbend.ClothModel` of the physics sections of a config (a :class:`PhysicsConfig`
+    or any config that has them, a dict or validated): ``bending`` and ``membrane`` (each term only when
+    its section is given), ``material`` (``thickness`` overrides its own), ``colliders`` (``colliders``, a
+    list, replaces them), ``gravity``, the pins of ``mesh.pin`` or ``pinned`` ``(V,)`` bool.  ``mesh =
+    (rest (V, 3), faces (F, 3))`` replaces the config's mesh (offset applied); tensors in ``dtype`` on
+    ``device``.  :class:`ConfigError` naming the key for anything that does not fit."""
+    if not isinstance(cfg, PhysicsConfig):
+        cfg = validate(cfg, PhysicsConfig if isinstance(cfg, dict) and "scene" not in cfg else SceneConfig)
+    if mesh is None:
+        rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=dtype, device=device)
+        if pinned is None:
+            pinned = build_pins(cfg.mesh, rest, resolution=resolution)
+    else:
+        rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
+    built = build_colliders(cfg.colliders) if colliders is None else list(colliders)
     mat = cfg.material
     t = thickness if thickness is not None else mat.thickness
     density = mat.volumetric_density * t if mat.volumetric_density is not None else mat.density
@@ -173,8 +185,23 @@ def _build(cfg: SceneConfig, thickness, resolution, device):
             mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
         except ValueError as e:
             raise ConfigError(f"config key 'membrane': {e}") from None
-    model = ClothModel(faces, rest, bending=bend, membrane=mem, density=density,
-                       gravity=cfg.gravity, pinned=pinned, colliders=colliders)
+    return ClothModel(faces, rest, bending=bend, membrane=mem, density=density, gravity=cfg.gravity, pinned=pinned,
+                      colliders=built)
+
+
+def _build(cfg: SceneConfig, thickness, resolution, device):
+    rest, faces = build_mesh(cfg.mesh, resolution=resolution, dtype=torch.float64, device=device)
+    # the cheap checks (pins, robot, colliders) before the energies are built
+    pinned = build_pins(cfg.mesh, rest, resolution=resolution)
+    rc = None
+    if cfg.robot is not None:
+        rc = parse_robot(cfg.robot, rest)
+        if pinned is None:
+            pinned = torch.zeros(len(rest), dtype=torch.bool, device=rest.device)
+        pinned = pinned.clone()
+        pinned[rc.vertices] = True
+    colliders = build_colliders(cfg.colliders)
+    model = build_model(cfg, mesh=(rest, faces), pinned=pinned, thickness=thickness, device=device, colliders=colliders)
     return model, rest.clone(), faces, rc
 
 

@@ -21,7 +21,9 @@ from pydantic import BaseModel
 from .builders import (
     RobotConfig,
     build_collider,
+    build_colliders,
     build_mesh,
+    build_model,
     build_pins,
     build_robot_scene,
     build_scene,
@@ -35,11 +37,13 @@ from .schema import (
     BendingSection,
     CapsuleSpec,
     ColliderSpec,
+    ContactSection,
     FileMesh,
     Float,
     GridMesh,
     Int,
     KeyframeSpec,
+    LinearSolverSection,
     LinkCapsuleSpec,
     MaterialSection,
     MembraneSection,
@@ -48,6 +52,7 @@ from .schema import (
     NonNegative,
     NonNegativeInt,
     OutputSection,
+    PhysicsConfig,
     PinRegion,
     PinSpec,
     PlaneSpec,
@@ -78,7 +83,8 @@ from .wording import (
 M = TypeVar("M", bound=BaseModel)
 
 __all__ = [
-    "load_config", "read_config", "apply_overrides", "read_yaml", "Section", "SceneConfig", "validate",
+    "load_config", "read_config", "build_model", "build_colliders", "PhysicsConfig", "ContactSection",
+    "LinearSolverSection", "apply_overrides", "read_yaml", "Section", "SceneConfig", "validate",
     "Float", "Int", "Positive", "NonNegative", "PositiveInt", "NonNegativeInt", "Vec3", "Seed", "SEED_LIMIT",
     "GridMesh", "FileMesh", "MeshSpec", "MeshField", "PinRegion", "mesh_file", "ASSET_PREFIX", "SphereSpec",
     "PlaneSpec", "CapsuleSpec", "ColliderSpec", "RobotSection", "MaterialSection", "BendingSection",

@@ -22,6 +22,7 @@ from pydantic import (
     model_validator,
 )
 
+from ..energies.contact import ContactLaw, contact_law
 from ..ops.membrane import MembraneModel
 from ..ops.psi import BendingModel
 from ..options import Projection
@@ -30,7 +31,7 @@ from ..sim.options import LinearMethod, LinearSolver, NewtonOptions
 from .wording import MAX_ERRORS, ConfigError, describe, short_repr
 
 __all__ = [
-    "Section", "SceneConfig", "validate", "Float", "Int", "Positive", "NonNegative", "PositiveInt",
+    "Section", "PhysicsConfig", "SceneConfig", "ContactSection", "validate", "Float", "Int", "Positive", "NonNegative", "PositiveInt",
     "NonNegativeInt", "Vec3", "Seed", "SEED_LIMIT", "GridMesh", "FileMesh", "MeshSpec", "MeshField",
     "PinRegion", "mesh_file", "ASSET_PREFIX", "SphereSpec", "PlaneSpec", "CapsuleSpec", "ColliderSpec",
     "RobotSection", "MaterialSection", "BendingSection", "MembraneSection", "SolverSection", "LinearSolverSection", "OutputSection",
@@ -270,17 +271,31 @@ class MembraneSection(Section):
     _check_model = field_validator("model")(_option(MembraneModel, "membrane model"))
 
 
-class _ColliderSpec(Section):
-    stiffness: Positive = 1e4  # [N/m] (penalty), [J/m^p] (barrier)
-    margin: NonNegative = 0.0  # [m]
-    law: Literal["penalty", "barrier"] = "penalty"  # torchbend.energies.contact
-    power: Annotated[float, Field(gt=1), BeforeValidator(_number)] | None = None  # the barrier's (default 3)
+class ContactSection(Section):
+    """``contact``: a contact law (:mod:`torchbend.energies.contact`): ``law`` (``penalty``: ``k/2 max(0, d)^2``,
+    ``k`` [N/m]; ``barrier``: ``k max(0, d)^p``, ``k`` [J/m^p]), ``stiffness`` ``k``, ``margin`` [m] (the
+    depth ``d`` is ``margin`` minus the signed distance), ``power`` ``p`` (the barrier's, default 3).  Every
+    collider has these keys; the training scripts' ``contact`` section is the law of the bodies they draw
+    per sample (spheres, a body mesh)."""
+
+    stiffness: Positive = 1e4
+    margin: NonNegative = 0.0
+    law: Literal["penalty", "barrier"] = "penalty"
+    power: Annotated[float, Field(gt=1), BeforeValidator(_number)] | None = None
 
     @model_validator(mode="after")
     def _power_of_law(self):
         if self.law == "penalty" and self.power is not None and self.power != 2:
             raise ValueError("the penalty law has power 2: give law: barrier for another power")
         return self
+
+    def contact_law(self) -> ContactLaw:
+        """The :class:`~torchbend.energies.contact.ContactLaw` of this section."""
+        return contact_law(self.law, self.stiffness, self.power)
+
+
+class _ColliderSpec(ContactSection):
+    pass
 
 
 class SphereSpec(_ColliderSpec):
@@ -449,23 +464,42 @@ def _optional_mesh(value):
 MeshField = Annotated[MeshSpec | None, BeforeValidator(_optional_mesh)]
 
 
-class SceneConfig(Section):
-    """A scene config (every section optional)."""
+class PhysicsConfig(Section):
+    """The physics sections shared by scene configs and every training script: ``mesh``, ``material``,
+    ``bending`` and ``membrane`` (a term each, absent: no such term), ``colliders``, ``contact`` (the law of
+    the bodies a training script draws) and ``gravity``; :func:`~torchbend.scenes.builders.build_model` builds
+    their :class:`~torchbend.ClothModel`."""
 
-    scene: SceneSection = SceneSection()
     mesh: Annotated[MeshSpec, BeforeValidator(_mesh_shorthand)] = GridMesh()
     material: MaterialSection = MaterialSection()
     bending: BendingSection | None = None
     membrane: MembraneSection | None = None
     colliders: list[ColliderSpec] = []
+    contact: ContactSection | None = None
     gravity: Vec3 = (0.0, 0.0, -9.81)
+
+    @field_validator("material", "colliders", mode="before")
+    @classmethod
+    def _null_is_default(cls, value, info):
+        """``material:`` with nothing under it (YAML null) means the defaults."""
+        if value is None:
+            field = cls.model_fields[info.field_name]
+            return field.get_default(call_default_factory=True)
+        return value
+
+
+class SceneConfig(PhysicsConfig):
+    """A scene config (every section optional): the physics sections of :class:`PhysicsConfig` and
+    ``scene``, ``solver``, ``output``, ``robot``."""
+
+    scene: SceneSection = SceneSection()
     solver: SolverSection = SolverSection()
     output: OutputSection = OutputSection()
     robot: RobotSection | None = None
 
     @field_validator("scene", "material", "solver", "output", "colliders", mode="before")
     @classmethod
-    def _null_is_default(cls, value, info):
+    def _null_is_default(cls, value, info):  # pyright: ignore[reportIncompatibleMethodOverride]
         """``solver:`` with nothing under it (YAML null) means the defaults."""
         if value is None:
             field = cls.model_fields[info.field_name]

@@ -22,7 +22,9 @@ project it, or the projected solvers lose their positive definite matrix).  ``na
 :meth:`ClothModel.energies <torchbend.ClothModel.energies>`; ``confines`` says whether the term can hold a cloth
 that has no pinned vertex in place (a collider, a spring to fixed points: True, the default; gravity and the
 elastic terms, which are translation invariant or linear: False); ``contact`` marks the terms that the ``contact=``
-projection of :meth:`ClothModel.hessian <torchbend.ClothModel.hessian>` applies to.
+projection of :meth:`ClothModel.hessian <torchbend.ClothModel.hessian>` applies to; ``batched`` says that
+:meth:`EnergyTerm.energy` takes a batch ``x (..., V, 3)`` to ``(...,)`` (the losses then evaluate a batch in
+one call; default False: sample by sample).
 """
 from __future__ import annotations
 
@@ -100,6 +102,7 @@ class EnergyTerm:
     name: str = "term"
     confines: bool = True
     contact: bool = False
+    batched: bool = False
 
     def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
         raise NotImplementedError(f"{type(self).__name__} must define energy(x, ctx)")
@@ -172,6 +175,7 @@ class BendingTerm(EnergyTerm):
 
     contact = False
     confines = False
+    batched = True
 
     def __init__(self, energy: BendingEnergy, name: str = "bending"):
         self.module, self.name = energy, name
@@ -208,6 +212,7 @@ class MembraneTerm(EnergyTerm):
 
     contact = False
     confines = False
+    batched = True
 
     def __init__(self, energy: MembraneEnergy, name: str = "membrane"):
         self.module, self.name = energy, name
@@ -244,6 +249,7 @@ class GravityTerm(EnergyTerm):
 
     contact = False
     confines = False
+    batched = True
 
     def __init__(self, mass: Tensor, gravity: Tensor, name: str = "gravity"):
         self.mass, self.gravity, self.name = mass, gravity, name
@@ -253,7 +259,7 @@ class GravityTerm(EnergyTerm):
         return (self.mass[:, None] * self.gravity[None, :]).to(dtype or self.mass.dtype)
 
     def energy(self, x, ctx):
-        return -(self.force(x.dtype) * x).sum()
+        return -(self.force(x.dtype).to(x.device) * x).sum((-1, -2))
 
     def gradient(self, x, ctx):
         return -self.force(x.dtype).clone()
@@ -272,6 +278,7 @@ class ColliderTerm(EnergyTerm):
 
     contact = True
     confines = True
+    batched = True
 
     def __init__(self, collider: Collider, depth: float | Callable[[], float], name: str = "collider"):
         self.collider, self._depth, self.name = collider, depth, name
@@ -282,10 +289,13 @@ class ColliderTerm(EnergyTerm):
         return float(self._depth() if callable(self._depth) else self._depth)
 
     def energy(self, x, ctx):
-        return self.collider.energy(x)
+        if x.dim() == 2:
+            return self.collider.energy(x)
+        d = self.collider.depth(x.reshape(-1, 3)).reshape(x.shape[:-1])
+        return self.collider.contact.value(d).sum(-1)
 
     def gradient(self, x, ctx):
-        return self.collider.gradient(x)
+        return self.collider.gradient(x.reshape(-1, 3)).reshape(x.shape)
 
     def vertex_blocks(self, x, ctx, projection=None):
         return self.collider.hessian_blocks(x, projection=_projection(projection))
@@ -335,8 +345,8 @@ class TermLoss(torch.nn.Module):
     """An :class:`EnergyTerm` as a loss module of :class:`~torchbend.ClothLoss`: positions ``x (..., V, 3)``
     [m] to per-sample energies ``(...,)`` [J], evaluated in the step context ``ctx`` (default static), so that
     training minimises the same term objects the solver does (:meth:`ClothModel.loss
-    <torchbend.ClothModel.loss>`).  The built-in elastic terms take a batch at once; other terms are
-    evaluated sample by sample."""
+    <torchbend.ClothModel.loss>`).  A term whose ``batched`` is True (the built-in bending, membrane, gravity and
+    collider terms) takes a batch at once; other terms are evaluated sample by sample."""
 
     def __init__(self, term: EnergyTerm, ctx: StepContext | None = None):
         super().__init__()
@@ -346,7 +356,7 @@ class TermLoss(torch.nn.Module):
         if x.dim() == 2:
             return self.term.energy(x, self.ctx)
         batch = x.shape[:-2]
-        if isinstance(self.term, (BendingTerm, MembraneTerm)):
+        if self.term.batched:
             return self.term.energy(x, self.ctx)
         flat = x.reshape(-1, *x.shape[-2:])
         if flat.shape[0] == 0:
