@@ -5,7 +5,8 @@ r"""Builds torchbend's compiled kernels at install time (the metadata is in ``py
 ``--no-build-isolation``: the extensions are compiled against the torch already installed (torch is not a
 build requirement: pip's isolated build environment would download a multi-GB CUDA build of it).
 
-- ``torchbend._native``: the CPU kernels (``csrc/bending_cpu.cpp``, OpenMP, ``-O3 -fno-math-errno``).
+- ``torchbend._native``: the CPU kernels (``csrc/bending_cpu.cpp`` and the ``csrc/cpu_*.cpp`` it binds, the list
+  ``NATIVE_SOURCES`` of ``torchbend/backends/_build_config.py``; OpenMP, ``-O3 -fno-math-errno``).
   ``-march=native`` by default: the documented install builds from source on the machine that runs it.
   For a wheel that other machines run, set ``TORCHBEND_CPU_ARCH=portable`` (no ``-march``) or e.g.
   ``=x86-64-v3``.

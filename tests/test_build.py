@@ -55,6 +55,16 @@ def test_csrc_is_shipped_for_the_jit_fallback():
         assert os.path.exists(os.path.join(cfg.CSRC, f)), f
 
 
+def test_every_cpu_source_is_built_and_small():
+    """Every translation unit of the CPU driver in ``csrc`` is in ``NATIVE_SOURCES`` (what ``setup.py`` and the JIT
+    build compile), and none of them, nor a header, grows past about 500 lines."""
+    on_disk = {f for f in os.listdir(cfg.CSRC) if f.endswith(".cpp") and f != cfg.CUDA_BINDING}
+    assert on_disk == set(cfg.NATIVE_SOURCES)
+    for f in (*cfg.NATIVE_SOURCES, *cfg.headers()):
+        with open(os.path.join(cfg.CSRC, f)) as fh:
+            assert sum(1 for _ in fh) <= 600, f
+
+
 def test_native_module_is_loaded_once_and_has_every_function():
     module = native.load()
     if module is None:

@@ -23,22 +23,15 @@ from torch.autograd import forward_ad
 
 from ..options import Backend
 from . import native
+from ._table import DIFFERENTIABLE, ENTRY_POINTS, ONE_MESH
 
 __all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
 
-NATIVE_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected", "hessian_hinge",
-                        "hessian_triangle"})
-"""Operations with a compiled kernel: the energy, its gradient and Hessian-vector product (inside the
-analytic autograd Functions), per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and
-assembly) and the unprojected sparse assembly per hinge or per triangle (one mesh)."""
+NATIVE_OPS = frozenset(ENTRY_POINTS)
+"""Operations with a compiled kernel (:data:`torchbend.backends._table.ENTRY_POINTS`, which says on which devices)."""
 
-CUDA_OPS = frozenset({"energy", "gradient", "hvp", "hinge_hessians", "hvp_projected"})
+CUDA_OPS = frozenset(op for op, devices in ENTRY_POINTS.items() if "cuda" in devices)
 """Operations whose compiled kernel also runs on CUDA devices."""
-
-_ONE_MESH_OPS = frozenset({"hessian_hinge", "hessian_triangle"})
-_FUNCTION_OPS = frozenset({"energy", "gradient"})
-"""Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph
-does not keep them from running."""
 
 _AUTO, _EAGER, _NATIVE = Backend.AUTO, Backend.EAGER, Backend.NATIVE  # (plain names: no enum lookups per call)
 _auto: contextvars.ContextVar[Backend] = contextvars.ContextVar("torchbend_auto_backend", default=Backend.AUTO)
@@ -80,11 +73,11 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
         return "the inputs are traced by a torch.func transform"
     if not compiling and forward_ad._current_level >= 0:
         return "forward-mode AD is active (the eager Functions define jvp)"
-    if grad and op not in _FUNCTION_OPS and torch.is_grad_enabled():
+    if grad and op not in DIFFERENTIABLE and torch.is_grad_enabled():
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
     if batched:
         batch = tuple(x.shape[:-2])
-        if op in _ONE_MESH_OPS:
+        if op in ONE_MESH:
             return "the compiled assembly takes one mesh"
         if any(t.ndim > 1 and tuple(t.shape[:-1]) != batch for t in params):
             return "per-sample parameters whose batch shape differs from x's"

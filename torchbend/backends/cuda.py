@@ -20,41 +20,26 @@ of the sources, the flags and the architectures.  ``TORCHBEND_PREBUILT=0`` ignor
 """
 from __future__ import annotations
 
-import functools
 import hashlib
-import importlib
 import os
 import subprocess
-import time
-import warnings
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from .._checks import check_finite_tensor, check_positions
-from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
+from ._loader import Extension
+from ._status import fold_status, input_status, raise_for_status
+from ._table import CUDA_KERNELS, model_code
 
 __all__ = ["load", "build_error", "build_info", "available", "kernels", "bending_energy", "bending_gradient",
            "bending_energy_gradient", "bending_hvp", "bending_hessians"]
 
-CSRC = cfg.CSRC
-CU_SOURCES = cfg.CUDA_SOURCES
-HEADERS = cfg.headers()
-BINDING = cfg.CUDA_BINDING
-NVCC_FLAGS = cfg.NVCC_FLAGS
-MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
-KERNELS = ("energy", "gradient", "hvp", "hinge_hessians", "second_order")
-"""The operations the CUDA driver implements, each for float32 and float64."""
+KERNELS = CUDA_KERNELS
+"""The operations the CUDA driver implements, each for float32 and float64 (:data:`torchbend.backends._table.OPERATORS`)."""
 PREBUILT = "torchbend._cuda"
 """The module ``setup.py`` builds at install time."""
-
-_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None}
-
-
-def _nvcc() -> str | None:
-    return cfg.find_nvcc()
 
 
 def _archs() -> list[str]:
@@ -64,101 +49,59 @@ def _archs() -> list[str]:
     return cfg.cuda_archs(default=("90",))
 
 
-def _cudart_dir(nvcc: str) -> str:
-    """The folder with ``libcudart.so`` (see :func:`torchbend.backends._build_config.cudart_dir`)."""
-    from torch.utils.cpp_extension import CUDA_HOME
-
-    return cfg.cudart_dir(nvcc, (CUDA_HOME,))
-
-
 def extension_name(archs: list[str]) -> str:
     """``torchbend_cuda_<hash>`` of the sources, headers, flags and ``archs`` (the JIT build's name)."""
     digest = hashlib.sha256((cfg.cuda_source_hash() + "|" + ";".join(archs)).encode())
     return f"torchbend_cuda_{digest.hexdigest()[:12]}"
 
 
-def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
-    """``(torchbend._cuda, "", found)`` if it is installed, current and runs on the visible GPU (if any), else
-    ``(None, why not, found)``; ``found``: the installed module's path and build info, if any."""
-    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.cuda_source_hash(), torch.__version__)
-    found = {"path": path, "build": info}
-    if why:
-        return None, why, found
-    assert info is not None
-    if torch.cuda.is_available():
-        cap = torch.cuda.get_device_capability()
-        if not cfg.arch_compatible(list(info.get("archs", [])), bool(info.get("ptx")), cap):
-            return None, f"built for sm_{info.get('archs')} (ptx: {info.get('ptx')}), the GPU is sm_{cap[0]}{cap[1]}", found
-    try:
-        return importlib.import_module(PREBUILT), "", found
-    except Exception as e:  # cudart missing, an ABI mismatch, ...
-        return None, f"import failed: {type(e).__name__}: {e}", found
+def _compatible(info: dict) -> str:
+    """``""`` if the installed module runs on the visible GPU (or no GPU is visible), else why not."""
+    if not torch.cuda.is_available():
+        return ""
+    cap = torch.cuda.get_device_capability()
+    if cfg.arch_compatible(list(info.get("archs", [])), bool(info.get("ptx")), cap):
+        return ""
+    return f"built for sm_{info.get('archs')} (ptx: {info.get('ptx')}), the GPU is sm_{cap[0]}{cap[1]}"
 
 
-def _jit_build() -> Any:
-    nvcc = _nvcc()
+def _jit_build() -> tuple[Any, dict[str, Any]]:
+    """nvcc compiles the driver into object files, ``torch.utils.cpp_extension.load`` the binding, linked with
+    them and cudart."""
+    nvcc = cfg.find_nvcc()
     if nvcc is None:
         raise FileNotFoundError("nvcc not found (set TORCHBEND_NVCC or CUDA_HOME)")
-    from torch.utils.cpp_extension import _get_build_directory, load
+    from torch.utils.cpp_extension import CUDA_HOME, _get_build_directory, load
 
     archs = _archs()
     name = extension_name(archs)
     build_dir = _get_build_directory(name, verbose=False)
     objs = []
-    for src in CU_SOURCES:
+    for src in cfg.CUDA_SOURCES:
         obj = os.path.join(build_dir, os.path.splitext(src)[0] + ".o")
         if not os.path.exists(obj):
-            cmd = [nvcc, "-c", *NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=False), "-I", CSRC,
-                   os.path.join(CSRC, src), "-o", obj + ".tmp"]
+            cmd = [nvcc, "-c", *cfg.NVCC_FLAGS, *cfg.gencode_flags(archs, ptx=False), "-I", cfg.CSRC,
+                   os.path.join(cfg.CSRC, src), "-o", obj + ".tmp"]
             done = subprocess.run(cmd, capture_output=True, text=True)
             if done.returncode != 0:
                 raise RuntimeError(f"nvcc failed: {(done.stderr or done.stdout or '')[-800:]}")
             os.replace(obj + ".tmp", obj)
         objs.append(obj)
-    lib = _cudart_dir(nvcc)
-    return load(name=name, sources=[os.path.join(CSRC, BINDING)], extra_include_paths=[CSRC],
-                extra_cflags=["-O2"], extra_ldflags=[*objs, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
-                build_directory=build_dir, verbose=False)
+    lib = cfg.cudart_dir(nvcc, (CUDA_HOME,))
+    module = load(name=name, sources=[os.path.join(cfg.CSRC, cfg.CUDA_BINDING)], extra_include_paths=[cfg.CSRC],
+                  extra_cflags=["-O2"], extra_ldflags=[*objs, f"-L{lib}", f"-Wl,-rpath,{lib}", "-lcudart"],
+                  build_directory=build_dir, verbose=False)
+    return module, {}
 
 
-@functools.lru_cache(maxsize=1)
-def _build() -> tuple[Any, str | None]:
-    """``(module, None)`` or ``(None, reason)``, once per process: the installed module if current, else
-    the JIT build."""
-    t0 = time.perf_counter()
-    module, why, found = _load_prebuilt()
-    _INFO.update(found, prebuilt=why or "used")
-    if module is not None:
-        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__)
-        return module, None
-    try:
-        module = _jit_build()
-        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None))
-        return module, None
-    except RuntimeError as e:  # nvcc failed, no cudart, ...
-        reason = str(e)[-800:]
-    except FileNotFoundError as e:  # no nvcc
-        reason = str(e)
-    except Exception as e:  # no C++ compiler, ...
-        reason = f"{type(e).__name__}: {str(e)[-800:]}"
-    _INFO.update(source=None, seconds=time.perf_counter() - t0, path=None)
-    return None, reason
+_EXT = Extension("CUDA kernels", PREBUILT, lambda: cfg.cuda_source_hash(), _jit_build, compatible=_compatible)
 
 
-def load() -> Any:
-    """The compiled CUDA binding module, or ``None`` if it cannot be built here (see :func:`build_error`)."""
-    return _build()[0]
-
-
-def build_error() -> str | None:
-    return _build()[1]
-
-
-def build_info() -> dict[str, Any]:
-    """How :func:`load` got the module, as :func:`torchbend.backends.native.build_info` (``build`` also
-    lists the architectures of the installed module)."""
-    _build()
-    return dict(_INFO)
+_load_prebuilt = _EXT.load_prebuilt  # (torchbend._cuda, "", found) if installed, current and runnable here
+load = _EXT.load  # the compiled CUDA binding module, or None if it cannot be built here (see build_error)
+build_error = _EXT.build_error
+build_info = _EXT.build_info  # as torchbend.backends.native.build_info (build: also the installed module's archs)
+_module = _EXT.module
 
 
 def available() -> bool:
@@ -172,35 +115,27 @@ def kernels() -> list[str]:
     return [] if module is None else list(module.kernels())
 
 
-def _module() -> Any:
-    module = load()
-    if module is None:
-        raise RuntimeError(f"torchbend: the CUDA kernels are not available ({build_error()})")
-    return module
-
-
 def _stream(x: Tensor) -> int:
     return int(torch.cuda.current_stream(x.device).cuda_stream)
-
-
-def _code(model) -> int:
-    return MODEL_CODE[getattr(model, "value", model)]
 
 
 def _opt(t: Tensor | None) -> Tensor | None:
     return None if t is None else t.detach()
 
 
-def _warn_once(msg: str) -> None:  # pragma: no cover - used by the dispatcher
-    warnings.warn(msg, RuntimeWarning, stacklevel=3)
-
-
 def _check(check: bool, x: Tensor, v: Tensor | None = None) -> None:
     """With ``check``: the ``ValueError`` of non-finite positions (and directions ``v``), before any work."""
     if check:
-        check_positions(x, x.shape[-2])
-        if v is not None:
-            check_finite_tensor(v, "v")
+        status = input_status(x, v)
+        if status:
+            raise_for_status(status, None, x, None, v)
+
+
+def _folded(model, x: Tensor, theta: Tensor) -> None:
+    """The ``ValueError`` of a folded ``tan`` hinge (after the kernel, from its angles)."""
+    status = fold_status(model, theta)
+    if status:
+        raise_for_status(status, model, x, theta)
 
 
 def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check: bool = False) -> Tensor:
@@ -208,8 +143,8 @@ def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check:
     positions)."""
     _check(check, x)
     psi, theta = _module().bending_energy(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                          _opt(prev), _code(model), _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+                                          _opt(prev), model_code(model), _stream(x))
+    _folded(model, x, theta)
     return psi
 
 
@@ -218,8 +153,8 @@ def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weig
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` (``inc`` unused: atomic scatter)."""
     _check(check, x)
     gx, gp, _, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                                  _opt(prev), _code(model), weight.detach(), params, False, _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+                                                  _opt(prev), model_code(model), weight.detach(), params, False, _stream(x))
+    _folded(model, x, theta)
     return gx, (gp if params else None)
 
 
@@ -229,9 +164,9 @@ def bending_energy_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, mode
     gradient kernel also storing the energies it computes)."""
     _check(check, x)
     gx, gp, psi, theta = _module().bending_gradient(x.detach(), hinges, a.detach(), k.detach(), rest.detach(),
-                                                    _opt(c), _opt(prev), _code(model), x.new_ones(1), params, True,
+                                                    _opt(c), _opt(prev), model_code(model), x.new_ones(1), params, True,
                                                     _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+    _folded(model, x, theta)
     return psi, gx, (gp if params else None)
 
 
@@ -240,8 +175,8 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model
     """``w H v (..., V, 3)`` (with ``check``: non-finite ``x`` or ``v`` are a ``ValueError``)."""
     _check(check, x, v)
     hv, theta = _module().bending_hvp(x.detach(), v.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                      _opt(prev), _code(model), weight.detach(), _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+                                      _opt(prev), model_code(model), weight.detach(), _stream(x))
+    _folded(model, x, theta)
     return hv
 
 
@@ -250,9 +185,9 @@ def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: 
     """``(dx (..., V, 3), dp (..., H, 4), dg (..., H))``: the general double backward, as
     :func:`torchbend.backends.native.bending_second_order` (``inc`` unused: atomic scatter)."""
     dx, dp, dg, theta = _module().bending_second_order(x.detach(), _opt(v), _opt(t), hinges, a.detach(), k.detach(),
-                                                       rest.detach(), _opt(c), _opt(prev), _code(model),
+                                                       rest.detach(), _opt(c), _opt(prev), model_code(model),
                                                        weight.detach(), _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+    _folded(model, x, theta)
     return dx, dp, dg
 
 
@@ -261,8 +196,8 @@ def bending_hessians(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, chec
     """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` as :func:`torchbend.backends.native.bending_hessians`."""
     _check(check, x)
     Hb, g, d2, theta = _module().bending_hessians(x.detach(), hinges, a.detach(), k.detach(), rest.detach(), _opt(c),
-                                                  _opt(prev), _code(model), _stream(x))
-    check_fold(BendingModel.parse(model), theta)
+                                                  _opt(prev), model_code(model), _stream(x))
+    _folded(model, x, theta)
     return Hb, g, d2
 
 

@@ -10,54 +10,45 @@ Hinges are processed in tiles of 8 with every quantity stored per lane, so the c
 the formulas across hinges; tiles run in parallel (``at::parallel_for``), blocks are written with
 streaming stores.
 
-The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` (torch-free,
-written to compile for a CUDA driver as well) and the CPU driver ``bending_cpu.cpp`` (loops over tiles,
-tensors, bindings).  ``pip install --no-build-isolation .`` (or ``-e .``) compiles them into
-``torchbend._native`` (``setup.py``); :func:`load` uses that module if it was built from the sources
-installed next to it (their hash is embedded in it, see :mod:`torchbend.backends._build_config`), and
-otherwise compiles them on first use with ``torch.utils.cpp_extension.load`` (about half a minute, then
-cached in ``TORCH_EXTENSIONS_DIR``; the name carries the hash of the sources, every header in ``csrc``
-and the flags, so an edit of a header rebuilds too, :func:`extension_name`).  :func:`build_info` says which
-happened.  ``TORCHBEND_PREBUILT=0`` ignores the installed module.  Without a working compiler a warning
-says why, once, and the eager path runs.  Which code runs is
-decided by :func:`torchbend.backends.select_backend`, never here; the functions below assume it
-said ``native``.
+The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` and ``hinge_ops.h``
+(torch-free, compiled for the CUDA driver as well) and the CPU driver, split by role (``cpu_tiles.*``: tiles,
+checks, output buffers; ``cpu_first_order.cpp``, ``cpu_second_order.cpp``, ``cpu_blocks.cpp``: the operators;
+``cpu_assembly.cpp``; ``cpu_projection.cpp``; ``bending_cpu.cpp``: the bindings; the list is
+:data:`torchbend.backends._build_config.NATIVE_SOURCES`).  ``pip install --no-build-isolation .`` (or ``-e .``)
+compiles them into ``torchbend._native`` (``setup.py``); :func:`load` (:class:`torchbend.backends._loader.Extension`,
+shared with the CUDA driver) uses that module if it was built from the sources installed next to it (their hash
+is embedded in it, see :mod:`torchbend.backends._build_config`), and otherwise compiles them on first use with
+``torch.utils.cpp_extension.load`` (a few minutes on two cores, then cached in ``TORCH_EXTENSIONS_DIR``; the
+name carries the hash of the sources, every header in ``csrc`` and the flags, so an edit of a header rebuilds
+too, :func:`extension_name`).  :func:`build_info` says which happened.  ``TORCHBEND_PREBUILT=0`` ignores the
+installed module.  Without a working compiler a warning says why, once, and the eager path runs.
+Which code runs is decided by :func:`torchbend.backends.select_backend`, never here; the functions below assume
+it said ``native``.
 """
 from __future__ import annotations
 
-import functools
-import importlib
 import os
-import time
-import warnings
 from typing import Any
 
 from torch import Tensor
 
-from .._checks import check_finite_tensor, check_positions
-from ..ops.psi import BendingModel, check_fold
 from . import _build_config as cfg
+from ._loader import Extension
+from ._status import raise_for_status
+from ._table import PROJECTION_CODE, model_code
 
-__all__ = ["load", "build_error", "build_info", "extension_name", "jit_cflags", "bending_hessians", "assemble_arrays", "project_blocks", "MODEL_CODE",
-           "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
+__all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
+           "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
+           "project_blocks", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
-CSRC = cfg.CSRC
-SOURCES = cfg.NATIVE_SOURCES
-HEADERS = cfg.headers()
-MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
-CFLAGS = cfg.NATIVE_CFLAGS
-"""The CPU extension's flags with the default ``-march=native`` (see :data:`torchbend.backends._build_config.NATIVE_CFLAGS`);
-the JIT build uses :func:`jit_cflags`, these with the instruction-set flag of ``TORCHBEND_CPU_ARCH``."""
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
 
-_INFO: dict[str, Any] = {"source": None, "seconds": None, "path": None, "prebuilt": None, "build": None,
-                         "cflags": None, "arch": None}
-
 
 def jit_cflags() -> list[str]:
-    """The JIT build's compile flags: :data:`CFLAGS` with the instruction-set flag of ``TORCHBEND_CPU_ARCH``
-    (:func:`torchbend.backends._build_config.native_cflags`; default ``-march=native``)."""
+    """The JIT build's compile flags: :data:`torchbend.backends._build_config.NATIVE_CFLAGS` with the
+    instruction-set flag of ``TORCHBEND_CPU_ARCH`` (:func:`torchbend.backends._build_config.native_cflags`;
+    default ``-march=native``)."""
     return cfg.native_cflags()
 
 
@@ -70,93 +61,33 @@ def extension_name() -> str:
     return f"torchbend_native_{cfg.native_source_hash()[:12]}" + ("" if tag == "native" else f"_{tag}")
 
 
-def _load_prebuilt() -> tuple[Any, str, dict[str, Any]]:
-    """``(torchbend._native, "", found)`` if it is installed and current, else ``(None, why not, found)``;
-    ``found``: the installed module's path and build info, if any."""
-    import torch
+def _jit_build() -> tuple[Any, dict[str, Any]]:
+    from torch.utils.cpp_extension import load as load_extension
 
-    path, info, why = cfg.find_prebuilt(PREBUILT, cfg.native_source_hash(), torch.__version__, cpu_arch=True)
-    found = {"path": path, "build": info}
-    if why:
-        return None, why, found
-    try:
-        return importlib.import_module(PREBUILT), "", found
-    except Exception as e:  # an ABI mismatch, a missing library, ...
-        return None, f"import failed: {type(e).__name__}: {e}", found
+    cflags = jit_cflags()
+    module = load_extension(
+        name=extension_name(), sources=[os.path.join(cfg.CSRC, f) for f in cfg.NATIVE_SOURCES],
+        extra_include_paths=[cfg.CSRC], extra_cflags=cflags, extra_ldflags=list(cfg.NATIVE_LDFLAGS), verbose=False)
+    return module, {"cflags": cflags, "arch": cfg.cpu_arch_tag(cflags)}
 
 
-@functools.lru_cache(maxsize=1)
-def _build() -> tuple[Any, str | None]:
-    """``(module, None)`` or ``(None, reason)``; once per process: the installed module if current, else
-    the JIT build (cached on disk by torch)."""
-    t0 = time.perf_counter()
-    module, why, found = _load_prebuilt()
-    _INFO.update(found, prebuilt=why or "used")
-    if module is not None:
-        cflags = list((found["build"] or {}).get("cflags", []))
-        _INFO.update(source="install", seconds=time.perf_counter() - t0, path=module.__file__, cflags=cflags,
-                     arch=cfg.cpu_arch_tag([f for f in cflags if f.startswith("-march=")]))
-        return module, None
-    try:
-        from torch.utils.cpp_extension import load as load_extension
-
-        cflags = jit_cflags()
-        module = load_extension(
-            name=extension_name(), sources=[os.path.join(CSRC, f) for f in SOURCES], extra_include_paths=[CSRC],
-            extra_cflags=cflags, extra_ldflags=list(cfg.NATIVE_LDFLAGS), verbose=False)
-        _INFO.update(source="jit", seconds=time.perf_counter() - t0, path=getattr(module, "__file__", None),
-                     cflags=cflags, arch=cfg.cpu_arch_tag(cflags))
-        return module, None
-    except Exception as e:  # no compiler, no ninja, ...
-        reason = f"{type(e).__name__}: {e}"
-        _INFO.update(source=None, seconds=time.perf_counter() - t0, path=None)
-        warnings.warn(f"torchbend: could not build the C++ kernels ({reason[:300]}); using the eager path",
-                      RuntimeWarning, stacklevel=4)
-        return None, reason
+def _install_info(build: dict) -> dict[str, Any]:
+    cflags = list(build.get("cflags", []))
+    return {"cflags": cflags, "arch": cfg.cpu_arch_tag([f for f in cflags if f.startswith("-march=")])}
 
 
-def load() -> Any:
-    """The compiled extension module, or ``None`` if it cannot be built here."""
-    return _build()[0]
+_EXT = Extension("C++ extension", PREBUILT, lambda: cfg.native_source_hash(), _jit_build, cpu_arch=True,
+                 install_info=_install_info, warn=True, info_keys=("cflags", "arch"))
 
 
-def _module() -> Any:
-    module = _build()[0]
-    if module is None:
-        raise RuntimeError(f"torchbend: the C++ extension is not available ({build_error()})")
-    return module
-
-
-def build_error() -> str | None:
-    """Why the extension could not be built (``None`` if it was)."""
-    return _build()[1]
-
-
-def build_info() -> dict[str, Any]:
-    """How :func:`load` got the module: ``source`` (``"install"``: the module built by ``pip install``;
-    ``"jit"``: compiled or taken from torch's extension cache on first use; ``None``: not available),
-    ``seconds`` (the time :func:`load` took in this process), ``path`` (the library), ``prebuilt`` (``"used"``
-    or why the installed module was not used), ``build`` (what the installed module says of its build:
-    source hash, flags, torch version), ``cflags`` (the compile flags of the module in use) and ``arch`` (their
-    instruction set: ``"native"``, ``"portable"`` or e.g. ``"x86_64_v3"``, see ``TORCHBEND_CPU_ARCH``).  Loads the module if that has not happened yet."""
-    _build()
-    return dict(_INFO)
-
-
-def _model_code(model) -> int:
-    return MODEL_CODE[getattr(model, "value", model)]
-
-
-def _raise(status: int, model, x: Tensor, theta: Tensor, v: Tensor | None = None) -> None:
-    """The ``ValueError`` of a kernel's non-zero status word (bit 1: ``x`` non-finite, 2: ``v`` non-finite, 4: a
-    folded ``tan`` hinge), worded by the checks of :mod:`torchbend._checks` and :func:`check_fold`."""
-    if status & 1:
-        check_positions(x, x.shape[-2])
-    if status & 2 and v is not None:
-        check_finite_tensor(v, "v")
-    if status & 4:
-        check_fold(BendingModel.parse(model), theta)
-    raise ValueError(f"torchbend: the compiled kernel reported invalid input (status {status})")
+_load_prebuilt = _EXT.load_prebuilt  # (torchbend._native, "", found) if installed and current, else (None, why not, found)
+load = _EXT.load  # the compiled module, or None if it cannot be built here
+build_error = _EXT.build_error  # why it could not be built (None if it was)
+build_info = _EXT.build_info
+"""How :func:`load` got the module (:meth:`torchbend.backends._loader.Extension.build_info`), with ``cflags`` (the
+compile flags of the module in use) and ``arch`` (their instruction set: ``"native"``, ``"portable"`` or e.g.
+``"x86_64_v3"``, see ``TORCHBEND_CPU_ARCH``)."""
+_module = _EXT.module  # the compiled module, or the RuntimeError saying why not
 
 
 def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model,
@@ -168,14 +99,15 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     (``prev`` also ``(..., H)`` with x's batch shape); ``c``, ``prev`` ``None`` without damping.
 
     ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of new tensors
-    (contiguous, x's dtype, exactly those shapes, not overlapping x).  Without them, large outputs take warm
-    memory released by earlier outputs (:func:`output_cache_info`): fresh memory page-faults on first touch,
-    which for large meshes costs more than the kernel itself."""
+    (contiguous, x's dtype, exactly those shapes, not overlapping x).  Fresh memory page-faults on first touch,
+    which for large meshes costs more than the kernel itself: a caller that asks for the blocks in a loop keeps its
+    buffers between the calls (without them, large outputs take warm memory released by earlier outputs,
+    :func:`output_cache_info`)."""
     hb, g = (None, None) if out is None else out
-    Hb, g, d2, theta, status = _module().bending_hessians(x, hinges, a, k, rest, c, prev, _model_code(model), hb, g,
+    Hb, g, d2, theta, status = _module().bending_hessians(x, hinges, a, k, rest, c, prev, model_code(model), hb, g,
                                                           check)
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return Hb, g, d2
 
 
@@ -188,14 +120,11 @@ def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge
     over the topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
     ``ValueError`` as in :func:`bending_hessians`."""
     values, theta, status = _module().assemble(
-        x, hinges, a, k, rest, c, prev, _model_code(model), hinge_blocks, faces, face_edge_hinges, face_edge_signs,
+        x, hinges, a, k, rest, c, prev, model_code(model), hinge_blocks, faces, face_edge_hinges, face_edge_signs,
         face_blocks, row_len, nnz, per_triangle)
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return values
-
-
-PROJECTION_CODE = {"clamp": 0, "abs": 1, "reduced": 2}
 
 
 def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
@@ -248,9 +177,9 @@ def incidence(hinges: Tensor, vertex_count: int) -> tuple[Tensor, Tensor]:
 def bending_energy(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, check: bool = False) -> Tensor:
     """Per-hinge energies ``psi (..., H)`` in one compiled pass (folded ``tan`` hinges: ``ValueError``; with
     ``check`` also non-finite positions, both detected inside the kernel)."""
-    psi, theta, status = _module().bending_energy(x, hinges, a, k, rest, c, prev, _model_code(model), check)
+    psi, theta, status = _module().bending_energy(x, hinges, a, k, rest, c, prev, model_code(model), check)
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return psi
 
 
@@ -258,10 +187,10 @@ def bending_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, weig
                      check: bool = False):
     """``(w dE/dx (..., V, 3), w dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` with the per-hinge weight ``w``
     (checks as :func:`bending_energy`)."""
-    gx, gp, theta, status = _module().bending_gradient(x, hinges, a, k, rest, c, prev, _model_code(model), weight,
+    gx, gp, theta, status = _module().bending_gradient(x, hinges, a, k, rest, c, prev, model_code(model), weight,
                                                        inc[0], inc[1], params, check)
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return gx, (gp if params else None)
 
 
@@ -269,10 +198,10 @@ def bending_energy_gradient(x: Tensor, hinges: Tensor, a, k, rest, c, prev, mode
                             check: bool = False):
     """``(psi (..., H), dE/dx (..., V, 3), dpsi/d(k, rest, c, prev) (..., H, 4) or None)`` in one compiled pass:
     the per-hinge energies and the unweighted gradients (checks as :func:`bending_energy`)."""
-    psi, gx, gp, theta, status = _module().bending_energy_gradient(x, hinges, a, k, rest, c, prev, _model_code(model),
+    psi, gx, gp, theta, status = _module().bending_energy_gradient(x, hinges, a, k, rest, c, prev, model_code(model),
                                                                    inc[0], inc[1], params, check)
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return psi, gx, (gp if params else None)
 
 
@@ -280,10 +209,10 @@ def bending_hvp(x: Tensor, v: Tensor, hinges: Tensor, a, k, rest, c, prev, model
                 check: bool = False) -> Tensor:
     """``w H v (..., V, 3)``: the closed-form Hessian of the energy applied to ``v`` (no matrix stored); with
     ``check``, non-finite ``x`` or ``v`` are the ``ValueError`` of :mod:`torchbend._checks`."""
-    hv, theta, status = _module().bending_hvp(x, v, hinges, a, k, rest, c, prev, _model_code(model), weight, inc[0],
+    hv, theta, status = _module().bending_hvp(x, v, hinges, a, k, rest, c, prev, model_code(model), weight, inc[0],
                                               inc[1], check)
     if status:
-        _raise(status, model, x, theta, v)
+        raise_for_status(status, model, x, theta, v)
     return hv
 
 
@@ -299,9 +228,9 @@ def bending_second_order(x: Tensor, v: Tensor | None, t: Tensor | None, hinges: 
     ``w`` (one value, ``(H,)`` or ``(..., H)``).  Without damping the ``c``, ``prev`` columns of ``dp`` are zero (and
     those of ``t`` ignored).  A folded ``tan`` hinge is a ``ValueError``."""
     dx, dp, dg, theta, status = _module().bending_second_order(x, v, t, hinges, a, k, rest, c, prev,
-                                                               _model_code(model), weight, inc[0], inc[1])
+                                                               model_code(model), weight, inc[0], inc[1])
     if status:
-        _raise(status, model, x, theta)
+        raise_for_status(status, model, x, theta)
     return dx, dp, dg
 
 

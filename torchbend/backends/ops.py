@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from . import kernels
+from ._table import MODEL_CODE, OPERATORS
 
 __all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "project_blocks", "OPS",
            "run"]
@@ -43,7 +44,7 @@ _KERNELS: dict = {}
 """The Python kernel of every operator by name (what the dispatcher calls for CPU and CUDA tensors)."""
 
 
-_MODELS = tuple(kernels.native.MODEL_CODE)  # the model names the kernels take
+_MODELS = tuple(MODEL_CODE)  # the model names the kernels take
 
 
 def _model(op: str, model: str) -> str:
@@ -242,14 +243,6 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     return native.project_blocks(M, mode, hinge)
 
 
-OPS = {
-    "bending_energy": bending_energy,
-    "bending_gradient": bending_gradient,
-    "bending_energy_gradient": bending_energy_gradient,
-    "bending_hvp": bending_hvp,
-    "bending_second_order": bending_second_order,
-    "hinge_hessians": hinge_hessians,
-    "assemble": assemble,
-    "project_blocks": project_blocks,
-}
-"""Every registered operator by name (``torch.ops.torchbend.<name>``)."""
+assert set(_KERNELS) == set(OPERATORS), "torchbend.backends._table.OPERATORS lists every operator"
+OPS = {name: getattr(torch.ops.torchbend, name) for name in OPERATORS}
+"""Every registered operator by name (``torch.ops.torchbend.<name>``, :data:`torchbend.backends._table.OPERATORS`)."""

@@ -1,5 +1,5 @@
 // Argument checks of the compiled operators (torch.ops.torchbend.*), shared by the CPU driver
-// (bending_cpu.cpp) and the CUDA binding (cuda_binding.cpp).  Every argument is checked before any work:
+// (cpu_*.cpp) and the CUDA binding (cuda_binding.cpp).  Every argument is checked before any work:
 // shapes, dtypes and devices, the values of every index argument (hinge indices, incidence lists, the
 // sparsity pattern of `assemble`, face and face-edge indices), the viscous pair.  A bad argument is a
 // c10::ValueError (Python ValueError) naming the operator, the argument and its first offending entry, e.g.

@@ -6,7 +6,7 @@
 // No torch, no std:: containers, no std:: math (the C functions, which nvcc also has on the device)
 // and no pragmas outside the TB_SIMD / TB_IVDEP macros: every function is `TB_HD static inline` (or a
 // template), so that a CUDA driver can compile this header with nvcc (TB_HD = __host__ __device__
-// there, the loop pragmas empty) as the CPU driver bending_cpu.cpp does with g++.
+// there, the loop pragmas empty) as the CPU driver (cpu_*.cpp) does with g++.
 //
 // Hinges are handled in tiles of W lanes with every quantity stored as [component][lane]: on the CPU,
 // W = 8 and each formula is vectorized across the lanes of a tile; a GPU driver would take W = 1 (one
@@ -45,20 +45,18 @@
 namespace torchbend {
 
 // ---- scalar helpers (host and device spellings of the same C functions) ----------------------
-TB_HD static inline float tb_sqrt(float v) { return sqrtf(v); }
-TB_HD static inline double tb_sqrt(double v) { return sqrt(v); }
+// the float and the double overload of a unary C function (fname, dname: its float and double spellings)
+#define TB_UNARY_PAIR(QUAL, name, fname, dname) \
+  QUAL float name(float v) { return fname(v); } \
+  QUAL double name(double v) { return dname(v); }
+TB_UNARY_PAIR(TB_HD static inline, tb_sqrt, sqrtf, sqrt)
+TB_UNARY_PAIR(TB_HD static inline, tb_tan, tanf, tan)
+TB_UNARY_PAIR(TB_HD static inline, tb_sin, sinf, sin)
+TB_UNARY_PAIR(TB_HD static inline, tb_cos, cosf, cos)
+TB_UNARY_PAIR(TB_HD static inline, tb_ceil, ceilf, ceil)
+TB_UNARY_PAIR(TB_HD static inline, tb_floor, floorf, floor)
 TB_HD static inline float tb_atan2(float y, float x) { return atan2f(y, x); }
 TB_HD static inline double tb_atan2(double y, double x) { return atan2(y, x); }
-TB_HD static inline float tb_tan(float v) { return tanf(v); }
-TB_HD static inline double tb_tan(double v) { return tan(v); }
-TB_HD static inline float tb_sin(float v) { return sinf(v); }
-TB_HD static inline double tb_sin(double v) { return sin(v); }
-TB_HD static inline float tb_cos(float v) { return cosf(v); }
-TB_HD static inline double tb_cos(double v) { return cos(v); }
-TB_HD static inline float tb_ceil(float v) { return ceilf(v); }
-TB_HD static inline double tb_ceil(double v) { return ceil(v); }
-TB_HD static inline float tb_floor(float v) { return floorf(v); }
-TB_HD static inline double tb_floor(double v) { return floor(v); }
 TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
@@ -80,10 +78,8 @@ TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) { sincos
 TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { sincos(x, &s, &c); }
 TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return atan2f(y, x); }
 TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) { return atan2(y, x); }
-TB_HD static TB_FORCEINLINE float tb_floorv(float v) { return floorf(v); }
-TB_HD static TB_FORCEINLINE double tb_floorv(double v) { return floor(v); }
-TB_HD static TB_FORCEINLINE float tb_ceilv(float v) { return ceilf(v); }
-TB_HD static TB_FORCEINLINE double tb_ceilv(double v) { return ceil(v); }
+TB_UNARY_PAIR(TB_HD static TB_FORCEINLINE, tb_floorv, floorf, floor)
+TB_UNARY_PAIR(TB_HD static TB_FORCEINLINE, tb_ceilv, ceilf, ceil)
 #else
 static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
   const double two_over_pi = 6.36619772367581382433e-01;

@@ -1,0 +1,51 @@
+"""The names of the compiled operations, in one table: the entry points of the energies that have a compiled
+kernel (and on which devices), the operators ``torch.ops.torchbend.*`` with the kernel of the CUDA driver behind
+each, and the codes the kernels take for the bending models and the projections."""
+from __future__ import annotations
+
+ENTRY_POINTS: dict[str, tuple[str, ...]] = {
+    "energy": ("cpu", "cuda"),
+    "gradient": ("cpu", "cuda"),
+    "hvp": ("cpu", "cuda"),
+    "hinge_hessians": ("cpu", "cuda"),
+    "hvp_projected": ("cpu", "cuda"),
+    "hessian_hinge": ("cpu",),
+    "hessian_triangle": ("cpu",),
+}
+"""Operation of the energies (the ``op`` of :func:`torchbend.backends.select_backend`) -> the devices with a
+compiled kernel for it: the energy, its gradient and Hessian-vector product (inside the analytic autograd
+Functions), the per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and assembly) and the
+unprojected sparse assembly per hinge or per triangle (one mesh, CPU only)."""
+
+ONE_MESH = frozenset({"hessian_hinge", "hessian_triangle"})
+"""Entry points whose kernel takes one mesh (no batch)."""
+DIFFERENTIABLE = frozenset({"energy", "gradient"})
+"""Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph does
+not keep them from running."""
+
+OPERATORS: dict[str, str | None] = {
+    "bending_energy": "energy",
+    "bending_gradient": "gradient",
+    "bending_energy_gradient": "gradient",
+    "bending_hvp": "hvp",
+    "bending_second_order": "second_order",
+    "hinge_hessians": "hinge_hessians",
+    "assemble": None,
+    "project_blocks": None,
+}
+"""``torch.ops.torchbend.<name>`` (:mod:`torchbend.backends.ops`) -> the kernel of the CUDA driver that runs it
+(``None``: CPU only; ``project_blocks`` runs eagerly on CUDA tensors)."""
+
+CUDA_KERNELS: tuple[str, ...] = tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None))
+"""The kernels of the CUDA driver (``csrc/bending_cuda.cu``), each compiled for float32 and float64."""
+
+MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
+"""The bending models as the kernels take them."""
+
+PROJECTION_CODE = {"clamp": 0, "abs": 1, "reduced": 2}
+"""The projections of the compiled ``project_blocks``."""
+
+
+def model_code(model) -> int:
+    """The kernels' code of ``model`` (a name or a :class:`torchbend.ops.psi.BendingModel`)."""
+    return MODEL_CODE[getattr(model, "value", model)]

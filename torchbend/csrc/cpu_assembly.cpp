@@ -1,0 +1,265 @@
+// The sparse assembly of the Hessian of one mesh (assemble).
+#include "cpu_ops.h"
+#include "cpu_tiles.h"
+
+namespace torchbend {
+namespace cpu {
+// ----------------------------------------------------------------------------------------------
+// Sparse assembly of the Hessian of one mesh into CSR values, both ways of
+// torchbend.energies.bending_hessian.assemble: per hinge (scatter of the 12x12 blocks) and per
+// triangle (paper sec. 4.1-4.2: psi'' g g^T per hinge, plus sum_h psi'_h Hess(theta_h) as one 9x9
+// block per triangle, eq. 7 with the conditional transpose: face_block).  Serial: the scatter
+// targets overlap.
+
+// values += the local (3m x 3m) matrix `loc` of an element with vertices v[0..m): vertex block (a, b) starts at
+// CSR position base[m a + b], its row p at base + p row_len[v[a]] (torchbend.energies.sparse.StencilPattern)
+template <typename T, int m>
+static inline void scatter_blocks(T* values, const int64_t* base, const int64_t* v, const int64_t* row_len,
+                                  const T* loc) {
+  for (int a = 0; a < m; ++a) {
+    const int64_t rl = row_len[v[a]];
+    for (int b = 0; b < m; ++b) {
+      T* dst = values + base[m * a + b];
+      for (int p = 0; p < 3; ++p, dst += rl) {
+        const T* src = loc + 3 * m * (3 * a + p) + 3 * b;
+        dst[0] += src[0]; dst[1] += src[1]; dst[2] += src[2];
+      }
+    }
+  }
+}
+
+// names the first base bp[i] of an element (vertices ev[0 .. m)) outside the first scalar row of its block row
+// ev[i / m] with its 3 columns (so that the block's rows base + p row_len (p < 3) would leave that block row)
+template <int m>
+[[noreturn, gnu::cold, gnu::noinline]] static void report_element_bases(const char* name, int64_t e, const int64_t* bp, const int64_t* ev,
+                                              const int64_t* rs, const int64_t* rl) {
+  for (int i = 0; i < m * m; ++i) {
+    int64_t v = ev[i / m], r0 = rs[v];
+    if (bp[i] < r0 || bp[i] > r0 + rl[v] - 3)
+      torchbend::checks::fail("assemble", name, "[", e, ", ", i, "] = ", bp[i], " is not a block of row ", v,
+                              " of the pattern (its first scalar row spans [", r0, ", ", r0 + rl[v], "))");
+  }
+  torchbend::checks::fail("assemble", name, "[", e, "]: a block base outside its block row");
+}
+
+// the block bases bp[0 .. m m) of an element checked against its block rows (checked by the assembly as it reads
+// them, before their scatter; the hinges' check is fused into the assembly's reach loop)
+template <int m>
+static inline void check_element_bases(const char* name, int64_t e, const int64_t* bp, const int64_t* ev,
+                                       const int64_t* rs, const int64_t* rl) {
+  if (!torchbend::checks::kChecked) return;
+  int bad = 0;
+  for (int a = 0; a < m; ++a) {
+    const int64_t lo = rs[ev[a]], hi = lo + rl[ev[a]] - 3;
+    for (int b = 0; b < m; ++b) bad |= int(bp[m * a + b] < lo) | int(bp[m * a + b] > hi);
+  }
+  if (bad) report_element_bases<m>(name, e, bp, ev, rs, rl);
+}
+
+// the failure paths of assemble_impl's fused index checks, out of line (the hot loop keeps only the tests)
+static torch::Tensor index_view(const int64_t* p, int64_t n, int64_t m) {  // the caller's array as a tensor (no copy)
+  return torch::from_blob(const_cast<int64_t*>(p), {n, m}, torch::kLong);
+}
+
+[[gnu::cold, gnu::noinline]] static void assemble_bad_hinges(const int64_t* hinges, int64_t H, int64_t V) {
+  check_hinge_range("assemble", index_view(hinges, H, 4), V);
+}
+
+[[gnu::cold, gnu::noinline]] static void assemble_bad_faces(const int64_t* faces, const int64_t* fes, int64_t F, int64_t V) {
+  namespace ck = torchbend::checks;
+  ck::check_range("assemble", "faces", index_view(faces, F, 3), 0, V, "x has V = " + std::to_string(V) + " vertices");
+  for (int64_t i = 0; i < 3 * F; ++i)
+    if (fes[i] != 1 && fes[i] != -1)
+      ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
+}
+
+template <typename T>
+[[gnu::flatten]] static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
+                          Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
+                          const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
+                          const int64_t* row_len, const int64_t* rs, int64_t V, int64_t F, bool per_triangle,
+                          T* values, int64_t nnz, T* thout) {
+  namespace ck = torchbend::checks;
+  // the index arguments are checked as the assembly reads them, each before its first use (one pass over them
+  // that the assembly makes anyway); the first offending entry in memory order is named
+  auto bad_hinge = [&]() { assemble_bad_hinges(hinges, H, V); };
+  auto bad_face = [&]() { assemble_bad_faces(faces, fes, F, V); };
+  std::vector<T> d1s(per_triangle ? H : 0);
+  // per triangle: each face's 9x9 block goes in right after the tile holding the last of its hinges, whose 16
+  // vertex blocks include the face's 9, so that its scatter finds them in cache (a separate pass over the faces
+  // would stream the whole value array a second time).  first[h] -> next[f] -> ...: the faces whose last hinge is h
+  std::vector<int64_t> first(per_triangle ? H : 0, -1), next(per_triangle ? F : 0, -1);
+  if (per_triangle && ck::kChecked) {
+    int bad = 0;
+    for (int64_t i = 0; i < 3 * F; ++i) bad |= int(feh[i] < -1) | int(feh[i] >= H);
+    for (int64_t i = 0; bad && i < 3 * F; ++i)
+      if (feh[i] < -1 || feh[i] >= H)
+        ck::fail("assemble", "face_edge_hinges[", i / 3, ", ", i % 3, "] = ", feh[i], " is out of range [-1, ", H,
+                 ") (hinge indices of H = ", H, " hinges, -1 on the boundary)");
+  }
+  for (int64_t f = per_triangle ? F : 0; f-- > 0;) {
+    const int64_t* fh = feh + 3 * f;
+    int64_t last = std::max(fh[0], std::max(fh[1], fh[2]));
+    if (last >= 0) { next[f] = first[last]; first[last] = f; }
+  }
+  T blk[81];
+  alignas(64) T buf[W][144];
+  T gbuf[W][12];
+  T X[12][W], D1[W], D2[W], G[12][W];
+  Blocks<T, W> tile;
+  T* op[W]; T* gp[W];
+  for (int l = 0; l < W; ++l) { op[l] = buf[l]; gp[l] = gbuf[l]; }
+  // `values` comes uninitialised and is zeroed just ahead of the scatter: before a tile, [0, zeroed) is zeroed up
+  // to the last position the tile touches (first touches come after, and in cache, whatever the hinge order)
+  int64_t zeroed = 0;
+  for (int64_t h0 = 0; h0 < H; h0 += W) {
+    int nl = int(std::min<int64_t>(W, H - h0));
+    int64_t reach = zeroed;
+    for (int l = 0; l < W; ++l) {
+      if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); D1[l] = D2[l] = T(0); continue; }
+      int64_t h = h0 + l;
+      const int64_t* q = hinges + 4 * h;
+      if (ck::kChecked && (uint64_t(q[0]) >= uint64_t(V) || uint64_t(q[1]) >= uint64_t(V) ||
+                           uint64_t(q[2]) >= uint64_t(V) || uint64_t(q[3]) >= uint64_t(V)))
+        bad_hinge();
+      load_hinge<T, W>(x, q, X, l);
+      hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
+                      damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
+      // the reach of the hinge's blocks, and (fused, from the same loads) whether every base of block row q[va]
+      // lies in that row's first scalar row with its 3 columns (check_element_bases names the first that does not)
+      int bad = 0;
+      for (int va = 0; va < 4; ++va) {
+        const int64_t* base = hblk + 16 * h + 4 * va;
+        const int64_t lo = std::min(std::min(base[0], base[1]), std::min(base[2], base[3]));
+        const int64_t hi = std::max(std::max(base[0], base[1]), std::max(base[2], base[3]));
+        const int64_t rl = row_len[q[va]];
+        if (ck::kChecked) bad |= int(lo < rs[q[va]]) | int(hi > rs[q[va]] + rl - 3);
+        reach = std::max(reach, hi + 2 * rl + 3);
+      }
+      if (bad) report_element_bases<4>("hinge_blocks", h, hblk + 16 * h, q, rs, row_len);
+    }
+    if (reach > zeroed) { std::fill(values + zeroed, values + reach, T(0)); zeroed = reach; }
+    if (!per_triangle) {
+      block_tile<T, W>(X, D1, D2, tile);
+      write_tile<T, false>(tile, nl, op, gp);
+      for (int l = 0; l < nl; ++l) scatter_blocks<T, 4>(values, hblk + 16 * (h0 + l), hinges + 4 * (h0 + l), row_len,
+                                                       buf[l]);
+    } else {
+      grad_tile<T, W>(X, G);
+      for (int l = 0; l < nl; ++l) {
+        d1s[h0 + l] = D1[l];
+        T gg[144];
+        for (int r = 0; r < 12; ++r) {
+          T gr = D2[l] * G[r][l];
+          for (int cc = 0; cc < 12; ++cc) gg[12 * r + cc] = gr * G[cc][l];
+        }
+        scatter_blocks<T, 4>(values, hblk + 16 * (h0 + l), hinges + 4 * (h0 + l), row_len, gg);
+      }
+      for (int l = 0; l < nl; ++l)
+        for (int64_t f = first[h0 + l]; f >= 0; f = next[f]) {
+          const int64_t* fh = feh + 3 * f;
+          T cf[3] = {fh[0] >= 0 ? d1s[fh[0]] : T(0), fh[1] >= 0 ? d1s[fh[1]] : T(0), fh[2] >= 0 ? d1s[fh[2]] : T(0)};
+          const int64_t* fv = faces + 3 * f;
+          const int64_t* fs = fes + 3 * f;
+          if (ck::kChecked && (uint64_t(fv[0]) >= uint64_t(V) || uint64_t(fv[1]) >= uint64_t(V) ||
+                               uint64_t(fv[2]) >= uint64_t(V) || (fs[0] != 1 && fs[0] != -1) ||
+                               (fs[1] != 1 && fs[1] != -1) || (fs[2] != 1 && fs[2] != -1)))
+            bad_face();
+          check_element_bases<3>("face_blocks", f, fblk + 9 * f, fv, rs, row_len);
+          face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
+          scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
+        }
+    }
+  }
+  std::fill(values + zeroed, values + nnz, T(0));  // blocks of no hinge (none in a bending pattern)
+}
+
+// the arguments of `assemble` checked before any work (checks.h); returns them prepared (contiguous)
+struct AssembleArgs {
+  Prepared P;
+  torch::Tensor faces, face_edge_hinges, face_edge_signs, face_blocks, hinge_blocks, row_len;
+  std::vector<int64_t> rs;  // per vertex v, the CSR position of its block row's first entry (V + 1 values)
+};
+
+
+static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                                  torch::Tensor rest, const c10::optional<torch::Tensor>& c_,
+                                  const c10::optional<torch::Tensor>& prev_, int64_t model, torch::Tensor hinge_blocks,
+                                  torch::Tensor faces, torch::Tensor face_edge_hinges, torch::Tensor face_edge_signs,
+                                  torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz, bool per_triangle) {
+  const char* op = "assemble";
+  namespace ck = torchbend::checks;
+  ck::require(x.device().is_cpu() && x.dim() == 2 && x.size(1) == 3, op, "x must be a CPU (V, 3) tensor (one mesh), got ",
+              ck::shape_str(x), " on ", x.device());
+  Prepared P = prepare(op, x, hinges, a, k, rest, c_, prev_, model, false, false);
+  hinges = P.hinges;
+  const int64_t V = P.V, H = P.H;
+  auto dev = x.device();
+  faces = ck::index_tensor(op, "faces", faces, dev, 3);
+  const int64_t F = faces.size(0);
+  auto per_face = [&](torch::Tensor t, const char* name, int64_t cols) {
+    t = ck::index_tensor(op, name, t, dev, cols);
+    ck::require(t.size(0) == F, op, name, " must have F = ", F, " rows (one per face), got ", t.size(0));
+    return t;
+  };
+  face_edge_hinges = per_face(face_edge_hinges, "face_edge_hinges", 3);
+  face_edge_signs = per_face(face_edge_signs, "face_edge_signs", 3);
+  face_blocks = per_face(face_blocks, "face_blocks", 9);
+  hinge_blocks = ck::index_tensor(op, "hinge_blocks", hinge_blocks, dev, 16);
+  ck::require(hinge_blocks.size(0) == H, op, "hinge_blocks must have H = ", H, " rows (one per hinge), got ",
+              hinge_blocks.size(0));
+  row_len = ck::index_tensor(op, "row_len", row_len, dev);
+  ck::require(row_len.dim() == 1 && row_len.size(0) == V, op, "row_len must have shape (V,) = (", V, ",), got ",
+              ck::shape_str(row_len));
+  // hinges, faces, face-edge hinges and signs: checked by the assembly as it reads them (assemble_impl)
+  // the pattern: row_len[v] = 3 x (vertex blocks in block row v), nnz = 3 sum(row_len); each block base of an
+  // element's vertex pair (a, b) lies in the first scalar row of block row v_a with its 3 columns, so that the
+  // block's rows base + p row_len[v_a] (p < 3) stay inside that block row
+  ck::check_range(op, "row_len", row_len, 0, 3 * V + 1, "3 x the vertex blocks of a row of V = " +
+                  std::to_string(V) + " vertices");
+  const int64_t* rl = row_len.data_ptr<int64_t>();
+  std::vector<int64_t> rs(size_t(V) + 1, 0);
+  for (int64_t v = 0; v < V; ++v) {
+    if (rl[v] % 3) ck::fail(op, "row_len[", v, "] = ", rl[v], " must be a multiple of 3");
+    rs[size_t(v) + 1] = rs[size_t(v)] + 3 * rl[v];
+  }
+  ck::require(nnz == rs[size_t(V)], op, "nnz = ", nnz, " does not match the pattern: 3 sum(row_len) = ", rs[size_t(V)]);
+  return AssembleArgs{P, faces, face_edge_hinges, face_edge_signs, face_blocks, hinge_blocks, row_len, std::move(rs)};
+}
+
+// (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,), status); parameters as in
+// bending_hessians, the pattern as block bases (torchbend.energies.sparse.StencilPattern: hinge_blocks (H, 16),
+// face_blocks (F, 9), row_len (V,)), x finite (the caller checks)
+std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                       c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
+                       torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
+                       torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
+                       bool per_triangle) {
+  AssembleArgs A = assemble_args(x, hinges, a, k, rest, c_, prev_, model, hinge_blocks, faces, face_edge_hinges,
+                                 face_edge_signs, face_blocks, row_len, nnz, per_triangle);
+  const Prepared& P = A.P;
+  x = P.x; hinges = P.hinges;
+  const int64_t H = P.H, F = A.faces.size(0);
+  faces = A.faces; face_edge_hinges = A.face_edge_hinges; face_edge_signs = A.face_edge_signs;
+  face_blocks = A.face_blocks; hinge_blocks = A.hinge_blocks; row_len = A.row_len;
+  const bool damped = P.damped;
+  a = P.a; k = P.k; rest = P.rest;
+  torch::Tensor c = P.c, prev = P.prev;
+  auto values = pooled_empty({nnz}, x.options()), theta = torch::empty({H}, x.options());  // zeroed in the pass
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
+    Param<scalar_t> none{nullptr, 0, H};
+    assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),
+                            param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
+                            damped ? param<scalar_t>(prev, H) : none, damped, int(model),
+                            hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
+                            face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
+                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), A.rs.data(), P.V, F, per_triangle,
+                            values.data_ptr<scalar_t>(), nnz,
+                            theta.data_ptr<scalar_t>());
+  });
+  return {values, theta, fold_status(theta, model)};
+}
+
+
+}  // namespace cpu
+}  // namespace torchbend

@@ -1,0 +1,219 @@
+// The CPU driver's shared pieces (torchbend/csrc/cpu_*.cpp): tiles of W hinges, their gather and output, the
+// status word of the input checks, the checked and prepared arguments of the bending operators.  The
+// per-hinge mathematics is in hinge_math.h and hinge_ops.h, shared with the CUDA driver.
+#pragma once
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <type_traits>
+#include <utility>
+#include <vector>
+#ifdef __AVX__
+#include <immintrin.h>
+#endif
+
+#include "checks.h"
+#include "hinge_ops.h"
+
+namespace torchbend {
+namespace cpu {
+
+// Hinges are processed in tiles of W, every quantity stored as [component][lane] so that the
+// compiler vectorizes each formula across the hinges of a tile (about 1.5x over one hinge at a time).
+constexpr int W = 8;
+
+// Each block is written once and not read again here: streaming (non-temporal) stores skip the
+// read-for-ownership of every output cache line, which otherwise doubles the memory traffic of this
+// memory-bound kernel.  Callers issue a fence (sfence) after the loop.
+template <typename T> static inline void store_block(T* dst, const T* src) {
+#ifdef __AVX__
+  if ((reinterpret_cast<uintptr_t>(dst) & 31) == 0) {
+    constexpr int n = int(144 * sizeof(T) / 32);
+    for (int v = 0; v < n; ++v)
+      _mm256_stream_si256(reinterpret_cast<__m256i*>(dst) + v, _mm256_load_si256(reinterpret_cast<const __m256i*>(src) + v));
+    return;
+  }
+#endif
+  std::memcpy(dst, src, 144 * sizeof(T));
+}
+
+static inline void store_fence() {
+#ifdef __AVX__
+  _mm_sfence();
+#endif
+}
+
+// ---- input checks ----------------------------------------------------------------------------------
+// Every operation returns a status word with its results: kBadX (x holds a non-finite value; checked
+// before any work when `check` is set), kBadV (likewise the direction v), kFolded (a tan hinge has folded
+// through: |theta| >= pi in x's dtype, where psi' and psi'' are meaningless).  The Python wrappers
+// (torchbend.backends.native) raise the ValueErrors of torchbend._checks and torchbend.ops.psi.check_fold
+// for a non-zero word (one wording, kept there); the scans cost a few nanoseconds a hinge, against the
+// microseconds of separate torch calls at small sizes.
+constexpr int64_t kBadX = 1, kBadV = 2, kFolded = 4;
+
+template <typename T> static bool all_finite(const T* p, int64_t n) {
+  const T big = std::numeric_limits<T>::max();
+  int bad = 0;  // no early exit: the loop vectorizes (NaN fails the comparison)
+  for (int64_t i = 0; i < n; ++i) bad |= !(std::abs(p[i]) <= big);
+  return bad == 0;
+}
+
+
+// kBadX / kBadV (flag) if t holds a non-finite value
+int64_t finite_status(const torch::Tensor& t, int64_t flag);
+// kFolded if a tan hinge (model 1) has |theta| >= pi (pi rounded to theta's dtype, as check_fold compares)
+int64_t fold_status(const torch::Tensor& theta, int64_t model);
+
+// torch::empty(shape, options), or with the opt-in cache of large outputs (cpu_tiles.cpp) a block of warm memory
+torch::Tensor pooled_empty(const std::vector<int64_t>& shape, const torch::TensorOptions& options);
+
+// The blocks of the first nl lanes of a tile to out[l] (144 values, streaming stores unless `stream`
+// is false) and their angle gradients to gout[l] (12 values).
+template <typename T, bool stream = true>
+static inline void write_tile(const Blocks<T, W>& b, int nl, T* const* out, T* const* gout) {
+  for (int l = 0; l < nl; ++l) {
+    alignas(64) T o[144];
+    block_lane(b, l, o);
+    if (stream) store_block(out[l], o); else std::memcpy(out[l], o, sizeof(o));
+    for (int k = 0; k < 12; ++k) gout[l][k] = b.G[k][l];
+  }
+}
+
+// t in dtype st, contiguous (no dispatch when it is already: these run on every call)
+static torch::Tensor as_dtype(torch::Tensor t, c10::ScalarType st) {
+  if (t.scalar_type() != st) t = t.to(st);
+  return t.is_contiguous() ? t : t.contiguous();
+}
+
+template <typename T> static Param<T> param(const torch::Tensor& t, int64_t H) {
+  return Param<T>{t.data_ptr<T>(), t.numel(), H};
+}
+
+bool disjoint(const torch::Tensor& t, const torch::Tensor& u);
+
+// A caller-provided output buffer (out=): a contiguous CPU tensor of x's dtype and exactly the output's
+// shape, not overlapping x; without one a new tensor (pooled_empty).
+torch::Tensor output(const c10::optional<torch::Tensor>& buf, const std::vector<int64_t>& shape,
+                     const torch::Tensor& x, const char* what);
+
+struct Prepared {
+  torch::Tensor x, hinges, a, k, rest, c, prev;
+  std::vector<int64_t> batch;
+  int64_t B, V, H;
+  bool damped;
+};
+
+// every hinge index in [0, V) (a separate pass; the operators that read the indices in a pass of their own check
+// them there: gather_tile, scatter_plan)
+void check_hinge_range(const char* op, const torch::Tensor& hinges, int64_t V);
+
+// the arguments shared by the bending operators, checked (torchbend/csrc/checks.h) before any work: x a CPU
+// float32/float64 (..., V, 3) tensor, hinges an int64 (H, 4) tensor of vertex indices in [0, V), the per-hinge
+// parameters CPU tensors of 1, H or (prev) B*H values, c and prev both given or both absent
+Prepared prepare(const char* op, torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                 torch::Tensor rest, const c10::optional<torch::Tensor>& c_, const c10::optional<torch::Tensor>& prev_,
+                 int64_t model, bool check_hinges, bool batched_params = true);
+
+// the per-hinge weight (the cotangent of the energy: 1, H or B*H values) in x's dtype
+torch::Tensor prepare_weight(const char* op, torch::Tensor weight, const Prepared& P);
+// a direction v of x's shape, dtype and device
+void check_direction(const char* op, const torch::Tensor& v, const Prepared& P);
+
+template <typename T> static HingeArgs<T> hinge_args(const torch::Tensor& a, const torch::Tensor& k,
+                                                     const torch::Tensor& rest, const torch::Tensor& c,
+                                                     const torch::Tensor& prev, bool damped, int model, int64_t H) {
+  Param<T> none{nullptr, 0, H};
+  return HingeArgs<T>{param<T>(a, H), param<T>(k, H), param<T>(rest, H), damped ? param<T>(c, H) : none,
+                      damped ? param<T>(prev, H) : none, damped, model};
+}
+
+// f(model, damped) with both as compile-time constants (std::integral_constant)
+template <typename F> static void with_model(int model, bool damped, F&& f) {
+  using std::integral_constant;
+  switch (model * 2 + (damped ? 1 : 0)) {
+    case 0: f(integral_constant<int, 0>{}, integral_constant<bool, false>{}); break;
+    case 1: f(integral_constant<int, 0>{}, integral_constant<bool, true>{}); break;
+    case 2: f(integral_constant<int, 1>{}, integral_constant<bool, false>{}); break;
+    case 3: f(integral_constant<int, 1>{}, integral_constant<bool, true>{}); break;
+    case 4: f(integral_constant<int, 2>{}, integral_constant<bool, false>{}); break;
+    case 5: f(integral_constant<int, 2>{}, integral_constant<bool, true>{}); break;
+    default: TORCH_CHECK(false, "unknown bending model code ", model);
+  }
+}
+
+// the sample bs[l] and hinge hs[l] of each of the nl lanes of the tile that starts at the flattened index bh0
+static inline void tile_lanes(int64_t bh0, int nl, int64_t H, int64_t* bs, int64_t* hs) {
+  int64_t b = bh0 / H, h = bh0 - b * H;  // one division per tile
+  for (int l = 0; l < nl; ++l) {
+    bs[l] = b; hs[l] = h;
+    if (++h == H) { h = 0; ++b; }
+  }
+}
+
+// The tiles [begin, end) of B samples of H hinges (flattened (sample, hinge) index bh = b H + h), each
+// handed to body(bh0, nl, bs, hs) with its first index, lane count and per-lane sample and hinge.
+template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body) {
+  int64_t BH = B * H, tiles = (BH + W - 1) / W;
+  at::parallel_for(0, tiles, 64, [&](int64_t begin, int64_t end) {
+    int64_t bs[W], hs[W];
+    for (int64_t t = begin; t < end; ++t) {
+      int64_t bh0 = t * W;
+      int nl = int(std::min<int64_t>(W, BH - bh0));
+      tile_lanes(bh0, nl, H, bs, hs);
+      body(bh0, nl, bs, hs);
+    }
+  });
+}
+
+// gather the stencils (and, if vp is given, the directions) and the parameters of a tile; lanes past
+// nl get zeros (finite: theta = atan2(0, 0) = 0).  The hinge indices are range-checked as they are read (the
+// check of the operators that make no other pass over them, bending_energy): a lane with an index outside
+// [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
+// (checks::check_range) before returning anything
+// (Check = false: the indices were checked before, by the scatter plan of the gradient operators.)
+template <typename T, bool Check = false>
+static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
+                                      const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W],
+                                      T (*Vd)[W], HingeTile<T, W>& P) {
+  const uint64_t uV = uint64_t(V);
+  int bad = 0;
+  for (int l = 0; l < W; ++l) {
+    int64_t b = l < nl ? bs[l] : 0, h = l < nl ? hs[l] : 0;
+    const int64_t* q = hp + 4 * h;
+    const bool out = Check && torchbend::checks::kChecked && l < nl &&
+                     (uint64_t(q[0]) >= uV || uint64_t(q[1]) >= uV || uint64_t(q[2]) >= uV || uint64_t(q[3]) >= uV);
+    if (l >= nl || out) {
+      bad |= int(out);
+      for (int m = 0; m < 12; ++m) X[m][l] = T(0);
+      if (vp) for (int m = 0; m < 12; ++m) Vd[m][l] = T(0);
+      zero_params<T, W>(l, P);
+      continue;
+    }
+    load_hinge<T, W>(xp + 3 * V * b, q, X, l);
+    if (vp) load_hinge<T, W>(vp + 3 * V * b, q, Vd, l);
+    load_params<T, W>(args, b, h, l, P);
+    P.w[l] = w ? (*w)(b, h) : T(1);
+  }
+  return bad;
+}
+
+// the first nl lanes of a tile's 12-vectors O to the per-hinge buffer rows bh0 ...
+template <typename T> static inline void store_rows(const T (*O)[W], int nl, T* dst) {
+  for (int l = 0; l < nl; ++l)
+    for (int m = 0; m < 12; ++m) dst[12 * l + m] = O[m][l];
+}
+
+
+static std::vector<int64_t> shape_with(const std::vector<int64_t>& batch, std::initializer_list<int64_t> tail) {
+  std::vector<int64_t> s = batch;
+  s.insert(s.end(), tail);
+  return s;
+}
+
+}  // namespace cpu
+}  // namespace torchbend
