@@ -30,7 +30,9 @@ from torchbend.scenes.config import (
 )
 from torchbend.scenes.run import run_config
 
-from .test_train import drape_net, material_id
+from .helpers import train_script
+
+drape_net, material_id = train_script("drape_net"), train_script("material_id")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIGS = os.path.join(ROOT, "configs")
@@ -149,12 +151,13 @@ def _files(d: str) -> dict:
         f.write("not a folder\n")
     with open(p["notmesh"], "w") as f:
         f.write("this is no mesh\n")
-    tiny = {"cloth": {"resolution": 5}, "model": {"hidden": 8, "layers": 1}, "train": {"steps": 2, "batch": 2},
+    tiny = {"mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]}, "model": {"hidden": 8, "layers": 1}, "train": {"steps": 2, "batch": 2},
             "eval": {"conditions": 3, "newton": 0}}
     with open(p["tiny_drape"], "w") as f:
         yaml.safe_dump(tiny, f)
     with open(p["tiny_material"], "w") as f:
-        yaml.safe_dump({"beam": {"nx": 5, "ny": 2}, "identify": {"fit_rest_angles": True, "steps": 2}}, f)
+        yaml.safe_dump({"mesh": {"type": "grid", "nx": 5, "ny": 2, "size": [0.2, 0.03], "pin": "first_two_columns"},
+                        "identify": {"fit_rest_angles": True, "steps": 2}}, f)
     for k in ("scene_ck", "drape_ck", "material_ck", "garbage_ck", "truncated_ck"):
         os.makedirs(p[k])
     # a scene checkpoint: cloth_sphere at its 21 x 21 grid
@@ -168,12 +171,12 @@ def _files(d: str) -> dict:
     with open(os.path.join(p["garbage_ck"], "checkpoint.pt"), "wb") as f:
         f.write(b"\x00garbage, not a checkpoint\n" * 10)
     # a drape_net checkpoint of another config: a 6 x 6 cloth (this run's is 5 x 5)
-    other = load_config(p["tiny_drape"], drape_net.Config, ["cloth.resolution=6"])
+    other = load_config(p["tiny_drape"], drape_net.Config, ["mesh.nx=6"])
     net = drape_net.DrapeNet(36, 8, 1)
     cli.save_checkpoint(os.path.join(p["drape_ck"], "checkpoint.pt"), step=2, model=net.state_dict(),
                         optimizer=torch.optim.Adam(net.parameters()).state_dict(), config=other)
     # a material_id checkpoint of another beam (6 x 2: more rest angles than this run's 5 x 2)
-    other = load_config(p["tiny_material"], material_id.Config, ["beam.nx=6"])
+    other = load_config(p["tiny_material"], material_id.Config, ["mesh.nx=6"])
     hinges = material_id.build(other, torch.tensor(1.0, dtype=torch.float64))[2].hinge_count
     log_k, shift = torch.zeros((), dtype=torch.float64), torch.zeros(hinges, dtype=torch.float64)
     cli.save_checkpoint(os.path.join(p["material_ck"], "checkpoint.pt"), step=1, log_k=log_k, shift=shift,
@@ -240,14 +243,14 @@ def _cases(p: dict) -> list:
         ("drape-lr-nan", ["drape_net", "--lr", "nan"], ["--lr"]),
         ("drape-seed-negative", ["drape_net", "--seed", "-1"], ["--seed", "-1"]),
         ("drape-set-seed-huge", ["drape_net", *tiny, "--set", "train.seed=99999999999999999999"], ["train.seed"]),
-        ("drape-set-resolution-huge", ["drape_net", *tiny, "--set", "cloth.resolution=100000"], ["cloth.resolution"]),
+        ("drape-set-resolution-huge", ["drape_net", *tiny, "--set", "mesh.nx=100000"], ["mesh", "100000"]),
         ("drape-set-batch-huge", ["drape_net", *tiny, "--set", "train.batch=100000000"], ["train.batch"]),
         ("drape-set-network-huge", ["drape_net", *tiny, "--set", "model.hidden=100000", "--set", "model.layers=3", *out],
          ["parameters", "model.hidden"]),
         ("drape-device-meta", ["drape_net", "--device", "meta"], ["--device meta"]),
         ("drape-latin1-config", ["drape_net", "--config", p["latin1"]], ["not UTF-8"]),
         ("drape-resume-other-config", ["drape_net", *tiny, "--resume", "--out", p["drape_ck"]],
-         ["does not fit", "cloth.resolution"]),
+         ["does not fit", "mesh.nx"]),
         ("drape-resume-other-script", ["drape_net", *tiny, "--resume", "--out", p["scene_ck"]], ["another script"]),
         ("drape-init-other-script", ["drape_net", *tiny, "--init", os.path.join(p["scene_ck"], "checkpoint.pt"), *out],
          ["--init", "no network weights"]),
@@ -259,16 +262,16 @@ def _cases(p: dict) -> list:
         # material_id
         ("material-steps-0", ["material_id", "--steps", "0"], ["--steps"]),
         ("material-device-cuda", ["material_id", "--device", "cuda"], ["--device cuda"]),
-        ("material-set-beam-huge", ["material_id", "--set", "beam.nx=100000000"], ["beam", "100000000"]),
+        ("material-set-beam-huge", ["material_id", "--set", "mesh.nx=100000000"], ["mesh", "100000000"]),
         ("material-set-seed-huge", ["material_id", "--set", "identify.seed=99999999999999999999"], ["identify.seed"]),
         ("material-empty-config", ["material_id", "--config", p["empty"]], ["empty"]),
         ("material-resume-other-beam", ["material_id", "--config", p["tiny_material"], "--resume", "--out",
-                                        p["material_ck"]], ["does not fit", "beam.nx", "rest-angle"]),
+                                        p["material_ck"]], ["does not fit", "mesh.nx", "rest-angle"]),
         ("material-resume-garbage", ["material_id", "--resume", "--out", p["garbage_ck"]], ["not a torch checkpoint"]),
         # hood_style
         ("hood-steps-0", ["hood_style", "--steps", "0"], ["--steps"]),
         ("hood-set-subdivisions-huge", ["hood_style", "--set", "body.subdivisions=30"], ["body.subdivisions"]),
-        ("hood-set-network-huge", ["hood_style", "--set", "model.hidden=1000000", "--set", "cloth.resolution=3", *out],
+        ("hood-set-network-huge", ["hood_style", "--set", "model.hidden=1000000", "--set", "mesh.nx=3", *out],
          ["parameters"]),
         ("hood-list-config", ["hood_style", "--config", p["list"]], ["mapping"]),
         ("hood-missing-mesh", ["hood_style", "--set", "mesh=/no/such/garment.obj"], ["mesh.path", "/no/such/garment.obj"]),
@@ -455,7 +458,7 @@ def test_resolution_and_steps_are_checked_by_the_library_too(tmp_path):
 
 
 def test_material_id_observation_that_does_not_converge_is_a_config_error(monkeypatch):
-    cfg = load_config(os.path.join(CONFIGS, "train_material.yaml"), material_id.Config, ["beam.nx=4", "beam.ny=2"])
+    cfg = load_config(os.path.join(CONFIGS, "train_material.yaml"), material_id.Config, ["mesh.nx=4", "mesh.ny=2"])
 
     def no_convergence(model, x0, **kwargs):
         return x0, type("Info", (), {"converged": False, "message": "max_iters reached"})()

@@ -20,22 +20,26 @@ from torchbend.scenes.config import (
     ConfigError,
     FileMesh,
     GridMesh,
+    PhysicsConfig,
     SceneConfig,
     SphereSpec,
     apply_overrides,
+    build_model,
     build_scene,
     load_config,
+    read_config,
     validate,
 )
 from torchbend.scenes.run import main as scenes_main
 from torchbend.scenes.run import run_config
 
-from .test_train import drape_net, hood_style, material_id, robot_drape
+from .helpers import ROOT, train_script
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+drape_net, hood_style, material_id, robot_drape = (train_script(n) for n in ("drape_net", "hood_style", "material_id",
+                                                                              "robot_drape"))
 CONFIGS = os.path.join(ROOT, "configs")
 SCRIPTS = {"drape_net": drape_net, "material_id": material_id, "robot_drape": robot_drape, "hood_style": hood_style}
-TINY = {"cloth": {"resolution": 5}, "scene": {"fixed_conditions": True}, "model": {"hidden": 8, "layers": 1},
+TINY = {"mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]}, "scene": {"fixed_conditions": True}, "model": {"hidden": 8, "layers": 1},
         "train": {"steps": 2, "batch": 2, "log_every": 1, "mesh_every": 2, "checkpoint_every": 1}}
 
 
@@ -67,7 +71,7 @@ def test_every_shipped_config_validates(path):
     ({"robot": {"pins": [{"link": "world", "vertices": [0]}, {"link": "gripper", "nearest": [[0, 0, 0]], "bar": 2}]}},
      "unknown config key 'robot.pins[1].bar' (allowed: link, vertices, nearest)"),
     ({"robot": {"capsules": [{"link": "forearm", "lenght": 0.2}]}}, "unknown config key 'robot.capsules[0].lenght'"),
-    ({"solvr": {"dt": 0.1}}, "unknown config key 'solvr' (allowed: scene, mesh,"),
+    ({"solvr": {"dt": 0.1}}, "unknown config key 'solvr' (allowed: mesh, material,"),
     ({"mesh": {"type": "file", "path": "a.obj", "nx": 3}}, "unknown config key 'mesh.nx'"),
 ])
 def test_unknown_keys_are_named_by_their_path(cfg, message):
@@ -107,18 +111,20 @@ def test_bad_values_are_value_errors_naming_the_path(cfg, message):
 @pytest.mark.parametrize("script, cfg, message", [
     ("drape_net", {"train": {"lr": 0}}, "config key 'train.lr' must be positive, got 0"),
     ("drape_net", {"scene": {"radius_min": 0.3, "radius_max": 0.2}}, "config key 'scene': radius_max (0.2) must not be below"),
-    ("drape_net", {"cloth": {"bending_model": "cubic"}}, "config key 'cloth.bending_model': unknown bending model"),
-    ("robot_drape", {"cloth": {"height": 0.3}}, "unknown config key 'cloth.height'"),
+    ("drape_net", {"bending": {"model": "cubic"}}, "config key 'bending.model': unknown bending model"),
+    ("drape_net", {"cloth": {"resolution": 5}}, "unknown config key 'cloth' (allowed: mesh, material, bending, membrane,"),
+    ("robot_drape", {"mesh": {"height": 0.3}}, "unknown config key 'mesh.height'"),
     ("robot_drape", {"robot": {"nominal": "up"}}, "config key 'robot.nominal' must be a list"),
     ("material_id", {"identify": {"steps": 0}}, "config key 'identify.steps' must be positive, got 0"),
-    ("material_id", {"beam": {"nx": 2}}, "config key 'beam.nx' must be >= 3, got 2"),
-    ("hood_style", {"material": {"lame_mu": [6e4, 1.5e4]}}, "config key 'material.lame_mu' must be a pair [lo, hi] with lo <= hi"),
-    ("hood_style", {"material": {"density": [0.1]}}, "config key 'material.density' must be a pair [lo, hi], got [0.1]"),
-    ("hood_style", {"material": {"bending_coeff": [0, 1e-4]}}, "config key 'material.bending_coeff[0]' must be positive"),
-    ("hood_style", {"material": {"lame_lambda_ratio": [0.2, 2.5]}}, "config key 'material.lame_lambda_ratio[1]' must be < 2"),
+    ("material_id", {"mesh": {"nx": 1}}, "config key 'mesh.nx' must be >= 2, got 1"),
+    ("hood_style", {"sampling": {"lame_mu": [6e4, 1.5e4]}}, "config key 'sampling.lame_mu' must be a pair [lo, hi] with lo <= hi"),
+    ("hood_style", {"sampling": {"density": [0.1]}}, "config key 'sampling.density' must be a pair [lo, hi], got [0.1]"),
+    ("hood_style", {"sampling": {"bending_coeff": [0, 1e-4]}}, "config key 'sampling.bending_coeff[0]' must be positive"),
+    ("hood_style", {"sampling": {"lame_lambda_ratio": [0.2, 2.5]}}, "config key 'sampling.lame_lambda_ratio[1]' must be < 2"),
     ("hood_style", {"body": {"radius": [0.3, 0.2]}}, "config key 'body.radius' must be a pair [lo, hi] with lo <= hi"),
     ("hood_style", {"loss": {"weights": {"strech": 1.0}}}, "unknown config key 'loss.weights.strech' (allowed: stretch,"),
-    ("hood_style", {"loss": {"contact_eps": -1e-3}}, "config key 'loss.contact_eps' must be non-negative"),
+    ("hood_style", {"contact": {"margin": -1e-3}}, "config key 'contact.margin' must be non-negative"),
+    ("hood_style", {"loss": {"contact_eps": 1e-3}}, "unknown config key 'loss.contact_eps'"),
     ("hood_style", {"train": {"rollout": 0}}, "config key 'train.rollout' must be positive, got 0"),
     ("hood_style", {"train": {"dtype": "float16"}}, "config key 'train.dtype' must be one of 'float32', 'float64'"),
     ("hood_style", {"mesh": {"type": "file", "path": "a.obj", "nx": 3}}, "unknown config key 'mesh.nx'"),
@@ -208,9 +214,33 @@ def test_asset_meshes_are_not_resolved_against_the_config_folder(tmp_path):
     # the training scripts take the same mesh section, the path shorthand included
     train = load_config(_write(tmp_path, {"mesh": "asset:skirt.obj"}, "t.yaml"), drape_net.Config)
     assert train["mesh"]["type"] == "file" and train["mesh"]["path"] == "asset:skirt.obj"
-    assert load_config(_write(tmp_path, {}, "none.yaml"), drape_net.Config)["mesh"] is None
+    assert load_config(_write(tmp_path, {}, "none.yaml"), drape_net.Config)["mesh"]["type"] == "grid"  # the default cloth
     local = load_config(_write(tmp_path, {"mesh": "garment.obj"}, "l.yaml"), drape_net.Config)
     assert local["mesh"]["path"] == str(tmp_path / "garment.obj")
+
+
+def test_scenes_and_every_training_script_speak_one_physics_dialect(tmp_path):
+    """The physics sections (mesh, material, bending, membrane, colliders, contact, gravity) are the same
+    schema in a scene config and in every training config: one block validates alike in all of them and
+    builds the same model."""
+    physics = {"mesh": {"type": "grid", "nx": 5, "ny": 4, "size": [0.3, 0.2], "offset": [0.0, 0.0, 0.1]},
+               "material": {"young": 3e4, "poisson": 0.25, "thickness": 1e-3, "density": 0.3},
+               "bending": {"model": "sin", "stiffness": 2e-5}, "membrane": {"model": "arap"},
+               "colliders": [{"type": "plane", "point": [0, 0, -0.1], "law": "barrier", "stiffness": 1e5, "power": 3}],
+               "contact": {"law": "penalty", "stiffness": 1e3}, "gravity": [0.0, 0.0, -9.0]}
+    path = _write(tmp_path, physics)
+    scene = load_config(path)
+    model = build_scene(scene)[0]
+    x = model.rest_positions + 0.01 * torch.randn(model.vertex_count, 3, dtype=torch.float64,
+                                                  generator=torch.Generator().manual_seed(0))
+    for name, module in SCRIPTS.items():
+        assert issubclass(module.Config, PhysicsConfig), name
+        for key in physics:
+            assert module.Config.model_fields[key].annotation == PhysicsConfig.model_fields[key].annotation
+        cfg = load_config(path, module.Config)
+        assert {k: cfg[k] for k in physics} == {k: scene[k] for k in physics}, name
+        built = build_model(read_config(path, module.Config))
+        assert built.energies(x) == model.energies(x), name
 
 
 # ------------------------------------------------------------------------------ CLI

@@ -61,14 +61,12 @@ def _script_parser(path: str):
             a = cli.parse_args(run.parser(), argv)
             load_config(a.config, SceneConfig, a.overrides)
         return check_scene
-    from tests.test_train import load_script
+    from tests.helpers import train_script
 
     name = os.path.splitext(os.path.basename(path))[0]
     if os.path.dirname(path) != "train":
         raise AssertionError(f"README runs {path}: add a check of its options to tests/test_readme.py")
-    for sibling in ("common", "drape_net"):  # the scripts import these by plain name
-        load_script(sibling)
-    script = load_script(name)
+    script = train_script(name)
 
     def check_script(argv):
         a = script.parse_args(argv)

@@ -1,11 +1,9 @@
 """Training scripts: loss decreases, logs/checkpoints/resume, residual-loss gradient, material id, DDP."""
-import importlib.util
 import json
 import math
 import os
 import subprocess
 import sys
-from types import ModuleType
 
 import pytest
 import torch
@@ -13,40 +11,17 @@ import yaml
 
 import torchbend as tb
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .helpers import ROOT, train_script
 
-
-def load_script(name: str) -> ModuleType:
-    """Import ``train/<name>.py`` from its path, without touching ``sys.path``.
-
-    The scripts import their siblings by plain name (``import common``, as ``python train/X.py``
-    allows), so each is registered in ``sys.modules`` under that name; load a script's siblings
-    before it (``common`` first, ``drape_net`` before ``robot_drape``)."""
-    path = os.path.join(ROOT, "train", f"{name}.py")
-    loaded = sys.modules.get(name)
-    if loaded is not None and getattr(loaded, "__file__", None) == path:
-        return loaded
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        del sys.modules[name]
-        raise
-    return module
-
-
-common = load_script("common")
-drape_net = load_script("drape_net")
-material_id = load_script("material_id")
-robot_drape = load_script("robot_drape")
-hood_style = load_script("hood_style")
-ClothPhysics, load_config = common.ClothPhysics, common.load_config
+common = train_script("common")
+drape_net = train_script("drape_net")
+material_id = train_script("material_id")
+robot_drape = train_script("robot_drape")
+hood_style = train_script("hood_style")
+ClothPhysics, load_config, read_config = common.ClothPhysics, common.load_config, common.read_config
 
 TINY = {
-    "cloth": {"resolution": 5, "size": 0.8, "height": 0.32, "energies": ["membrane", "bending", "gravity", "sphere", "ground"]},
+    "mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]},  # membrane, bending, gravity, ground, spheres
     "scene": {"fixed_conditions": True, "center_range": 0.0, "radius_min": 0.3},  # one sphere; 4 vertices over its cap
     "model": {"hidden": 16, "layers": 2},
     "train": {"steps": 8, "batch": 3, "lr": 1e-3, "lr_schedule": "constant", "log_every": 2, "mesh_every": 4,
@@ -96,7 +71,7 @@ def test_residual_training_decreases(tiny, tmp_path):
 
 def test_residual_loss_gradient_matches_finite_differences(tiny):
     cfg = load_config(tiny, drape_net.Config)
-    cfg["cloth"]["contact_stiffness"] = 50.0
+    cfg["contact"]["stiffness"] = cfg["colliders"][0]["stiffness"] = 50.0
     torch.manual_seed(0)
     physics = ClothPhysics(cfg)
     scene = drape_net.SphereDrape(cfg, physics)
@@ -138,7 +113,7 @@ def test_material_identification_recovers_stiffness(tmp_path):
 
 def test_material_gradient_matches_finite_differences_of_the_equilibrium():
     cfg = load_config(os.path.join(ROOT, "configs", "train_material.yaml"), material_id.Config)
-    cfg["beam"]["nx"], cfg["beam"]["ny"] = 9, 3
+    cfg["mesh"]["nx"], cfg["mesh"]["ny"] = 9, 3
     x_obs, rest, k_true = material_id.observe(cfg)
     log_k = torch.tensor(math.log(1.7 * k_true), dtype=torch.float64, requires_grad=True)
     L, _, info = material_id.loss_of(cfg, log_k, None, x_obs)
@@ -155,9 +130,10 @@ def test_material_gradient_matches_finite_differences_of_the_equilibrium():
 @pytest.mark.parametrize(
     "patch, match",
     [
-        ({"cloth": {"energies": ["membrane", "elastic"]}}, r"cloth.energies.*\['elastic'\]"),
-        ({"cloth": {"bending_stiffness": -1.0}}, "'cloth.bending_stiffness' must be positive"),
-        ({"cloth": {"colour": "red"}}, r"cloth.colour"),
+        ({"bending": {"model": "cubic"}}, r"'bending.model': unknown bending model 'cubic'"),
+        ({"material": {"young": -1.0}}, "'material.young' must be positive"),
+        ({"material": {"colour": "red"}}, r"material.colour"),
+        ({"contact": {"law": "penalty", "power": 3}}, r"'contact': the penalty law has power 2"),
         ({"train": {"loss": "l2"}}, "'train.loss' must be"),
     ],
 )
@@ -189,7 +165,7 @@ def test_ddp_two_processes_keep_parameters_identical(tiny, tmp_path):
 
 
 def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
-    cfg = {"cloth": {"resolution": 5}, "model": {"hidden": 16, "layers": 2},
+    cfg = {"mesh": {"nx": 5, "size": [0.3, 0.3]}, "model": {"hidden": 16, "layers": 2},
            "train": {"steps": 20, "batch": 4, "lr": 3e-3, "log_every": 5, "checkpoint_every": 10}}
     path = tmp_path / "robot.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -202,7 +178,7 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
     # predictions hold the corners exactly at the finger tips; Newton from them converges
     assert all(e["pin_error"] <= 1e-12 and e["converged"] for e in r2["eval"])
     # the trained network lowers the potential on a fixed batch of unseen joint vectors
-    towel = robot_drape.HeldTowel(load_config(str(path), robot_drape.Config))
+    towel = robot_drape.HeldTowel(read_config(str(path), robot_drape.Config))
     untrained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
     trained = robot_drape.DrapeNet(len(towel.rest), 16, 2, inputs=6).double()
     trained.load_state_dict(torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)["model"])
@@ -220,7 +196,8 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
 def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    cfg = {"cloth": {"resolution": 5}, "body": {"subdivisions": 1}, "model": {"hidden": 16, "layers": 2},
+    cfg = {"mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]}, "body": {"subdivisions": 1},
+           "model": {"hidden": 16, "layers": 2},
            "train": {"batch": 2, "rollout": 3, "log_every": 2, "checkpoint_every": 2}}
     path = tmp_path / "hood.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -379,7 +356,9 @@ def test_sphere_drape_holds_the_middle_vertex_and_checks_against_newton(tiny):
     assert mod["membrane"] == pytest.approx(phys["membrane"], rel=1e-12)
     assert mod["bending"] == pytest.approx(phys["bending"], rel=1e-12)
     assert mod["gravity"] == pytest.approx(phys["gravity"], rel=1e-12)
-    assert mod["collider0"] + mod["collider1"] == pytest.approx(phys["sphere"] + phys["ground"], rel=1e-12, abs=1e-15)
+    # the ground is the config's collider (collider0 in both), the sphere the model's second collider
+    assert mod["collider0"] == pytest.approx(phys["collider0"], rel=1e-12, abs=1e-15)
+    assert mod["collider1"] == pytest.approx(phys["sphere"], rel=1e-12, abs=1e-15)
     # at an equilibrium: no gap to close; a millimetre off it: the energy difference and the distance back
     x_eq, info = tb.solve_static(m, x[0])
     assert info.converged

@@ -1,41 +1,49 @@
 """Shared machinery of the training scripts: config sections, the cloth physics, runtime, checkpoints, plots.
 
-Configs use torchbend's one config system (:mod:`torchbend.scenes.config`: typed sections, unknown
-keys rejected with their dotted path) and CLI conventions (:mod:`torchbend.scenes.cli`: ``--config``,
+Configs use torchbend's one config dialect (:mod:`torchbend.scenes.config`: typed sections, unknown
+keys rejected with their dotted path): the physics sections of :class:`PhysicsConfig` (``mesh``,
+``material``, ``bending``, ``membrane``, ``colliders``, ``contact``, ``gravity``), the same as a scene
+config's, and each script's own (``model``, ``train``, ``eval``, ...), validated once (:func:`read_config`)
+and passed on as the validated object; and CLI conventions (:mod:`torchbend.scenes.cli`: ``--config``,
 ``--set``, ``--seed``, ``--device``, ``--out``, ``--resume``, ``--log-level``, ``--no-progress``);
 each script's schema is built from the sections below plus its own.  Scripts import torchbend;
 torchbend never imports this folder.
 """
 from __future__ import annotations
 
-import math
 import os
 import time
-from typing import Annotated, Any, cast
+from typing import Annotated
 
 import torch
 import torch.distributed as dist
-from pydantic import Field, field_validator
+from pydantic import Field
 
 import torchbend as tb
-from torchbend.ops.psi import BendingModel
 from torchbend.scenes import cli
 from torchbend.scenes.cli import load_checkpoint, save_checkpoint, seed_everything  # noqa: F401  (re-exported)
 from torchbend.scenes.config import (  # noqa: F401  (re-exported)
     MAX_GRID_VERTICES,
     ConfigError,
     Float,
+    GridMesh,
     Int,
+    MeshSpec,
     NonNegative,
+    PhysicsConfig,
     Positive,
     PositiveInt,
     Section,
     Seed,
+    build_mesh,
+    build_model,
+    build_pins,
     load_config,
+    read_config,
+    validate,
 )
+from torchbend.sim.terms import TermLoss
 
-ENERGY_TERMS = {"membrane", "bending", "gravity", "sphere", "ground"}
-MAX_SIDE = math.isqrt(MAX_GRID_VERTICES)  # the most vertices per side of a square grid cloth
 MAX_BATCH = 100_000
 MAX_PARAMETERS = 100_000_000  # of a network: 0.8 GB of float64 weights, three times that with Adam's state
 # sizes of a batch and of a network's layers
@@ -45,37 +53,6 @@ Depth = Annotated[PositiveInt, Field(le=1000)]
 
 
 # ------------------------------------------------------------------------------ config
-class ClothSection(Section):
-    """``cloth``: a square cloth of ``resolution`` x ``resolution`` vertices and ``size`` [m], the
-    energy terms of :class:`ClothPhysics` (``energies``) and their parameters."""
-
-    resolution: Annotated[Int, Field(ge=3, le=MAX_SIDE)] = 9
-    size: Positive = 0.8
-    energies: list[str] = ["membrane", "bending", "gravity", "sphere", "ground"]
-    young: Positive = 2e4                # [Pa]
-    poisson: Annotated[Float, Field(gt=-1.0, lt=0.5)] = 0.3
-    thickness: Positive = 1e-3           # [m]
-    density: Positive = 0.2              # [kg/m^2]
-    bending_model: str = "tan"
-    bending_stiffness: Positive = 1e-4   # [N m]
-    contact_stiffness: Positive = 2e3    # [N/m]
-    ground_z: Float = -0.4               # [m]
-
-    @field_validator("energies")
-    @classmethod
-    def _known_terms(cls, value):
-        unknown = sorted(set(value) - ENERGY_TERMS)
-        if unknown:
-            raise ValueError(f"has unknown energy names {unknown}; allowed: {sorted(ENERGY_TERMS)}")
-        return value
-
-    @field_validator("bending_model")
-    @classmethod
-    def _bending_model(cls, value):
-        BendingModel.parse(value, what="bending model")
-        return value
-
-
 class ModelSection(Section):
     """``model``: the MLP's ``hidden`` width and number of ``layers``."""
 
@@ -107,109 +84,74 @@ def resume_run(path: str, cfg: dict, log, *pairs, ignore=("train.steps",), map_l
     return ck["step"]
 
 
-def check_positive(cfg: dict, key: str, allow_zero: bool = False) -> float:
-    section, name = key.split(".")
-    value = cfg[section][name]
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"config key '{key}' must be a number, got {value!r}") from None
-    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise ValueError(f"config key '{key}' must be {'non-negative' if allow_zero else 'positive'}, got {value!r}")
-    return value
-
-
 # ------------------------------------------------------------------------------ physics
 def total(terms: dict) -> torch.Tensor:
     """Sum of the energy terms ``{name: (B,)}`` of :meth:`ClothPhysics.energies`: ``(B,)`` [J]."""
     return torch.stack(list(terms.values())).sum(0)
 
 
+SPHERE = "sphere"
+"""The name of the per-sample sphere term of :class:`ClothPhysics`."""
+
+
 class ClothPhysics:
-    """Potential energy of batched cloth states ``x (B, V, 3)`` with per-sample sphere colliders.
+    """The potential of batched cloth states ``x (B, V, 3)``, built from a config's physics sections
+    (:class:`torchbend.scenes.config.PhysicsConfig`: ``mesh``, ``material``, ``bending``, ``membrane``,
+    ``colliders``, ``contact``, ``gravity``) by :func:`torchbend.scenes.config.build_model`: the solver's own
+    term objects (:attr:`ClothModel.terms <torchbend.ClothModel.terms>`: membrane, bending, gravity, one per
+    collider) in a :class:`torchbend.ClothLoss`, and, when the config has a ``contact`` section, per-sample
+    spheres (centre and radius per sample) under its contact law (``"sphere"``).  :meth:`model` is the
+    :class:`~torchbend.ClothModel` of one sample, term for term the same potential, for reference solves."""
 
-    Terms (each optional, selected by ``energies`` in the config), the loss modules of
-    :mod:`torchbend.losses` in a :class:`torchbend.ClothLoss`: ``membrane`` (StVK), ``bending``
-    (torchbend hinge energy, analytic first and second derivatives), ``gravity``, ``sphere``
-    (one-sided quadratic penalty ``k/2 max(0, r - |x - c|)^2``, per-sample centre/radius) and ``ground``
-    (the same penalty against the plane z = ground_z)."""
-
-    def __init__(self, cfg: dict, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", mesh=None):
-        """``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's square grid."""
-        c = cfg["cloth"]
-        terms = set(c["energies"])
-        unknown = terms - ENERGY_TERMS
-        if unknown:
-            raise ValueError(f"config key 'cloth.energies' has unknown energy names {sorted(unknown)}; "
-                             f"allowed: {sorted(ENERGY_TERMS)}")
+    def __init__(self, cfg, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", mesh=None):
+        """``cfg``: a validated config with the physics sections (a dict, e.g. a checkpoint's config, is
+        validated as those sections); ``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's mesh (its
+        pins then come from the caller)."""
+        if isinstance(cfg, dict):
+            cfg = validate({k: cfg[k] for k in PhysicsConfig.model_fields if k in cfg}, PhysicsConfig)
         if mesh is None:
-            n = int(c["resolution"])
-            if n < 3:
-                raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
-            size = check_positive(cfg, "cloth.size")
-            rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
-            rest = rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device)
+            rest, faces = build_mesh(cfg.mesh, dtype=dtype, device=device)
+            self.pinned = build_pins(cfg.mesh, rest)
         else:
             rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
-        self.rest, self.faces, self.terms = rest, faces, terms
-        density = check_positive(cfg, "cloth.density")
-        modules: dict = {}
-        if "membrane" in terms:
-            modules["membrane"] = tb.losses.Stretch(faces, rest, young=check_positive(cfg, "cloth.young"),
-                                                    poisson=float(c["poisson"]),
-                                                    thickness=check_positive(cfg, "cloth.thickness"))
-        if "bending" in terms:
-            modules["bending"] = tb.losses.Bending(faces, rest, check_positive(cfg, "cloth.bending_stiffness"),
-                                                   model=c["bending_model"])
-        if "gravity" in terms:
-            modules["gravity"] = tb.losses.Gravity(faces, rest, density)
-        self.k_contact = check_positive(cfg, "cloth.contact_stiffness")
-        self.ground_z = float(c["ground_z"])
-        # k/2 max(0, -s)^2: the contact loss with power 2 and no margin
-        if "sphere" in terms:
-            modules["sphere"] = tb.losses.BodyContact(stiffness=0.5 * self.k_contact, eps=0.0, power=2.0)
-        if "ground" in terms:
-            modules["ground"] = tb.losses.BodyContact(stiffness=0.5 * self.k_contact, eps=0.0, power=2.0,
-                                                      colliders=[tb.Plane(point=(0.0, 0.0, self.ground_z))])
+            self.pinned = None
+        self.cfg, self.rest, self.faces = cfg, rest, faces
+        self.solver_model = build_model(cfg, mesh=(rest, faces), pinned=self.pinned, dtype=dtype, device=device)
+        modules: dict = {t.name: TermLoss(t) for t in self.solver_model.terms}
+        self.contact = None
+        if cfg.contact is not None:  # per-sample spheres under the config's contact law
+            c = cfg.contact
+            self.contact = c
+            modules[SPHERE] = tb.losses.BodyContact(stiffness=c.stiffness, eps=c.margin, law=c.contact_law())
+        self.terms = set(modules)
         self.loss = tb.ClothLoss(modules, reduction="none").to(device)
-        # the same energies as solver-side modules (robot_drape's reference scene, mean |theta - theta_rest|)
-        self.mem = modules["membrane"].membrane if "membrane" in modules else None
-        self.bend = None
-        if "bending" in modules:
-            self.bend = tb.BendingEnergy(faces, rest, model=c["bending_model"], stiffness=cast(Any, modules["bending"]).stiffness)
-        gravity = modules.get("gravity") or tb.losses.Gravity(faces, rest, density)
-        self.mass = density * gravity.areas.to(device)  # (V,) lumped masses [kg]
-        self.g = torch.tensor(gravity.gravity, dtype=dtype, device=device)  # (3,) gravity [m/s^2]
+        self.mem, self.bend = self.solver_model.membrane, self.solver_model.bending
+        self.mass = self.solver_model.mass.to(device)  # (V,) lumped masses [kg]
+        self.g = self.solver_model.gravity.to(dtype=dtype, device=device)  # (3,) gravity [m/s^2]
+
+    def _sphere(self, center, radius) -> dict:
+        if SPHERE not in self.terms:
+            return {}
+        if center is None or radius is None:
+            raise ValueError("the 'sphere' energy (the config's contact section) needs the sphere's center and radius")
+        return {SPHERE: {"sphere_center": center, "sphere_radius": radius}}
 
     def energies(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> dict:
         """Per-sample energy terms ``{name: (B,)}`` [J]; ``center (B, 3)`` and ``radius (B,)`` are needed
         only with the ``sphere`` term."""
-        if "sphere" not in self.terms:
-            return self.loss.energies(x)
-        if center is None or radius is None:
-            raise ValueError("the 'sphere' energy needs the sphere's center and radius")
-        return self.loss.energies(x, sphere={"sphere_center": center, "sphere_radius": radius})  # (not the ground's)
+        return self.loss.energies(x, **self._sphere(center, radius))
 
     def gradient(self, x: torch.Tensor, center: torch.Tensor | None, radius: torch.Tensor | None) -> torch.Tensor:
-        """``dE/dx (B, V, 3)``, differentiable: bending and membrane through their analytic
-        gradient Functions (whose backward is the analytic HVP), the rest through autograd."""
+        """``dE/dx (B, V, 3)``, differentiable: every term's own gradient (bending and membrane through
+        their analytic gradient Functions, whose backward is the analytic HVP), the spheres through autograd."""
+        ctx = tb.StepContext()
         g = torch.zeros_like(x)
-        modules = self.loss.terms
-        if "membrane" in modules:
-            g = g + cast(Any, modules["membrane"]).gradient(x)
-        if "bending" in modules:
-            g = g + cast(Any, modules["bending"]).gradient(x)
-        if "gravity" in self.terms:
-            g = g - self.mass[:, None] * self.mass.new_tensor(modules["gravity"].gravity)
-        contact = []
-        if "sphere" in modules:
-            if center is None or radius is None:
-                raise ValueError("the 'sphere' energy needs the sphere's center and radius")
-            contact.append(modules["sphere"](x, sphere_center=center, sphere_radius=radius).sum())
-        if "ground" in modules:
-            contact.append(modules["ground"](x).sum())
-        if contact:
-            (gc,) = torch.autograd.grad(torch.stack(contact).sum(), x, create_graph=True)
+        for term in self.solver_model.terms:
+            g = g + term.gradient(x, ctx)
+        sphere = self._sphere(center, radius)
+        if sphere:
+            e = self.loss.terms[SPHERE](x, **sphere[SPHERE]).sum()
+            (gc,) = torch.autograd.grad(e, x, create_graph=True)
             g = g + gc
         return g
 
@@ -217,6 +159,18 @@ class ClothPhysics:
         """Mass-weighted squared equilibrium residual per sample ``sum_i |g_i|^2 / m_i`` ``(B,)``."""
         g = self.gradient(x, center, radius)
         return (g * g / self.mass[:, None]).sum((-1, -2))
+
+    def model(self, center=None, radius: float | None = None, pinned: torch.Tensor | None = None) -> tb.ClothModel:
+        """The :class:`~torchbend.ClothModel` of one sample: the same terms, plus the sphere (``center``
+        3 numbers [m], ``radius`` [m]) under the contact law when there is one; ``pinned`` ``(V,)`` bool."""
+        colliders = list(self.solver_model.colliders)
+        if self.contact is not None and center is not None and radius is not None:
+            c = self.contact
+            colliders.append(tb.Sphere(tuple(float(v) for v in center), float(radius), stiffness=c.stiffness,
+                                       margin=c.margin, law=c.law, power=c.power))
+        pins = self.pinned if pinned is None else pinned
+        return build_model(self.cfg, mesh=(self.rest, self.faces), pinned=pins, dtype=self.rest.dtype,
+                           device=self.rest.device, colliders=colliders)
 
     def mean_angle_deviation(self, x) -> float:
         if self.bend is None:

@@ -32,7 +32,6 @@ import torch
 from common import (
     Batch,
     ClothPhysics,
-    ClothSection,
     Float,
     Int,
     ModelSection,
@@ -45,7 +44,7 @@ from common import (
     check_network_size,
     distributed,
     load_checkpoint,
-    load_config,
+    read_config,
     resume_run,
     save_checkpoint,
     seed_everything,
@@ -56,14 +55,21 @@ from torch import nn
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import ConfigError, MeshField, build_mesh, build_pins
+from torchbend.scenes.config import (
+    BendingSection,
+    ColliderSpec,
+    ConfigError,
+    ContactSection,
+    GridMesh,
+    MaterialSection,
+    MembraneSection,
+    MeshSection,
+    PhysicsConfig,
+    PlaneSpec,
+)
 
 log = logging.getLogger("train.drape_net")
 CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_drape.yaml"))
-
-
-class DrapeCloth(ClothSection):
-    height: Float = 0.32  # initial height of the flat cloth [m]
 
 
 class SceneSection(Section):
@@ -124,14 +130,20 @@ class EvalSection(Section):
     seed: Seed = 12345
 
 
-class Config(Section):
-    """The drape network's config (``configs/train_drape.yaml``); ``mesh`` (optional, a scene-config
-    mesh section such as ``mesh: garment.obj`` or ``{type: file, path: asset:skirt.obj, pin: {z_min:
-    -0.001}}``) replaces the square cloth of ``cloth``; its pinned vertices stay at their rest positions
-    (the network predicts no displacement there: ``configs/train_skirt.yaml``)."""
+class Config(PhysicsConfig):
+    """The drape network's config (``configs/train_drape.yaml``): the physics sections of a scene config
+    (:class:`~torchbend.scenes.config.PhysicsConfig`; by default a 9 x 9 cloth of 0.8 m at a height of
+    0.32 m, membrane, bending, gravity, the ground plane z = -0.4 m as a collider and the spheres under the
+    ``contact`` law) and the script's own.  A file mesh (``mesh: garment.obj`` or ``{type: file, path:
+    asset:skirt.obj, pin: {z_min: -0.001}}``) replaces the square cloth; its pinned vertices stay at their
+    rest positions (the network predicts no displacement there: ``configs/train_skirt.yaml``)."""
 
-    cloth: DrapeCloth = DrapeCloth()
-    mesh: MeshField = None
+    mesh: MeshSection = GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
+    material: MaterialSection = MaterialSection(young=2e4, poisson=0.3, thickness=1e-3, density=0.2)
+    bending: BendingSection | None = BendingSection(model="tan", stiffness=1e-4)
+    membrane: MembraneSection | None = MembraneSection()
+    colliders: list[ColliderSpec] = [PlaneSpec(type="plane", point=(0.0, 0.0, -0.4), stiffness=2e3)]
+    contact: ContactSection | None = ContactSection(stiffness=2e3)
     scene: SceneSection = SceneSection()
     model: ModelSection = ModelSection()
     train: TrainSection = TrainSection()
@@ -218,7 +230,6 @@ class SphereDrape:
         self.physics = physics
         rest = physics.rest
         self.hold = bool(cfg["scene"]["hold_center"])
-        self.density = float(cfg["cloth"]["density"])
         middle = (rest.amin(0) + rest.amax(0)) / 2
         self.held = int((rest - middle).norm(dim=-1).argmin())
         self.free = torch.ones(len(rest), dtype=torch.bool, device=rest.device)
@@ -250,15 +261,8 @@ class SphereDrape:
     def model(self, center, radius: float) -> tb.ClothModel:
         """The potential of one sample as a solver model (``center`` 3 numbers [m], ``radius`` [m]),
         term for term that of :class:`ClothPhysics`, with the held vertex pinned."""
-        ph = self.physics
-        colliders = []
-        if "sphere" in ph.terms:
-            colliders.append(tb.Sphere(tuple(float(c) for c in center), float(radius), stiffness=ph.k_contact))
-        if "ground" in ph.terms:
-            colliders.append(tb.Plane(point=(0.0, 0.0, ph.ground_z), stiffness=ph.k_contact))
-        return tb.ClothModel(ph.faces, ph.rest, bending=ph.bend, membrane=ph.mem, density=self.density,
-                             gravity=tuple(ph.g.tolist()) if "gravity" in ph.terms else (0.0, 0.0, 0.0),
-                             pinned=~self.free, colliders=colliders)
+        pinned = ~self.free if self.physics.pinned is None else (~self.free | self.physics.pinned)
+        return self.physics.model(center, radius, pinned=pinned)
 
     def residual(self, x: torch.Tensor, center: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
         """Mass-weighted squared equilibrium residual of the free vertices per sample,
@@ -361,19 +365,17 @@ def log_step(writer, scene: SphereDrape, step: int, x, center, radius, loss: flo
 
 
 def drawn_colliders(physics: ClothPhysics, center, radius: float) -> list:
-    """The colliders of one sample for the PNG: its sphere and the ground plane (when in the energy)."""
-    out = []
+    """The colliders of one sample for the PNG: its sphere (when the physics has one) and the config's colliders."""
+    out = list(physics.solver_model.colliders)
     if "sphere" in physics.terms:
         out.append(tb.Sphere(tuple(center), float(radius)))
-    if "ground" in physics.terms:
-        out.append(tb.Plane(point=(0.0, 0.0, physics.ground_z)))
     return out
 
 
-def evaluate(cfg: dict, net: nn.Module, scene: SphereDrape, dtype, device, mesh=None) -> tuple[dict, list]:
+def evaluate(cfg: dict, net: nn.Module, scene: SphereDrape, dtype, device) -> tuple[dict, list]:
     """Held-out conditions (``eval.seed``, apart from training's): the cap gap of the predictions for
     ``eval.conditions`` of them [m], and :meth:`SphereDrape.check` of the first ``eval.newton`` (on the
-    CPU in float64; ``mesh`` as given to :class:`ClothPhysics`).  Returns the summary numbers and the
+    CPU in float64).  Returns the summary numbers and the
     first three conditions' ``(x, center, radius, cond)`` to draw."""
     e = cfg["eval"]
     n = max(int(e["conditions"]), 3)
@@ -390,8 +392,7 @@ def evaluate(cfg: dict, net: nn.Module, scene: SphereDrape, dtype, device, mesh=
         logging.getLogger("torchbend.sim").setLevel(max(level, logging.WARNING))  # no per-iteration INFO lines
         ref = scene
         if scene.physics.rest.dtype != torch.float64 or scene.physics.rest.device.type != "cpu":
-            cpu = None if mesh is None else (mesh[0].cpu().double(), mesh[1].cpu())
-            ref = SphereDrape(cfg, ClothPhysics(cfg, dtype=torch.float64, device="cpu", mesh=cpu))
+            ref = SphereDrape(cfg, ClothPhysics(scene.physics.cfg, dtype=torch.float64, device="cpu"))
         try:
             checks = ref.check(*(v[:k].detach().cpu().double() for v in (x, center, radius)), time_limit=float(e["time_limit"]))
         finally:
@@ -453,28 +454,27 @@ def intra_op_threads(threads: int):
 def main(argv=None) -> dict:
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
-    cfg = load_config(a.config, Config, overrides(a))
-    with intra_op_threads(int(cfg["train"]["threads"])):
-        return train(a, cfg, device)
+    config = read_config(a.config, Config, overrides(a))
+    with intra_op_threads(config.train.threads):
+        return train(a, config, device)
 
 
-def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
-    """The run of :func:`main` (parsed options ``a``, validated config ``cfg``)."""
+def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
+    """The run of :func:`main` (parsed options ``a``, the validated ``config``; its plain-dict form is the
+    checkpoint's record)."""
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
+    cfg = config.model_dump(mode="json")
     t = cfg["train"]
     rank, world = distributed()
     dtype = getattr(torch, t["dtype"])
     seed_everything(int(t["seed"]))
-    mesh = pinned = None
-    if cfg["mesh"] is not None:
-        mesh = build_mesh(cfg["mesh"], dtype=dtype, device=device)
-        pinned = build_pins(cfg["mesh"], mesh[0])
-        if pinned is not None and t["loss"] == "residual":  # the residual would hold the pins' reaction forces
-            raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
-                              "use 'energy'")
-    physics = ClothPhysics(cfg, dtype=dtype, device=device, mesh=mesh)
+    physics = ClothPhysics(config, dtype=dtype, device=device)
+    pinned = physics.pinned
+    if pinned is not None and t["loss"] == "residual":  # the residual would hold the pins' reaction forces
+        raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
+                          "use 'energy'")
     scene = SphereDrape(cfg, physics)
     model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
                      pinned=pinned).to(dtype=dtype, device=device)
@@ -516,7 +516,7 @@ def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
     result: dict = {"losses": history, "start": start, "steps": steps, "loss_kind": t["loss"]}
     if writer is not None:
         t0 = time.perf_counter()
-        summary, drawn = evaluate(cfg, model, scene, dtype, device, mesh)
+        summary, drawn = evaluate(cfg, model, scene, dtype, device)
         window = min(10, len(history))
         summary.update(final_loss=sum(history[-window:]) / window if window else math.nan, final_window=window,
                        train_seconds=train_seconds, steps_run=len(history), eval_seconds=time.perf_counter() - t0)

@@ -2,8 +2,8 @@
 
     python train/hood_style.py                                   # configs/train_hood.yaml
     python train/hood_style.py --steps 2000 --set train.batch=16 --device cuda
-    python train/hood_style.py --set mesh.type=file --set mesh.path=../torchbend/mesh/assets/skirt.obj \\
-        --set "mesh.offset=[0, 0, 0.65]"                         # the shipped skirt instead of the grid
+    python train/hood_style.py --set "mesh={type: file, path: 'asset:skirt.obj', offset: [0, 0, 0.65]}"
+                                                                 # the shipped skirt instead of the grid
 
 As in HOOD (Grigorev et al. 2023) and SNUG (Santesteban et al. 2022), without ground truth: a
 network maps the cloth's current state (positions, velocities), the body's next state and the
@@ -22,9 +22,9 @@ previous prediction, and a new batch of sequences (materials, bodies, cloth at r
 ``train.rollout`` steps.
 
 The network is a plain MLP on the flattened state (no graph network, so it is tied to one mesh).
-The cloth is the square grid of ``cloth`` unless the config has a ``mesh`` section (a scene-config
-mesh: ``mesh: garment.obj`` or ``{type: file, path, weld_tol, offset}``, read with
-:func:`torchbend.mesh.load`) or ``main(argv, mesh=(rest, faces))`` passes one (placed by the caller;
+The cloth is the config's ``mesh`` (a scene-config mesh section: the default square grid, ``mesh:
+garment.obj`` or ``{type: file, path, weld_tol, offset}``, read with :func:`torchbend.mesh.load`) unless
+``main(argv, mesh=(rest, faces))`` passes one (placed by the caller;
 the body moves about the origin).  Common options of every torchbend script (``--config``, ``--set``,
 ``--seed``, ``--device``, ``--out``, ``--resume``, ``--log-level``, ``--no-progress``) plus
 ``--steps``.  TensorBoard logs every loss term (``loss/<name>``, unweighted, joules), the total and
@@ -43,7 +43,6 @@ from typing import Annotated, Literal
 import torch
 from common import (
     Batch,
-    Float,
     Int,
     ModelSection,
     NonNegative,
@@ -63,7 +62,15 @@ from torch import nn
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import ConfigError, MeshSpec, build_mesh
+from torchbend.scenes.config import (
+    ConfigError,
+    ContactSection,
+    GridMesh,
+    MaterialSection,
+    MeshSection,
+    PhysicsConfig,
+    build_mesh,
+)
 
 log = logging.getLogger("train.hood_style")
 CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_hood.yaml"))
@@ -85,30 +92,14 @@ def _ordered(value):
     return value
 
 
-def _mesh_path(value):
-    """``mesh: path.obj`` is short for ``mesh: {type: file, path: path.obj}`` (as in scene configs)."""
-    return {"type": "file", "path": value} if isinstance(value, str) else value
-
-
 Ratio = Annotated[float, Field(gt=-1.0, lt=2.0)]
 # a sampling range [lo, hi] (lo <= hi), of positive numbers or of Lame ratios in (-1, 2)
 PositiveRange = Annotated[tuple[Positive, Positive], BeforeValidator(_pair), AfterValidator(_ordered)]
 RatioRange = Annotated[tuple[Ratio, Ratio], BeforeValidator(_pair), AfterValidator(_ordered)]
 
 
-class HoodCloth(Section):
-    """``cloth``: the default square grid (``resolution`` x ``resolution`` vertices, ``size`` [m],
-    flat at ``height`` [m] above the body's mean position) and the ``thickness`` [m] of the stretch
-    energy ``A t Psi`` (used with a ``mesh`` too)."""
-
-    resolution: Annotated[Int, Field(ge=3)] = 9
-    size: Positive = 0.8
-    height: Float = 0.32
-    thickness: Positive = 4.7e-4
-
-
-class MaterialSection(Section):
-    """``material``: HOOD's coefficients, sampled per sequence in ``[lo, hi]``: ``lame_mu`` [Pa] and
+class SamplingSection(Section):
+    """``sampling``: HOOD's material coefficients, sampled per sequence in ``[lo, hi]``: ``lame_mu`` [Pa] and
     ``bending_coeff`` [N m] log-uniform, ``lame_lambda = ratio * lame_mu`` with the ratio uniform in
     ``lame_lambda_ratio`` (within (-1, 2): a Poisson ratio in (-1, 0.5)), areal ``density`` [kg/m^2]
     uniform."""
@@ -141,13 +132,10 @@ class WeightsSection(Section):
 
 
 class LossSection(Section):
-    """``loss``: time step ``dt`` [s], contact ``k max(0, eps - d)^3`` (``contact_stiffness`` k
-    [J/m^3], ``contact_eps`` [m]), ``normalize`` (divide by ``M g L``,
-    :func:`torchbend.losses.energy_scale`, at the mid-range density) and the term ``weights``."""
+    """``loss``: time step ``dt`` [s], ``normalize`` (divide by ``M g L``, :func:`torchbend.losses.energy_scale`,
+    at the mid-range density) and the term ``weights``; the body contact's law is the ``contact`` section."""
 
     dt: Positive = 1.0 / 30.0
-    contact_stiffness: Positive = 1.0e4
-    contact_eps: NonNegative = 4.0e-3
     normalize: bool = True
     weights: WeightsSection = WeightsSection()
 
@@ -175,31 +163,25 @@ class TrainSection(Section):
     dtype: Literal["float32", "float64"] = "float32"
 
 
-class Config(Section):
-    """The HOOD-style config (``configs/train_hood.yaml``); ``mesh`` (optional, a scene-config mesh
-    section such as ``mesh: garment.obj``) replaces the square grid of ``cloth``."""
+class Config(PhysicsConfig):
+    """The HOOD-style config (``configs/train_hood.yaml``): the physics sections of a scene config
+    (:class:`~torchbend.scenes.config.PhysicsConfig`: ``mesh``, by default a 9 x 9 square of 0.8 m flat at
+    0.32 m above the body's mean position; ``material.thickness`` [m], that of the stretch energy ``A t Psi``
+    (the moduli and the density are sampled per sequence: ``sampling``); ``contact``, the law of the body
+    contact, HOOD's ``k max(0, eps - d)^3``) and the script's own."""
 
-    cloth: HoodCloth = HoodCloth()
-    mesh: Annotated[MeshSpec | None, BeforeValidator(_mesh_path)] = None
-    material: MaterialSection = MaterialSection()
+    mesh: MeshSection = GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
+    material: MaterialSection = MaterialSection(thickness=4.7e-4)
+    contact: ContactSection | None = ContactSection(law="barrier", stiffness=1.0e4, margin=4.0e-3, power=3.0)
+    sampling: SamplingSection = SamplingSection()
     body: BodySection = BodySection()
     loss: LossSection = LossSection()
     model: StepModel = StepModel()
     train: TrainSection = TrainSection()
 
 
-def grid_cloth(cfg: dict, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """The default cloth: a flat square grid centred above the origin (the body's mean position)."""
-    c = cfg["cloth"]
-    n, size = int(c["resolution"]), float(c["size"])
-    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
-    return rest - torch.tensor([size / 2, size / 2, -float(c["height"])], dtype=dtype, device=device), faces
-
-
 def cloth_mesh(cfg: dict, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(rest (V, 3) [m], faces (F, 3))``: the config's ``mesh`` (offset applied) or the default grid."""
-    if cfg["mesh"] is None:
-        return grid_cloth(cfg, dtype, device)
+    """``(rest (V, 3) [m], faces (F, 3))``: the config's ``mesh`` (offset applied)."""
     if cfg["mesh"].get("pin") is not None:
         raise ConfigError("config key 'mesh.pin': hood_style pins no vertices (the cloth moves freely over the body)")
     return build_mesh(cfg["mesh"], dtype=dtype, device=device)
@@ -210,7 +192,7 @@ class Sequences:
     (``cfg``: a validated config, :func:`load_config` with :class:`Config`)."""
 
     def __init__(self, cfg: dict, batch: int, gen: torch.Generator, dtype, device):
-        m, b = cfg["material"], cfg["body"]
+        m, b = cfg["sampling"], cfg["body"]
 
         def uniform(lo_hi, log=False):
             lo, hi = (float(v) for v in lo_hi)
@@ -273,19 +255,23 @@ def build_loss(cfg: dict, rest, faces, body_faces) -> tb.ClothLoss:
     """The ClothLoss of stretch, bending, gravity, inertia and body contact (materials per call;
     ``cfg``: a validated config)."""
     lc = cfg["loss"]
+    contact = ContactSection.model_validate(cfg["contact"]) if cfg["contact"] is not None else None
+    if contact is None:
+        raise ConfigError("config key 'contact': the body contact needs a contact law (e.g. {law: barrier, "
+                          "stiffness: 1.0e+4, margin: 4.0e-3, power: 3})")
     weights = {name: float(lc["weights"][name]) for name in TERMS}
     # the stored materials are placeholders: every call passes the sampled per-sample ones
     young, poisson = tb.material_from_lame(3e4, 3e4)
     terms = {
-        "stretch": tb.losses.Stretch(faces, rest, young=young, poisson=poisson, thickness=float(cfg["cloth"]["thickness"])),
+        "stretch": tb.losses.Stretch(faces, rest, young=young, poisson=poisson, thickness=float(cfg["material"]["thickness"])),
         "bending": tb.losses.Bending(faces, rest, 1e-6),  # quadratic: see torchbend.losses.elastic
         "gravity": tb.losses.Gravity(faces, rest, 0.2),
         "inertia": tb.losses.Inertia(faces, rest, 0.2, float(lc["dt"])),
-        "contact": tb.losses.BodyContact(stiffness=float(lc["contact_stiffness"]), eps=float(lc["contact_eps"]),
+        "contact": tb.losses.BodyContact(stiffness=contact.stiffness, eps=contact.margin, law=contact.contact_law(),
                                          body_faces=body_faces),
     }
     if lc["normalize"]:  # joules -> O(1): divide by M g L of a mid-range density (torchbend.losses.cloth_loss)
-        scale = tb.losses.energy_scale(faces, rest, sum(float(v) for v in cfg["material"]["density"]) / 2)
+        scale = tb.losses.energy_scale(faces, rest, sum(float(v) for v in cfg["sampling"]["density"]) / 2)
         weights = {k: w / scale for k, w in weights.items()}
     return tb.ClothLoss(terms, weights)
 

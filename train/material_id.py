@@ -21,48 +21,34 @@ from typing import Annotated, Any
 
 import torch
 from common import (
-    MAX_GRID_VERTICES,
     ConfigError,
     Float,
-    Int,
     Positive,
     PositiveInt,
     Section,
     Seed,
     Timer,
-    check_positive,
-    load_config,
+    read_config,
     save_checkpoint,
     seed_everything,
 )
-from pydantic import Field, model_validator
+from pydantic import Field
 
 import torchbend as tb
 from torchbend.scenes import cli
+from torchbend.scenes.config import (
+    BendingSection,
+    GridMesh,
+    MaterialSection,
+    MembraneSection,
+    MeshSection,
+    PhysicsConfig,
+    build_model,
+    validate,
+)
 
 log = logging.getLogger("train.material_id")
 CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_material.yaml"))
-
-
-class BeamSection(Section):
-    """``beam``: an ``nx`` x ``ny`` strip of ``length`` x ``width`` [m], clamped at one end; its
-    material (``young`` [Pa] for the bending stiffness, ``membrane_young`` [Pa] for StVK)."""
-
-    nx: Annotated[Int, Field(ge=3)] = 21
-    ny: Annotated[Int, Field(ge=2)] = 4
-    length: Positive = 0.2
-    width: Positive = 0.03
-    young: Positive = 5e6
-    poisson: Annotated[Float, Field(gt=-1.0, lt=0.5)] = 0.3
-    thickness: Positive = 2e-3
-    density: Positive = 2.0              # [kg/m^2]
-    membrane_young: Positive = 5e6
-
-    @model_validator(mode="after")
-    def _size(self):
-        if self.nx * self.ny > MAX_GRID_VERTICES:
-            raise ValueError(f"nx x ny = {self.nx} x {self.ny} vertices is more than the {MAX_GRID_VERTICES} allowed")
-        return self
 
 
 class IdentifySection(Section):
@@ -78,33 +64,51 @@ class IdentifySection(Section):
     seed: Seed = 0
 
 
-class Config(Section):
-    """The material-identification config (``configs/train_material.yaml``)."""
+class Config(PhysicsConfig):
+    """The material-identification config (``configs/train_material.yaml``): the physics sections of a
+    scene config (:class:`~torchbend.scenes.config.PhysicsConfig`; by default a 21 x 4 strip of 0.2 x 0.03 m
+    clamped at its first two columns, quadratic bending, StVK membrane) and ``identify``."""
 
-    beam: BeamSection = BeamSection()
+    mesh: MeshSection = GridMesh(nx=21, ny=4, size=(0.2, 0.03), pin="first_two_columns")
+    material: MaterialSection = MaterialSection(young=5e6, poisson=0.3, thickness=2e-3, density=2.0)
+    bending: BendingSection | None = BendingSection(model="quadratic", from_material=True)
+    membrane: MembraneSection | None = MembraneSection(model="stvk")
     identify: IdentifySection = IdentifySection()
 
 
+def _config(cfg) -> Config:
+    """``cfg`` as a validated :class:`Config` (a dict, e.g. a checkpoint's record, is validated)."""
+    config = cfg if isinstance(cfg, Config) else validate(cfg, Config)
+    if config.bending is None:
+        raise ConfigError("config key 'bending': the bending stiffness is what this script identifies: give a "
+                          "bending section")
+    return config
+
+
 def build(cfg, stiffness: torch.Tensor, rest_angles=None):
-    b = cfg["beam"]
-    rest, faces = tb.scenes.grid(int(b["nx"]), int(b["ny"]), (float(b["length"]), float(b["width"])), dtype=torch.float64)
-    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=stiffness, rest_angles=rest_angles)
-    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=check_positive(cfg, "beam.membrane_young"),
-                            poisson=float(b["poisson"]), thickness=check_positive(cfg, "beam.thickness"))
-    cols = rest[:, 0].unique()
-    model = tb.ClothModel(faces, rest, bending=bend, membrane=mem, density=check_positive(cfg, "beam.density"),
-                          pinned=rest[:, 0] <= cols[1] + 1e-12)
+    """``(model, rest, bend)``: the config's model with its bending stiffness ``stiffness`` (a tensor, so that the
+    adjoint differentiates with respect to it)."""
+    config = _config(cfg)
+    base = build_model(config)
+    faces, rest = base.topology.faces, base.rest_positions
+    assert config.bending is not None
+    bend = tb.BendingEnergy(faces, rest, model=config.bending.model, stiffness=stiffness, rest_angles=rest_angles)
+    model = tb.ClothModel(faces, rest, bending=bend, membrane=base.membrane, density=base.density,
+                          gravity=tuple(base.gravity.tolist()), pinned=base.pinned, colliders=base.colliders)
     return model, rest, bend
 
 
 def true_stiffness(cfg) -> float:
-    k = cfg["identify"]["true_stiffness"]
-    if k is None:
-        b = cfg["beam"]
-        return tb.stiffness_from_material(check_positive(cfg, "beam.young"), check_positive(cfg, "beam.thickness"),
-                                          float(b["poisson"]))
-    k = check_positive(cfg, "identify.true_stiffness")
-    return k
+    """``identify.true_stiffness``, else the bending section's ``stiffness``, else the material's
+    ``Y t^3 / (24 (1 - nu^2))``."""
+    config = _config(cfg)
+    assert config.bending is not None
+    if config.identify.true_stiffness is not None:
+        return config.identify.true_stiffness
+    if config.bending.stiffness is not None:
+        return config.bending.stiffness
+    m = config.material
+    return tb.stiffness_from_material(m.young, m.thickness, m.poisson)
 
 
 def observe(cfg):
@@ -113,7 +117,7 @@ def observe(cfg):
     x, info = tb.solve_static(model, rest, tol=1e-10, continuation=True)
     if not info.converged:  # the beam's or the stiffness's values: no equilibrium within the solver's limits
         raise ConfigError(f"the synthetic observation (the static solve at the true stiffness {float(k):.3g} N m) did "
-                          f"not converge: {info.message}; check the 'beam' and 'identify.true_stiffness' values")
+                          f"not converge: {info.message}; check the physics sections and 'identify.true_stiffness'")
     return x, rest, float(k)
 
 
@@ -170,14 +174,16 @@ def main(argv=None) -> dict:
     a = parse_args(argv)
     cli.resolve_device(a.device, supported=("cpu",), why="the sparse solves run in scipy")
     flags = {"steps": a.steps, "seed": a.seed}
-    cfg = load_config(a.config, Config, list(a.overrides) + [f"identify.{k}={v}" for k, v in flags.items() if v is not None])
+    config = read_config(a.config, Config, list(a.overrides) + [f"identify.{k}={v}" for k, v in flags.items() if v is not None])
+    _config(config)
+    cfg = config.model_dump(mode="json")  # the checkpoint's record
     it = cfg["identify"]
     seed_everything(int(it["seed"]))
-    k_true = true_stiffness(cfg)
+    k_true = true_stiffness(config)
     log_k = torch.tensor(math.log(k_true * float(it["initial_factor"])), dtype=torch.float64, requires_grad=True)
     shift = None
     if it["fit_rest_angles"]:
-        H = build(cfg, torch.tensor(1.0, dtype=torch.float64))[2].hinge_count
+        H = build(config, torch.tensor(1.0, dtype=torch.float64))[2].hinge_count
         shift = torch.zeros(H, dtype=torch.float64, requires_grad=True)
     params = [log_k] + ([shift] if shift is not None else [])
     # one L-BFGS iteration (with a strong-Wolfe line search) per step: each evaluation is a static
@@ -188,7 +194,7 @@ def main(argv=None) -> dict:
     start = 0
     if a.resume:
         start = resume(ckpt, cfg, log_k, shift, opt)
-    x_obs, rest, k_true = observe(cfg)
+    x_obs, rest, k_true = observe(config)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     timer = Timer()
     history = []
@@ -198,7 +204,7 @@ def main(argv=None) -> dict:
 
         def closure():
             opt.zero_grad(set_to_none=True)
-            L, x, info = loss_of(cfg, log_k, shift, x_obs, state["x"])
+            L, x, info = loss_of(config, log_k, shift, x_obs, state["x"])
             L.backward()
             state.update(x=x.detach(), info=info, L=L.detach())
             return L

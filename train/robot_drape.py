@@ -25,15 +25,13 @@ import torch
 from common import (
     Batch,
     ClothPhysics,
-    ClothSection,
     ModelSection,
     Positive,
     PositiveInt,
     Section,
     Seed,
     Timer,
-    check_positive,
-    load_config,
+    read_config,
     resume_run,
     save_checkpoint,
     save_drape_png,
@@ -46,20 +44,22 @@ from pydantic import Field
 import torchbend as tb
 from torchbend.robot import LinkPins, Robot, RobotScene
 from torchbend.scenes import cli
-from torchbend.scenes.config import Float, Int
+from torchbend.scenes.config import (
+    BendingSection,
+    ColliderSpec,
+    ConfigError,
+    Float,
+    GridMesh,
+    Int,
+    MaterialSection,
+    MembraneSection,
+    MeshSection,
+    PhysicsConfig,
+    PlaneSpec,
+)
 
 log = logging.getLogger("train.robot_drape")
 CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_robot.yaml"))
-
-
-class TowelCloth(ClothSection):
-    """``cloth``: the held towel (no sphere; the ground is the table top)."""
-
-    size: Positive = 0.3
-    energies: list[str] = ["membrane", "bending", "gravity", "ground"]
-    young: Positive = 1e5
-    contact_stiffness: Positive = 1e3
-    ground_z: Float = 0.0
 
 
 class PoseSection(Section):
@@ -83,10 +83,16 @@ class TrainSection(Section):
     threads: Annotated[Int, Field(ge=0)] = 1
 
 
-class Config(Section):
-    """The robot-drape config (``configs/train_robot.yaml``)."""
+class Config(PhysicsConfig):
+    """The robot-drape config (``configs/train_robot.yaml``): the physics sections of a scene config
+    (:class:`~torchbend.scenes.config.PhysicsConfig`; ``mesh`` a grid whose ``nx`` x ``ny`` vertices and
+    ``size`` the towel takes, hung below the finger tips; the table top z = 0 a collider) and the script's own."""
 
-    cloth: TowelCloth = TowelCloth()
+    mesh: MeshSection = GridMesh(nx=9, size=(0.3, 0.3))
+    material: MaterialSection = MaterialSection(young=1e5, poisson=0.3, thickness=1e-3, density=0.2)
+    bending: BendingSection | None = BendingSection(model="sin", stiffness=1e-4)
+    membrane: MembraneSection | None = MembraneSection()
+    colliders: list[ColliderSpec] = [PlaneSpec(type="plane", point=(0.0, 0.0, 0.0), stiffness=1e3)]
     robot: PoseSection = PoseSection()
     model: ModelSection = ModelSection()
     train: TrainSection = TrainSection()
@@ -95,25 +101,26 @@ class Config(Section):
 class HeldTowel:
     """The towel, its physics and the robot: ``drape(net, q)`` -> positions ``(B, V, 3)``."""
 
-    def __init__(self, cfg: dict, dtype=torch.float64, device=None):
-        c, r = cfg["cloth"], cfg["robot"]
+    def __init__(self, config: Config, dtype=torch.float64, device=None):
+        r = config.robot
         device = torch.device(device or "cpu")
-        self.robot = Robot(r["urdf"], dtype=dtype, device=device)
-        self.nominal = self.robot.check_joints(torch.tensor(r["nominal"], dtype=dtype, device=device), "robot.nominal")
-        self.spread = self.robot.check_joints(torch.tensor(r["spread"], dtype=dtype, device=device), "robot.spread")
-        n = int(c["resolution"])
-        if n < 3:
-            raise ValueError(f"config key 'cloth.resolution' must be >= 3, got {n}")
-        size = check_positive(cfg, "cloth.size")
+        self.robot = Robot(r.urdf, dtype=dtype, device=device)
+        self.nominal = self.robot.check_joints(torch.tensor(r.nominal, dtype=dtype, device=device), "robot.nominal")
+        self.spread = self.robot.check_joints(torch.tensor(r.spread, dtype=dtype, device=device), "robot.spread")
+        mesh = config.mesh
+        if not isinstance(mesh, GridMesh):
+            raise ConfigError("config key 'mesh': the towel is a grid (type: grid), not a file mesh")
+        nx, ny = mesh.nx, mesh.ny or mesh.nx
+        if nx < 3:
+            raise ConfigError(f"config key 'mesh.nx' must be >= 3, got {nx}")
         # rest: a flat towel hanging vertically below the line between the finger tips at the nominal pose
         tips = self.robot.link_transforms(self.nominal, ["finger_left", "finger_right"])[:, :3, 3]
-        flat, faces = tb.scenes.grid(n, n, (size, size), dtype=dtype, device=device)
+        flat, faces = tb.scenes.grid(nx, ny, mesh.size, dtype=dtype, device=device)
         u = (tips[0] - tips[1]) / (tips[0] - tips[1]).norm()
         rest = tips[1] + flat[:, :1] * u - flat[:, 1:2] * torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
-        self.physics = ClothPhysics(cfg, dtype=dtype, device=device, mesh=(rest, faces))
+        self.physics = ClothPhysics(config, dtype=dtype, device=device, mesh=(rest, faces))
         self.rest, self.faces = rest, faces
-        self.density = check_positive(cfg, "cloth.density")
-        corners = [n - 1, 0]
+        corners = [nx - 1, 0]
         self.pins = LinkPins(self.robot, corners, ["finger_left", "finger_right"], rest[corners], self.nominal)
         self._tips0 = rest[self.pins.vertices]  # the order pins.positions returns
 
@@ -143,11 +150,7 @@ class HeldTowel:
         """The same cloth as a solver scene (reference equilibria)."""
         pinned = torch.zeros(len(self.rest), dtype=torch.bool, device=self.rest.device)
         pinned[self.pins.vertices] = True
-        ph = self.physics
-        colliders = [tb.Plane(point=(0.0, 0.0, ph.ground_z), stiffness=ph.k_contact)] if "ground" in ph.terms else []
-        model = tb.ClothModel(self.faces, self.rest, bending=ph.bend, membrane=ph.mem,
-                              density=self.density, pinned=pinned, colliders=colliders)
-        return RobotScene(model, self.robot, self.pins)
+        return RobotScene(self.physics.model(pinned=pinned), self.robot, self.pins)
 
 
 def parse_args(argv=None):
@@ -161,19 +164,21 @@ def main(argv=None) -> dict:
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
     flags = {"steps": a.steps, "seed": a.seed}
-    cfg = load_config(a.config, Config, list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None])
-    with intra_op_threads(int(cfg["train"]["threads"])):
-        return train(a, cfg, device)
+    config = read_config(a.config, Config, list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None])
+    with intra_op_threads(config.train.threads):
+        return train(a, config, device)
 
 
-def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
-    """The run of :func:`main` (parsed options ``a``, validated config ``cfg``)."""
+def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
+    """The run of :func:`main` (parsed options ``a``, the validated ``config``; its plain-dict form is the
+    checkpoint's record)."""
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
+    cfg = config.model_dump(mode="json")
     t = cfg["train"]
     seed_everything(int(t["seed"]))
-    towel = HeldTowel(cfg, device=device)
+    towel = HeldTowel(config, device=device)
     net = DrapeNet(len(towel.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
                    inputs=towel.robot.joint_count).to(dtype=torch.float64, device=device)
     opt = torch.optim.Adam(net.parameters(), lr=float(t["lr"]))
@@ -214,7 +219,7 @@ def train(a: argparse.Namespace, cfg: dict, device: torch.device) -> dict:
                       "rms_distance_to_equilibrium": float((xi - x_eq).norm(dim=-1).pow(2).mean().sqrt()),
                       "energy_gap": e_pred - e_eq, "energy_equilibrium": e_eq,
                       "pin_error": float((xi[towel.pins.vertices] - towel.pins.positions(qi)).norm(dim=-1).max())})
-    table = [tb.Plane(point=(0.0, 0.0, towel.physics.ground_z))] if "ground" in towel.physics.terms else []
+    table = list(towel.physics.solver_model.colliders)
     save_drape_png(os.path.join(a.out, "drapes.png"), [(xi, towel.faces) for xi in x_pred],
                    [f"yaw {qi[0]:+.2f} wrist {qi[3]:+.2f} rad" for qi in q_eval.tolist()], colliders=[table] * len(x_pred))
     result = {"losses": history, "start": start, "steps": steps, "eval": evals}

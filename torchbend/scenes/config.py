@@ -48,6 +48,7 @@ from .schema import (
     MaterialSection,
     MembraneSection,
     MeshField,
+    MeshSection,
     MeshSpec,
     NonNegative,
     NonNegativeInt,
@@ -68,6 +69,7 @@ from .schema import (
     Vec3,
     check_resolution,
     mesh_file,
+    mesh_shorthand,
     validate,
 )
 from .wording import (
@@ -86,7 +88,7 @@ __all__ = [
     "load_config", "read_config", "build_model", "build_colliders", "PhysicsConfig", "ContactSection",
     "LinearSolverSection", "apply_overrides", "read_yaml", "Section", "SceneConfig", "validate",
     "Float", "Int", "Positive", "NonNegative", "PositiveInt", "NonNegativeInt", "Vec3", "Seed", "SEED_LIMIT",
-    "GridMesh", "FileMesh", "MeshSpec", "MeshField", "PinRegion", "mesh_file", "ASSET_PREFIX", "SphereSpec",
+    "GridMesh", "FileMesh", "MeshSpec", "MeshSection", "MeshField", "mesh_shorthand", "PinRegion", "mesh_file", "ASSET_PREFIX", "SphereSpec",
     "PlaneSpec", "CapsuleSpec", "ColliderSpec", "RobotSection", "MaterialSection", "BendingSection",
     "MembraneSection", "SolverSection", "OutputSection", "SceneSection", "PinSpec", "LinkCapsuleSpec",
     "KeyframeSpec", "MAX_GRID_VERTICES", "check_resolution", "build_scene", "build_mesh", "build_collider",

@@ -32,7 +32,7 @@ from .wording import MAX_ERRORS, ConfigError, describe, short_repr
 
 __all__ = [
     "Section", "PhysicsConfig", "SceneConfig", "ContactSection", "validate", "Float", "Int", "Positive", "NonNegative", "PositiveInt",
-    "NonNegativeInt", "Vec3", "Seed", "SEED_LIMIT", "GridMesh", "FileMesh", "MeshSpec", "MeshField",
+    "NonNegativeInt", "Vec3", "Seed", "SEED_LIMIT", "GridMesh", "FileMesh", "MeshSpec", "MeshSection", "MeshField", "mesh_shorthand",
     "PinRegion", "mesh_file", "ASSET_PREFIX", "SphereSpec", "PlaneSpec", "CapsuleSpec", "ColliderSpec",
     "RobotSection", "MaterialSection", "BendingSection", "MembraneSection", "SolverSection", "LinearSolverSection", "OutputSection",
     "SceneSection", "PinSpec", "LinkCapsuleSpec", "KeyframeSpec", "MAX_GRID_VERTICES", "check_resolution",
@@ -446,7 +446,7 @@ class RobotSection(Section):
     trajectory: list[Annotated[KeyframeSpec, BeforeValidator(_keyframe)]] = []
 
 
-def _mesh_shorthand(value):
+def mesh_shorthand(value):
     if value is None:
         return {"type": "grid"}
     if isinstance(value, str):
@@ -457,8 +457,11 @@ def _mesh_shorthand(value):
 
 
 def _optional_mesh(value):
-    return None if value is None else _mesh_shorthand(value)
+    return None if value is None else mesh_shorthand(value)
 
+
+MeshSection = Annotated[MeshSpec, BeforeValidator(mesh_shorthand)]
+"""A ``mesh`` key: a grid or a file (``mesh: path.obj`` for short, a mapping without ``type`` a grid)."""
 
 # a ``mesh`` key that may be absent (the training scripts): null, a path (``mesh: garment.obj``), a grid or a file
 MeshField = Annotated[MeshSpec | None, BeforeValidator(_optional_mesh)]
@@ -470,7 +473,7 @@ class PhysicsConfig(Section):
     the bodies a training script draws) and ``gravity``; :func:`~torchbend.scenes.builders.build_model` builds
     their :class:`~torchbend.ClothModel`."""
 
-    mesh: Annotated[MeshSpec, BeforeValidator(_mesh_shorthand)] = GridMesh()
+    mesh: MeshSection = GridMesh()
     material: MaterialSection = MaterialSection()
     bending: BendingSection | None = None
     membrane: MembraneSection | None = None
