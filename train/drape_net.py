@@ -459,6 +459,14 @@ def main(argv=None) -> dict:
         return train(a, config, device)
 
 
+def _check_pins(physics: ClothPhysics, loss: str) -> torch.Tensor | None:
+    """The mesh's pins; the residual loss refuses them (it would hold the pins' reaction forces)."""
+    if physics.pinned is not None and loss == "residual":
+        raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
+                          "use 'energy'")
+    return physics.pinned
+
+
 def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     """The run of :func:`main` (parsed options ``a``, the validated ``config``; its plain-dict form is the
     checkpoint's record)."""
@@ -471,10 +479,7 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     dtype = getattr(torch, t["dtype"])
     seed_everything(int(t["seed"]))
     physics = ClothPhysics(config, dtype=dtype, device=device)
-    pinned = physics.pinned
-    if pinned is not None and t["loss"] == "residual":  # the residual would hold the pins' reaction forces
-        raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
-                          "use 'energy'")
+    pinned = _check_pins(physics, t["loss"])
     scene = SphereDrape(cfg, physics)
     model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
                      pinned=pinned).to(dtype=dtype, device=device)

@@ -111,31 +111,36 @@ def build_pins(mesh, rest: Tensor, *, resolution: tuple | None = None) -> Tensor
         mask[[0, nx - 1]] = True  # corners
         return mask
     if isinstance(pin, PinRegion):
-        local = rest - torch.tensor(mesh.offset, dtype=rest.dtype, device=rest.device)  # the mesh's own coordinates
-        bounded = False
-        inside = torch.ones(len(rest), dtype=torch.bool, device=rest.device)
-        for j, a in enumerate(_AXES):
-            lo, hi = getattr(pin, f"{a}_min"), getattr(pin, f"{a}_max")
-            if lo is not None:
-                inside &= local[:, j] >= lo
-            if hi is not None:
-                inside &= local[:, j] <= hi
-            bounded |= lo is not None or hi is not None
-        if bounded:
-            mask |= inside
-        if pin.nearest is not None:
-            pts = torch.tensor(pin.nearest, dtype=rest.dtype, device=rest.device).reshape(-1, 3)
-            mask[torch.cdist(pts, local).argmin(-1)] = True
-        if not mask.any():
-            lo, hi = local.amin(0).tolist(), local.amax(0).tolist()
-            span = ", ".join(f"{a} [{lo[j]:.4g}, {hi[j]:.4g}]" for j, a in enumerate(_AXES))
-            raise ConfigError(f"config key 'mesh.pin': the region holds no vertex (the mesh spans {span} m, "
-                              "before offset)")
-        return mask
+        return _region_mask(pin, rest - torch.tensor(mesh.offset, dtype=rest.dtype, device=rest.device))
     bad = [v for v in pin if v >= len(rest)]
     if bad:
         raise ConfigError(f"config key 'mesh.pin': vertex indices {bad} out of range [0, {len(rest)})")
     mask[pin] = True
+    return mask
+
+
+def _region_mask(pin: PinRegion, local: Tensor) -> Tensor:
+    """The ``(V,)`` mask of a pin region for rest positions ``local (V, 3)`` in the mesh's own coordinates."""
+    mask = torch.zeros(len(local), dtype=torch.bool, device=local.device)
+    bounded = False
+    inside = torch.ones(len(local), dtype=torch.bool, device=local.device)
+    for j, a in enumerate(_AXES):
+        lo, hi = getattr(pin, f"{a}_min"), getattr(pin, f"{a}_max")
+        if lo is not None:
+            inside &= local[:, j] >= lo
+        if hi is not None:
+            inside &= local[:, j] <= hi
+        bounded |= lo is not None or hi is not None
+    if bounded:
+        mask |= inside
+    if pin.nearest is not None:
+        pts = torch.tensor(pin.nearest, dtype=local.dtype, device=local.device).reshape(-1, 3)
+        mask[torch.cdist(pts, local).argmin(-1)] = True
+    if not mask.any():
+        lo, hi = local.amin(0).tolist(), local.amax(0).tolist()
+        span = ", ".join(f"{a} [{lo[j]:.4g}, {hi[j]:.4g}]" for j, a in enumerate(_AXES))
+        raise ConfigError(f"config key 'mesh.pin': the region holds no vertex (the mesh spans {span} m, "
+                          "before offset)")
     return mask
 
 

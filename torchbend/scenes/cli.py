@@ -167,25 +167,31 @@ def resolve_device(name: str, *, prog: str | None = None, supported: Iterable[st
         fail(f"torchbend runs on {' or '.join(supported)} only, not on {dev.type}")
     if dev.index is not None and dev.index < 0:
         fail("a device index must be >= 0")
+    problem = _device_problem(dev)
+    if problem:
+        fail(problem)
+    return dev
+
+
+def _device_problem(dev: torch.device) -> str | None:
+    """Why ``dev`` (of a supported type, index >= 0) cannot be used here; None when it can."""
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             built = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA GPU is visible"
-            fail(f"CUDA is not available ({built}); use --device cpu")
+            return f"CUDA is not available ({built}); use --device cpu"
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            fail(f"only {torch.cuda.device_count()} CUDA device(s) visible")
-    elif dev.type == "cpu":
-        if dev.index not in (None, 0):
-            fail("there is one CPU device: use --device cpu")
-    elif dev.type == "mps":
-        if not torch.backends.mps.is_available():
-            fail("MPS is not available on this machine; use --device cpu")
-    else:
-        try:
-            torch.empty(1, device=dev)
-        except Exception as e:  # any backend's "not available / not compiled" error
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            fail(f"not available ({first})")
-    return dev
+            return f"only {torch.cuda.device_count()} CUDA device(s) visible"
+        return None
+    if dev.type == "cpu":
+        return None if dev.index in (None, 0) else "there is one CPU device: use --device cpu"
+    if dev.type == "mps":
+        return None if torch.backends.mps.is_available() else "MPS is not available on this machine; use --device cpu"
+    try:
+        torch.empty(1, device=dev)
+    except Exception as e:  # any backend's "not available / not compiled" error
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        return f"not available ({first})"
+    return None
 
 
 def seed_everything(seed: int) -> None:

@@ -130,19 +130,7 @@ def apply_overrides(cfg: dict, overrides) -> dict:
             raise ConfigError(f"override {short_repr(item)}: the value is not valid YAML") from None
         except RecursionError:
             raise ConfigError(f"override {short_repr(item)}: the value is nested too deeply") from None
-        node: Any = cfg
-        for i, part in enumerate(parts[:-1]):
-            nxt = parts[i + 1]
-            if isinstance(part, int):
-                if not isinstance(node, list) or not -len(node) <= part < len(node):
-                    raise ConfigError(f"override {short_repr(item)}: no list element [{part}]")
-                node = node[part]
-            else:
-                if not isinstance(node, dict):
-                    raise ConfigError(f"override {short_repr(item)}: {short_repr(part)} is not inside a mapping")
-                if node.get(part) is None:
-                    node[part] = [] if isinstance(nxt, int) else {}
-                node = node[part]
+        node = _parent(cfg, parts, item)
         last = parts[-1]
         if isinstance(last, int):
             if not isinstance(node, list) or not -len(node) <= last < len(node):
@@ -151,6 +139,25 @@ def apply_overrides(cfg: dict, overrides) -> dict:
             raise ConfigError(f"override {short_repr(item)}: {short_repr(last)} is not inside a mapping")
         node[last] = value
     return cfg
+
+
+def _parent(cfg: dict, parts: list, item) -> Any:
+    """The container of an override key's last part (``parts`` from :func:`_parse_key`), creating missing
+    mappings and lists on the way; :class:`ConfigError` naming the override ``item`` where it cannot."""
+    node: Any = cfg
+    for i, part in enumerate(parts[:-1]):
+        nxt = parts[i + 1]
+        if isinstance(part, int):
+            if not isinstance(node, list) or not -len(node) <= part < len(node):
+                raise ConfigError(f"override {short_repr(item)}: no list element [{part}]")
+            node = node[part]
+        else:
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {short_repr(item)}: {short_repr(part)} is not inside a mapping")
+            if node.get(part) is None:
+                node[part] = [] if isinstance(nxt, int) else {}
+            node = node[part]
+    return node
 
 
 def read_yaml(path: str) -> dict:

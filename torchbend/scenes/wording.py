@@ -121,7 +121,21 @@ def _walk(schema, loc, prefix: str = ""):
     return path, tp
 
 
+_SIMPLE = {
+    **dict.fromkeys(("model_type", "model_attributes_type", "dict_type"), "must be a mapping"),
+    **dict.fromkeys(("list_type", "tuple_type"), "must be a list"),
+    **dict.fromkeys(("float_parsing", "float_type", "finite_number"), "must be a finite number"),
+    **dict.fromkeys(("int_parsing", "int_type", "int_from_float"), "must be an integer"),
+    **dict.fromkeys(("bool_parsing", "bool_type"), "must be true or false"),
+    "string_type": "must be a string",
+}
+"""Error kinds whose message is ``config key 'path' <words>, got <value>``."""
+_BOUNDS = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+_BOUND_WORDS = {("greater_than", 0): "positive", ("greater_than_equal", 0): "non-negative"}
+
+
 def describe(error: Mapping[str, Any], schema, prefix: str) -> str:
+    """One pydantic validation error in words, naming the key's dotted path (below ``prefix``)."""
     kind, loc, ctx = error["type"], error["loc"], error.get("ctx") or {}
     value = error.get("input")
     path, _ = _walk(schema, loc, prefix)
@@ -133,11 +147,15 @@ def describe(error: Mapping[str, Any], schema, prefix: str) -> str:
         return f"unknown config key '{path}'{allowed}"
     if kind == "missing":
         return f"missing config key '{path}'"
-    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+    if kind in _SIMPLE:
+        return f"{key} {_SIMPLE[kind]}, got {short_repr(value)}"
+    if kind in _BOUNDS:
         bound = next(iter(ctx.values()))
-        words = {("greater_than", 0): "positive", ("greater_than_equal", 0): "non-negative"}
-        ops = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
-        return f"{key} must be {words.get((kind, bound)) or f'{ops[kind]} {bound}'}, got {short_repr(value)}"
+        return f"{key} must be {_BOUND_WORDS.get((kind, bound)) or f'{_BOUNDS[kind]} {bound}'}, got {short_repr(value)}"
+    return _describe_other(kind, key, ctx, value, error)
+
+
+def _describe_other(kind: str, key: str, ctx: Mapping[str, Any], value, error: Mapping[str, Any]) -> str:
     if kind == "union_tag_invalid":
         disc = ctx["discriminator"].strip("'")
         return f"{key[:-1]}.{disc}' must be one of {ctx['expected_tags']}, got {short_repr(ctx['tag'])}"
@@ -145,19 +163,6 @@ def describe(error: Mapping[str, Any], schema, prefix: str) -> str:
         return f"{key} needs a {ctx['discriminator']} key, got {short_repr(value)}"
     if kind == "literal_error":
         return f"{key} must be one of {ctx['expected'].replace(' or ', ', ')}, got {short_repr(value)}"
-    if kind in ("model_type", "model_attributes_type", "dict_type"):
-        return f"{key} must be a mapping, got {short_repr(value)}"
-    if kind in ("list_type", "tuple_type"):
-        return f"{key} must be a list, got {short_repr(value)}"
-    if kind in ("float_parsing", "float_type", "int_parsing", "int_type", "finite_number"):
-        what = "an integer" if kind.startswith("int") else "a finite number"
-        return f"{key} must be {what}, got {short_repr(value)}"
-    if kind in ("int_from_float",):
-        return f"{key} must be an integer, got {short_repr(value)}"
-    if kind in ("bool_parsing", "bool_type"):
-        return f"{key} must be true or false, got {short_repr(value)}"
-    if kind in ("string_type",):
-        return f"{key} must be a string, got {short_repr(value)}"
     if kind == "value_error":
         msg = str(ctx.get("error", error["msg"]))
         return f"{key} {msg}" if msg.startswith("must ") else f"{key}: {msg}"
