@@ -101,8 +101,7 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of new tensors
     (contiguous, x's dtype, exactly those shapes, not overlapping x).  Fresh memory page-faults on first touch,
     which for large meshes costs more than the kernel itself: a caller that asks for the blocks in a loop keeps its
-    buffers between the calls (without them, large outputs take warm memory released by earlier outputs,
-    :func:`output_cache_info`)."""
+    buffers between the calls (or opts in to the cache of released outputs, :func:`set_output_cache_limit`)."""
     hb, g = (None, None) if out is None else out
     Hb, g, d2, theta, status = _module().bending_hessians(x, hinges, a, k, rest, c, prev, model_code(model), hb, g,
                                                           check)
@@ -138,12 +137,14 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
 
 
 def output_cache_info() -> dict[str, int]:
-    """The cache of large outputs (the per-hinge blocks of big meshes): memory of released outputs kept for the
-    next ones of the same size, so that repeated calls write into warm pages instead of page-faulting fresh
-    memory.  ``{"blocks", "bytes", "hits", "misses", "limit"}``; at most 4 blocks and ``limit`` bytes are kept:
-    ``TORCHBEND_OUTPUT_CACHE_MB`` megabytes, by default an eighth of the physical memory and at least 1 GiB (the
-    blocks of a million hinges take 1.15 GB in float64), see :func:`empty_output_cache` and
-    :func:`set_output_cache_limit`."""
+    """The opt-in cache of large outputs (4 MiB or more: the per-hinge blocks, projected blocks and assembled values
+    of big meshes): memory of released outputs kept, outside PyTorch's allocator, for the next outputs of the same
+    size, so that repeated calls write into warm pages instead of page-faulting fresh memory (the blocks of 1e5
+    hinges take 2.5x the time without it, benchmarks/results/backends_registration.txt).  Off by
+    default (``limit`` 0: every output is a plain tensor of PyTorch's allocator, large ones advised to
+    transparent huge pages); ``TORCHBEND_OUTPUT_CACHE_MB`` megabytes at start-up or :func:`set_output_cache_limit`
+    turn it on.  ``{"blocks", "bytes", "hits", "misses", "limit"}``: at most 4 blocks and ``limit`` bytes are kept
+    (the blocks of a million hinges take 1.15 GB in float64); :func:`empty_output_cache` frees them."""
     blocks, nbytes, hits, misses, limit = _module().output_cache_info()
     return {"blocks": blocks, "bytes": nbytes, "hits": hits, "misses": misses, "limit": limit}
 
@@ -156,7 +157,8 @@ def empty_output_cache() -> None:
 
 
 def set_output_cache_limit(megabytes: float) -> None:
-    """The most memory the cache of large outputs keeps (0: none; outputs then always take fresh memory)."""
+    """Turn the cache of large outputs on with at most ``megabytes`` kept (:func:`output_cache_info`), or off with 0
+    (the default: outputs take fresh memory of PyTorch's allocator)."""
     _module().set_output_cache_limit(int(megabytes * 2**20))
 
 

@@ -3,7 +3,6 @@
 #include <cstdlib>
 #include <mutex>
 #include <sys/mman.h>
-#include <unistd.h>
 
 #include "cpu_ops.h"
 #include "cpu_scatter.h"
@@ -32,15 +31,14 @@ int64_t fold_status(const torch::Tensor& theta, int64_t model) {
 
 // ---- large outputs ---------------------------------------------------------------------------------
 // Fresh memory page-faults on first touch: for the per-hinge blocks (1152 bytes a hinge in float64) the
-// faults cost several times the kernel itself (benchmarks/results/hessian_native_cpu_2core.txt).  Outputs
-// of at least kPoolMin bytes therefore take their memory from a small cache of blocks that earlier outputs
-// released: a loop that calls an operation repeatedly (a Newton solver, a benchmark) writes into warm
-// pages, as with the caller-provided out= buffers, without having to manage them.  At most kPoolBlocks
-// released blocks and `limit` bytes are kept (TORCHBEND_OUTPUT_CACHE_MB; 0: no cache, outputs are torch::empty
-// tensors whose 2 MiB-aligned interior is advised to transparent huge pages; default: an eighth of the
-// physical memory, at least 1 GiB, so that the blocks of a million hinges, 1.15 GB in float64, stay warm on a
-// machine of 16 GB or more); torchbend.backends.native.empty_output_cache() frees them.  Blocks are matched by
-// exact size.
+// faults cost more than the kernel itself (benchmarks/results/backends_registration.txt).  By default a large
+// output (kPoolMin bytes or more) is a plain torch::empty tensor (PyTorch's allocator: nothing is kept once it
+// is released) whose 2 MiB-aligned interior is advised to transparent huge pages before its first touch
+// (fewer, larger faults where the kernel's THP mode is "madvise" or "always").  Callers that ask for the blocks
+// in a loop keep their own buffers (out=, bending_hessians), or opt in to a cache of released outputs:
+// TORCHBEND_OUTPUT_CACHE_MB megabytes (unset or 0: no cache) or
+// torchbend.backends.native.set_output_cache_limit(megabytes).  The cache keeps at most kPoolBlocks released
+// blocks and `limit` bytes, matched by exact size; torchbend.backends.native.empty_output_cache() frees them.
 constexpr size_t kPoolMin = size_t(4) << 20, kPoolAlign = size_t(2) << 20;
 constexpr int kPoolBlocks = 4;
 
@@ -54,10 +52,8 @@ struct OutputPool {
 static OutputPool& output_pool() {
   static OutputPool* pool = [] {  // never destroyed: tensors may be released at interpreter exit
     auto* p = new OutputPool;
-    const char* env = std::getenv("TORCHBEND_OUTPUT_CACHE_MB");
-    long pages = sysconf(_SC_PHYS_PAGES), page = sysconf(_SC_PAGE_SIZE);
-    size_t eighth = pages > 0 && page > 0 ? size_t(pages) * size_t(page) / 8 : 0;
-    p->limit = env ? size_t(std::max(0L, std::atol(env))) << 20 : std::max(size_t(1) << 30, eighth);
+    const char* env = std::getenv("TORCHBEND_OUTPUT_CACHE_MB");  // opt-in: unset, no cache
+    p->limit = env ? size_t(std::max(0L, std::atol(env))) << 20 : 0;
     return p;
   }();
   return *pool;
