@@ -28,6 +28,7 @@ analytic gradient and its backward the analytic Hessian-vector product
 from __future__ import annotations
 
 import math
+from typing import Self
 
 import torch
 from torch import Tensor, nn
@@ -59,25 +60,10 @@ def hinge_angles(x: Tensor, topo: HingeTopology) -> Tensor:
     return hinge_angle(gather(x, topo.hinges.to(x.device)))
 
 
-class BendingEnergy(nn.Module):
-    """Discrete hinge bending energy with exact closed-form first and second derivatives.
-
-    Args:
-        faces: ``(F, 3)`` int triangle vertex indices, consistently oriented (or a :class:`HingeTopology`).
-        rest_positions: ``(V, 3)`` float rest positions [m]; defines ``a_h`` and the default rest angles.
-        model: ``"quadratic" | "tan" | "sin"`` (:class:`BendingModel`), keyword.
-        stiffness: ``k`` [N m], scalar or ``(H,)``; may be an ``nn.Parameter`` (then learnable).
-        rest_angles: ``(H,)`` [rad]; defaults to the angles of ``rest_positions``.  Pass an
-            ``nn.Parameter`` to learn them.
-        damping: viscous coefficient ``k_d`` [N m s] (scalar or ``(H,)``) or ``None`` (no term).
-        check_finite: check every input for NaN/Inf (``ValueError``); switch off for speed.
-        backend: ``"auto" | "eager" | "native"`` (:func:`torchbend.backends.select_backend`); each
-            method also takes ``backend=`` for one call.
-
-    Shapes: ``x: (..., V, 3)``; leading dimensions are meshes sharing this topology.  The energy
-    is ``(...,)`` [J] (``(..., M)`` for a module built by :meth:`packed` over ``M`` meshes).
-    dtype and device follow ``x``; module buffers are cast to ``x.dtype`` per call.
-    """
+class HingeModule(nn.Module):
+    """The hinges of a mesh and their parameters (stiffness, rest angles, damping), validated, with the
+    binding of positions to them and the choice of kernels: the base of :class:`BendingEnergy`, whose
+    docstring lists the arguments."""
 
     hinges: Tensor  # (H, 4) int64 stencils
     weights: Tensor  # (H,) rest weights a_h
@@ -129,7 +115,7 @@ class BendingEnergy(nn.Module):
             self.register_buffer(name, t)
 
     @classmethod
-    def packed(cls, meshes, rest_positions: Tensor | None = None, **kwargs) -> BendingEnergy:
+    def packed(cls, meshes, rest_positions: Tensor | None = None, **kwargs) -> Self:
         """A module over meshes of different topologies packed into one (:func:`torchbend.pack_meshes`);
         its ``forward`` returns per-mesh energies ``(..., M)``.  ``rest_positions`` defaults to ``meshes.verts``."""
         mod = cls(meshes.faces, meshes.verts if rest_positions is None else rest_positions, **kwargs)
@@ -173,6 +159,45 @@ class BendingEnergy(nn.Module):
 
     def _incidence(self) -> tuple[Tensor, Tensor]:
         return module_tensor(self, "_inc_ptr"), module_tensor(self, "_inc_idx")
+
+    def angles(self, x: Tensor) -> Tensor:
+        """Bend angles ``(..., H)`` [rad] of ``x`` (e.g. to pass as the next step's ``theta_prev``)."""
+        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        return self._theta(x)
+
+    def _theta(self, x: Tensor) -> Tensor:
+        """The angles as the energy's default path computes them (the compiled kernel where it runs), so that
+        the energy and its gradient vanish bit for bit at the rest shape."""
+        if backends.select_backend("energy", self.backend, x.detach()) is Backend.NATIVE:
+            from ..backends import kernels
+
+            return kernels.module(x).hinge_angles(x.detach(), self.hinges)
+        return hinge_angle(gather(x, self.hinges))
+
+    def extra_repr(self) -> str:
+        return (f"model={self.model.value}, vertices={self.vertex_count}, hinges={self.hinge_count}, "
+                f"damping={'yes' if self.damping is not None else 'no'}, backend={self.backend.value}")
+
+
+class BendingEnergy(HingeModule):
+    """Discrete hinge bending energy with exact closed-form first and second derivatives.
+
+    Args:
+        faces: ``(F, 3)`` int triangle vertex indices, consistently oriented (or a :class:`HingeTopology`).
+        rest_positions: ``(V, 3)`` float rest positions [m]; defines ``a_h`` and the default rest angles.
+        model: ``"quadratic" | "tan" | "sin"`` (:class:`BendingModel`), keyword.
+        stiffness: ``k`` [N m], scalar or ``(H,)``; may be an ``nn.Parameter`` (then learnable).
+        rest_angles: ``(H,)`` [rad]; defaults to the angles of ``rest_positions``.  Pass an
+            ``nn.Parameter`` to learn them.
+        damping: viscous coefficient ``k_d`` [N m s] (scalar or ``(H,)``) or ``None`` (no term).
+        check_finite: check every input for NaN/Inf (``ValueError``); switch off for speed.
+        backend: ``"auto" | "eager" | "native"`` (:func:`torchbend.backends.select_backend`); each
+            method also takes ``backend=`` for one call.
+
+    Shapes: ``x: (..., V, 3)``; leading dimensions are meshes sharing this topology.  The energy
+    is ``(...,)`` [J] (``(..., M)`` for a module built by :meth:`packed` over ``M`` meshes).
+    dtype and device follow ``x``; module buffers are cast to ``x.dtype`` per call.
+    """
 
     def forward(self, x: Tensor, *, theta_prev: Tensor | None = None, dt: float | None = None, backend=None) -> Tensor:
         """Energy [J] of ``x: (..., V, 3)`` [m]: ``(...,)`` (or ``(..., M)`` when packed); ``theta_prev: (..., H)``
@@ -232,21 +257,3 @@ class BendingEnergy(nn.Module):
         if self._pattern is None:
             self._pattern = HessianPattern(self.topology)
         return hs.assemble(x, self.topology, self.hinges, p, self.model, projection, how, self._pattern, backend)
-
-    def angles(self, x: Tensor) -> Tensor:
-        """Bend angles ``(..., H)`` [rad] of ``x`` (e.g. to pass as the next step's ``theta_prev``)."""
-        check_positions(x, self.vertex_count, check_finite=self.check_finite)
-        return self._theta(x)
-
-    def _theta(self, x: Tensor) -> Tensor:
-        """The angles as the energy's default path computes them (the compiled kernel where it runs), so that
-        the energy and its gradient vanish bit for bit at the rest shape."""
-        if backends.select_backend("energy", self.backend, x.detach()) is Backend.NATIVE:
-            from ..backends import kernels
-
-            return kernels.module(x).hinge_angles(x.detach(), self.hinges)
-        return hinge_angle(gather(x, self.hinges))
-
-    def extra_repr(self) -> str:
-        return (f"model={self.model.value}, vertices={self.vertex_count}, hinges={self.hinge_count}, "
-                f"damping={'yes' if self.damping is not None else 'no'}, backend={self.backend.value}")

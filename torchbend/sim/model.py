@@ -40,7 +40,7 @@ from .terms import (
     as_csr,
 )
 
-__all__ = ["ClothModel", "ClothState"]
+__all__ = ["ClothModel", "ClothState", "TermSum"]
 
 
 @dataclass
@@ -51,95 +51,16 @@ class ClothState:
     v: Tensor
 
 
-class ClothModel:
-    """Static data of a cloth scene: only the terms it declares are built and evaluated.
+class TermSum:
+    """A potential that is the sum of energy terms (:class:`~torchbend.EnergyTerm`): its energies, gradient,
+    Hessian, Hessian-vector products, diagonal blocks and step bound, each the sum (or minimum) over
+    :attr:`terms`, which a subclass provides (with ``vertex_count``).  :class:`ClothModel` is one."""
 
-    Args:
-        faces: ``(F, 3)`` int triangles (or a :class:`~torchbend.mesh.HingeTopology`).
-        rest_positions: ``(V, 3)`` [m]; its device and dtype are those of every tensor of the model.
-        terms: energy terms: :class:`~torchbend.EnergyTerm` instances (one's own, see the README's "Adding an
-            energy term"), and for the built-in ones a :class:`~torchbend.BendingEnergy`,
-            :class:`~torchbend.MembraneEnergy` or collider, which is the same as passing it by keyword.
-        bending: a :class:`~torchbend.BendingEnergy` over the same mesh, or ``None``.
-        membrane: a :class:`~torchbend.MembraneEnergy` over the same mesh, or ``None``.
-        density: areal density [kg/m^2] (> 0): lumped masses, 1/3 of each triangle's rest-area mass per vertex.
-        gravity: ``(3,)`` acceleration [m/s^2].
-        pinned: ``(V,)`` bool mask of vertices held at their given positions, integer vertex indices
-            (a tensor, array or list, of any length: ``V`` indices are indices, not a mask), or ``None``
-            (nothing pinned).
-        colliders: :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` instances.
-        contact_depth: the penetration [m] (> 0) a vertex may reach below a collider surface in one
-            Newton step (:meth:`max_step`); default ``CONTACT_DEPTH`` times the mean rest edge length.
-
-    Attributes:
-        topology: the :class:`~torchbend.mesh.HingeTopology` (integer connectivity, CPU).
-        rest_positions: ``(V, 3)`` [m].
-        mass: ``(V,)`` lumped vertex masses [kg].
-        gravity: ``(3,)`` [m/s^2].
-        pinned: ``(V,)`` bool.
-        colliders: tuple of colliders.
-        terms: every term of the potential, in evaluation order: membrane, bending, gravity, the colliders,
-            then the ``EnergyTerm`` instances given (built from the attributes above on each access, so that
-            assigning e.g. ``colliders`` or ``gravity`` changes them).
-        contact_depth: see above [m] (computed from the rest edges on first use when not given).
-
-    A model may be built on the ``meta`` device (shapes only): the checks that need values are
-    then skipped, and it cannot be solved.
-    """
-
-    def __init__(self, faces, rest_positions, *, terms=(), bending: BendingEnergy | None = None,
-                 membrane: MembraneEnergy | None = None, density: float = 0.1,
-                 gravity=(0.0, 0.0, -9.81), pinned=None, colliders=(), contact_depth: float | None = None):
-        topo, rest = mesh_and_rest(faces, rest_positions)
-        V = topo.vertex_count
-        density = positive(density, "density")
-        bending, membrane, colliders, extra = _split_terms(terms, bending, membrane, colliders)
-        _check_terms(V, bending, membrane)
-        self.extra_terms = extra
-        self.topology = topo
-        self.rest_positions = rest
-        self.bending, self.membrane = bending, membrane
-        self.density = density
-        self.gravity = torch.tensor(_gravity(gravity), dtype=rest.dtype, device=rest.device)
-        self.pinned = _pinned_mask(pinned, V, rest.device)
-        self.colliders = _check_colliders(colliders)
-        self.mass = density * lumped_areas(topo.faces.to(rest.device), rest)
-        self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
-
-    CONTACT_DEPTH = 0.01
-    """Default :attr:`contact_depth` relative to the mean rest edge length."""
+    vertex_count: int
 
     @property
-    def vertex_count(self) -> int:
-        return self.topology.vertex_count
-
-    @property
-    def contact_depth(self) -> float:
-        """The penetration [m] a vertex outside a collider may reach in one Newton step (:meth:`max_step`)."""
-        if self._contact_depth is None:
-            e = self.topology.edges.to(self.rest_positions.device)
-            length = float((self.rest_positions[e[:, 1]] - self.rest_positions[e[:, 0]]).norm(dim=-1).mean())
-            self._contact_depth = self.CONTACT_DEPTH * length if length > 0 else 1.0
-        return self._contact_depth
-
-    def external_force(self, dtype=None) -> Tensor:
-        """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses'): the gravity term's."""
-        return GravityTerm(self.mass, self.gravity).force(dtype)
-
-    @property
-    def terms(self) -> tuple[EnergyTerm, ...]:
-        """The terms of the potential (class docstring)."""
-        out: list[EnergyTerm] = []
-        if self.membrane is not None:
-            out.append(MembraneTerm(self.membrane))
-        if self.bending is not None:
-            out.append(BendingTerm(self.bending))
-        out.append(GravityTerm(self.mass, self.gravity))
-        if self.colliders:
-            depth = lambda: self.contact_depth  # noqa: E731 - evaluated by a step bound only
-            out.extend(ColliderTerm(c, depth, name=f"collider{i}") for i, c in enumerate(self.colliders))
-        out.extend(self.extra_terms)
-        return tuple(out)
+    def terms(self) -> tuple[EnergyTerm, ...]:  # pragma: no cover - abstract
+        raise NotImplementedError
 
     def loss(self, weights=None, *, reduction: str = "mean", ctx: StepContext | None = None) -> ClothLoss:
         """The model's potential as a :class:`~torchbend.ClothLoss` over batches of positions ``(B, V, 3)``:
@@ -245,6 +166,96 @@ class ClothModel:
             out = out + t.block_diagonal(x, ctx, self._projection(t, option, contact))
         return out
 
+
+class ClothModel(TermSum):
+    """Static data of a cloth scene: only the terms it declares are built and evaluated.
+
+    Args:
+        faces: ``(F, 3)`` int triangles (or a :class:`~torchbend.mesh.HingeTopology`).
+        rest_positions: ``(V, 3)`` [m]; its device and dtype are those of every tensor of the model.
+        terms: energy terms: :class:`~torchbend.EnergyTerm` instances (one's own, see the README's "Adding an
+            energy term"), and for the built-in ones a :class:`~torchbend.BendingEnergy`,
+            :class:`~torchbend.MembraneEnergy` or collider, which is the same as passing it by keyword.
+        bending: a :class:`~torchbend.BendingEnergy` over the same mesh, or ``None``.
+        membrane: a :class:`~torchbend.MembraneEnergy` over the same mesh, or ``None``.
+        density: areal density [kg/m^2] (> 0): lumped masses, 1/3 of each triangle's rest-area mass per vertex.
+        gravity: ``(3,)`` acceleration [m/s^2].
+        pinned: ``(V,)`` bool mask of vertices held at their given positions, integer vertex indices
+            (a tensor, array or list, of any length: ``V`` indices are indices, not a mask), or ``None``
+            (nothing pinned).
+        colliders: :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` instances.
+        contact_depth: the penetration [m] (> 0) a vertex may reach below a collider surface in one
+            Newton step (:meth:`max_step`); default ``CONTACT_DEPTH`` times the mean rest edge length.
+
+    Attributes:
+        topology: the :class:`~torchbend.mesh.HingeTopology` (integer connectivity, CPU).
+        rest_positions: ``(V, 3)`` [m].
+        mass: ``(V,)`` lumped vertex masses [kg].
+        gravity: ``(3,)`` [m/s^2].
+        pinned: ``(V,)`` bool.
+        colliders: tuple of colliders.
+        terms: every term of the potential, in evaluation order: membrane, bending, gravity, the colliders,
+            then the ``EnergyTerm`` instances given (built from the attributes above on each access, so that
+            assigning e.g. ``colliders`` or ``gravity`` changes them).
+        contact_depth: see above [m] (computed from the rest edges on first use when not given).
+
+    A model may be built on the ``meta`` device (shapes only): the checks that need values are
+    then skipped, and it cannot be solved.
+    """
+
+    def __init__(self, faces, rest_positions, *, terms=(), bending: BendingEnergy | None = None,
+                 membrane: MembraneEnergy | None = None, density: float = 0.1,
+                 gravity=(0.0, 0.0, -9.81), pinned=None, colliders=(), contact_depth: float | None = None):
+        topo, rest = mesh_and_rest(faces, rest_positions)
+        V = topo.vertex_count
+        density = positive(density, "density")
+        bending, membrane, colliders, extra = _split_terms(terms, bending, membrane, colliders)
+        _check_terms(V, bending, membrane)
+        self.extra_terms = extra
+        self.topology = topo
+        self.rest_positions = rest
+        self.bending, self.membrane = bending, membrane
+        self.density = density
+        self.gravity = torch.tensor(_gravity(gravity), dtype=rest.dtype, device=rest.device)
+        self.pinned = _pinned_mask(pinned, V, rest.device)
+        self.colliders = _check_colliders(colliders)
+        self.mass = density * lumped_areas(topo.faces.to(rest.device), rest)
+        self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
+
+    CONTACT_DEPTH = 0.01
+    """Default :attr:`contact_depth` relative to the mean rest edge length."""
+
+    @property
+    def vertex_count(self) -> int:
+        return self.topology.vertex_count
+
+    @property
+    def contact_depth(self) -> float:
+        """The penetration [m] a vertex outside a collider may reach in one Newton step (:meth:`max_step`)."""
+        if self._contact_depth is None:
+            e = self.topology.edges.to(self.rest_positions.device)
+            length = float((self.rest_positions[e[:, 1]] - self.rest_positions[e[:, 0]]).norm(dim=-1).mean())
+            self._contact_depth = self.CONTACT_DEPTH * length if length > 0 else 1.0
+        return self._contact_depth
+
+    def external_force(self, dtype=None) -> Tensor:
+        """Gravity force ``m_i g`` ``(V, 3)`` [N] (in ``dtype``, default the masses'): the gravity term's."""
+        return GravityTerm(self.mass, self.gravity).force(dtype)
+
+    @property
+    def terms(self) -> tuple[EnergyTerm, ...]:
+        """The terms of the potential (class docstring)."""
+        out: list[EnergyTerm] = []
+        if self.membrane is not None:
+            out.append(MembraneTerm(self.membrane))
+        if self.bending is not None:
+            out.append(BendingTerm(self.bending))
+        out.append(GravityTerm(self.mass, self.gravity))
+        if self.colliders:
+            depth = lambda: self.contact_depth  # noqa: E731 - evaluated by a step bound only
+            out.extend(ColliderTerm(c, depth, name=f"collider{i}") for i, c in enumerate(self.colliders))
+        out.extend(self.extra_terms)
+        return tuple(out)
 
 # -------------------------------------------------------------------- construction helpers
 def _gravity(gravity) -> tuple[float, float, float]:

@@ -460,8 +460,10 @@ class _Stop(Exception):
         self.reason, self.message, self.converged = reason, message, converged
 
 
-class _NewtonRun:
-    """The state of one Newton solve (see :func:`_newton` and the module docstring)."""
+class _RunRecord:
+    """The state of one Newton solve (see :func:`_newton` and the module docstring): the iterates, the force
+    scale, the best iterate kept, the switch from a projected to the exact Hessian and the final report;
+    :class:`_NewtonRun` iterates."""
 
     def __init__(self, phi: _Potential, linear: LinearSolver, *, tol: float, max_iters: int, check_minimum: bool,
                  callback: Callable | None, deadline: float | None, time_limit: float | None, max_line_search: int):
@@ -511,33 +513,6 @@ class _NewtonRun:
         self.scale = max(float(magnitudes.norm()), torch.finfo(x.dtype).tiny)
         self.scale_at = self.it
 
-    # ---------------------------------------------------------------- driver
-    def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
-        info = self.info
-        try:
-            try:
-                energy, terms = self.phi.value(x)
-            except ValueError as err:
-                raise _Stop("evaluation_error", f"the potential cannot be evaluated at the initial state: {err}") from None
-            info.energy_history.append(energy)
-            info.energy, info.energies = energy, terms
-            if unbounded:
-                raise _Stop("rigid_body_modes", "the cloth has free rigid-body modes (no pinned vertices and no "
-                            "colliders): under gravity its potential is unbounded below; pin vertices or add a collider")
-            if not math.isfinite(energy):
-                raise _Stop("non_finite", "non-finite potential at the initial state")
-            while True:
-                gf, noise = self._evaluate(x, energy, terms)
-                step = self._test(x, gf, energy, noise)
-                if step is None:
-                    step = self._step(x, gf, energy, terms, noise)
-                x, energy, terms, self.alpha = step.x, step.energy, step.terms, step.alpha
-                self.it += 1
-                info.iterations = self.it
-                info.energy_history.append(energy)
-        except _Stop as stop:
-            return self._finish(x, stop)
-
     def _where(self) -> str:
         return f"returned the best iterate (iteration {self.best.iteration if self.best else 0})"
 
@@ -569,6 +544,50 @@ class _NewtonRun:
             _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d",
                      it, res, tolerance, energy, self.alpha, info.cg_iterations - self.cg_before)
         return gf, noise
+
+    def _finish(self, x: Tensor, stop: _Stop) -> tuple[Tensor, SolveInfo]:
+        info = self.info
+        info.converged, info.stop_reason, info.message = stop.converged, stop.reason, stop.message
+        ret = self.current if stop.converged or self.best is None else self.best
+        if ret is not None:
+            info.residual, info.energy, info.energies = ret.residual, ret.energy, ret.terms
+            info.tolerance, info.force_scale, info.best_iteration = ret.tolerance, ret.scale, ret.iteration
+        info.seconds = time.perf_counter() - self.t0
+        level = logging.INFO if info.seconds > _INFO_AFTER_S else logging.DEBUG
+        _log.log(level, "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
+                 info.residual, info.seconds)
+        return (ret.x if ret is not None else x), info
+
+
+class _NewtonRun(_RunRecord):
+    """One Newton solve: the stopping tests, the negative-curvature check and the steps."""
+
+    # ---------------------------------------------------------------- driver
+    def solve(self, x: Tensor, unbounded: bool) -> tuple[Tensor, SolveInfo]:
+        info = self.info
+        try:
+            try:
+                energy, terms = self.phi.value(x)
+            except ValueError as err:
+                raise _Stop("evaluation_error", f"the potential cannot be evaluated at the initial state: {err}") from None
+            info.energy_history.append(energy)
+            info.energy, info.energies = energy, terms
+            if unbounded:
+                raise _Stop("rigid_body_modes", "the cloth has free rigid-body modes (no pinned vertices and no "
+                            "colliders): under gravity its potential is unbounded below; pin vertices or add a collider")
+            if not math.isfinite(energy):
+                raise _Stop("non_finite", "non-finite potential at the initial state")
+            while True:
+                gf, noise = self._evaluate(x, energy, terms)
+                step = self._test(x, gf, energy, noise)
+                if step is None:
+                    step = self._step(x, gf, energy, terms, noise)
+                x, energy, terms, self.alpha = step.x, step.energy, step.terms, step.alpha
+                self.it += 1
+                info.iterations = self.it
+                info.energy_history.append(energy)
+        except _Stop as stop:
+            return self._finish(x, stop)
 
     def _test(self, x: Tensor, gf: np.ndarray, energy: float, noise: float) -> LineSearchResult | None:
         """The stopping tests at the evaluated iterate; raises :class:`_Stop`, or returns a
@@ -658,19 +677,6 @@ class _NewtonRun:
         what = ("a regularised direction (the Hessian on the free DOFs is indefinite or singular)" if regularized
                 else "the Newton direction")
         raise _Stop("line_search", f"line search exhausted at iteration {it}: no decrease along {what}; {self._where()}")
-
-    def _finish(self, x: Tensor, stop: _Stop) -> tuple[Tensor, SolveInfo]:
-        info = self.info
-        info.converged, info.stop_reason, info.message = stop.converged, stop.reason, stop.message
-        ret = self.current if stop.converged or self.best is None else self.best
-        if ret is not None:
-            info.residual, info.energy, info.energies = ret.residual, ret.energy, ret.terms
-            info.tolerance, info.force_scale, info.best_iteration = ret.tolerance, ret.scale, ret.iteration
-        info.seconds = time.perf_counter() - self.t0
-        level = logging.INFO if info.seconds > _INFO_AFTER_S else logging.DEBUG
-        _log.log(level, "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
-                 info.residual, info.seconds)
-        return (ret.x if ret is not None else x), info
 
 
 def _check_minimum(phi: _Potential, x: Tensor, gf: np.ndarray, energy: float, noise: float,
