@@ -345,8 +345,17 @@ def test_native_blocks_same_bits_aligned_or_not(kernel, dtype):
 
 
 def test_large_outputs_reuse_released_memory(kernel):
-    """Blocks of 4 MB or more take memory released by earlier outputs (warm pages, no page faults): never that
-    of a live tensor; native.empty_output_cache() frees it, a limit of 0 turns the cache off."""
+    """With the (opt-in) cache on, blocks of 4 MB or more take memory released by earlier outputs (warm pages, no
+    page faults): never that of a live tensor; native.empty_output_cache() frees it, a limit of 0 turns the cache off."""
+    default = native.output_cache_info()["limit"]
+    native.set_output_cache_limit(2048)
+    try:
+        _check_output_cache_reuse()
+    finally:
+        native.set_output_cache_limit(default / 2**20)
+
+
+def _check_output_cache_reuse():
     rest, faces = tb.scenes.random_curved_sheet(40, 40, amplitude=0.3, seed=3, dtype=F64)
     bend = tb.BendingEnergy(faces, rest, model="tan")
     assert bend.hinge_count * 144 * 8 >= 4 << 20
@@ -379,9 +388,8 @@ def test_large_outputs_reuse_released_memory(kernel):
 
 
 def test_output_cache_default_limit(kernel):
-    """The cache keeps TORCHBEND_OUTPUT_CACHE_MB megabytes, by default an eighth of the physical memory and at
-    least 1 GiB (a million hinges' blocks in float64, 1.15 GB, stay warm with 16 GB or more)."""
+    """The cache is opt-in: it keeps TORCHBEND_OUTPUT_CACHE_MB megabytes when that is set, none by default (no
+    memory outside PyTorch's allocator is held unless asked for)."""
     env = os.environ.get("TORCHBEND_OUTPUT_CACHE_MB")
-    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    expected = int(env) << 20 if env is not None else max(1 << 30, physical // 8)
+    expected = int(env) << 20 if env is not None else 0
     assert native.output_cache_info()["limit"] == expected
