@@ -11,6 +11,7 @@ torchbend never imports this folder.
 """
 from __future__ import annotations
 
+import argparse
 import os
 import time
 from typing import Annotated
@@ -58,6 +59,39 @@ class ModelSection(Section):
 
     hidden: Width = 128
     layers: Depth = 3
+
+
+def config_file(name: str) -> str:
+    """The path of the shipped config ``configs/<name>`` (a script's default ``--config``)."""
+    return os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", name))
+
+
+class TrainBase(Section):
+    """The keys every script's ``train`` section has: ``steps``, ``batch``, ``lr``, ``log_every``,
+    ``checkpoint_every``, ``seed`` (each script's section adds its own and sets its defaults)."""
+
+    steps: PositiveInt = 300
+    batch: Batch = 16
+    lr: Positive = 1e-3
+    log_every: PositiveInt = 10
+    checkpoint_every: PositiveInt = 50
+    seed: Seed = 0
+
+
+def script_parser(doc: str | None, config: str, out: str, section: str = "train") -> argparse.ArgumentParser:
+    """The argument parser of a training script: the common options of every torchbend script
+    (:func:`torchbend.scenes.cli.add_common_args`) and ``--steps`` (overriding ``<section>.steps``)."""
+    p = argparse.ArgumentParser(description=(doc or "").partition("\n")[0])
+    cli.add_common_args(p, config=config, out=out)
+    p.add_argument("--steps", type=cli.positive_int, help=f"override {section}.steps")
+    return p
+
+
+def flag_overrides(a: argparse.Namespace, section: str = "train", **flags) -> list[str]:
+    """``--set`` overrides plus the script's own flags (``--steps``, ``--seed`` and ``flags``) as
+    ``<section>.<flag>=<value>`` overrides (flags not given are left out)."""
+    given = {"steps": a.steps, "seed": a.seed, **flags}
+    return list(a.overrides) + [f"{section}.{k}={v}" for k, v in given.items() if v is not None]
 
 
 def check_network_size(count: int, what: str) -> int:

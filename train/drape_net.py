@@ -28,51 +28,20 @@ import os
 import time
 from typing import Annotated, Literal
 
+import common as tc
 import torch
-from common import (
-    Batch,
-    ClothPhysics,
-    Float,
-    Int,
-    ModelSection,
-    NonNegative,
-    Positive,
-    PositiveInt,
-    Section,
-    Seed,
-    Timer,
-    check_network_size,
-    distributed,
-    load_checkpoint,
-    read_config,
-    resume_run,
-    save_checkpoint,
-    seed_everything,
-    total,
-)
 from pydantic import Field, model_validator
 from torch import nn
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import (
-    BendingSection,
-    ColliderSpec,
-    ConfigError,
-    ContactSection,
-    GridMesh,
-    MaterialSection,
-    MembraneSection,
-    MeshSection,
-    PhysicsConfig,
-    PlaneSpec,
-)
+from torchbend.scenes import config as sc
 
 log = logging.getLogger("train.drape_net")
-CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_drape.yaml"))
+CONFIG = tc.config_file("train_drape.yaml")
 
 
-class SceneSection(Section):
+class SceneSection(tc.Section):
     """``scene``: sphere centres uniform in ``[-center_range, center_range]^2`` [m], radii in
     ``[radius_min, radius_max]`` [m]; ``fixed_conditions``: one batch for the whole run.
 
@@ -82,9 +51,9 @@ class SceneSection(Section):
     cannot hold a free cloth, whose potential is lowest once it has slid off onto the ground (Newton
     from a drape over the sphere ends there), so an energy-trained network drifts towards that."""
 
-    center_range: NonNegative = 0.1
-    radius_min: Positive = 0.2
-    radius_max: Positive = 0.3
+    center_range: tc.NonNegative = 0.1
+    radius_min: tc.Positive = 0.2
+    radius_max: tc.Positive = 0.3
     fixed_conditions: bool = False
     hold_center: bool = True
 
@@ -95,7 +64,7 @@ class SceneSection(Section):
         return self
 
 
-class TrainSection(Section):
+class TrainSection(tc.TrainBase):
     """``train``: optimisation (Adam), logging cadence, torch's intra-op CPU ``threads``.
 
     ``lr_schedule: cosine`` decays the learning rate from ``lr`` to ``lr * lr_final`` over the run
@@ -104,33 +73,29 @@ class TrainSection(Section):
     the Newton equilibria in energy).  One thread suits these small tensors: two, on a shared 2-core
     machine, ran 10-20x slower per step (0: torch's default)."""
 
-    steps: PositiveInt = 1000
-    batch: Batch = 16
-    lr: Positive = 3e-3
+    steps: tc.PositiveInt = 1000
+    lr: tc.Positive = 3e-3
     lr_schedule: Literal["constant", "cosine"] = "cosine"
-    lr_final: Annotated[Float, Field(gt=0, le=1)] = 0.01  # cosine: the last step's lr relative to lr
+    lr_final: Annotated[tc.Float, Field(gt=0, le=1)] = 0.01  # cosine: the last step's lr relative to lr
     loss: Literal["energy", "residual"] = "energy"
-    log_every: PositiveInt = 10
-    mesh_every: PositiveInt = 100
-    checkpoint_every: PositiveInt = 50
-    seed: Seed = 0
+    mesh_every: tc.PositiveInt = 100
     dtype: Literal["float32", "float64"] = "float64"
-    threads: Annotated[Int, Field(ge=0)] = 1
+    threads: Annotated[tc.Int, Field(ge=0)] = 1
 
 
-class EvalSection(Section):
+class EvalSection(tc.Section):
     """``eval``: checks at the end of a run, on held-out conditions drawn with ``seed`` (apart from
     training's): the cap gap (:func:`cap_gap`) of the predictions for ``conditions`` of them, and
     Newton from the predictions for the first ``newton`` (also drawn in ``drapes.png``), at most
     ``time_limit`` [s] each (:meth:`SphereDrape.check`)."""
 
-    conditions: Batch = 32
-    newton: Annotated[Int, Field(ge=0)] = 3
-    time_limit: Positive = 20.0
-    seed: Seed = 12345
+    conditions: tc.Batch = 32
+    newton: Annotated[tc.Int, Field(ge=0)] = 3
+    time_limit: tc.Positive = 20.0
+    seed: tc.Seed = 12345
 
 
-class Config(PhysicsConfig):
+class Config(sc.PhysicsConfig):
     """The drape network's config (``configs/train_drape.yaml``): the physics sections of a scene config
     (:class:`~torchbend.scenes.config.PhysicsConfig`; by default a 9 x 9 cloth of 0.8 m at a height of
     0.32 m, membrane, bending, gravity, the ground plane z = -0.4 m as a collider and the spheres under the
@@ -138,14 +103,14 @@ class Config(PhysicsConfig):
     asset:skirt.obj, pin: {z_min: -0.001}}``) replaces the square cloth; its pinned vertices stay at their
     rest positions (the network predicts no displacement there: ``configs/train_skirt.yaml``)."""
 
-    mesh: MeshSection = GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
-    material: MaterialSection = MaterialSection(young=2e4, poisson=0.3, thickness=1e-3, density=0.2)
-    bending: BendingSection | None = BendingSection(model="tan", stiffness=1e-4)
-    membrane: MembraneSection | None = MembraneSection()
-    colliders: list[ColliderSpec] = [PlaneSpec(type="plane", point=(0.0, 0.0, -0.4), stiffness=2e3)]
-    contact: ContactSection | None = ContactSection(stiffness=2e3)
+    mesh: sc.MeshSection = sc.GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
+    material: sc.MaterialSection = sc.MaterialSection(young=2e4, poisson=0.3, thickness=1e-3, density=0.2)
+    bending: sc.BendingSection | None = sc.BendingSection(model="tan", stiffness=1e-4)
+    membrane: sc.MembraneSection | None = sc.MembraneSection()
+    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, -0.4), stiffness=2e3)]
+    contact: sc.ContactSection | None = sc.ContactSection(stiffness=2e3)
     scene: SceneSection = SceneSection()
-    model: ModelSection = ModelSection()
+    model: tc.ModelSection = tc.ModelSection()
     train: TrainSection = TrainSection()
     eval: EvalSection = EvalSection()
 
@@ -157,7 +122,7 @@ class DrapeNet(nn.Module):
     def __init__(self, vertex_count: int, hidden: int, layers: int, inputs: int = 3,
                  pinned: torch.Tensor | None = None):
         super().__init__()
-        check_network_size(inputs * hidden + (layers - 1) * hidden * (hidden + 1) + (hidden + 1) * 3 * vertex_count,
+        tc.check_network_size(inputs * hidden + (layers - 1) * hidden * (hidden + 1) + (hidden + 1) * 3 * vertex_count,
                            f"model.hidden ({hidden}), model.layers ({layers}) or the cloth ({vertex_count} vertices)")
         free = torch.ones(vertex_count, 1) if pinned is None else (~pinned.reshape(-1, 1).bool()).float()
         self.register_buffer("free", free, persistent=False)  # (V, 1): 0 at pinned vertices
@@ -226,7 +191,7 @@ class SphereDrape:
     """The cloth of ``physics`` over per-sample spheres: where predictions start, the held vertex, and
     the same potential as a :class:`torchbend.ClothModel` for reference (Newton) solves."""
 
-    def __init__(self, cfg: dict, physics: ClothPhysics):
+    def __init__(self, cfg: dict, physics: tc.ClothPhysics):
         self.physics = physics
         rest = physics.rest
         self.hold = bool(cfg["scene"]["hold_center"])
@@ -299,9 +264,9 @@ class SphereDrape:
 def init_weights(path: str, cfg: dict, model: nn.Module, device) -> None:
     """``--init``: the network weights (``model``) of the checkpoint at ``path`` loaded into ``model``;
     :class:`ConfigError` naming the path when it holds none or they do not fit."""
-    ck = load_checkpoint(path, map_location=device)
+    ck = tc.load_checkpoint(path, map_location=device)
     if not isinstance(ck.get("model"), dict):
-        raise ConfigError(f"--init: {path} holds no network weights ('model')")
+        raise sc.ConfigError(f"--init: {path} holds no network weights ('model')")
     changed = cli.changed_keys(ck["config"], cfg) if isinstance(ck.get("config"), dict) else []
     cli.restore(path, changed, (model, ck["model"]), flag="--init")
 
@@ -321,17 +286,15 @@ def loss_fn(kind: str, scene: SphereDrape, x, center, radius):
     physics = scene.physics
     if kind == "energy":
         terms = physics.energies(x, center, radius)
-        return total(terms).mean(), terms
+        return tc.total(terms).mean(), terms
     if kind == "residual":
         return scene.residual(x, center, radius).mean(), None
     raise ValueError(f"config key 'train.loss' must be 'energy' or 'residual', got {kind!r}")
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    cli.add_common_args(p, config=CONFIG, out="runs/drape_net")
+    p = tc.script_parser(__doc__, CONFIG, "runs/drape_net")
     p.add_argument("--loss", choices=["energy", "residual"], help="override train.loss")
-    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
     p.add_argument("--lr", type=cli.positive_float, help="override train.lr")
     p.add_argument("--init", help="start from the network weights of this checkpoint (fresh optimizer, step 0), "
                    "e.g. residual fine-tuning of an energy-trained network")
@@ -340,8 +303,7 @@ def parse_args(argv=None):
 
 def overrides(a: argparse.Namespace) -> list[str]:
     """``--set`` overrides plus the script's own flags (``--loss``, ``--steps``, ``--seed``, ``--lr``)."""
-    flags = {"loss": a.loss, "steps": a.steps, "seed": a.seed, "lr": a.lr}
-    return list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None]
+    return tc.flag_overrides(a, loss=a.loss, lr=a.lr)
 
 
 def log_step(writer, scene: SphereDrape, step: int, x, center, radius, loss: float, seconds: float) -> None:
@@ -352,7 +314,7 @@ def log_step(writer, scene: SphereDrape, step: int, x, center, radius, loss: flo
         terms = physics.energies(x.detach(), center, radius)
     for k, v in terms.items():
         writer.add_scalar(f"energy/{k}", float(v.mean()), step)
-    writer.add_scalar("energy/total", float(total(terms).mean()), step)
+    writer.add_scalar("energy/total", float(tc.total(terms).mean()), step)
     xg = x.detach().requires_grad_()
     writer.add_scalar("residual/mass_weighted_sq", float(scene.residual(xg, center, radius).detach().mean()), step)
     g = physics.gradient(xg, center, radius).detach() * scene.free[:, None]
@@ -364,7 +326,7 @@ def log_step(writer, scene: SphereDrape, step: int, x, center, radius, loss: flo
     writer.add_scalar("time/seconds_per_step", seconds, step)
 
 
-def drawn_colliders(physics: ClothPhysics, center, radius: float) -> list:
+def drawn_colliders(physics: tc.ClothPhysics, center, radius: float) -> list:
     """The colliders of one sample for the PNG: its sphere (when the physics has one) and the config's colliders."""
     out = list(physics.solver_model.colliders)
     if "sphere" in physics.terms:
@@ -392,7 +354,7 @@ def evaluate(cfg: dict, net: nn.Module, scene: SphereDrape, dtype, device) -> tu
         logging.getLogger("torchbend.sim").setLevel(max(level, logging.WARNING))  # no per-iteration INFO lines
         ref = scene
         if scene.physics.rest.dtype != torch.float64 or scene.physics.rest.device.type != "cpu":
-            ref = SphereDrape(cfg, ClothPhysics(scene.physics.cfg, dtype=torch.float64, device="cpu"))
+            ref = SphereDrape(cfg, tc.ClothPhysics(scene.physics.cfg, dtype=torch.float64, device="cpu"))
         try:
             checks = ref.check(*(v[:k].detach().cpu().double() for v in (x, center, radius)), time_limit=float(e["time_limit"]))
         finally:
@@ -424,7 +386,7 @@ def summary_line(result: dict, out: str) -> str:
     return " | ".join(parts)
 
 
-def save_outputs(out: str, physics: ClothPhysics, result: dict, drawn: list) -> None:
+def save_outputs(out: str, physics: tc.ClothPhysics, result: dict, drawn: list) -> None:
     """Rank 0 at the end: ``drapes.png`` (three held-out drapes with their colliders, from above and
     from the side) and ``history.json``."""
     from torchbend.scenes.plot import snapshot
@@ -454,15 +416,15 @@ def intra_op_threads(threads: int):
 def main(argv=None) -> dict:
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
-    config = read_config(a.config, Config, overrides(a))
+    config = tc.read_config(a.config, Config, overrides(a))
     with intra_op_threads(config.train.threads):
         return train(a, config, device)
 
 
-def _check_pins(physics: ClothPhysics, loss: str) -> torch.Tensor | None:
+def _check_pins(physics: tc.ClothPhysics, loss: str) -> torch.Tensor | None:
     """The mesh's pins; the residual loss refuses them (it would hold the pins' reaction forces)."""
     if physics.pinned is not None and loss == "residual":
-        raise ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
+        raise sc.ConfigError("config key 'train.loss': 'residual' does not support a pinned mesh ('mesh.pin'); "
                           "use 'energy'")
     return physics.pinned
 
@@ -475,10 +437,10 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
 
     cfg = config.model_dump(mode="json")
     t = cfg["train"]
-    rank, world = distributed()
+    rank, world = tc.distributed()
     dtype = getattr(torch, t["dtype"])
-    seed_everything(int(t["seed"]))
-    physics = ClothPhysics(config, dtype=dtype, device=device)
+    tc.seed_everything(int(t["seed"]))
+    physics = tc.ClothPhysics(config, dtype=dtype, device=device)
     pinned = _check_pins(physics, t["loss"])
     scene = SphereDrape(cfg, physics)
     model = DrapeNet(len(physics.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
@@ -491,11 +453,11 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     if a.init:
         init_weights(a.init, cfg, model, device)
     if a.resume:
-        start = resume_run(ckpt_path, cfg, log, (model, "model"), (opt, "optimizer"), map_location=device)
+        start = tc.resume_run(ckpt_path, cfg, log, (model, "model"), (opt, "optimizer"), map_location=device)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + rank + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb")) if rank == 0 else None
     history = []
-    timer = Timer()
+    timer = tc.Timer()
     steps = int(t["steps"])
     cond, center, radius = sample_conditions(cfg, int(t["batch"]), gen, dtype, device)
     for step in tqdm(range(start + 1, steps + 1), desc=f"train ({t['loss']})", disable=a.no_progress or rank != 0,
@@ -516,7 +478,7 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
         if writer is not None and step % int(t["mesh_every"]) == 0:
             writer.add_mesh("prediction", vertices=x.detach()[:1].float(), faces=physics.faces[None].int(), global_step=step)
         if rank == 0 and (step % int(t["checkpoint_every"]) == 0 or step == steps):
-            save_checkpoint(ckpt_path, step=step, model=model.state_dict(), optimizer=opt.state_dict(), config=cfg)
+            tc.save_checkpoint(ckpt_path, step=step, model=model.state_dict(), optimizer=opt.state_dict(), config=cfg)
     train_seconds = timer.total()
     result: dict = {"losses": history, "start": start, "steps": steps, "loss_kind": t["loss"]}
     if writer is not None:

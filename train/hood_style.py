@@ -40,40 +40,17 @@ import math
 import os
 from typing import Annotated, Literal
 
+import common as tc
 import torch
-from common import (
-    Batch,
-    Int,
-    ModelSection,
-    NonNegative,
-    Positive,
-    PositiveInt,
-    Section,
-    Seed,
-    Timer,
-    check_network_size,
-    load_config,
-    resume_run,
-    save_checkpoint,
-    seed_everything,
-)
 from pydantic import AfterValidator, BeforeValidator, Field
 from torch import nn
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import (
-    ConfigError,
-    ContactSection,
-    GridMesh,
-    MaterialSection,
-    MeshSection,
-    PhysicsConfig,
-    build_mesh,
-)
+from torchbend.scenes import config as sc
 
 log = logging.getLogger("train.hood_style")
-CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_hood.yaml"))
+CONFIG = tc.config_file("train_hood.yaml")
 TERMS = ("stretch", "bending", "gravity", "inertia", "contact")
 
 
@@ -94,11 +71,11 @@ def _ordered(value):
 
 Ratio = Annotated[float, Field(gt=-1.0, lt=2.0)]
 # a sampling range [lo, hi] (lo <= hi), of positive numbers or of Lame ratios in (-1, 2)
-PositiveRange = Annotated[tuple[Positive, Positive], BeforeValidator(_pair), AfterValidator(_ordered)]
+PositiveRange = Annotated[tuple[tc.Positive, tc.Positive], BeforeValidator(_pair), AfterValidator(_ordered)]
 RatioRange = Annotated[tuple[Ratio, Ratio], BeforeValidator(_pair), AfterValidator(_ordered)]
 
 
-class SamplingSection(Section):
+class SamplingSection(tc.Section):
     """``sampling``: HOOD's material coefficients, sampled per sequence in ``[lo, hi]``: ``lame_mu`` [Pa] and
     ``bending_coeff`` [N m] log-uniform, ``lame_lambda = ratio * lame_mu`` with the ratio uniform in
     ``lame_lambda_ratio`` (within (-1, 2): a Poisson ratio in (-1, 0.5)), areal ``density`` [kg/m^2]
@@ -110,69 +87,67 @@ class SamplingSection(Section):
     density: PositiveRange = (0.1, 0.4)
 
 
-class BodySection(Section):
+class BodySection(tc.Section):
     """``body``: an icosphere of ``subdivisions`` with a per-sequence radius uniform in ``radius`` [m],
     start uniform in ``[-offset, offset]^2`` [m] (z = 0) and a horizontal velocity of ``speed`` [m/s]
     in a uniform direction."""
 
-    subdivisions: Annotated[Int, Field(ge=0, le=8)] = 2  # 20 * 4**s faces: 1.3 million at 8
+    subdivisions: Annotated[tc.Int, Field(ge=0, le=8)] = 2  # 20 * 4**s faces: 1.3 million at 8
     radius: PositiveRange = (0.15, 0.25)
-    offset: NonNegative = 0.1
-    speed: NonNegative = 0.2
+    offset: tc.NonNegative = 0.1
+    speed: tc.NonNegative = 0.2
 
 
-class WeightsSection(Section):
+class WeightsSection(tc.Section):
     """``loss.weights``: the weight of each term (0 leaves it out)."""
 
-    stretch: NonNegative = 1.0
-    bending: NonNegative = 1.0
-    gravity: NonNegative = 1.0
-    inertia: NonNegative = 1.0
-    contact: NonNegative = 1.0
+    stretch: tc.NonNegative = 1.0
+    bending: tc.NonNegative = 1.0
+    gravity: tc.NonNegative = 1.0
+    inertia: tc.NonNegative = 1.0
+    contact: tc.NonNegative = 1.0
 
 
-class LossSection(Section):
+class LossSection(tc.Section):
     """``loss``: time step ``dt`` [s], ``normalize`` (divide by ``M g L``, :func:`torchbend.losses.energy_scale`,
     at the mid-range density) and the term ``weights``; the body contact's law is the ``contact`` section."""
 
-    dt: Positive = 1.0 / 30.0
+    dt: tc.Positive = 1.0 / 30.0
     normalize: bool = True
     weights: WeightsSection = WeightsSection()
 
 
-class StepModel(ModelSection):
+class StepModel(tc.ModelSection):
     """``model``: the MLP's ``hidden`` width, ``layers`` and ``output_scale`` [m/s^2] (the
     acceleration of a raw output of 1)."""
 
-    hidden: PositiveInt = 256
-    output_scale: Positive = 10.0
+    hidden: tc.PositiveInt = 256
+    output_scale: tc.Positive = 10.0
 
 
-class TrainSection(Section):
+class TrainSection(tc.TrainBase):
     """``train``: optimisation (Adam, gradient norm clipped at ``clip_grad``), sequences of ``rollout``
     steps, logging cadence."""
 
-    steps: PositiveInt = 500
-    batch: Batch = 8
-    rollout: PositiveInt = 20
-    lr: Positive = 1.0e-4
-    clip_grad: Positive = 1.0
-    log_every: PositiveInt = 10
-    checkpoint_every: PositiveInt = 100
-    seed: Seed = 0
+    steps: tc.PositiveInt = 500
+    batch: tc.Batch = 8
+    rollout: tc.PositiveInt = 20
+    lr: tc.Positive = 1.0e-4
+    clip_grad: tc.Positive = 1.0
+    checkpoint_every: tc.PositiveInt = 100
     dtype: Literal["float32", "float64"] = "float32"
 
 
-class Config(PhysicsConfig):
+class Config(sc.PhysicsConfig):
     """The HOOD-style config (``configs/train_hood.yaml``): the physics sections of a scene config
     (:class:`~torchbend.scenes.config.PhysicsConfig`: ``mesh``, by default a 9 x 9 square of 0.8 m flat at
     0.32 m above the body's mean position; ``material.thickness`` [m], that of the stretch energy ``A t Psi``
     (the moduli and the density are sampled per sequence: ``sampling``); ``contact``, the law of the body
     contact, HOOD's ``k max(0, eps - d)^3``) and the script's own."""
 
-    mesh: MeshSection = GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
-    material: MaterialSection = MaterialSection(thickness=4.7e-4)
-    contact: ContactSection | None = ContactSection(law="barrier", stiffness=1.0e4, margin=4.0e-3, power=3.0)
+    mesh: sc.MeshSection = sc.GridMesh(nx=9, size=(0.8, 0.8), offset=(-0.4, -0.4, 0.32))
+    material: sc.MaterialSection = sc.MaterialSection(thickness=4.7e-4)
+    contact: sc.ContactSection | None = sc.ContactSection(law="barrier", stiffness=1.0e4, margin=4.0e-3, power=3.0)
     sampling: SamplingSection = SamplingSection()
     body: BodySection = BodySection()
     loss: LossSection = LossSection()
@@ -183,8 +158,8 @@ class Config(PhysicsConfig):
 def cloth_mesh(cfg: dict, dtype, device=None) -> tuple[torch.Tensor, torch.Tensor]:
     """``(rest (V, 3) [m], faces (F, 3))``: the config's ``mesh`` (offset applied)."""
     if cfg["mesh"].get("pin") is not None:
-        raise ConfigError("config key 'mesh.pin': hood_style pins no vertices (the cloth moves freely over the body)")
-    return build_mesh(cfg["mesh"], dtype=dtype, device=device)
+        raise sc.ConfigError("config key 'mesh.pin': hood_style pins no vertices (the cloth moves freely over the body)")
+    return sc.build_mesh(cfg["mesh"], dtype=dtype, device=device)
 
 
 class Sequences:
@@ -231,7 +206,7 @@ class StepNet(nn.Module):
     def __init__(self, vertex_count: int, features: int, hidden: int, layers: int, output_scale: float):
         super().__init__()
         dims = [6 * vertex_count + 3 + features] + [hidden] * layers + [3 * vertex_count + 3]
-        check_network_size(sum((a + 1) * b for a, b in zip(dims[:-1], dims[1:])),
+        tc.check_network_size(sum((a + 1) * b for a, b in zip(dims[:-1], dims[1:])),
                            f"model.hidden ({hidden}), model.layers ({layers}) or the cloth ({vertex_count} vertices)")
         dims = dims[:-1]
         mods: list[nn.Module] = []
@@ -255,9 +230,9 @@ def build_loss(cfg: dict, rest, faces, body_faces) -> tb.ClothLoss:
     """The ClothLoss of stretch, bending, gravity, inertia and body contact (materials per call;
     ``cfg``: a validated config)."""
     lc = cfg["loss"]
-    contact = ContactSection.model_validate(cfg["contact"]) if cfg["contact"] is not None else None
+    contact = sc.ContactSection.model_validate(cfg["contact"]) if cfg["contact"] is not None else None
     if contact is None:
-        raise ConfigError("config key 'contact': the body contact needs a contact law (e.g. {law: barrier, "
+        raise sc.ConfigError("config key 'contact': the body contact needs a contact law (e.g. {law: barrier, "
                           "stiffness: 1.0e+4, margin: 4.0e-3, power: 3})")
     weights = {name: float(lc["weights"][name]) for name in TERMS}
     # the stored materials are placeholders: every call passes the sampled per-sample ones
@@ -277,16 +252,12 @@ def build_loss(cfg: dict, rest, faces, body_faces) -> tb.ClothLoss:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    cli.add_common_args(p, config=CONFIG, out="runs/hood_style")
-    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
-    return cli.parse_args(p, argv)
+    return cli.parse_args(tc.script_parser(__doc__, CONFIG, "runs/hood_style"), argv)
 
 
 def overrides(a: argparse.Namespace) -> list[str]:
     """``--set`` overrides plus the script's own flags (``--steps``, ``--seed``)."""
-    flags = {"steps": a.steps, "seed": a.seed}
-    return list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None]
+    return tc.flag_overrides(a)
 
 
 def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict:
@@ -298,10 +269,10 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
 
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
-    cfg = load_config(a.config, Config, overrides(a))
+    cfg = tc.load_config(a.config, Config, overrides(a))
     t = cfg["train"]
     dtype = getattr(torch, t["dtype"])
-    seed_everything(int(t["seed"]))
+    tc.seed_everything(int(t["seed"]))
     if mesh is None:
         rest, faces = cloth_mesh(cfg, dtype, device)
     else:
@@ -316,14 +287,14 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        start = resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device,
+        start = tc.resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device,
                            hint="the same config: another mesh passed to main?")
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
     batch, rollout, steps, log_every = int(t["batch"]), int(t["rollout"]), int(t["steps"]), int(t["log_every"])
     history: list[float] = []
     terms: dict[str, list[float]] = {}  # per evaluated term (weight != 0), unweighted [J]
-    timer, lap = Timer(), Timer()
+    timer, lap = tc.Timer(), tc.Timer()
     seq = x = v = None
     frame, logged = 0, start
     for step in tqdm(range(start + 1, steps + 1), desc="train (hood-style)", disable=a.no_progress,
@@ -354,7 +325,7 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
             writer.add_scalar("time/seconds_per_step", lap.lap() / (step - logged), step)
             logged = step
         if step % int(t["checkpoint_every"]) == 0 or step == steps:
-            save_checkpoint(ckpt_path, step=step, model=net.state_dict(), optimizer=opt.state_dict(), config=cfg)
+            tc.save_checkpoint(ckpt_path, step=step, model=net.state_dict(), optimizer=opt.state_dict(), config=cfg)
     writer.close()
     result = {"losses": history, "terms": terms, "start": start, "steps": steps}
     with open(os.path.join(a.out, "history.json"), "w") as f:

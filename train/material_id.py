@@ -12,75 +12,54 @@ rest angles are fitted too (``fit_rest_angles``).  TensorBoard logs, checkpoints
 """
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
 import os
 from typing import Annotated, Any
 
+import common as tc
 import torch
-from common import (
-    ConfigError,
-    Float,
-    Positive,
-    PositiveInt,
-    Section,
-    Seed,
-    Timer,
-    read_config,
-    save_checkpoint,
-    seed_everything,
-)
 from pydantic import Field
 
 import torchbend as tb
 from torchbend.scenes import cli
-from torchbend.scenes.config import (
-    BendingSection,
-    GridMesh,
-    MaterialSection,
-    MembraneSection,
-    MeshSection,
-    PhysicsConfig,
-    build_model,
-    validate,
-)
+from torchbend.scenes import config as sc
 
 log = logging.getLogger("train.material_id")
-CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_material.yaml"))
+CONFIG = tc.config_file("train_material.yaml")
 
 
-class IdentifySection(Section):
+class IdentifySection(tc.Section):
     """``identify``: the true stiffness [N m] (default: from the beam's material), the initial guess
     (``initial_factor`` times it), L-BFGS ``steps``/``lr``, the loss ``tol`` to stop at."""
 
-    true_stiffness: Positive | None = None
-    initial_factor: Positive = 3.0
-    steps: PositiveInt = 15
-    lr: Positive = 1.0
-    tol: Annotated[Float, Field(ge=0)] = 1e-12
+    true_stiffness: tc.Positive | None = None
+    initial_factor: tc.Positive = 3.0
+    steps: tc.PositiveInt = 15
+    lr: tc.Positive = 1.0
+    tol: Annotated[tc.Float, Field(ge=0)] = 1e-12
     fit_rest_angles: bool = False
-    seed: Seed = 0
+    seed: tc.Seed = 0
 
 
-class Config(PhysicsConfig):
+class Config(sc.PhysicsConfig):
     """The material-identification config (``configs/train_material.yaml``): the physics sections of a
     scene config (:class:`~torchbend.scenes.config.PhysicsConfig`; by default a 21 x 4 strip of 0.2 x 0.03 m
     clamped at its first two columns, quadratic bending, StVK membrane) and ``identify``."""
 
-    mesh: MeshSection = GridMesh(nx=21, ny=4, size=(0.2, 0.03), pin="first_two_columns")
-    material: MaterialSection = MaterialSection(young=5e6, poisson=0.3, thickness=2e-3, density=2.0)
-    bending: BendingSection | None = BendingSection(model="quadratic", from_material=True)
-    membrane: MembraneSection | None = MembraneSection(model="stvk")
+    mesh: sc.MeshSection = sc.GridMesh(nx=21, ny=4, size=(0.2, 0.03), pin="first_two_columns")
+    material: sc.MaterialSection = sc.MaterialSection(young=5e6, poisson=0.3, thickness=2e-3, density=2.0)
+    bending: sc.BendingSection | None = sc.BendingSection(model="quadratic", from_material=True)
+    membrane: sc.MembraneSection | None = sc.MembraneSection(model="stvk")
     identify: IdentifySection = IdentifySection()
 
 
 def _config(cfg) -> Config:
     """``cfg`` as a validated :class:`Config` (a dict, e.g. a checkpoint's record, is validated)."""
-    config = cfg if isinstance(cfg, Config) else validate(cfg, Config)
+    config = cfg if isinstance(cfg, Config) else sc.validate(cfg, Config)
     if config.bending is None:
-        raise ConfigError("config key 'bending': the bending stiffness is what this script identifies: give a "
+        raise tc.ConfigError("config key 'bending': the bending stiffness is what this script identifies: give a "
                           "bending section")
     return config
 
@@ -89,7 +68,7 @@ def build(cfg, stiffness: torch.Tensor, rest_angles=None):
     """``(model, rest, bend)``: the config's model with its bending stiffness ``stiffness`` (a tensor, so that the
     adjoint differentiates with respect to it)."""
     config = _config(cfg)
-    base = build_model(config)
+    base = sc.build_model(config)
     faces, rest = base.topology.faces, base.rest_positions
     assert config.bending is not None
     bend = tb.BendingEnergy(faces, rest, model=config.bending.model, stiffness=stiffness, rest_angles=rest_angles)
@@ -116,7 +95,7 @@ def observe(cfg):
     model, rest, _ = build(cfg, k)
     x, info = tb.solve_static(model, rest, tol=1e-10, continuation=True)
     if not info.converged:  # the beam's or the stiffness's values: no equilibrium within the solver's limits
-        raise ConfigError(f"the synthetic observation (the static solve at the true stiffness {float(k):.3g} N m) did "
+        raise tc.ConfigError(f"the synthetic observation (the static solve at the true stiffness {float(k):.3g} N m) did "
                           f"not converge: {info.message}; check the physics sections and 'identify.true_stiffness'")
     return x, rest, float(k)
 
@@ -145,9 +124,9 @@ def resume(path: str, cfg: dict, log_k: torch.Tensor, shift: torch.Tensor | None
                                                     "shift": (torch.Tensor, type(None))}, ignore=("identify.steps",))
     differs = f"config differs at {', '.join(changed)}" if changed else "the same config"
     if ck["log_k"].shape != log_k.shape:
-        raise ConfigError(f"--resume: {path} does not fit this run ({differs}): log_k of shape {tuple(ck['log_k'].shape)}")
+        raise tc.ConfigError(f"--resume: {path} does not fit this run ({differs}): log_k of shape {tuple(ck['log_k'].shape)}")
     if shift is not None and ck.get("shift") is not None and ck["shift"].shape != shift.shape:
-        raise ConfigError(f"--resume: {path} does not fit this run ({differs}): {ck['shift'].numel()} rest-angle "
+        raise tc.ConfigError(f"--resume: {path} does not fit this run ({differs}): {ck['shift'].numel()} rest-angle "
                           f"shifts, this beam has {shift.numel()} hinges")
     cli.restore(path, changed, (opt, ck["optimizer"]), what="run")
     with torch.no_grad():
@@ -161,10 +140,7 @@ def resume(path: str, cfg: dict, log_k: torch.Tensor, shift: torch.Tensor | None
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    cli.add_common_args(p, config=CONFIG, out="runs/material_id")
-    p.add_argument("--steps", type=cli.positive_int, help="override identify.steps")
-    return cli.parse_args(p, argv)
+    return cli.parse_args(tc.script_parser(__doc__, CONFIG, "runs/material_id", "identify"), argv)
 
 
 def main(argv=None) -> dict:
@@ -173,12 +149,11 @@ def main(argv=None) -> dict:
 
     a = parse_args(argv)
     cli.resolve_device(a.device, supported=("cpu",), why="the sparse solves run in scipy")
-    flags = {"steps": a.steps, "seed": a.seed}
-    config = read_config(a.config, Config, list(a.overrides) + [f"identify.{k}={v}" for k, v in flags.items() if v is not None])
+    config = tc.read_config(a.config, Config, tc.flag_overrides(a, "identify"))
     _config(config)
     cfg = config.model_dump(mode="json")  # the checkpoint's record
     it = cfg["identify"]
-    seed_everything(int(it["seed"]))
+    tc.seed_everything(int(it["seed"]))
     k_true = true_stiffness(config)
     log_k = torch.tensor(math.log(k_true * float(it["initial_factor"])), dtype=torch.float64, requires_grad=True)
     shift = None
@@ -196,7 +171,7 @@ def main(argv=None) -> dict:
         start = resume(ckpt, cfg, log_k, shift, opt)
     x_obs, rest, k_true = observe(config)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
-    timer = Timer()
+    timer = tc.Timer()
     history = []
     steps = int(it["steps"])
     state: dict[str, Any] = {"x": None}  # the last evaluation of the closure: x, info, L
@@ -218,7 +193,7 @@ def main(argv=None) -> dict:
         writer.add_scalar("stiffness/relative_error", abs(k_now - k_true) / k_true, step)
         writer.add_scalar("residual/newton", info.residual, step)
         writer.add_scalar("time/seconds_per_step", timer.lap(), step)
-        save_checkpoint(ckpt, step=step, log_k=log_k.detach(), shift=None if shift is None else shift.detach(),
+        tc.save_checkpoint(ckpt, step=step, log_k=log_k.detach(), shift=None if shift is None else shift.detach(),
                         optimizer=opt.state_dict(), config=cfg)
         if float(L.detach()) < float(it["tol"]):
             break

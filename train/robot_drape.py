@@ -21,80 +21,47 @@ import logging
 import os
 from typing import Annotated
 
+import common as tc
 import torch
-from common import (
-    Batch,
-    ClothPhysics,
-    ModelSection,
-    Positive,
-    PositiveInt,
-    Section,
-    Seed,
-    Timer,
-    read_config,
-    resume_run,
-    save_checkpoint,
-    save_drape_png,
-    seed_everything,
-    total,
-)
 from drape_net import DrapeNet, intra_op_threads
 from pydantic import Field
 
 import torchbend as tb
 from torchbend.robot import LinkPins, Robot, RobotScene
 from torchbend.scenes import cli
-from torchbend.scenes.config import (
-    BendingSection,
-    ColliderSpec,
-    ConfigError,
-    Float,
-    GridMesh,
-    Int,
-    MaterialSection,
-    MembraneSection,
-    MeshSection,
-    PhysicsConfig,
-    PlaneSpec,
-)
+from torchbend.scenes import config as sc
 
 log = logging.getLogger("train.robot_drape")
-CONFIG = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "train_robot.yaml"))
+CONFIG = tc.config_file("train_robot.yaml")
 
 
-class PoseSection(Section):
+class PoseSection(tc.Section):
     """``robot``: the ``urdf``; joints sampled uniformly in ``nominal +- spread`` (one entry per joint)."""
 
     urdf: str = "folding_arm.urdf"
-    nominal: list[Float] = [0.0, -1.0, 1.2, -0.2, -0.1, -0.1]
-    spread: list[Float] = [0.5, 0.1, 0.1, 0.3, 0.03, 0.03]
+    nominal: list[sc.Float] = [0.0, -1.0, 1.2, -0.2, -0.1, -0.1]
+    spread: list[sc.Float] = [0.5, 0.1, 0.1, 0.3, 0.03, 0.03]
 
 
-class TrainSection(Section):
+class TrainSection(tc.TrainBase):
     """``train``: optimisation (Adam), logging cadence, torch's intra-op CPU ``threads`` (0: torch's
     default; one suits these small tensors, and two on a shared 2-core machine ran 10-20x slower)."""
 
-    steps: PositiveInt = 300
-    batch: Batch = 16
-    lr: Positive = 1e-3
-    log_every: PositiveInt = 10
-    checkpoint_every: PositiveInt = 50
-    seed: Seed = 0
-    threads: Annotated[Int, Field(ge=0)] = 1
+    threads: Annotated[sc.Int, Field(ge=0)] = 1
 
 
-class Config(PhysicsConfig):
+class Config(sc.PhysicsConfig):
     """The robot-drape config (``configs/train_robot.yaml``): the physics sections of a scene config
     (:class:`~torchbend.scenes.config.PhysicsConfig`; ``mesh`` a grid whose ``nx`` x ``ny`` vertices and
     ``size`` the towel takes, hung below the finger tips; the table top z = 0 a collider) and the script's own."""
 
-    mesh: MeshSection = GridMesh(nx=9, size=(0.3, 0.3))
-    material: MaterialSection = MaterialSection(young=1e5, poisson=0.3, thickness=1e-3, density=0.2)
-    bending: BendingSection | None = BendingSection(model="sin", stiffness=1e-4)
-    membrane: MembraneSection | None = MembraneSection()
-    colliders: list[ColliderSpec] = [PlaneSpec(type="plane", point=(0.0, 0.0, 0.0), stiffness=1e3)]
+    mesh: sc.MeshSection = sc.GridMesh(nx=9, size=(0.3, 0.3))
+    material: sc.MaterialSection = sc.MaterialSection(young=1e5, poisson=0.3, thickness=1e-3, density=0.2)
+    bending: sc.BendingSection | None = sc.BendingSection(model="sin", stiffness=1e-4)
+    membrane: sc.MembraneSection | None = sc.MembraneSection()
+    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, 0.0), stiffness=1e3)]
     robot: PoseSection = PoseSection()
-    model: ModelSection = ModelSection()
+    model: tc.ModelSection = tc.ModelSection()
     train: TrainSection = TrainSection()
 
 
@@ -108,17 +75,17 @@ class HeldTowel:
         self.nominal = self.robot.check_joints(torch.tensor(r.nominal, dtype=dtype, device=device), "robot.nominal")
         self.spread = self.robot.check_joints(torch.tensor(r.spread, dtype=dtype, device=device), "robot.spread")
         mesh = config.mesh
-        if not isinstance(mesh, GridMesh):
-            raise ConfigError("config key 'mesh': the towel is a grid (type: grid), not a file mesh")
+        if not isinstance(mesh, sc.GridMesh):
+            raise sc.ConfigError("config key 'mesh': the towel is a grid (type: grid), not a file mesh")
         nx, ny = mesh.nx, mesh.ny or mesh.nx
         if nx < 3:
-            raise ConfigError(f"config key 'mesh.nx' must be >= 3, got {nx}")
+            raise sc.ConfigError(f"config key 'mesh.nx' must be >= 3, got {nx}")
         # rest: a flat towel hanging vertically below the line between the finger tips at the nominal pose
         tips = self.robot.link_transforms(self.nominal, ["finger_left", "finger_right"])[:, :3, 3]
         flat, faces = tb.scenes.grid(nx, ny, mesh.size, dtype=dtype, device=device)
         u = (tips[0] - tips[1]) / (tips[0] - tips[1]).norm()
         rest = tips[1] + flat[:, :1] * u - flat[:, 1:2] * torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
-        self.physics = ClothPhysics(config, dtype=dtype, device=device, mesh=(rest, faces))
+        self.physics = tc.ClothPhysics(config, dtype=dtype, device=device, mesh=(rest, faces))
         self.rest, self.faces = rest, faces
         corners = [nx - 1, 0]
         self.pins = LinkPins(self.robot, corners, ["finger_left", "finger_right"], rest[corners], self.nominal)
@@ -154,17 +121,13 @@ class HeldTowel:
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
-    cli.add_common_args(p, config=CONFIG, out="runs/robot_drape")
-    p.add_argument("--steps", type=cli.positive_int, help="override train.steps")
-    return cli.parse_args(p, argv)
+    return cli.parse_args(tc.script_parser(__doc__, CONFIG, "runs/robot_drape"), argv)
 
 
 def main(argv=None) -> dict:
     a = parse_args(argv)
     device = cli.resolve_device(a.device)
-    flags = {"steps": a.steps, "seed": a.seed}
-    config = read_config(a.config, Config, list(a.overrides) + [f"train.{k}={v}" for k, v in flags.items() if v is not None])
+    config = tc.read_config(a.config, Config, tc.flag_overrides(a))
     with intra_op_threads(config.train.threads):
         return train(a, config, device)
 
@@ -177,7 +140,7 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
 
     cfg = config.model_dump(mode="json")
     t = cfg["train"]
-    seed_everything(int(t["seed"]))
+    tc.seed_everything(int(t["seed"]))
     towel = HeldTowel(config, device=device)
     net = DrapeNet(len(towel.rest), int(cfg["model"]["hidden"]), int(cfg["model"]["layers"]),
                    inputs=towel.robot.joint_count).to(dtype=torch.float64, device=device)
@@ -186,15 +149,15 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
     start = 0
     if a.resume:
-        start = resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device)
+        start = tc.resume_run(ckpt_path, cfg, log, (net, "model"), (opt, "optimizer"), map_location=device)
     gen = torch.Generator().manual_seed(int(t["seed"]) * 1000 + 7919 * start)
     writer = SummaryWriter(os.path.join(a.out, "tb"))
-    history, timer, steps = [], Timer(), int(t["steps"])
+    history, timer, steps = [], tc.Timer(), int(t["steps"])
     for step in tqdm(range(start + 1, steps + 1), desc="train", disable=a.no_progress, initial=start, total=steps):
         q = towel.sample(int(t["batch"]), gen)
         x = towel.drape(net, q)
         terms = towel.physics.energies(x, None, None)
-        loss = total(terms).mean()
+        loss = tc.total(terms).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -205,7 +168,7 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
             writer.add_scalar("loss", history[-1], step)
             writer.add_scalar("time/seconds_per_step", timer.lap() / int(t["log_every"]), step)
         if step % int(t["checkpoint_every"]) == 0 or step == steps:
-            save_checkpoint(ckpt_path, step=step, model=net.state_dict(), optimizer=opt.state_dict(), config=cfg)
+            tc.save_checkpoint(ckpt_path, step=step, model=net.state_dict(), optimizer=opt.state_dict(), config=cfg)
     # held-out joint vectors: prediction vs Newton equilibrium started from it
     q_eval = towel.sample(3, torch.Generator().manual_seed(12345))
     with torch.no_grad():
@@ -213,14 +176,14 @@ def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     scene, evals = towel.scene(), []
     for qi, xi in zip(q_eval, x_pred, strict=True):
         x_eq, info = scene.solve_static(qi, xi, tol=1e-8, continuation=True)
-        e_pred = float(total(towel.physics.energies(xi[None], None, None)))
-        e_eq = float(total(towel.physics.energies(x_eq[None].detach(), None, None)))
+        e_pred = float(tc.total(towel.physics.energies(xi[None], None, None)))
+        e_eq = float(tc.total(towel.physics.energies(x_eq[None].detach(), None, None)))
         evals.append({"q": qi.tolist(), "converged": info.converged,
                       "rms_distance_to_equilibrium": float((xi - x_eq).norm(dim=-1).pow(2).mean().sqrt()),
                       "energy_gap": e_pred - e_eq, "energy_equilibrium": e_eq,
                       "pin_error": float((xi[towel.pins.vertices] - towel.pins.positions(qi)).norm(dim=-1).max())})
     table = list(towel.physics.solver_model.colliders)
-    save_drape_png(os.path.join(a.out, "drapes.png"), [(xi, towel.faces) for xi in x_pred],
+    tc.save_drape_png(os.path.join(a.out, "drapes.png"), [(xi, towel.faces) for xi in x_pred],
                    [f"yaw {qi[0]:+.2f} wrist {qi[3]:+.2f} rad" for qi in q_eval.tolist()], colliders=[table] * len(x_pred))
     result = {"losses": history, "start": start, "steps": steps, "eval": evals}
     with open(os.path.join(a.out, "history.json"), "w") as f:
