@@ -123,6 +123,13 @@ def contact_law(law: str | ContactLaw, stiffness: float | None = None, power: fl
     names what is wrong."""
     if isinstance(law, ContactLaw):
         return law
+    try:
+        return _named_law(law, stiffness, power)
+    except ValueError as e:  # the law's own messages, without the class name (the caller names itself)
+        raise ValueError(str(e).removeprefix("PowerBarrier: ").removeprefix("Penalty: ")) from None
+
+
+def _named_law(law, stiffness, power) -> ContactLaw:
     if law not in LAWS:
         raise ValueError(f"contact law must be one of {sorted(LAWS)} or a ContactLaw, got {law!r}")
     if stiffness is None:
