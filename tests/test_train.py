@@ -396,3 +396,34 @@ def test_turned_onto_undoes_a_turn_about_the_vertical():
     q[:, 0] = pivot[0] + c * (p[:, 0] - pivot[0]) - s * (p[:, 1] - pivot[1])
     q[:, 1] = pivot[1] + s * (p[:, 0] - pivot[0]) + c * (p[:, 1] - pivot[1])
     assert torch.allclose(drape_net.turned_onto(q, p, pivot), p, rtol=0, atol=1e-14)
+
+
+def test_newton_check_means_count_only_the_solves_that_converged():
+    checks = [{"converged": True, "energy_gap": 2e-3, "energy_prediction": 1.002, "rms_distance": 1e-3, "relative_residual": 0.1},
+              {"converged": False, "energy_gap": 3e17, "energy_prediction": 1.0, "rms_distance": 4e14, "relative_residual": 0.3},
+              {"converged": True, "energy_gap": 4e-3, "energy_prediction": 1.004, "rms_distance": 3e-3, "relative_residual": 0.2}]
+    s = drape_net._newton_summary(checks)
+    assert s["newton_converged"] == 2
+    assert s["energy_gap"] == pytest.approx(3e-3) and s["rms_distance"] == pytest.approx(2e-3)
+    assert s["relative_energy_gap"] == pytest.approx(3e-3, rel=1e-12)
+    assert s["relative_residual"] == pytest.approx(0.2)  # at the predictions: every check counts
+    none = drape_net._newton_summary([dict(c, converged=False) for c in checks])
+    assert none["newton_converged"] == 0 and none["energy_gap"] is None and none["rms_distance"] is None
+    summary = {"final_loss": 1.0, "final_window": 1, "edge_length": 0.1, "conditions": 3, "train_seconds": 1.0,
+               "steps_run": 1, "eval_seconds": 1.0, "newton": checks, **none}
+    line = drape_net.summary_line({"summary": summary, "loss_kind": "energy"}, "out")
+    assert "not converged from any" in line and "e+17" not in line
+
+
+def test_the_skirt_check_solves_with_the_pins_of_training():
+    """The reference Newton solves of a pinned garment hold the same vertices the network never moves (without
+    them the waist of a frictionless skirt slides off its hips and the check drifts)."""
+    config = read_config(os.path.join(ROOT, "configs", "train_skirt.yaml"), drape_net.Config)
+    cfg = config.model_dump(mode="json")
+    physics = ClothPhysics(config)
+    scene = drape_net.SphereDrape(cfg, physics)
+    assert physics.pinned is not None and int(physics.pinned.sum()) == 32
+    m = scene.model((0.0, 0.0, 0.0), 0.15)
+    assert torch.equal(m.pinned, physics.pinned)
+    assert [type(c).__name__ for c in m.colliders] == ["Sphere"]  # the hips under the contact law, no ground
+    assert m.colliders[0].contact == physics.contact.contact_law()

@@ -321,7 +321,9 @@ def log_step(writer, scene: SphereDrape, step: int, x, center, radius, loss: flo
     writer.add_scalar("residual/norm", float(g.norm(dim=(-1, -2)).mean()), step)
     writer.add_scalar("bending/mean_abs_theta_minus_rest", physics.mean_angle_deviation(x), step)
     if "sphere" in physics.terms:
-        writer.add_scalar("contact/cap_gap", float(cap_gap(x.detach(), center, radius, scene.free).nanmean()), step)
+        gap = cap_gap(x.detach(), center, radius, scene.free)
+        if not bool(gap.isnan().all()):  # no vertex over any cap (a garment around its body): nothing to log
+            writer.add_scalar("contact/cap_gap", float(gap.nanmean()), step)
     writer.add_scalar("loss", loss, step)
     writer.add_scalar("time/seconds_per_step", seconds, step)
 
@@ -360,12 +362,24 @@ def evaluate(cfg: dict, net: nn.Module, scene: SphereDrape, dtype, device) -> tu
         finally:
             logging.getLogger("torchbend.sim").setLevel(level)
         out["newton"] = checks
-        out["energy_gap"] = sum(c["energy_gap"] for c in checks) / k
-        out["relative_energy_gap"] = sum(c["energy_gap"] / abs(c["energy_prediction"] - c["energy_gap"]) for c in checks) / k
-        out["rms_distance"] = sum(c["rms_distance"] for c in checks) / k
-        out["relative_residual"] = sum(c["relative_residual"] for c in checks) / k
-        out["newton_converged"] = sum(c["converged"] for c in checks)
+        out.update(_newton_summary(checks))
     return out, [x[:3], center[:3], radius[:3], cond[:3]]
+
+
+def _newton_summary(checks: list[dict]) -> dict:
+    """Means of the Newton checks over the solves that converged (an unconverged solve's best iterate is no
+    equilibrium: its distance and energy say nothing of the prediction); None where none converged."""
+    done = [c for c in checks if c["converged"]]
+    n = len(done)
+
+    def mean(f):
+        return sum(f(c) for c in done) / n if n else None
+
+    return {"newton_converged": n,
+            "energy_gap": mean(lambda c: c["energy_gap"]),
+            "relative_energy_gap": mean(lambda c: c["energy_gap"] / abs(c["energy_prediction"] - c["energy_gap"])),
+            "rms_distance": mean(lambda c: c["rms_distance"]),
+            "relative_residual": sum(c["relative_residual"] for c in checks) / len(checks)}
 
 
 def summary_line(result: dict, out: str) -> str:
@@ -378,9 +392,12 @@ def summary_line(result: dict, out: str) -> str:
                      f"({s['conditions']} held-out spheres)")
     if "newton" in s:
         k = len(s["newton"])
-        parts.append(f"vs Newton from {k} predictions ({s['newton_converged']}/{k} converged): energy "
-                     f"+{1e3 * s['energy_gap']:.2g} mJ ({100 * s['relative_energy_gap']:.2g}%), RMS "
-                     f"{1e3 * s['rms_distance']:.2g} mm")
+        if s["newton_converged"]:
+            parts.append(f"vs Newton from {k} predictions ({s['newton_converged']}/{k} converged; means over those): "
+                         f"energy +{1e3 * s['energy_gap']:.2g} mJ ({100 * s['relative_energy_gap']:.2g}%), RMS "
+                         f"{1e3 * s['rms_distance']:.2g} mm")
+        else:
+            parts.append(f"vs Newton from {k} predictions: not converged from any (no equilibrium to compare with)")
     parts.append(f"{s['train_seconds']:.0f} s training ({s['steps_run']} steps) + {s['eval_seconds']:.0f} s checks")
     parts.append(f"-> {os.path.join(out, 'drapes.png')}, checkpoint.pt, TensorBoard: tensorboard --logdir {os.path.join(out, 'tb')}")
     return " | ".join(parts)
