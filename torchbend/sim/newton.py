@@ -434,15 +434,13 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
             max_iters: int, ctx: StepContext | None = None, soften: float | None = None,
             check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
-            time_limit: float | None = None, max_cg_iters: int | None = None,
+            time_limit: float | None = None,
             max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
     """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified) in the step context
     ``ctx`` (None: static), with the terms that take part in the stiffness homotopy scaled by ``soften``
     (:meth:`~torchbend.sim.terms.EnergyTerm.softened`; None: as they are).  Returns ``(x, info)``: the converged iterate, or the best one on failure
     (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
     (``time_limit`` [s], for the message)."""
-    if max_cg_iters is not None:  # the solvers' keyword, over the LinearSolver's own bound
-        linear = replace(linear, max_cg_iters=max_cg_iters)
     phi = _Potential(model, x0, option, ctx, soften, linear)
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)

@@ -179,18 +179,8 @@ class NewtonOptions:
 class _Unset:
     """The default of a solver keyword that was not given (``None`` is a value: ``continuation=None``)."""
 
-    _instance: ClassVar[_Unset | None] = None
-
-    def __new__(cls):
-        if cls._instance is None:
-            cls._instance = super().__new__(cls)
-        return cls._instance
-
     def __repr__(self) -> str:
         return "<default>"
-
-    def __bool__(self) -> bool:
-        return False
 
 
 UNSET: Any = _Unset()
@@ -207,13 +197,12 @@ class Controls:
     max_iters: int
     time_limit: float | None
     deadline: float | None
-    max_cg_iters: int | None
     callback: Callable | None
     check_minimum: bool
 
     def newton_kw(self) -> dict[str, Any]:
         return {"tol": self.tol, "max_iters": self.max_iters, "callback": self.callback, "deadline": self.deadline,
-                "time_limit": self.time_limit, "max_cg_iters": self.max_cg_iters, "check_minimum": self.check_minimum}
+                "time_limit": self.time_limit, "check_minimum": self.check_minimum}
 
 
 _DEFAULTS = {"static": {"tol": 1e-9, "max_iters": 50, "check_minimum": True},
@@ -250,6 +239,5 @@ def resolve_options(options, where: str, kind: str, *, hessian=UNSET, max_cg_ite
         raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
     assert opts.tol is not None and opts.max_iters is not None and opts.check_minimum is not None
     deadline = None if opts.time_limit is None else time.perf_counter() + opts.time_limit
-    ctl = Controls(opts.tol, opts.max_iters, opts.time_limit, deadline, opts.linear.max_cg_iters, callback,
-                   opts.check_minimum)
+    ctl = Controls(opts.tol, opts.max_iters, opts.time_limit, deadline, callback, opts.check_minimum)
     return opts, ctl
