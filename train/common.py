@@ -195,16 +195,17 @@ class ClothPhysics:
         return (g * g / self.mass[:, None]).sum((-1, -2))
 
     def model(self, center=None, radius: float | None = None, pinned: torch.Tensor | None = None) -> tb.ClothModel:
-        """The :class:`~torchbend.ClothModel` of one sample: the same terms, plus the sphere (``center``
+        """The :class:`~torchbend.ClothModel` of one sample: the same energy modules, plus the sphere (``center``
         3 numbers [m], ``radius`` [m]) under the contact law when there is one; ``pinned`` ``(V,)`` bool."""
         colliders = list(self.solver_model.colliders)
         if self.contact is not None and center is not None and radius is not None:
             c = self.contact
             colliders.append(tb.Sphere(tuple(float(v) for v in center), float(radius), stiffness=c.stiffness,
                                        margin=c.margin, law=c.law, power=c.power))
-        pins = self.pinned if pinned is None else pinned
-        return build_model(self.cfg, mesh=(self.rest, self.faces), pinned=pins, dtype=self.rest.dtype,
-                           device=self.rest.device, colliders=colliders)
+        m = self.solver_model
+        return tb.ClothModel(self.faces, self.rest, bending=m.bending, membrane=m.membrane, density=m.density,
+                             gravity=tuple(m.gravity.tolist()), pinned=self.pinned if pinned is None else pinned,
+                             colliders=colliders)
 
     def mean_angle_deviation(self, x) -> float:
         if self.bend is None:

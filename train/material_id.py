@@ -68,13 +68,12 @@ def build(cfg, stiffness: torch.Tensor, rest_angles=None):
     """``(model, rest, bend)``: the config's model with its bending stiffness ``stiffness`` (a tensor, so that the
     adjoint differentiates with respect to it)."""
     config = _config(cfg)
-    base = sc.build_model(config)
-    faces, rest = base.topology.faces, base.rest_positions
     assert config.bending is not None
-    bend = tb.BendingEnergy(faces, rest, model=config.bending.model, stiffness=stiffness, rest_angles=rest_angles)
-    model = tb.ClothModel(faces, rest, bending=bend, membrane=base.membrane, density=base.density,
-                          gravity=tuple(base.gravity.tolist()), pinned=base.pinned, colliders=base.colliders)
-    return model, rest, bend
+    model = sc.build_model(config.model_copy(update={"bending": None}))  # the bending term is this one's
+    faces, rest = model.topology.faces, model.rest_positions
+    model.bending = tb.BendingEnergy(faces, rest, model=config.bending.model, stiffness=stiffness,
+                                     rest_angles=rest_angles)
+    return model, rest, model.bending
 
 
 def true_stiffness(cfg) -> float:
