@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -60,6 +61,7 @@ class Collider:
     margin: float = 0.0
     law: str = "penalty"
     power: float | None = None
+    _contact: ClassVar[ContactLaw]  # set by _check_penalty (not a field)
 
     def _check_penalty(self) -> None:
         """Validate (and store as floats) ``stiffness`` (> 0), ``margin`` (>= 0), ``law`` and ``power``."""
@@ -71,11 +73,12 @@ class Collider:
         except ValueError as e:
             raise ValueError(f"{name}: {e}") from None
         object.__setattr__(self, "power", law.power)
+        object.__setattr__(self, "_contact", law)  # built once: every energy, gradient and Hessian uses it
 
     @property
     def contact(self) -> ContactLaw:
         """The collider's contact law (:mod:`torchbend.energies.contact`)."""
-        return contact_law(self.law, self.stiffness, self.power)
+        return self._contact
 
     def _sd(self, x: Tensor):  # pragma: no cover - abstract
         """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
