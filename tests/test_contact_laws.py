@@ -115,3 +115,15 @@ def test_config_colliders_take_the_law():
         validate({"colliders": [{"type": "sphere", "power": 3}]}, SceneConfig)
     with pytest.raises(ValueError, match="colliders\\[0\\].law"):
         validate({"colliders": [{"type": "sphere", "law": "spring"}]}, SceneConfig)
+
+
+@pytest.mark.parametrize("make", COLLIDERS, ids=["sphere", "plane", "capsule"])
+def test_collider_energy_and_gradient_of_a_batch_are_those_of_each_sample(make):
+    c = make(margin=0.01, law="barrier", power=3.0, stiffness=5e5)
+    x = 0.35 * torch.rand(4, 2, 30, 3, generator=torch.Generator().manual_seed(5), dtype=F64) - 0.15
+    e, g = c.energy(x), c.gradient(x)
+    assert e.shape == (4, 2) and g.shape == x.shape
+    for i in range(4):
+        for j in range(2):
+            assert float(e[i, j]) == float(c.energy(x[i, j]))
+            assert torch.equal(g[i, j], c.gradient(x[i, j]))

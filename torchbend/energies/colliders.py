@@ -89,11 +89,14 @@ class Collider:
         return self.margin - self._sd(x)[0]
 
     def energy(self, x: Tensor) -> Tensor:
-        return self.contact.value(self.margin - self._sd(x)[0]).sum()
+        """The contact energy [J] of ``x (..., V, 3)`` [m]: ``(...,)``."""
+        d = self.margin - self._sd(x.reshape(-1, 3))[0]
+        return self.contact.value(d).reshape(x.shape[:-1]).sum(-1)
 
     def gradient(self, x: Tensor) -> Tensor:
-        s, n, _ = self._sd(x)
-        return -self.contact.slope(self.margin - s)[:, None] * n
+        """``dE/dx`` ``(..., V, 3)`` [N]."""
+        s, n, _ = self._sd(x.reshape(-1, 3))
+        return (-self.contact.slope(self.margin - s)[:, None] * n).reshape(x.shape)
 
     def max_step(self, x: Tensor, dx: Tensor, *, depth: float, safety: float = 0.9) -> Tensor:
         """Per-vertex largest step fractions ``(V,)`` in ``(0, 1]`` (dtype and device of ``x``) along

@@ -289,13 +289,10 @@ class ColliderTerm(EnergyTerm):
         return float(self._depth() if callable(self._depth) else self._depth)
 
     def energy(self, x, ctx):
-        if x.dim() == 2:
-            return self.collider.energy(x)
-        d = self.collider.depth(x.reshape(-1, 3)).reshape(x.shape[:-1])
-        return self.collider.contact.value(d).sum(-1)
+        return self.collider.energy(x)
 
     def gradient(self, x, ctx):
-        return self.collider.gradient(x.reshape(-1, 3)).reshape(x.shape)
+        return self.collider.gradient(x)
 
     def vertex_blocks(self, x, ctx, projection=None):
         return self.collider.hessian_blocks(x, projection=_projection(projection))
