@@ -219,6 +219,10 @@ def test_line_search_and_evaluation_failures_return_the_best_iterate(monkeypatch
     assert not info.converged and info.stop_reason == "line_search" and info.line_search_failures == 1
     assert "line search exhausted" in info.message and "the Newton direction" in info.message
     assert torch.equal(x, rest)
+    # damped: each failure raises the damping and retries (an iteration each) until the damping is at its bound
+    x, info = solve_static(model, rest, continuation=False, damping=True)
+    assert not info.converged and info.stop_reason == "line_search" and info.line_search_failures > 1
+    assert info.iterations == info.line_search_failures - 1 and torch.equal(x, rest)
 
 
 def test_unpinned_cloth_without_colliders_is_diagnosed_before_iterating():

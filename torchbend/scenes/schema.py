@@ -353,7 +353,8 @@ class SolverSection(Section):
     many equal increments), and the fields of :class:`~torchbend.NewtonOptions`, one to one: ``projection``,
     ``linear_solver`` (a method name or a mapping, :class:`LinearSolverSection`), ``tol``, ``max_iters``,
     ``check_minimum`` (null: the solver's defaults, 1e-6, 30, false for steps, 1e-9, 50, true for static
-    solves), ``time_limit`` [s], ``continuation``, ``max_relax_steps``, ``max_substep_depth``.  ``hessian``:
+    solves), ``time_limit`` [s] (``auto``: the solver's default budget, null: none), ``damping``,
+    ``continuation``, ``max_relax_steps``, ``max_substep_depth``.  ``hessian``:
     the deprecated alias of ``projection`` (a ``DeprecationWarning``)."""
 
     dt: Positive = 1 / 60
@@ -365,7 +366,8 @@ class SolverSection(Section):
     tol: Positive | None = None
     max_iters: NonNegativeInt | None = None
     check_minimum: bool | None = None
-    time_limit: Positive | None = None
+    time_limit: Positive | Literal["auto"] | None = "auto"
+    damping: bool = False
     continuation: bool | Literal["auto", "membrane", "relaxation"] | None = "auto"
     max_relax_steps: NonNegativeInt = 200
     max_substep_depth: NonNegativeInt = 3
@@ -387,7 +389,7 @@ class SolverSection(Section):
         """The :class:`~torchbend.NewtonOptions` of this section (field by field)."""
         return NewtonOptions(projection=self.projection, linear_solver=self.linear_solver.linear_solver(),
                              tol=self.tol, max_iters=self.max_iters, check_minimum=self.check_minimum,
-                             time_limit=self.time_limit, continuation=self.continuation,
+                             time_limit=self.time_limit, damping=self.damping, continuation=self.continuation,
                              max_relax_steps=self.max_relax_steps, max_substep_depth=self.max_substep_depth)
 
 

@@ -197,6 +197,20 @@ class FreeHessian:
             values.index_add_(0, pat.block_pos.reshape(-1), blocks.detach().to(x.dtype)[pat.free_vertices].reshape(-1))
         return _csr(pat.crow, pat.col, values, pat.n)
 
+    def diagonal(self, A: Tensor) -> Tensor:
+        """The diagonal ``(nf,)`` of an assembled free Hessian ``A`` (on its device)."""
+        return self.diagonal_blocks(A).diagonal(dim1=-2, dim2=-1).reshape(-1)
+
+    def shifted(self, A: Tensor, d: Tensor) -> Tensor:
+        """``A + diag(d)`` for an assembled free Hessian ``A`` and ``d (nf,)``, a new torch sparse CSR on
+        ``A``'s device (``A`` is not modified)."""
+        assert self._pattern is not None, "assemble() first"
+        pat = self._pattern
+        values = A.values().clone()
+        diag_pos = pat.block_pos.diagonal(dim1=-2, dim2=-1).reshape(-1)
+        values[diag_pos] += d.to(dtype=values.dtype, device=values.device)
+        return _csr(pat.crow, pat.col, values, pat.n)
+
     def diagonal_blocks(self, A: Tensor) -> Tensor:
         """The ``(Vf, 3, 3)`` diagonal blocks of an assembled free Hessian ``A`` (on its device)."""
         assert self._pattern is not None, "assemble() first"

@@ -95,6 +95,7 @@ from torch import Tensor
 from .._checks import check_positions
 from ..options import Projection
 from .curvature import curvature_tolerance, smallest_eigenpair
+from .damping import Damping
 from .line_search import LineSearchResult, armijo_backtracking
 from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
 from .model import ClothModel, ClothState
@@ -178,7 +179,7 @@ class _Potential:
     (indexing the CPU copies of the linear algebra).  ``linear``: the :class:`LinearSolver` options."""
 
     def __init__(self, model: ClothModel, x: Tensor, option: Projection, ctx: StepContext | None = None,
-                 soften: float | None = None, linear: LinearSolver | None = None):
+                 soften: float | None = None, linear: LinearSolver | None = None, damping: bool = False):
         self.model, self.option = model, option
         self.linear = linear or LinearSolver()
         self.ctx = ctx or StepContext()
@@ -196,6 +197,9 @@ class _Potential:
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
+        # Levenberg-Marquardt damping by the lumped masses (static solves only: a step has its inertia)
+        mass_free = model.mass.to(x.device).repeat_interleave(3)[self.free_mask]
+        self.damping = Damping(mass_free, enabled=damping and not self.ctx.dynamic)
 
     @property
     def max_cg_iters(self) -> int | None:
@@ -248,9 +252,18 @@ class _Potential:
         return out.reshape(-1, 3)
 
     def free_hessian(self, x: Tensor) -> Tensor:
-        """The free Hessian of the potential at ``x`` (with the inertia ``m/dt^2``), torch sparse CSR
-        ``(nf, nf)`` [N/m] on ``x``'s device."""
-        return self.hessian_op.assemble(x, self.terms, self.ctx, self.option)
+        """The Newton matrix at ``x``: the free Hessian of the potential (with the inertia ``m/dt^2``) in the
+        projection ``option`` (``"abs"`` for an exact one while damped), plus the damping ``mu M``
+        (:mod:`~torchbend.sim.damping`); torch sparse CSR ``(nf, nf)`` [N/m] on ``x``'s device."""
+        damping = self.damping
+        A = self.hessian_op.assemble(x, self.terms, self.ctx, damping.matrix_option(self.option))
+        if damping.pending:
+            damping.start(self.hessian_op.diagonal(A))
+            if damping.active:  # the first matrix was assembled undamped: in the projection of a damped one
+                A = self.hessian_op.assemble(x, self.terms, self.ctx, damping.matrix_option(self.option))
+        if damping.active:
+            A = self.hessian_op.shifted(A, damping.shift(A.values()))
+        return A
 
     def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
@@ -303,7 +316,24 @@ class _Potential:
 def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver, relative_residual: float,
                info: SolveInfo) -> tuple[np.ndarray, float]:
     """A descent direction on the free DOFs and its slope ``g . p`` [J]; a direction that is not one
-    (or not finite) is replaced by the steepest-descent step ``-g min(1, 1/|g|)``."""
+    (or not finite) is replaced by the steepest-descent step ``-g min(1, 1/|g|)``.  With damping
+    (:mod:`~torchbend.sim.damping`), a direction of an indefinite exact Hessian away from a minimum, or one
+    that moves a vertex farther than a tenth of the cloth's extent, is recomputed with more damping
+    (counted in ``info.regularized_steps``)."""
+    reach = 0.1 * float((x.amax(0) - x.amin(0)).norm()) if x.shape[0] else math.inf
+    while True:
+        p, slope = _one_direction(phi, x, gf, linear, relative_residual, info)
+        far = float(phi.full(p, x).norm(dim=-1).max()) > reach if p.size else False
+        if not far or not phi.damping.increase():
+            break
+        info.regularized_steps += 1
+    phi.damping.record_direction(p)
+    return p, slope
+
+
+def _one_direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver, relative_residual: float,
+                   info: SolveInfo) -> tuple[np.ndarray, float]:
+    """One direction of :func:`_direction` with the current Newton matrix."""
     if linear.is_direct:
         p, shifts = phi.direct_direction(x, gf)
         info.regularized_steps += shifts
@@ -434,14 +464,14 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
             max_iters: int, ctx: StepContext | None = None, soften: float | None = None,
             check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
-            time_limit: float | None = None,
+            time_limit: float | None = None, damping: bool = False,
             max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
     """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified) in the step context
     ``ctx`` (None: static), with the terms that take part in the stiffness homotopy scaled by ``soften``
     (:meth:`~torchbend.sim.terms.EnergyTerm.softened`; None: as they are).  Returns ``(x, info)``: the converged iterate, or the best one on failure
     (module docstring).  ``deadline``: a ``time.perf_counter()`` value past which the solve stops
     (``time_limit`` [s], for the message)."""
-    phi = _Potential(model, x0, option, ctx, soften, linear)
+    phi = _Potential(model, x0, option, ctx, soften, linear, damping)
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
     # unbounded below: a static potential with gravity and nothing that holds the cloth in place
@@ -494,6 +524,7 @@ class _RunRecord:
             return False
         self.phi.option, self.floor_factor, self.polish_steps = Projection.NONE, 100.0, 2
         self.phi.near_minimum = True
+        self.phi.damping.off()
         self.decrements.clear()
         return True
 
@@ -539,8 +570,9 @@ class _RunRecord:
         self.slow_steps = self.slow_steps + 1 if len(h) > 1 and self.alpha == 1.0 and h[-1] > 0.5 * h[-2] else 0
         level = logging.INFO if time.perf_counter() - self.t0 > _INFO_AFTER_S else logging.DEBUG
         if _log.isEnabledFor(level):
-            _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d",
-                     it, res, tolerance, energy, self.alpha, info.cg_iterations - self.cg_before)
+            _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d, "
+                     "damping %.2g/s^2", it, res, tolerance, energy, self.alpha, info.cg_iterations - self.cg_before,
+                     phi.damping.mu)
         return gf, noise
 
     def _finish(self, x: Tensor, stop: _Stop) -> tuple[Tensor, SolveInfo]:
@@ -637,6 +669,8 @@ class _NewtonRun(_RunRecord):
         """A Newton direction and an accepted step along it (or the round-off floor / a failure)."""
         phi, info, it = self.phi, self.info, self.it
         res = float(np.linalg.norm(gf))
+        if res <= 1e-3 * self.scale:
+            phi.damping.off()  # near the minimum: Newton's own steps (damping returns only after a failure)
         self.cg_before, shifts_before = info.cg_iterations, info.regularized_steps
         try:
             p, slope = _direction(phi, x, gf, self.linear, res / max(self.scale, 1e-300), info)
@@ -666,8 +700,11 @@ class _NewtonRun(_RunRecord):
                                    lambda y: float(np.linalg.norm(phi.free_gradient(y))) < res,
                                    max_steps=self.max_line_search, alpha_max=phi.max_step(x, dx))
         if step is not None:
+            phi.damping.accepted(energy - step.energy, slope, step.alpha)
             return step
         info.line_search_failures += 1
+        if phi.damping.increase():  # no decrease along the damped direction: a shorter one next iteration
+            return LineSearchResult(x, energy, terms, 0.0)
         if -slope <= noise and res <= 100 * phi.gradient_roundoff(x) and self._credible_floor(x, res):
             if self._polish():
                 return self._step(x, gf, energy, terms, noise)
@@ -726,8 +763,8 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
                  projection: str | Projection = UNSET, linear_solver: str | LinearSolver = UNSET,
                  tol: float = UNSET, max_iters: int = UNSET, continuation: bool | str | None = UNSET,
                  max_relax_steps: int = UNSET, check_minimum: bool = UNSET, callback: Callable | None = None,
-                 time_limit: float | None = UNSET, max_cg_iters: int | None = UNSET,
-                 hessian: str | Projection | None = UNSET) -> tuple[Tensor, SolveInfo]:
+                 time_limit: float | str | None = UNSET, max_cg_iters: int | None = UNSET,
+                 damping: bool = UNSET, hessian: str | Projection | None = UNSET) -> tuple[Tensor, SolveInfo]:
     """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
 
     ``options``: a :class:`NewtonOptions` (every control below; a keyword given here overrides its field).
@@ -761,7 +798,12 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
     point, check the exact Hessian for negative curvature and step off saddles (``info.minimum``).
     ``callback(iteration, x, info)``: called after every Newton iterate, True stops the solve;
     ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
-    and relaxation steps); ``max_cg_iters`` (>= 1): CG
+    and relaxation steps), after which the best state is returned with ``stop_reason="time_limit"``;
+    the default ``"auto"`` is 120 s (:data:`~torchbend.sim.options.DEFAULT_TIME_LIMITS`), None lifts it.
+    ``damping`` (default False): Levenberg-Marquardt damping of the Newton matrix by the lumped masses,
+    driven by the agreement of the quadratic model and vanishing at convergence (:mod:`torchbend.sim.damping`:
+    it bounds the steps along the soft modes of a hanging garment: sliding along a collider, turning about
+    a pin, buckling).  ``max_cg_iters`` (>= 1): CG
     iterations per Newton direction (None: automatic).  Progress goes to the logger
     ``"torchbend.sim"``.
 
@@ -773,7 +815,7 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
     opts, ctl = resolve_options(options, "solve_static", "static", hessian=hessian, max_cg_iters=max_cg_iters,
                                 callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
                                 max_iters=max_iters, continuation=continuation, max_relax_steps=max_relax_steps,
-                                check_minimum=check_minimum, time_limit=time_limit)
+                                check_minimum=check_minimum, time_limit=time_limit, damping=damping)
     option, linear, max_relax_steps = opts.option, opts.linear, opts.max_relax_steps
     mode = continuation_mode(opts.continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
     kw = ctl.newton_kw()
@@ -912,13 +954,13 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
                         projection: str | Projection = UNSET, linear_solver: str | LinearSolver = UNSET,
                         tol: float = UNSET, max_iters: int = UNSET, max_substep_depth: int = UNSET,
                         check_minimum: bool = UNSET, callback: Callable | None = None,
-                        time_limit: float | None = UNSET, max_cg_iters: int | None = UNSET,
+                        time_limit: float | str | None = UNSET, max_cg_iters: int | None = UNSET,
                         hessian: str | Projection | None = UNSET) -> tuple[ClothState, SolveInfo]:
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):
     Newton on the incremental potential.
 
     ``options``, ``projection``, ``linear_solver``, ``tol`` (default ``1e-6``), ``max_iters`` (default 30),
-    ``callback``, ``time_limit``, ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
+    ``callback``, ``time_limit`` (default ``"auto"``: 30 s), ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
     forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
     inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
     Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous term uses

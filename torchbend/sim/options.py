@@ -124,7 +124,12 @@ class NewtonOptions:
     * ``linear_solver``: a :class:`LinearSolver` or its method name (``"direct"``, ``"cg"``);
     * ``tol`` (> 0), ``max_iters`` (int >= 0), ``check_minimum``: ``None`` takes the solver's default
       (static: ``1e-9``, 50, True; a time step: ``1e-6``, 30, False);
-    * ``time_limit`` [s] (> 0 or None): the wall-time bound of a whole call;
+    * ``time_limit`` [s] (> 0, ``"auto"`` or None): the wall-time bound of a whole call, after which the best
+      state is returned with ``stop_reason="time_limit"``; ``"auto"`` (default) is :data:`DEFAULT_TIME_LIMITS`
+      (a static solve 120 s, a time step 30 s), None lifts it;
+    * ``damping`` (static solves): Levenberg-Marquardt damping by the lumped masses, vanishing at convergence
+      (:mod:`torchbend.sim.damping`; default False: it bounds the steps along the soft modes of a hanging
+      garment, but slows the large rotations of a soft beam, benchmarks/garments.py);
     * ``continuation`` (static solves): ``"auto"``, ``"membrane"``, ``"relaxation"``, True (= ``"auto"``),
       False/None; ``max_relax_steps`` (int >= 0): the pseudo-transient steps at most;
     * ``max_substep_depth`` (time steps, int >= 0): halvings of a failed step at most.
@@ -138,7 +143,8 @@ class NewtonOptions:
     tol: float | None = None
     max_iters: int | None = None
     check_minimum: bool | None = None
-    time_limit: float | None = None
+    time_limit: float | str | None = "auto"
+    damping: bool = False
     continuation: bool | str | None = "auto"
     max_relax_steps: int = 200
     max_substep_depth: int = 3
@@ -153,8 +159,10 @@ class NewtonOptions:
             set_(self, "max_iters", int_at_least(self.max_iters, "max_iters", 0))
         if self.check_minimum is not None and not isinstance(self.check_minimum, bool):
             raise ValueError(f"check_minimum must be True, False or None, got {self.check_minimum!r}")
-        if self.time_limit is not None:
+        if self.time_limit is not None and self.time_limit != "auto":
             set_(self, "time_limit", positive_value(self.time_limit, "time_limit"))
+        if not isinstance(self.damping, bool):
+            raise ValueError(f"damping must be True or False, got {self.damping!r}")
         continuation_mode(self.continuation)
         set_(self, "max_relax_steps", int_at_least(self.max_relax_steps, "max_relax_steps", 0))
         set_(self, "max_substep_depth", int_at_least(self.max_substep_depth, "max_substep_depth", 0))
@@ -199,11 +207,15 @@ class Controls:
     deadline: float | None
     callback: Callable | None
     check_minimum: bool
+    damping: bool = False
 
     def newton_kw(self) -> dict[str, Any]:
         return {"tol": self.tol, "max_iters": self.max_iters, "callback": self.callback, "deadline": self.deadline,
-                "time_limit": self.time_limit, "check_minimum": self.check_minimum}
+                "time_limit": self.time_limit, "check_minimum": self.check_minimum, "damping": self.damping}
 
+
+DEFAULT_TIME_LIMITS = {"static": 120.0, "step": 30.0}
+"""The wall-time bound [s] of a call with ``time_limit="auto"``: a static solve, a time step."""
 
 _DEFAULTS = {"static": {"tol": 1e-9, "max_iters": 50, "check_minimum": True},
              "step": {"tol": 1e-6, "max_iters": 30, "check_minimum": False}}
@@ -238,6 +250,8 @@ def resolve_options(options, where: str, kind: str, *, hessian=UNSET, max_cg_ite
     if callback is not None and not callable(callback):
         raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
     assert opts.tol is not None and opts.max_iters is not None and opts.check_minimum is not None
-    deadline = None if opts.time_limit is None else time.perf_counter() + opts.time_limit
-    ctl = Controls(opts.tol, opts.max_iters, opts.time_limit, deadline, callback, opts.check_minimum)
+    time_limit = DEFAULT_TIME_LIMITS[kind] if opts.time_limit == "auto" else opts.time_limit
+    assert time_limit is None or isinstance(time_limit, float)
+    deadline = None if time_limit is None else time.perf_counter() + time_limit
+    ctl = Controls(opts.tol, opts.max_iters, time_limit, deadline, callback, opts.check_minimum, opts.damping)
     return opts, ctl
