@@ -72,8 +72,12 @@ without pinned vertices or colliders under gravity is unbounded below: diagnosed
 The input is never modified and NaN positions are never returned.
 
 **Progress.**  The logger ``logging.getLogger("torchbend.sim")`` gets one line per Newton iteration
-(iteration, residual, tolerance, potential, step length ``alpha``, CG iterations) at ``DEBUG``; once
-a solve has run for more than 5 s its lines go out at ``INFO``, with a summary at the end.
+(iteration, residual, tolerance, potential, step length ``alpha``, CG iterations, damping) at ``DEBUG``;
+once a public call has run for more than 5 s, one iteration line a second, a line per phase of
+:func:`solve_static` (membrane homotopy, relaxation) and a summary at the end go out at ``INFO``.  In a
+program that configured no logging they are written to stderr (a handler of that logger, active only
+while the root logger has none); ``logging.getLogger("torchbend.sim").setLevel(logging.WARNING)`` silences
+them.  Every call is bounded in time by default (``time_limit="auto"``, :class:`NewtonOptions`).
 ``callback(iteration, x, info)`` is called after every accepted iterate (``x (V, 3)``, ``info`` the
 running :class:`SolveInfo`); returning True stops the solve (``stop_reason="callback"``).
 
@@ -116,7 +120,30 @@ __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "LinearMetho
 
 _log = logging.getLogger("torchbend.sim")
 _INFO_AFTER_S = 5.0
-"""A solve running longer than this [s] logs its iterations at INFO instead of DEBUG."""
+"""A public call running longer than this [s] logs its progress at INFO instead of DEBUG."""
+_INFO_EVERY_S = 1.0
+"""At most one iteration line a second at INFO."""
+
+
+class _Progress(logging.StreamHandler):
+    """Progress on stderr for an unconfigured program: the ``torchbend.sim`` records at INFO and above, written
+    only while the root logger has no handler (a configured application's own handlers get them instead,
+    by propagation).  Silence it with ``logging.getLogger("torchbend.sim").setLevel(logging.WARNING)``."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not logging.getLogger().handlers:
+            super().emit(record)
+
+
+if not any(isinstance(h, _Progress) for h in _log.handlers):
+    _log.addHandler(_Progress())
+    if _log.level == logging.NOTSET:
+        _log.setLevel(logging.INFO)
+
+
+def _level(started: float) -> int:
+    """INFO once the public call begun at ``started`` has run longer than :data:`_INFO_AFTER_S`, else DEBUG."""
+    return logging.INFO if time.perf_counter() - started > _INFO_AFTER_S else logging.DEBUG
 _STALL_WINDOW = 3
 """Newton directions over which the round-off floor test looks for progress."""
 _SLOW_STEPS = 5
@@ -144,7 +171,10 @@ class SolveInfo:
     (continuation and substeps make several); ``energy_history`` / ``residual_history``: one entry
     per accepted iterate; ``regularized_steps``: Newton directions that needed a Levenberg shift or
     the steepest-descent fallback; ``cg_iterations``: in all (CG solver); ``substeps``:
-    implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s]."""
+    implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
+    produced the returned state: ``"newton"`` (Newton alone), ``"membrane"`` (the membrane-stiffness
+    homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
+    step retried as halves)."""
 
     converged: bool = False
     iterations: int = 0
@@ -167,6 +197,7 @@ class SolveInfo:
     force_scale: float = math.nan
     solves: int = 1
     best_iteration: int = 0
+    phase: str = "newton"
 
 
 # -------------------------------------------------------------------- Newton
@@ -464,7 +495,7 @@ def _escape(phi: _Potential, x: Tensor, v: np.ndarray, gf: np.ndarray, energy: f
 def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: LinearSolver, tol: float,
             max_iters: int, ctx: StepContext | None = None, soften: float | None = None,
             check_minimum: bool = False, callback: Callable | None = None, deadline: float | None = None,
-            time_limit: float | None = None, damping: bool = False,
+            time_limit: float | None = None, damping: bool = False, started: float | None = None,
             max_line_search: int = 30) -> tuple[Tensor, SolveInfo]:
     """Minimise the (incremental) potential from ``x0 (V, 3)`` [m] (not modified) in the step context
     ``ctx`` (None: static), with the terms that take part in the stiffness homotopy scaled by ``soften``
@@ -474,6 +505,8 @@ def _newton(model: ClothModel, x0: Tensor, *, option: Projection, linear: Linear
     phi = _Potential(model, x0, option, ctx, soften, linear, damping)
     run = _NewtonRun(phi, linear, tol=tol, max_iters=max_iters, check_minimum=check_minimum and option is Projection.NONE,
                      callback=callback, deadline=deadline, time_limit=time_limit, max_line_search=max_line_search)
+    if started is not None:
+        run.started = started
     # unbounded below: a static potential with gravity and nothing that holds the cloth in place
     unbounded = (not phi.ctx.dynamic and not bool(model.pinned.any()) and bool((model.gravity != 0).any())
                  and not any(t.confines for t in phi.terms))
@@ -503,7 +536,8 @@ class _RunRecord:
         self.floor_factor = 100.0 if phi.option is Projection.NONE else 4.0
 
         self.info = SolveInfo()
-        self.t0 = time.perf_counter()
+        self.t0 = self.started = time.perf_counter()  # started: when the public call began (progress level)
+        self.last_info = -math.inf
         self.best: _Iterate | None = None
         self.current: _Iterate | None = None
         self.it = self.escapes = 0
@@ -568,7 +602,11 @@ class _RunRecord:
         info.residual_history.append(res)
         h = info.residual_history
         self.slow_steps = self.slow_steps + 1 if len(h) > 1 and self.alpha == 1.0 and h[-1] > 0.5 * h[-2] else 0
-        level = logging.INFO if time.perf_counter() - self.t0 > _INFO_AFTER_S else logging.DEBUG
+        level = _level(self.started)
+        if level == logging.INFO and time.perf_counter() - self.last_info < _INFO_EVERY_S:
+            level = logging.DEBUG
+        if level == logging.INFO:
+            self.last_info = time.perf_counter()
         if _log.isEnabledFor(level):
             _log.log(level, "newton it %d: residual %.3e N (tol %.3e N), potential %.15e J, alpha %.3g, CG %d, "
                      "damping %.2g/s^2", it, res, tolerance, energy, self.alpha, info.cg_iterations - self.cg_before,
@@ -583,8 +621,7 @@ class _RunRecord:
             info.residual, info.energy, info.energies = ret.residual, ret.energy, ret.terms
             info.tolerance, info.force_scale, info.best_iteration = ret.tolerance, ret.scale, ret.iteration
         info.seconds = time.perf_counter() - self.t0
-        level = logging.INFO if info.seconds > _INFO_AFTER_S else logging.DEBUG
-        _log.log(level, "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
+        _log.log(_level(self.started), "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
                  info.residual, info.seconds)
         return (ret.x if ret is not None else x), info
 
@@ -831,12 +868,29 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
         merged.seconds = first.seconds + info.seconds
         info = merged
     if info.converged or mode is None or info.stop_reason in _FINAL_STOPS:
-        return x, info
+        return _done(x, info, "newton", ctl)
     if mode in ("auto", "membrane") and any(softens(t) for t in model.terms):
+        _phase(ctl, "membrane-stiffness homotopy", info)
         x, info = _membrane_homotopy(model, x, info, option, linear, ctl)
         if info.converged or mode == "membrane" or info.stop_reason in _FINAL_STOPS:
-            return x, info
-    return _continuation(model, x, info, option, linear, ctl, max_relax_steps)
+            return _done(x, info, "membrane", ctl)
+    _phase(ctl, "pseudo-transient relaxation", info)
+    return _done(*_continuation(model, x, info, option, linear, ctl, max_relax_steps), "relaxation", ctl)
+
+
+def _phase(ctl: Controls, name: str, info: SolveInfo) -> None:
+    """The progress line of a phase of :func:`solve_static` that begins after a failed one."""
+    _log.log(_level(ctl.started), "solve_static: %s after %d Newton iterations (%s; residual %.3e N), %.1f s so far",
+             name, info.iterations, info.stop_reason, info.residual, time.perf_counter() - ctl.started)
+
+
+def _done(x: Tensor, info: SolveInfo, phase: str, ctl: Controls) -> tuple[Tensor, SolveInfo]:
+    """The end of a public call: ``info.phase`` set, its summary line."""
+    info.phase = phase
+    _log.log(_level(ctl.started), "solve_static: %s (phase %s: %d Newton iterations in %d solves, %.1f s)",
+             "converged" if info.converged else f"not converged ({info.stop_reason})", phase, info.iterations,
+             info.solves, time.perf_counter() - ctl.started)
+    return x, info
 
 
 _AUTO_FIRST_ITERS = 20
@@ -1008,8 +1062,10 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     out.residual_history = info1.residual_history + info2.residual_history
     if not info2.converged:
         out.message = _substep_failure(out, "the second half step")
+        out.phase = "substeps"
         return end, out
     out.message = f"converged in {out.substeps} substeps ({info2.message})"
+    out.phase = "substeps"
     return end, out
 
 

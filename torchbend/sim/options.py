@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import operator
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, ClassVar
 
 from .._checks import positive
@@ -159,6 +159,8 @@ class NewtonOptions:
             set_(self, "max_iters", int_at_least(self.max_iters, "max_iters", 0))
         if self.check_minimum is not None and not isinstance(self.check_minimum, bool):
             raise ValueError(f"check_minimum must be True, False or None, got {self.check_minimum!r}")
+        if isinstance(self.time_limit, str) and self.time_limit != "auto":
+            raise ValueError(f"time_limit must be a positive number of seconds, 'auto' or None, got {self.time_limit!r}")
         if self.time_limit is not None and self.time_limit != "auto":
             set_(self, "time_limit", positive_value(self.time_limit, "time_limit"))
         if not isinstance(self.damping, bool):
@@ -208,10 +210,13 @@ class Controls:
     callback: Callable | None
     check_minimum: bool
     damping: bool = False
+    started: float = field(default_factory=time.perf_counter)
+    """When the public call began (``time.perf_counter()``): its progress lines go out at INFO after 5 s."""
 
     def newton_kw(self) -> dict[str, Any]:
         return {"tol": self.tol, "max_iters": self.max_iters, "callback": self.callback, "deadline": self.deadline,
-                "time_limit": self.time_limit, "check_minimum": self.check_minimum, "damping": self.damping}
+                "time_limit": self.time_limit, "check_minimum": self.check_minimum, "damping": self.damping,
+                "started": self.started}
 
 
 DEFAULT_TIME_LIMITS = {"static": 120.0, "step": 30.0}

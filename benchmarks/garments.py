@@ -1,0 +1,125 @@
+"""Garment benchmark: the solver on garments a user brings, through the documented API only.
+
+Cases (each loaded as a user would: an OBJ with unwelded UV seams read by ``tb.mesh.load``, or a shipped scene):
+
+* ``sleeve``: a 408-vertex tube (24 around x 17 along, radius 6 cm, 50 cm, two panels sewn along two seams)
+  hanging on a capsule arm (radius 4 cm, 70 cm), quadratic bending from
+  ``stiffness_from_material(2e5, 5e-4, 0.3)``, StVK membrane (Y = 2e5 Pa, t = 0.5 mm), 0.2 kg/m^2;
+  ``sleeve+pin``: the same with one seam vertex at the shoulder pinned (no free slide along the arm);
+* ``skirt``: ``configs/skirt_drape.yaml`` (384 vertices, waist pinned, hips and legs);
+* ``towel``: a 31 x 31 sheet (0.5 m, 961 vertices) hanging over a capsule rail, nothing pinned.
+
+For each: a static solve from the rest shape with the default options and with ``damping=True``, and 30
+implicit-Euler steps of 0.01 s from rest (default options).  One thread (``torch.set_num_threads(1)``).
+
+    python benchmarks/garments.py                 # every case, the table on stdout
+    python benchmarks/garments.py --cases sleeve  # some of them
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+import time
+
+import torch
+from common import machine
+
+import torchbend as tb
+from torchbend.scenes.builders import build_scene
+from torchbend.scenes.config import load_config
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _loaded(positions, faces, uvs) -> tuple[torch.Tensor, torch.Tensor]:
+    """Write an OBJ with its seams unwelded and read it back with ``tb.mesh.load`` (welds them)."""
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "garment.obj")
+        tb.mesh.save_obj(path, positions, faces, uvs)
+        rest, faces = tb.mesh.load(path)
+    return rest, faces
+
+
+def sleeve(pin: bool) -> tuple[tb.ClothModel, torch.Tensor]:
+    p, f, uv = tb.mesh.skirt(24, 17, waist_radius=0.06, hem_radius=0.06, length=0.5, dtype=torch.float64)
+    p = torch.stack((-p[:, 2], p[:, 0], p[:, 1]), -1)  # the tube's axis along +x, the shoulder at x = 0
+    rest, faces = _loaded(p, f, uv)
+    k = tb.stiffness_from_material(2e5, 5e-4, 0.3)
+    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=k)
+    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
+    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04)
+    pinned = None
+    if pin:  # the seam vertex at the shoulder (y = 0.06: angle 0, where the two panels meet)
+        pinned = [int(torch.argmin((rest - torch.tensor([0.0, 0.06, 0.0], dtype=rest.dtype)).norm(dim=-1)))]
+    return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[arm], density=0.2, pinned=pinned), rest
+
+
+def skirt() -> tuple[tb.ClothModel, torch.Tensor]:
+    model, x0, _ = build_scene(load_config(os.path.join(ROOT, "configs", "skirt_drape.yaml")))
+    return model, x0
+
+
+def towel() -> tuple[tb.ClothModel, torch.Tensor]:
+    rest, faces = tb.scenes.grid(31, 31, (0.5, 0.5), dtype=torch.float64)
+    rest = rest - torch.tensor([0.25, 0.25, -0.03], dtype=torch.float64)  # centred 3 cm above the rail's top
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=tb.stiffness_from_material(1e5, 1e-3, 0.3))
+    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=1e5, poisson=0.3, thickness=1e-3)
+    rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02)
+    return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[rail], density=0.3), rest
+
+
+CASES = {"sleeve": lambda: sleeve(False), "sleeve+pin": lambda: sleeve(True), "skirt": skirt, "towel": towel}
+
+
+def static_row(model, x0, **kw) -> dict:
+    t = time.perf_counter()
+    x, info = tb.solve_static(model, x0, **kw)
+    return {"converged": info.converged, "iterations": info.iterations, "solves": info.solves,
+            "seconds": time.perf_counter() - t, "stop": info.stop_reason, "energy": info.energy,
+            "drop": float((x0[:, 2] - x[:, 2]).max())}
+
+
+def steps_row(model, x0, steps: int = 30, dt: float = 0.01) -> dict:
+    state = tb.ClothState(x0.clone(), torch.zeros_like(x0))
+    times, iters, ok = [], [], 0
+    for _ in range(steps):
+        t = time.perf_counter()
+        state, info = tb.implicit_euler_step(model, state, dt)
+        times.append(time.perf_counter() - t)
+        iters.append(info.iterations)
+        ok += int(info.converged)
+    return {"total": sum(times), "max": max(times), "iterations": sum(iters), "max_iterations": max(iters),
+            "converged": ok, "steps": steps}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--steps", type=int, default=30)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    flags = [f for f in ("avx512f", "avx2", "fma") if f in open("/proc/cpuinfo").read().split()] if os.path.exists("/proc/cpuinfo") else []
+    print(machine(), "|", " ".join(flags))
+    print("threads: 1; float64; direct solver; static solves from the rest shape, steps of 0.01 s from rest\n")
+    head = (f"{'case':<11} {'V':>5}  {'static (defaults)':<34} {'static (damping=True)':<34} "
+            f"{'30 steps: total / slowest step / iterations':<44}")
+    print(head)
+    print("-" * len(head))
+    for name in args.cases:
+        model, x0 = CASES[name]()
+        rows = [static_row(model, x0), static_row(model, x0, damping=True)]
+        cells = [f"{'ok ' if r['converged'] else 'FAIL'} {r['iterations']:4d} it {r['solves']:3d} solves {r['seconds']:6.1f} s"
+                 for r in rows]
+        st = steps_row(model, x0, args.steps) if args.steps else None
+        step_cell = (f"{st['total']:6.1f} s / {st['max']:5.2f} s / {st['iterations']:4d} (max {st['max_iterations']}),"
+                     f" {st['converged']}/{st['steps']} conv." if st else "")
+        print(f"{name:<11} {model.vertex_count:5d}  {cells[0]:<34} {cells[1]:<34} {step_cell}", flush=True)
+        for label, r in zip(("defaults", "damping"), rows):
+            if not r["converged"] or not math.isfinite(r["energy"]):
+                print(f"{'':<18}{label}: stop {r['stop']!r}, potential {r['energy']:.6e} J, largest drop {r['drop']:.3g} m")
+
+
+if __name__ == "__main__":
+    main()
