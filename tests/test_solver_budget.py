@@ -117,3 +117,30 @@ def test_damping_holds_a_cloth_that_can_slide_along_a_collider():
     assert info.converged, info.message
     assert float(x[:, 2].max()) >= 0.035  # the top still rests on the arm (radius 4 cm)
     assert float(x[:, 0].min()) > -0.1 and float(x[:, 0].max()) < 0.4  # on the capsule, not off its ends
+
+
+def test_an_impact_step_with_an_indefinite_exact_hessian_takes_the_clamped_direction(monkeypatch):
+    """A tube falling onto a capsule: in the impact steps the exact Hessian of the incremental potential is
+    indefinite; the step then solves with the clamped one (counted in ``regularized_steps``) and converges."""
+    p, f, _ = tb.mesh.skirt(12, 7, waist_radius=0.06, hem_radius=0.06, length=0.3, dtype=torch.float64)
+    rest = torch.stack((-p[:, 2], p[:, 0], p[:, 1]), -1).contiguous()
+    rest, faces = tb.mesh.clean(rest, f)[:2]
+    bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(2e5, 5e-4, 0.3))
+    mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
+    model = tb.ClothModel(faces, rest, bending=bend, membrane=mem, density=0.2,
+                          colliders=[tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04)])
+    methods: list = []
+    real = newton._Potential.direct_direction
+
+    def spy(self, x, gf):
+        out = real(self, x, gf)
+        methods.append(self.linear_method)
+        return out
+
+    monkeypatch.setattr(newton._Potential, "direct_direction", spy)
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    for _ in range(12):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged and info.substeps == 1, info.message
+    assert any(m.endswith("/clamp") for m in methods) and methods.count("lu") > 0
+    assert float(state.x[:, 2].max()) > 0.035  # resting on the arm, not through it

@@ -303,6 +303,13 @@ class _Potential:
         res = direct_solve(self.hessian_op.to_scipy(self.free_hessian(x)), -gf,
                            cholesky=self.linear.cholesky)
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
+        if res.positive_definite is False and self.ctx.dynamic and self.option is Projection.NONE:
+            # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction
+            # (positive semi-definite elements plus the inertia: definite), not a Levenberg-shifted exact one
+            A = self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)
+            clamped = direct_solve(self.hessian_op.to_scipy(A), -gf, cholesky=self.linear.cholesky)
+            self.linear_method = f"{clamped.method}/clamp"
+            return clamped.p, clamped.shifts + 1
         return res.p, res.shifts
 
     def cg_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float) -> tuple[np.ndarray, int]:
