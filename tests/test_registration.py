@@ -21,6 +21,8 @@ def test_every_schema_is_the_tables():
     for name, schema in _table.SCHEMAS.items():
         assert str(getattr(torch.ops.torchbend, name).default._schema) == f"torchbend::{name}{schema}"
     assert list(_table.SCHEMAS) == list(_table.OPERATORS) == list(ops.OPS)
+    for name, fn in ops._KERNELS.items():  # the Python kernels' annotations say the same
+        assert torch.library.infer_schema(fn, mutates_args=()) == _table.SCHEMAS[name], name
 
 
 @needs_kernel

@@ -13,7 +13,8 @@ streaming stores.
 The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` and ``hinge_ops.h``
 (torch-free, compiled for the CUDA driver as well) and the CPU driver, split by role (``cpu_tiles.*``: tiles,
 checks, output buffers; ``cpu_first_order.cpp``, ``cpu_second_order.cpp``, ``cpu_blocks.cpp``: the operators;
-``cpu_assembly.cpp``; ``cpu_projection.cpp``; ``bending_cpu.cpp``: the bindings; the list is
+``cpu_assembly.cpp``; ``cpu_projection.cpp``; ``bending_cpu.cpp``: the Python bindings the functions below call;
+``cpu_registration.cpp``: the same operators registered with the dispatcher, ``torch.ops.torchbend.*``; the list is
 :data:`torchbend.backends._build_config.NATIVE_SOURCES`).  ``pip install --no-build-isolation .`` (or ``-e .``)
 compiles them into ``torchbend._native`` (``setup.py``); :func:`load` (:class:`torchbend.backends._loader.Extension`,
 shared with the CUDA driver) uses that module if it was built from the sources installed next to it (their hash

@@ -237,8 +237,6 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
     """CSR values ``(nnz,)`` of the unprojected Hessian of one mesh ``x (V, 3)`` (the pattern's block bases
     from :class:`torchbend.energies.sparse.HessianPattern` and the topology)."""
     _model("assemble", model)
-    from . import native
-
     return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges,
                                   face_edge_signs, face_blocks, row_len, nnz, per_triangle)
 
@@ -266,8 +264,6 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
         if not bool(torch.isfinite(M).all()):
             raise ValueError("torchbend.project_blocks: M holds non-finite values")
         return eager_project(M, Projection(mode)).contiguous()
-    from . import native
-
     return native.project_blocks(M, mode, hinge)
 
 
