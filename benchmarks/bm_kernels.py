@@ -17,10 +17,12 @@ Reported: ns per hinge (fastest of ``--repeat``) and the speedup over autograd.
 with ``backend="native"``, float64, no autograd graph) and through the registered operators
 (``torch.ops.torchbend.*``), fastest of ``--repeat`` runs of a loop of calls: the per-call overhead of the
 Python layers and of the dispatcher next to the kernels' work (benchmarks/results/backends_registration.txt).
-``--registration``: the operators as the autograd Functions call them (``torchbend.backends.ops.run``: registered
-from Python with ``torch.library``, called directly in eager mode) against the same kernels registered in C++
-(``TORCH_LIBRARY`` / ``TORCH_LIBRARY_IMPL(..., CPU)`` in a JIT build of the CPU sources with a registration unit,
-called through ``torch.ops``, the status word checked in Python): the per-call cost of each registration.
+``--registration``: per-call microseconds (wall clock and the thread's CPU time) of the energy, gradient and hvp
+as the autograd Functions call them (``torchbend.backends.ops.run``), through the dispatcher
+(``torch.ops.torchbend.<op>.default``) and through the public calls, labelled with how the operators of the
+torchbend on ``sys.path`` are registered (``c++``: ``TORCH_LIBRARY`` in the CPU extension; ``python``:
+``torch.library``): run it with ``PYTHONPATH`` set to a tree before and after a change, in turns
+(``--json`` keeps the rows).
 ``--pool``: the per-hinge blocks (``hinge_hessians``) of 1e5 hinges called in a loop, with new outputs each call
 and with caller-owned ``out=`` buffers kept between calls.
 """
@@ -154,82 +156,74 @@ def run_calls(sizes, repeat: int, log=print) -> list:
     return rows
 
 
-_REGISTRATION = r"""
-#include <torch/library.h>
-#include "cpu_ops.h"
-TORCH_LIBRARY(torchbend_cxx, m) {
-  m.def("bending_energy(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, int model, "
-        "bool check) -> (Tensor, Tensor, int)");
-  m.def("bending_gradient(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, int model, "
-        "Tensor weight, Tensor inc_ptr, Tensor inc_idx, bool params, bool check) -> (Tensor, Tensor, Tensor, int)");
-  m.def("bending_hvp(Tensor x, Tensor v, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, "
-        "int model, Tensor weight, Tensor inc_ptr, Tensor inc_idx, bool check) -> (Tensor, Tensor, int)");
-}
-TORCH_LIBRARY_IMPL(torchbend_cxx, CPU, m) {
-  m.impl("bending_energy", &torchbend::cpu::bending_energy);
-  m.impl("bending_gradient", &torchbend::cpu::bending_gradient);
-  m.impl("bending_hvp", &torchbend::cpu::bending_hvp);
-}
-"""
+def registration_label() -> str:
+    """How the operators of the torchbend on ``sys.path`` are registered: ``"c++"`` (``TORCH_LIBRARY`` in the CPU
+    extension) or ``"python"`` (``torch.library`` from Python: the code before the C++ registration, or no
+    extension)."""
+    from torchbend.backends import ops as tbops
+
+    return "python" if getattr(tbops, "PYTHON_DEFINED", True) else "c++"
 
 
-def load_cxx_registration() -> None:
-    """The CPU kernels with the energy, gradient and hvp registered in C++ as ``torch.ops.torchbend_cxx.*`` (a JIT
-    build of the sources with a registration unit in place of the bindings; a few minutes, then cached)."""
-    import os
-    import tempfile
-
-    from torch.utils.cpp_extension import load
-
-    from torchbend.backends import _build_config as cfg
-
-    src = os.path.join(tempfile.mkdtemp(prefix="torchbend_registration_"), "registration.cpp")
-    with open(src, "w") as fh:
-        fh.write(_REGISTRATION)
-    sources = [os.path.join(cfg.CSRC, f) for f in cfg.NATIVE_SOURCES if f != "bending_cpu.cpp"] + [src]
-    load(name=native.extension_name() + "_cxx_registration", sources=sources, extra_include_paths=[cfg.CSRC],
-         extra_cflags=native.jit_cflags(), extra_ldflags=["-fopenmp"], is_python_module=False, verbose=False)
-
-
-def registration_calls(bend, x, v, cxx) -> dict:
-    """The energy, gradient and hvp operators registered from Python (``ops.run``) and in C++ (``cxx``)."""
+def registration_calls(bend, x, v) -> dict:
+    """The energy, gradient and hvp as the autograd Functions call them (``ops.run``: in eager mode the kernel's
+    Python wrapper, no dispatcher), through the dispatcher (``torch.ops.torchbend.<op>.default``: the registered
+    kernel, C++ or Python), and the public calls; public API and operators only, so that the same script times
+    the code before and after a change (``PYTHONPATH`` of either tree)."""
     from torchbend.backends import ops as tbops
 
     hinges, a = bend.hinges, bend.weights
     k, rest = bend.stiffness.reshape(1), bend.rest_angles
     ptr, idx = native.incidence(hinges, x.shape[-2])
     one = x.new_ones(1)
-
-    def checked(out):
-        if out[-1]:
-            raise ValueError(out[-1])
-        return out
-
-    return {
-        ("energy", "python"): lambda: tbops.run("bending_energy", x, hinges, a, k, rest, None, None, "tan", False),
-        ("energy", "c++"): lambda: checked(cxx.bending_energy(x, hinges, a, k, rest, None, None, 1, False)),
-        ("gradient", "python"): lambda: tbops.run("bending_gradient", x, hinges, a, k, rest, None, None, "tan", one,
-                                                  ptr, idx, False, False),
-        ("gradient", "c++"): lambda: checked(cxx.bending_gradient(x, hinges, a, k, rest, None, None, 1, one, ptr, idx,
-                                                                  False, False)),
-        ("hvp", "python"): lambda: tbops.run("bending_hvp", x, v, hinges, a, k, rest, None, None, "tan", one, ptr, idx,
-                                             False),
-        ("hvp", "c++"): lambda: checked(cxx.bending_hvp(x, v, hinges, a, k, rest, None, None, 1, one, ptr, idx, False)),
+    args = {
+        "energy": ("bending_energy", (x, hinges, a, k, rest, None, None, "tan", False)),
+        "gradient": ("bending_gradient", (x, hinges, a, k, rest, None, None, "tan", one, ptr, idx, False, False)),
+        "hvp": ("bending_hvp", (x, v, hinges, a, k, rest, None, None, "tan", one, ptr, idx, False)),
     }
+    calls = {}
+    for op, (name, a_) in args.items():
+        calls[(op, "run")] = functools.partial(tbops.run, name, *a_)
+        calls[(op, "dispatcher")] = functools.partial(getattr(torch.ops.torchbend, name).default, *a_)
+    calls[("energy", "public")] = lambda: bend(x)
+    calls[("gradient", "public")] = lambda: bend.gradient(x)
+    calls[("hvp", "public")] = lambda: bend.hvp(x, v)
+    return calls
 
 
-def run_registration(sizes, repeat: int, log=print) -> list:
-    load_cxx_registration()
+def per_call_both(fn, repeat: int, seconds: float = 0.05) -> tuple[float, float]:
+    """Microseconds of one call of ``fn``: ``(wall, cpu)``, each the fastest of ``repeat`` loops of about
+    ``seconds``; ``cpu`` is the calling thread's CPU time (``time.thread_time``), which does not count the time
+    other processes held the core."""
+    fn()
+    t0 = time.perf_counter()
+    fn()
+    n = max(1, int(seconds / max(time.perf_counter() - t0, 1e-7)))
+    wall = cpu = float("inf")
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.thread_time()
+        for _ in range(n):
+            fn()
+        wall = min(wall, (time.perf_counter() - t0) / n)
+        cpu = min(cpu, (time.thread_time() - c0) / n)
+    return wall * 1e6, cpu * 1e6
+
+
+def run_registration(sizes, repeat: int, log=print, rounds: int = 2) -> list:
+    """Per-call microseconds of :func:`registration_calls` at each size, ``rounds`` interleaved rounds."""
+    label = registration_label()
     rows = []
     for target in sizes:
         bend, x, v = scene(target, torch.float64)
-        calls = registration_calls(bend, x, v, torch.ops.torchbend_cxx)
+        calls = registration_calls(bend, x, v)
         with torch.no_grad():
-            for _ in range(2):  # interleaved rounds: drifts of a shared machine hit both registrations
-                for (op, reg), fn in calls.items():
-                    us = per_call(fn, repeat)
-                    rows.append((bend.hinge_count, op, reg, us))
-                    log(f"{bend.hinge_count:>8d} {op:>9s} {reg:>7s} {us:10.2f} us/call")
+            for r in range(rounds):  # interleaved rounds: drifts of a shared machine hit every call alike
+                for (op, path), fn in calls.items():
+                    wall, cpu = per_call_both(fn, repeat)
+                    rows.append({"registration": label, "hinges": bend.hinge_count, "op": op, "path": path,
+                                 "round": r, "wall_us": wall, "cpu_us": cpu})
+                    log(f"{label:>6s} {bend.hinge_count:>8d} {op:>9s} {path:>10s} {wall:10.2f} us/call wall "
+                        f"{cpu:10.2f} us/call CPU")
     return rows
 
 
@@ -257,6 +251,8 @@ def main(argv=None) -> None:
     p.add_argument("--calls", action="store_true", help="per-call microseconds at 1e3 and 1e5 hinges")
     p.add_argument("--registration", action="store_true", help="Python against C++ operator registration")
     p.add_argument("--pool", action="store_true", help="hinge_hessians at 1e5 hinges: new outputs and out= buffers")
+    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds of --registration")
+    p.add_argument("--json", default=None, help="write the rows of --registration here")
     a = p.parse_args(argv)
     print("machine:", machine())
     if a.calls or a.pool or a.registration:
@@ -264,7 +260,12 @@ def main(argv=None) -> None:
         if a.calls:
             run_calls(sizes, a.repeat)
         if a.registration:
-            run_registration(sizes, a.repeat)
+            rows = run_registration(sizes, a.repeat, rounds=a.rounds)
+            if a.json:
+                import json
+
+                with open(a.json, "w") as fh:
+                    json.dump({"machine": machine(), "torch": torch.__version__, "rows": rows}, fh, indent=1)
         if a.pool:
             run_pool(100_000, a.repeat)
         return

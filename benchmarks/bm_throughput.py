@@ -19,6 +19,10 @@ Methods:
 ``torchbend``           the default path, ``BendingEnergy(...)`` with ``backend="auto"``: ``bend(x)``,
                         ``bend.gradient(x)``, ``bend.hvp(x, v)``, ``bend.hinge_hessians(x)``, ``bend.hessian(x)``
                         (compiled C++/CUDA kernels where they exist; the results name the backend that ran)
+``torchbend.out``       (timed with ``torchbend``) ``hinge_hessians`` and ``assembly`` of the default path with
+                        caller-owned output buffers kept between the calls: ``bend.hinge_hessians(x, out=Hb)``,
+                        ``bend.hessian(x, out=values)`` (what a solver that keeps its buffers runs; fresh outputs
+                        page-fault on first touch, which on large meshes costs more than the kernel)
 ``torchbend.backward``  the default path through torch.autograd: gradient = ``autograd.grad(bend(y), y)``,
                         HVP = double backward (what code that only knows ``bend(x)`` runs)
 ``torchbend.eager``     the same methods with ``backend="eager"`` (closed forms in eager PyTorch), for reference
@@ -183,6 +187,13 @@ def torch_methods(bend, x, v, pattern: HessianPattern) -> dict:
         Hb = func_blocks(x[hinges], a, rest)
         return csr(x.new_zeros(pattern.nnz).index_add_(0, pos, Hb.reshape(-1)))
 
+    kept: dict = {}  # the caller's buffers of torchbend.out, allocated on first use and kept between calls
+
+    def kept_buffer(name: str, shape) -> torch.Tensor:
+        if name not in kept:
+            kept[name] = x.new_empty(shape)
+        return kept[name]
+
     return {
         "torchbend": {
             "energy": lambda: bend(x),
@@ -190,6 +201,10 @@ def torch_methods(bend, x, v, pattern: HessianPattern) -> dict:
             "hvp": lambda: bend.hvp(x, v),
             "hinge_hessians": lambda: bend.hinge_hessians(x),
             "assembly": lambda: bend.hessian(x),
+        },
+        "torchbend.out": {
+            "hinge_hessians": lambda: bend.hinge_hessians(x, out=kept_buffer("blocks", (bend.hinge_count, 12, 12))),
+            "assembly": lambda: bend.hessian(x, out=kept_buffer("values", (bend.hessian_nnz(),))),
         },
         "torchbend.backward": {"gradient": backward_grad, "hvp": backward_hvp},
         "torchbend.eager": {
@@ -487,6 +502,9 @@ def measure(target: int, dtype_name: str, device: str = "cpu", methods=None, bud
         if method in eager:
             for op, fn in eager[method].items():
                 m.time(method, op, fn)
+            if method == "torchbend":  # beside the default rows: the same calls with caller-kept out= buffers
+                for op, fn in eager["torchbend.out"].items():
+                    m.time("torchbend.out", op, fn)
         elif method == "torch.compile":
             m.compiled()
         elif method == "jax" and m.dev.type == "cpu":

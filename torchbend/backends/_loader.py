@@ -25,15 +25,17 @@ class Extension:
     ``source_hash``: the hash the installed module must carry (called at load time); ``cpu_arch``: the installed
     module must also match ``TORCHBEND_CPU_ARCH`` (the CPU extension); ``compatible(info)``: ``""`` if an installed
     module with build info ``info`` runs here, else why not; ``install_info(info)``: what :meth:`build_info` adds
-    about the installed module; ``warn``: a failed build warns (once) that the eager path runs."""
+    about the installed module; ``warn``: a failed build warns (once) that the eager path runs; ``on_load(module)``:
+    called once with the loaded module (e.g. to register the status helper its operators call back)."""
 
     def __init__(self, label: str, prebuilt: str, source_hash: Callable[[], str],
                  jit_build: Callable[[], tuple[Any, dict[str, Any]]], *, cpu_arch: bool = False,
                  compatible: Callable[[dict], str] | None = None,
                  install_info: Callable[[dict], dict[str, Any]] | None = None, warn: bool = False,
-                 info_keys: tuple[str, ...] = ()):
+                 info_keys: tuple[str, ...] = (), on_load: Callable[[Any], None] | None = None):
         self.label, self.prebuilt, self.source_hash, self.jit_build = label, prebuilt, source_hash, jit_build
         self.cpu_arch, self.compatible, self.install_info, self.warn = cpu_arch, compatible, install_info, warn
+        self.on_load = on_load
         self.info: dict[str, Any] = dict.fromkeys(("source", "seconds", "path", "prebuilt", "build", *info_keys))
         self._result: tuple[Any, str | None] | None = None
         self._lock = threading.Lock()
@@ -81,7 +83,10 @@ class Extension:
         if result is None:
             with self._lock:
                 if self._result is None:
-                    self._result = self._build()
+                    built = self._build()
+                    if built[0] is not None and self.on_load is not None:
+                        self.on_load(built[0])
+                    self._result = built
                 result = self._result
         return result
 

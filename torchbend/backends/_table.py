@@ -36,6 +36,29 @@ OPERATORS: dict[str, str | None] = {
 """``torch.ops.torchbend.<name>`` (:mod:`torchbend.backends.ops`) -> the kernel of the CUDA driver that runs it
 (``None``: CPU only; ``project_blocks`` runs eagerly on CUDA tensors)."""
 
+SCHEMAS: dict[str, str] = {
+    "bending_energy": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "
+                      "bool check) -> Tensor",
+    "bending_gradient": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, "
+                        "str model, Tensor weight, Tensor ptr, Tensor idx, bool params, bool check) -> (Tensor, Tensor)",
+    "bending_energy_gradient": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, "
+                               "str model, Tensor ptr, Tensor idx, bool params, bool check) -> (Tensor, Tensor, Tensor)",
+    "bending_hvp": "(Tensor x, Tensor v, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, "
+                   "str model, Tensor weight, Tensor ptr, Tensor idx, bool check=False) -> Tensor",
+    "bending_second_order": "(Tensor x, Tensor? v, Tensor? t, Tensor hinges, Tensor a, Tensor k, Tensor rest, "
+                            "Tensor? c, Tensor? prev, str model, Tensor weight, Tensor ptr, Tensor idx) "
+                            "-> (Tensor, Tensor, Tensor)",
+    "hinge_hessians": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "
+                      "bool check=False) -> (Tensor, Tensor, Tensor)",
+    "assemble": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "
+                "Tensor hinge_blocks, Tensor faces, Tensor face_edge_hinges, Tensor face_edge_signs, "
+                "Tensor face_blocks, Tensor row_len, SymInt nnz, bool per_triangle) -> Tensor",
+    "project_blocks": "(Tensor M, str mode, bool hinge=False) -> Tensor",
+}
+"""The schema of every operator (``torch.ops.torchbend.<name>``): registered in C++ by the CPU extension
+(``csrc/op_registration.h``, the same strings: a test compares them), defined from Python where it cannot be
+built (:mod:`torchbend.backends.ops`)."""
+
 CUDA_KERNELS: tuple[str, ...] = tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None))
 """The kernels of the CUDA driver (``csrc/bending_cuda.cu``), each compiled for float32 and float64."""
 

@@ -94,7 +94,14 @@ def _jit_build() -> tuple[Any, dict[str, Any]]:
     return module, {}
 
 
-_EXT = Extension("CUDA kernels", PREBUILT, lambda: cfg.cuda_source_hash(), _jit_build, compatible=_compatible)
+def _on_load(module) -> None:
+    """The CUDA kernels of the operators (``torch.ops.torchbend.*``, registered by the module) raise the ValueError of
+    a status word through :func:`torchbend.backends._status.raise_for_status`."""
+    module.set_status_handler(raise_for_status)
+
+
+_EXT = Extension("CUDA kernels", PREBUILT, lambda: cfg.cuda_source_hash(), _jit_build, compatible=_compatible,
+                 on_load=_on_load)
 
 
 _load_prebuilt = _EXT.load_prebuilt  # (torchbend._cuda, "", found) if installed, current and runnable here

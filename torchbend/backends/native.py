@@ -13,7 +13,8 @@ streaming stores.
 The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` and ``hinge_ops.h``
 (torch-free, compiled for the CUDA driver as well) and the CPU driver, split by role (``cpu_tiles.*``: tiles,
 checks, output buffers; ``cpu_first_order.cpp``, ``cpu_second_order.cpp``, ``cpu_blocks.cpp``: the operators;
-``cpu_assembly.cpp``; ``cpu_projection.cpp``; ``bending_cpu.cpp``: the bindings; the list is
+``cpu_assembly.cpp``; ``cpu_projection.cpp``; ``bending_cpu.cpp``: the Python bindings the functions below call;
+``cpu_registration.cpp``: the same operators registered with the dispatcher, ``torch.ops.torchbend.*``; the list is
 :data:`torchbend.backends._build_config.NATIVE_SOURCES`).  ``pip install --no-build-isolation .`` (or ``-e .``)
 compiles them into ``torchbend._native`` (``setup.py``); :func:`load` (:class:`torchbend.backends._loader.Extension`,
 shared with the CUDA driver) uses that module if it was built from the sources installed next to it (their hash
@@ -76,8 +77,14 @@ def _install_info(build: dict) -> dict[str, Any]:
     return {"cflags": cflags, "arch": cfg.cpu_arch_tag([f for f in cflags if f.startswith("-march=")])}
 
 
+def _on_load(module) -> None:
+    """The operators registered by the module (``torch.ops.torchbend.*``, ``csrc/cpu_registration.cpp``) raise the
+    ValueError of a status word through :func:`torchbend.backends._status.raise_for_status`."""
+    module.set_status_handler(raise_for_status)
+
+
 _EXT = Extension("C++ extension", PREBUILT, lambda: cfg.native_source_hash(), _jit_build, cpu_arch=True,
-                 install_info=_install_info, warn=True, info_keys=("cflags", "arch"))
+                 install_info=_install_info, warn=True, info_keys=("cflags", "arch"), on_load=_on_load)
 
 
 _load_prebuilt = _EXT.load_prebuilt  # (torchbend._native, "", found) if installed and current, else (None, why not, found)
@@ -91,7 +98,7 @@ _module = _EXT.module  # the compiled module, or the RuntimeError saying why not
 
 
 def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c, prev, model,
-                     out: tuple[Tensor, Tensor] | None = None, check: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+                     out: tuple[Tensor | None, Tensor | None] | None = None, check: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Fused gather + angle + ``psi'``/``psi''`` + blocks for positions ``x: (..., V, 3)``:
     ``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))``; a folded ``tan`` hinge is the ``ValueError`` of
     :func:`torchbend.ops.psi.check_fold` and, with ``check``, non-finite positions that of
@@ -99,7 +106,7 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     (``prev`` also ``(..., H)`` with x's batch shape); ``c``, ``prev`` ``None`` without damping.
 
     ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of new tensors
-    (contiguous, x's dtype, exactly those shapes, not overlapping x).  Fresh memory page-faults on first touch,
+    (contiguous, x's dtype, exactly those shapes, not overlapping x; either may be ``None``: a new tensor).  Fresh memory page-faults on first touch,
     which for large meshes costs more than the kernel itself: a caller that asks for the blocks in a loop keeps its
     buffers between the calls (or opts in to the cache of released outputs, :func:`set_output_cache_limit`)."""
     hb, g = (None, None) if out is None else out
@@ -112,15 +119,21 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
 
 def assemble_arrays(x: Tensor, hinges: Tensor, a, k, rest, c, prev, model, hinge_blocks: Tensor, faces: Tensor,
                     face_edge_hinges: Tensor, face_edge_signs: Tensor, face_blocks: Tensor, row_len: Tensor, nnz: int,
-                    per_triangle: bool) -> Tensor:
+                    per_triangle: bool, out: Tensor | None = None) -> Tensor:
     """CSR values ``(nnz,)`` of the (unprojected) Hessian of one mesh ``x: (V, 3)``, assembled per hinge or per
     triangle in C++ (serial: the scatter targets overlap) into the pattern of
     :class:`torchbend.energies.sparse.HessianPattern` (its ``hinge_blocks``, ``face_blocks``, ``row_len``, ``nnz``)
     over the topology's ``faces``, ``face_edge_hinges`` and ``face_edge_signs``; a folded ``tan`` hinge is a
-    ``ValueError`` as in :func:`bending_hessians`."""
+    ``ValueError`` as in :func:`bending_hessians`.
+
+    ``out``: a buffer to write the values into and return instead of a new tensor (every entry is written: its
+    contents do not matter), a contiguous ``(nnz,)`` tensor of x's dtype and device, not overlapping x (else a
+    ``ValueError`` naming ``out``); kept by a caller between calls, it saves the first-touch page faults of fresh
+    memory (10 % of the assembly at 1e6 hinges; nothing measurable at 1e5, whose 25 MiB of values malloc reuses:
+    benchmarks/results/throughput_outbuffers_2026-12-02.txt)."""
     values, theta, status = _module().assemble(
         x, hinges, a, k, rest, c, prev, model_code(model), hinge_blocks, faces, face_edge_hinges, face_edge_signs,
-        face_blocks, row_len, nnz, per_triangle)
+        face_blocks, row_len, nnz, per_triangle, out)
     if status:
         raise_for_status(status, model, x, theta)
     return values

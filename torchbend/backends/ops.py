@@ -1,13 +1,22 @@
 r"""The compiled bending kernels as PyTorch operators: ``torch.ops.torchbend.*``.
 
-Each operator wraps one kernel of :mod:`torchbend.backends.native` (CPU) or :mod:`torchbend.backends.cuda`
-(by the device of ``x``), registered with ``torch.library`` (a schema, the kernel for the ``CPU`` and ``CUDA``
-dispatch keys, and a fake implementation: output shapes and dtypes from the input shapes alone), so that
-``torch.compile`` (also ``fullgraph=True``) and ``torch.export`` trace through them without a graph break, and
-``torch.library.opcheck`` can check them.  They are defined with ``Library.define``/``impl`` rather than
-``torch.library.custom_op``, whose Python wrapper (argument binding through ``inspect`` on every call) cost
-more than the kernels themselves on meshes of a thousand hinges; the schemas are the ones ``custom_op`` would
-infer from the annotated functions below (:func:`torch.library.infer_schema`).
+The operators are registered in C++ by the CPU extension (``csrc/cpu_registration.cpp``: the schemas with
+``TORCH_LIBRARY(torchbend)``, the CPU kernels with ``TORCH_LIBRARY_IMPL(torchbend, CPU)``) and the CUDA binding
+(``csrc/cuda_binding.cpp``: ``TORCH_LIBRARY_IMPL(torchbend, CUDA)``, registered when the CUDA kernels are first
+loaded); this module loads the CPU extension (at import) and registers what stays in Python: the fake
+implementations (output shapes and dtypes from the input shapes alone), so that ``torch.compile`` (also
+``fullgraph=True``) and ``torch.export`` trace through the operators without a graph break and
+``torch.library.opcheck`` can check them, and the kernel of ``project_blocks`` (whose eager fallback, CUDA
+tensors and other block sizes, is Python's).  A kernel's status word becomes the ValueError of the eager path in
+one place, :func:`torchbend.backends._status.raise_for_status`, which the C++ kernels call back (the loader
+registers it).  Where the extension cannot be built (no compiler), the same schemas
+(:data:`torchbend.backends._table.SCHEMAS`) are defined here with the Python kernels below, which then say why
+the compiled kernels are not available (the eager path runs instead: :func:`torchbend.backends.select_backend`).
+
+In plain eager mode :func:`run` calls the Python kernel below directly instead of going through the dispatcher
+(a few microseconds a call less, a tenth of the work on a thousand hinges): the same compiled operator behind
+its pybind binding (:mod:`torchbend.backends.native`, or :mod:`torchbend.backends.cuda` by the device of ``x``)
+and the same status helper, so both paths give the same results and errors.
 
 The operators are not differentiable themselves: derivatives come from torchbend's autograd Functions
 (:mod:`torchbend.energies._bending_fn`), which call ``bending_energy`` in the forward (``bending_energy_gradient``
@@ -33,15 +42,33 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from . import kernels
-from ._table import MODEL_CODE, OPERATORS
+from . import kernels, native
+from ._table import MODEL_CODE, OPERATORS, SCHEMAS
 
 __all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "project_blocks", "OPS",
            "run"]
 
-_LIB = torch.library.Library("torchbend", "DEF")
+_PYTHON_KERNELS = frozenset({"project_blocks"})
+"""Operators whose kernel is registered from Python even where the C++ library defines them."""
+
+
+def _define() -> tuple[torch.library.Library, bool]:
+    """The library the registrations below go to, and whether the operators are defined here: loads the CPU
+    extension, whose ``TORCH_LIBRARY(torchbend)`` defines the schemas and registers the CPU kernels; where it
+    cannot be built, the same schemas (:data:`torchbend.backends._table.SCHEMAS`) are defined here."""
+    if native.load() is not None:
+        return torch.library.Library("torchbend", "FRAGMENT"), False
+    lib = torch.library.Library("torchbend", "DEF")
+    for name, schema in SCHEMAS.items():
+        lib.define(name + schema)
+    return lib, True
+
+
+_LIB, PYTHON_DEFINED = _define()
+"""``PYTHON_DEFINED``: the operators are defined here with Python kernels (the CPU extension is not available)."""
 _KERNELS: dict = {}
-"""The Python kernel of every operator by name (what the dispatcher calls for CPU and CUDA tensors)."""
+"""The Python kernel of every operator by name (what :func:`run` calls in eager mode; what the dispatcher calls
+where the operators are defined here, and for ``project_blocks``)."""
 
 
 _MODELS = tuple(MODEL_CODE)  # the model names the kernels take
@@ -60,8 +87,9 @@ def _batch(x: Tensor) -> tuple[int, ...]:
 
 
 def _operator(fake):
-    """Register the annotated kernel ``fn`` as ``torch.ops.torchbend.<fn.__name__>`` (schema inferred from its
-    annotations, kernel for CPU and CUDA tensors, ``fake`` for tracing) and return the operator."""
+    """Register ``fake`` for tracing ``torch.ops.torchbend.<fn.__name__>`` (and ``fn`` as its kernel for CPU and
+    CUDA tensors where the operator is defined here, or its kernel stays Python) and return the operator; ``fn``'s
+    annotations are the operator's schema (:data:`torchbend.backends._table.SCHEMAS`, checked by the tests)."""
 
     def register(fn):
         name = fn.__name__
@@ -76,9 +104,9 @@ def _operator(fake):
                                      f"({tensors[0].device}), got one on {t.device}")
             return fake(*args, **kwargs)
 
-        _LIB.define(name + torch.library.infer_schema(fn, mutates_args=()))
-        _LIB.impl(name, fn, "CPU")
-        _LIB.impl(name, fn, "CUDA")
+        if PYTHON_DEFINED or name in _PYTHON_KERNELS:
+            _LIB.impl(name, fn, "CPU")
+            _LIB.impl(name, fn, "CUDA")
         torch.library.register_fake(f"torchbend::{name}", checked_fake, lib=_LIB)
         _KERNELS[name] = fn
         return getattr(torch.ops.torchbend, name)
@@ -209,8 +237,6 @@ def assemble(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tensor, c: O
     """CSR values ``(nnz,)`` of the unprojected Hessian of one mesh ``x (V, 3)`` (the pattern's block bases
     from :class:`torchbend.energies.sparse.HessianPattern` and the topology)."""
     _model("assemble", model)
-    from . import native
-
     return native.assemble_arrays(x, hinges, a, k, rest, c, prev, model, hinge_blocks, faces, face_edge_hinges,
                                   face_edge_signs, face_blocks, row_len, nnz, per_triangle)
 
@@ -238,11 +264,9 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
         if not bool(torch.isfinite(M).all()):
             raise ValueError("torchbend.project_blocks: M holds non-finite values")
         return eager_project(M, Projection(mode)).contiguous()
-    from . import native
-
     return native.project_blocks(M, mode, hinge)
 
 
-assert set(_KERNELS) == set(OPERATORS), "torchbend.backends._table.OPERATORS lists every operator"
+assert set(_KERNELS) == set(OPERATORS) == set(SCHEMAS), "torchbend.backends._table.OPERATORS lists every operator"
 OPS = {name: getattr(torch.ops.torchbend, name) for name in OPERATORS}
 """Every registered operator by name (``torch.ops.torchbend.<name>``, :data:`torchbend.backends._table.OPERATORS`)."""

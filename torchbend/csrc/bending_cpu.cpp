@@ -3,10 +3,12 @@
 // argument checks, status words, output buffers), cpu_scatter.h (per-vertex sums), cpu_first_order.cpp (energy,
 // gradient), cpu_second_order.cpp (Hessian-vector and second-order products), cpu_blocks.cpp (per-hinge 12x12
 // blocks), cpu_assembly.cpp (sparse assembly), cpu_projection.cpp (PSD projection of blocks); the per-hinge
-// mathematics is in hinge_math.h and hinge_ops.h, shared with the CUDA driver.
+// mathematics is in hinge_math.h and hinge_ops.h, shared with the CUDA driver.  The same operators are registered
+// with the dispatcher as torch.ops.torchbend.* in cpu_registration.cpp.
 #include <torch/extension.h>
 
 #include "cpu_ops.h"
+#include "op_registration.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace op = torchbend::cpu;
@@ -24,4 +26,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");
+  m.def("set_status_handler", &torchbend::reg::set_status_handler,
+        "the Python function raising the ValueError of a status word in the registered operators");
 }

@@ -227,6 +227,21 @@ static AssembleArgs assemble_args(torch::Tensor x, torch::Tensor hinges, torch::
   return AssembleArgs{P, faces, face_edge_hinges, face_edge_signs, face_blocks, hinge_blocks, row_len, std::move(rs)};
 }
 
+// a caller's buffer of the CSR values (out=): a contiguous CPU tensor of x's dtype and shape (nnz,), not
+// overlapping x; else the ValueError naming it
+static torch::Tensor out_values(const torch::Tensor& t, const torch::Tensor& x, int64_t nnz) {
+  namespace ck = torchbend::checks;
+  const char* op = "assemble";
+  ck::require(t.device() == x.device(), op, "out must be on x's device (", x.device(), "), got ", t.device());
+  ck::require(t.scalar_type() == x.scalar_type(), op, "out must have x's dtype (", x.scalar_type(), "), got ",
+              t.scalar_type());
+  ck::require(t.dim() == 1 && t.size(0) == nnz, op, "out must have shape (nnz,) = (", nnz, ",), got ",
+              ck::shape_str(t));
+  ck::require(t.is_contiguous(), op, "out must be contiguous");
+  ck::require(disjoint(t, x), op, "out overlaps x");
+  return t;
+}
+
 // (CSR values (nnz,) of the Hessian of one mesh x (V, 3), theta (H,), status); parameters as in
 // bending_hessians, the pattern as block bases (torchbend.energies.sparse.StencilPattern: hinge_blocks (H, 16),
 // face_blocks (F, 9), row_len (V,)), x finite (the caller checks)
@@ -234,7 +249,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
                        c10::optional<torch::Tensor> c_, c10::optional<torch::Tensor> prev_, int64_t model,
                        torch::Tensor hinge_blocks, torch::Tensor faces, torch::Tensor face_edge_hinges,
                        torch::Tensor face_edge_signs, torch::Tensor face_blocks, torch::Tensor row_len, int64_t nnz,
-                       bool per_triangle) {
+                       bool per_triangle, c10::optional<torch::Tensor> out) {
   AssembleArgs A = assemble_args(x, hinges, a, k, rest, c_, prev_, model, hinge_blocks, faces, face_edge_hinges,
                                  face_edge_signs, face_blocks, row_len, nnz, per_triangle);
   const Prepared& P = A.P;
@@ -245,7 +260,8 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
   const bool damped = P.damped;
   a = P.a; k = P.k; rest = P.rest;
   torch::Tensor c = P.c, prev = P.prev;
-  auto values = pooled_empty({nnz}, x.options()), theta = torch::empty({H}, x.options());  // zeroed in the pass
+  auto values = out.has_value() ? out_values(*out, x, nnz) : pooled_empty({nnz}, x.options());  // zeroed in the pass
+  auto theta = torch::empty({H}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
     Param<scalar_t> none{nullptr, 0, H};
     assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),

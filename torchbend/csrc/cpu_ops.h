@@ -38,11 +38,12 @@ std::tuple<Tensor, Tensor, Tensor, Tensor, int64_t> bending_hessians(Tensor x, T
                                                                      Tensor rest, OptTensor c, OptTensor prev,
                                                                      int64_t model, OptTensor out, OptTensor gout,
                                                                      bool check);
-// (CSR values (nnz,), theta (H,), status) of the Hessian of one mesh (cpu_assembly.cpp)
+// (CSR values (nnz,), theta (H,), status) of the Hessian of one mesh (cpu_assembly.cpp); out: an optional
+// caller-owned buffer of the values
 std::tuple<Tensor, Tensor, int64_t> assemble(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, OptTensor c,
                                              OptTensor prev, int64_t model, Tensor hinge_blocks, Tensor faces,
                                              Tensor face_edge_hinges, Tensor face_edge_signs, Tensor face_blocks,
-                                             Tensor row_len, int64_t nnz, bool per_triangle);
+                                             Tensor row_len, int64_t nnz, bool per_triangle, OptTensor out);
 // the PSD projection of symmetric blocks M (..., n, n), n 9 or 12 (cpu_projection.cpp)
 Tensor project_blocks(Tensor M, int64_t mode, bool hinge);
 

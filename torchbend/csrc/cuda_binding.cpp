@@ -1,12 +1,17 @@
 // Torch binding of the CUDA driver (bending_cuda.cu, through its C interface bending_cuda.h).  It is
 // compiled by g++ against whatever torch is installed (a CPU-only torch too: then it builds, links and
 // imports, and no CUDA tensor ever reaches it) and linked with the nvcc-built driver and cudart.  The
-// caller passes the current CUDA stream of x's device as an integer.
+// Python functions (torchbend.backends.cuda) pass the current CUDA stream of x's device as an integer; the CUDA
+// kernels of the operators torch.ops.torchbend.* (TORCH_LIBRARY_IMPL(torchbend, CUDA), below) take it from the
+// device guard and check as those functions do (non-finite inputs before, folded tan hinges after the kernel).
 #include <torch/extension.h>
+#include <torch/library.h>
 #include <c10/core/DeviceGuard.h>
+#include <c10/core/impl/DeviceGuardImplInterface.h>
 
 #include "bending_cuda.h"
 #include "checks.h"
+#include "op_registration.h"
 
 namespace {
 
@@ -180,7 +185,107 @@ std::vector<std::string> kernels() {
   return out;
 }
 
+
+// ---- the operators' CUDA kernels (the schemas: the CPU extension's TORCH_LIBRARY, op_registration.h) ----------
+namespace reg = torchbend::reg;
+using OptTensor = c10::optional<torch::Tensor>;
+using Str = c10::string_view;
+
+int64_t current_stream(const torch::Tensor& x) {
+  void* s = c10::impl::getDeviceGuardImpl(c10::DeviceType::CUDA)->getStream(x.device()).native_handle();
+  return static_cast<int64_t>(reinterpret_cast<intptr_t>(s));
+}
+
+// with `check`: the ValueError of non-finite x (and v), before any work (torchbend.backends._status.input_status)
+void check_inputs(bool check, const std::string& model, const torch::Tensor& x, const OptTensor& v = {}) {
+  if (!check) return;
+  int64_t status = torch::isfinite(x).all().item<bool>() ? 0 : 1;
+  if (v.has_value() && !torch::isfinite(*v).all().item<bool>()) status |= 2;
+  if (status) reg::raise_status(status, model, x, torch::Tensor(), v);
+}
+
+// the ValueError of a folded tan hinge, from the kernel's angles (torchbend.backends._status.fold_status)
+void check_fold(int64_t code, const std::string& model, const torch::Tensor& x, const torch::Tensor& theta) {
+  if (code == 1 && theta.numel() > 0 && (theta.abs() >= M_PI).any().item<bool>()) reg::raise_status(4, model, x, theta);
+}
+
+torch::Tensor op_energy(torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest,
+                        OptTensor c, OptTensor prev, Str model_, bool check) {
+  std::string model(model_);
+  int64_t code = reg::model_code("bending_energy", model);
+  check_inputs(check, model, x);
+  auto [psi, theta] = energy(x, hinges, a, k, rest, c, prev, code, current_stream(x));
+  check_fold(code, model, x, theta);
+  return psi;
+}
+
+std::tuple<torch::Tensor, torch::Tensor> op_gradient(torch::Tensor x, torch::Tensor hinges, torch::Tensor a,
+                                                     torch::Tensor k, torch::Tensor rest, OptTensor c, OptTensor prev,
+                                                     Str model_, torch::Tensor weight, torch::Tensor, torch::Tensor,
+                                                     bool params, bool check) {
+  std::string model(model_);
+  int64_t code = reg::model_code("bending_gradient", model);
+  check_inputs(check, model, x);
+  auto [gx, gp, psi, theta] = gradient(x, hinges, a, k, rest, c, prev, code, weight, params, false, current_stream(x));
+  check_fold(code, model, x, theta);
+  return {gx, gp};
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> op_energy_gradient(
+    torch::Tensor x, torch::Tensor hinges, torch::Tensor a, torch::Tensor k, torch::Tensor rest, OptTensor c,
+    OptTensor prev, Str model_, torch::Tensor, torch::Tensor, bool params, bool check) {
+  std::string model(model_);
+  int64_t code = reg::model_code("bending_energy_gradient", model);
+  check_inputs(check, model, x);
+  auto [gx, gp, psi, theta] = gradient(x, hinges, a, k, rest, c, prev, code, torch::ones({1}, x.options()), params,
+                                       true, current_stream(x));
+  check_fold(code, model, x, theta);
+  return {psi, gx, gp};
+}
+
+torch::Tensor op_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+                     torch::Tensor rest, OptTensor c, OptTensor prev, Str model_, torch::Tensor weight, torch::Tensor,
+                     torch::Tensor, bool check) {
+  std::string model(model_);
+  int64_t code = reg::model_code("bending_hvp", model);
+  check_inputs(check, model, x, v);
+  auto [hv, theta] = hvp(x, v, hinges, a, k, rest, c, prev, code, weight, current_stream(x));
+  check_fold(code, model, x, theta);
+  return hv;
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> op_second_order(
+    torch::Tensor x, OptTensor v, OptTensor t, torch::Tensor hinges, torch::Tensor a, torch::Tensor k,
+    torch::Tensor rest, OptTensor c, OptTensor prev, Str model_, torch::Tensor weight, torch::Tensor, torch::Tensor) {
+  std::string model(model_);
+  int64_t code = reg::model_code("bending_second_order", model);
+  auto [dx, dp, dg, theta] = second_order(x, v, t, hinges, a, k, rest, c, prev, code, weight, current_stream(x));
+  check_fold(code, model, x, theta);
+  return {dx, dp, dg};
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> op_hinge_hessians(torch::Tensor x, torch::Tensor hinges,
+                                                                          torch::Tensor a, torch::Tensor k,
+                                                                          torch::Tensor rest, OptTensor c,
+                                                                          OptTensor prev, Str model_, bool check) {
+  std::string model(model_);
+  int64_t code = reg::model_code("hinge_hessians", model);
+  check_inputs(check, model, x);
+  auto [blocks, grads, d2, theta] = hinge_hessians(x, hinges, a, k, rest, c, prev, code, current_stream(x));
+  check_fold(code, model, x, theta);
+  return {blocks, grads, d2};
+}
+
 }  // namespace
+
+TORCH_LIBRARY_IMPL(torchbend, CUDA, m) {
+  m.impl("bending_energy", TORCH_FN(op_energy));
+  m.impl("bending_gradient", TORCH_FN(op_gradient));
+  m.impl("bending_energy_gradient", TORCH_FN(op_energy_gradient));
+  m.impl("bending_hvp", TORCH_FN(op_hvp));
+  m.impl("bending_second_order", TORCH_FN(op_second_order));
+  m.impl("hinge_hessians", TORCH_FN(op_hinge_hessians));
+}
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_energy", &energy, "per-hinge energies and angles (CUDA)");
@@ -191,4 +296,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_second_order", &second_order,
         "the general double backward: position and parameter directions, per-hinge weight (CUDA)");
   m.def("kernels", &kernels, "the names of the CUDA kernels in this build");
+  m.def("set_status_handler", &torchbend::reg::set_status_handler,
+        "the Python function raising the ValueError of a status word in the registered operators");
 }

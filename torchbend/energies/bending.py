@@ -233,22 +233,26 @@ class BendingEnergy(HingeModule):
         return hs.projected_hvp(x, v, self.hinges, p, self.model, projection, backend)
 
     def hinge_hessians(self, x: Tensor, *, projection=None, theta_prev: Tensor | None = None, dt: float | None = None,
-                       backend=None, project=None) -> Tensor:
+                       backend=None, project=None, out: Tensor | None = None) -> Tensor:
         """Per-hinge energy Hessians ``(..., H, 12, 12)`` [J/m^2] in stencil order (flat ``3*k + j``):
         ``psi'' g g^T + psi' Hess(theta)`` (paper eqs. 3, 5, 6), optionally projected per block (``projection``;
-        ``project=``: its deprecated alias)."""
+        ``project=``: its deprecated alias).  ``out``: a buffer of that shape, x's dtype and device (contiguous),
+        written and returned instead of a new tensor (the same bits); kept between calls it saves the first-touch
+        page faults of fresh memory on large meshes."""
         projection = projection_argument(projection, project, "BendingEnergy.hinge_hessians")
         p, backend = self._bind(x, backend, theta_prev, dt)
-        return hs.hinge_hessians(x, self.hinges, p, self.model, projection, backend)
+        return hs.hinge_hessians(x, self.hinges, p, self.model, projection, backend, out)
 
     def hessian(self, x: Tensor, *, projection=None, assembly: str | Assembly = "triangle",
-                theta_prev: Tensor | None = None, dt: float | None = None, backend=None, project=None) -> Tensor:
+                theta_prev: Tensor | None = None, dt: float | None = None, backend=None, project=None,
+                out: Tensor | None = None) -> Tensor:
         """Assembled Hessian, a torch sparse CSR tensor ``(3V, 3V)``, of one mesh ``x: (V, 3)``.
 
         ``assembly="triangle"`` is the paper's per-triangle refactoring (eq. 7), ``"hinge"`` scatters the
         12x12 blocks: the same matrix.  The CSR pattern is built once and kept on the module.  See
         :func:`torchbend.energies.bending_hessian.assemble` for the projections; :func:`torchbend.to_scipy`
-        converts."""
+        converts.  ``out``: a ``(nnz,)`` buffer of x's dtype and device for the values (``nnz``: the pattern's,
+        :meth:`hessian_nnz`), written and used as the matrix's ``values()`` (the same bits as a new one)."""
         projection = projection_argument(projection, project, "BendingEnergy.hessian")
         how = Assembly.parse(assembly)
         p, backend = self._bind(x, backend, theta_prev, dt)
@@ -256,4 +260,10 @@ class BendingEnergy(HingeModule):
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
         if self._pattern is None:
             self._pattern = HessianPattern(self.topology)
-        return hs.assemble(x, self.topology, self.hinges, p, self.model, projection, how, self._pattern, backend)
+        return hs.assemble(x, self.topology, self.hinges, p, self.model, projection, how, self._pattern, backend, out)
+
+    def hessian_nnz(self) -> int:
+        """The number of stored values of :meth:`hessian`'s matrix (the size of its ``out=`` buffer)."""
+        if self._pattern is None:
+            self._pattern = HessianPattern(self.topology)
+        return self._pattern.nnz

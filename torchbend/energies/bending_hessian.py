@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .. import backends
+from ..backends import native
 from ..backends import ops as _ops  # registers torch.ops.torchbend
 from ..mesh.topology import HingeTopology
 from ..ops import hinge as geometry
@@ -38,7 +39,38 @@ from ..options import Assembly, Backend, Projection
 from .params import HingeParams
 from .sparse import HessianPattern
 
-__all__ = ["hinge_hessian_blocks", "hinge_hessians", "projected_hvp", "assemble"]
+__all__ = ["hinge_hessian_blocks", "hinge_hessians", "projected_hvp", "assemble", "check_out"]
+
+
+def check_out(out: Tensor, shape: tuple[int, ...], x: Tensor, what: str) -> Tensor:
+    """``out``, a caller's buffer for a result of ``shape`` in ``x``'s dtype on ``x``'s device (``out=`` of
+    :meth:`~torchbend.BendingEnergy.hinge_hessians` and :meth:`~torchbend.BendingEnergy.hessian`): contiguous,
+    recording no gradient, not overlapping ``x``; else a ``ValueError`` saying which of these it is not."""
+    if not isinstance(out, Tensor):
+        raise ValueError(f"{what}: out must be a tensor, got {type(out).__name__}")
+    problem = None
+    if tuple(out.shape) != tuple(shape):
+        problem = f"must have shape {tuple(shape)}, got {tuple(out.shape)}"
+    elif out.dtype != x.dtype:
+        problem = f"must have x's dtype ({x.dtype}), got {out.dtype}"
+    elif out.device != x.device:
+        problem = f"must be on x's device ({x.device}), got {out.device}"
+    elif not out.is_contiguous():
+        problem = "must be contiguous"
+    elif out.requires_grad:
+        problem = "must not require grad (it is written in place)"
+    elif _overlap(out, x):
+        problem = "overlaps x"
+    if problem is not None:
+        raise ValueError(f"{what}: out {problem}")
+    return out
+
+
+def _overlap(t: Tensor, u: Tensor) -> bool:
+    if t.numel() == 0 or u.numel() == 0 or t.untyped_storage().data_ptr() != u.untyped_storage().data_ptr():
+        return False
+    lo_t, lo_u = t.data_ptr(), u.data_ptr()
+    return lo_t < lo_u + u.numel() * u.element_size() and lo_u < lo_t + t.numel() * t.element_size()
 
 
 def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Tensor]:
@@ -57,11 +89,14 @@ def hinge_hessian_blocks(x4: Tensor, d1: Tensor, d2: Tensor) -> tuple[Tensor, Te
 
 
 def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, backend,
-            projection: Projection = Projection.NONE) -> tuple:
+            projection: Projection = Projection.NONE, out: Tensor | None = None) -> tuple:
     """``(Hb (..., H, 12, 12), g (..., H, 12), psi'' (..., H))`` by the backend chosen for ``op``, ``Hb``
     projected by ``projection``: in C++ where the blocks were (the eigenvalue projections by Jacobi), else by
-    :func:`torchbend.ops.projection.project_blocks`."""
+    :func:`torchbend.ops.projection.project_blocks`.  ``out``: a checked buffer the compiled CPU kernel writes the
+    unprojected blocks into (eagerly; the caller copies the other paths' blocks into it)."""
     if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE:
+        if out is not None and projection is Projection.NONE and not x.is_cuda and not torch.compiler.is_compiling():
+            return native.bending_hessians(x, hinges, *p.astuple(), model.value, out=(out, None))
         Hb, g, d2 = _ops.run("hinge_hessians", x, hinges, *p.astuple(), model.value)
         if projection in (Projection.CLAMP, Projection.ABS, Projection.REDUCED):
             Hb = _ops.run("project_blocks", Hb, projection.value, True)
@@ -75,9 +110,15 @@ def _blocks(op: str, x: Tensor, hinges: Tensor, p: HingeParams, model: BendingMo
 
 
 def hinge_hessians(x: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel, projection: Projection,
-                   backend) -> Tensor:
-    """Per-hinge energy Hessians ``(..., H, 12, 12)``, projected per block unless ``projection`` is ``none``."""
-    return _blocks("hinge_hessians", x, hinges, p, model, backend, projection)[0]
+                   backend, out: Tensor | None = None) -> Tensor:
+    """Per-hinge energy Hessians ``(..., H, 12, 12)``, projected per block unless ``projection`` is ``none``;
+    written into and returned as ``out`` if given (:func:`check_out`)."""
+    if out is not None:
+        check_out(out, tuple(x.shape[:-2]) + (hinges.shape[0], 12, 12), x, "BendingEnergy.hinge_hessians")
+    Hb = _blocks("hinge_hessians", x, hinges, p, model, backend, projection, out)[0]
+    if out is None:
+        return Hb
+    return out if Hb.data_ptr() == out.data_ptr() else out.copy_(Hb)
 
 
 def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: BendingModel,
@@ -101,22 +142,37 @@ def projected_hvp(x: Tensor, v: Tensor, hinges: Tensor, p: HingeParams, model: B
     return scatter(out.unflatten(-1, (4, 3)), hinges, V)
 
 
+def _native_assembly(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, model: BendingModel,
+                     pattern: HessianPattern, per_triangle: bool, out: Tensor | None) -> Tensor:
+    """The CSR values of the compiled assembly (the operator; eagerly into ``out`` if given)."""
+    args = (hinges, *p.astuple(), model.value, pattern.hinge_blocks, topo.faces, topo.face_edge_hinges,
+            topo.face_edge_signs, pattern.face_blocks, pattern.row_len, pattern.nnz, per_triangle)
+    if out is None:
+        return _ops.run("assemble", x, *args)
+    if torch.compiler.is_compiling():
+        return out.copy_(torch.ops.torchbend.assemble(x, *args))
+    return native.assemble_arrays(x, *args, out=out)
+
+
 def assemble(x: Tensor, topo: HingeTopology, hinges: Tensor, p: HingeParams, model: BendingModel,
-             projection: Projection, assembly: Assembly, pattern: HessianPattern, backend) -> Tensor:
-    """The Hessian of one mesh ``x: (V, 3)`` as a sparse CSR tensor ``(3V, 3V)`` (see the module docstring).
+             projection: Projection, assembly: Assembly, pattern: HessianPattern, backend,
+             out: Tensor | None = None) -> Tensor:
+    """The Hessian of one mesh ``x: (V, 3)`` as a sparse CSR tensor ``(3V, 3V)`` (see the module docstring),
+    its values written into ``out`` (``(nnz,)``, :func:`check_out`) if given: the matrix's ``values()`` are then
+    ``out`` itself.
 
     The eigenvalue projections act on whole hinge blocks, so they are assembled per hinge whatever
     ``assembly`` says; ``gauss_newton`` has no ``Hess(theta)`` part."""
+    if out is not None:
+        check_out(out, (pattern.nnz,), x, "BendingEnergy.hessian")
     if hinges.shape[0] == 0:  # no interior edge: the zero matrix
-        return pattern.csr(x.new_zeros(pattern.nnz))
+        return pattern.csr(x.new_zeros(pattern.nnz) if out is None else out.zero_())
     per_triangle = assembly is Assembly.TRIANGLE and projection in (Projection.NONE, Projection.GAUSS_NEWTON)
     if per_triangle or projection is Projection.NONE:  # projected per-hinge blocks ask in _blocks
         op = "hessian_triangle" if per_triangle else "hessian_hinge"
         if backends.select_backend(op, backend, x, *p.tensors()) is Backend.NATIVE and projection is Projection.NONE:
-            return pattern.csr(torch.ops.torchbend.assemble(
-                x, hinges, *p.astuple(), model.value, pattern.hinge_blocks, topo.faces, topo.face_edge_hinges,
-                topo.face_edge_signs, pattern.face_blocks, pattern.row_len, pattern.nnz, per_triangle))
-    values = x.new_zeros(pattern.nnz)
+            return pattern.csr(_native_assembly(x, topo, hinges, p, model, pattern, per_triangle, out))
+    values = x.new_zeros(pattern.nnz) if out is None else out.zero_()
 
     def positions(sl: slice) -> Tensor:  # the value positions of the entries of the hinges' blocks
         return pattern.element_positions(x.device, sl).reshape(-1)
