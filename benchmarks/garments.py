@@ -5,9 +5,11 @@ Cases (each loaded as a user would: an OBJ with unwelded UV seams read by ``tb.m
 * ``sleeve``: a 408-vertex tube (24 around x 17 along, radius 6 cm, 50 cm, two panels sewn along two seams)
   hanging on a capsule arm (radius 4 cm, 70 cm), quadratic bending from
   ``stiffness_from_material(2e5, 5e-4, 0.3)``, StVK membrane (Y = 2e5 Pa, t = 0.5 mm), 0.2 kg/m^2;
-  ``sleeve+pin``: the same with one seam vertex at the shoulder pinned (no free slide along the arm);
+  ``sleeve+pin``: the same with the seam vertex at the top of the shoulder pinned (no free slide along the
+  arm); both start from the rest shape, coaxial with the arm (the sleeve drops 2 cm onto it);
 * ``skirt``: ``configs/skirt_drape.yaml`` (384 vertices, waist pinned, hips and legs);
-* ``towel``: a 31 x 31 sheet (0.5 m, 961 vertices) hanging over a capsule rail, nothing pinned.
+* ``towel``: a 31 x 31 sheet (0.5 m, 961 vertices) hanging over a capsule rail, its centre vertex pinned
+  (frictionless, a towel over a rail slides off either side).
 
 For each: a static solve from the rest shape with the default options and with ``damping=True``, and 30
 implicit-Euler steps of 0.01 s from rest (default options).  One thread (``torch.set_num_threads(1)``).
@@ -44,15 +46,15 @@ def _loaded(positions, faces, uvs) -> tuple[torch.Tensor, torch.Tensor]:
 
 def sleeve(pin: bool) -> tuple[tb.ClothModel, torch.Tensor]:
     p, f, uv = tb.mesh.skirt(24, 17, waist_radius=0.06, hem_radius=0.06, length=0.5, dtype=torch.float64)
-    p = torch.stack((-p[:, 2], p[:, 0], p[:, 1]), -1)  # the tube's axis along +x, the shoulder at x = 0
+    p = torch.stack((-p[:, 2], p[:, 1], p[:, 0]), -1)  # axis along +x, the shoulder at x = 0, a seam on top
     rest, faces = _loaded(p, f, uv)
     k = tb.stiffness_from_material(2e5, 5e-4, 0.3)
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=k)
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
     arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04)
     pinned = None
-    if pin:  # the seam vertex at the shoulder (y = 0.06: angle 0, where the two panels meet)
-        pinned = [int(torch.argmin((rest - torch.tensor([0.0, 0.06, 0.0], dtype=rest.dtype)).norm(dim=-1)))]
+    if pin:  # the seam vertex at the top of the shoulder (z = 0.06: angle 0, where the two panels meet)
+        pinned = [int(torch.argmin((rest - torch.tensor([0.0, 0.0, 0.06], dtype=rest.dtype)).norm(dim=-1)))]
     return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[arm], density=0.2, pinned=pinned), rest
 
 
@@ -67,7 +69,9 @@ def towel() -> tuple[tb.ClothModel, torch.Tensor]:
     bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=tb.stiffness_from_material(1e5, 1e-3, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=1e5, poisson=0.3, thickness=1e-3)
     rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02)
-    return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[rail], density=0.3), rest
+    centre = int(torch.argmin(rest[:, :2].norm(dim=-1)))
+    return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[rail], density=0.3,
+                         pinned=[centre]), rest
 
 
 CASES = {"sleeve": lambda: sleeve(False), "sleeve+pin": lambda: sleeve(True), "skirt": skirt, "towel": towel}
