@@ -162,6 +162,21 @@ def gpu_section(results: str = RESULTS) -> list:
     return lines
 
 
+def garments_section(results: str = RESULTS) -> list:
+    """Every ``garments_*.txt`` in ``results`` (``python benchmarks/garments.py > ...``), verbatim."""
+    lines = ["", "## Garments (static solves and 30 implicit steps, one thread)", ""]
+    paths = sorted(glob.glob(os.path.join(results, "garments_*.txt")))
+    if not paths:
+        return lines + ["No garment run recorded: `python benchmarks/garments.py > benchmarks/results/garments_cpu.txt`."]
+    lines.append("Written by `python benchmarks/garments.py` (a sleeve on an arm with and without a pin, the skirt scene, "
+                 "a towel on a rail; the documented API only), recorded in:")
+    for path in paths:
+        with open(path) as f:
+            text = f.read().rstrip()
+        lines += ["", f"### `{os.path.relpath(path, ROOT)}`", "", "```", text, "```"]
+    return lines
+
+
 # --------------------------------------------------------------------------- discussion
 def _against_floor_and_fastest(result: dict, rows: dict) -> list:
     out = []
@@ -290,6 +305,7 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
     md += ["", "## Solver-level trade (drape, 0.005 s implicit Euler steps, direct solver)", ""]
     md += (["Not part of this run (`--quick` or `--from-json`); `python benchmarks/bm_solver.py`."]
            if sol_lines is None else sol_lines)
+    md += garments_section()
     md += ["", "## Regenerating", "",
            "- `python benchmarks/report.py`: everything above (CPU throughput 1e3..1e6 hinges, float64 and float32, all",
            "  methods; accuracy; solver), roughly 30 to 45 minutes on the 2-core machine when it is quiet (the header",

@@ -215,12 +215,12 @@ def test_line_search_and_evaluation_failures_return_the_best_iterate(monkeypatch
     monkeypatch.setattr(newton._Potential, "gradient", real)
     # a line search that finds no decrease: the message names the direction
     monkeypatch.setattr(newton, "armijo_backtracking", lambda *a, **k: None)
-    x, info = solve_static(model, rest, continuation=False)
+    x, info = solve_static(model, rest, continuation=False, damping=False)
     assert not info.converged and info.stop_reason == "line_search" and info.line_search_failures == 1
     assert "line search exhausted" in info.message and "the Newton direction" in info.message
     assert torch.equal(x, rest)
     # damped: each failure raises the damping and retries (an iteration each) until the damping is at its bound
-    x, info = solve_static(model, rest, continuation=False, damping=True)
+    x, info = solve_static(model, rest, continuation=False)  # damped (the default)
     assert not info.converged and info.stop_reason == "line_search" and info.line_search_failures > 1
     assert info.iterations == info.line_search_failures - 1 and torch.equal(x, rest)
 
@@ -347,7 +347,7 @@ def test_callback_logging_time_limit_and_max_cg_iters(caplog, monkeypatch):
         return real(self, *args, **kw)
 
     monkeypatch.setattr(newton._Potential, "cg_direction", spy)
-    solve_static(model, rest, linear_solver="cg", max_cg_iters=7, max_iters=1, continuation=False)
+    solve_static(model, rest, linear_solver="cg", max_cg_iters=7, max_iters=1, continuation=False, damping=False)
     implicit_euler_step(model, ClothState(rest, torch.zeros_like(rest)), 0.01, linear_solver="cg", max_cg_iters=5,
                         max_iters=1, max_substep_depth=0)
     assert seen_bounds == [7, 5]

@@ -367,7 +367,7 @@ class SolverSection(Section):
     max_iters: NonNegativeInt | None = None
     check_minimum: bool | None = None
     time_limit: Positive | Literal["auto"] | None = "auto"
-    damping: bool = False
+    damping: bool = True
     continuation: bool | Literal["auto", "membrane", "relaxation"] | None = "auto"
     max_relax_steps: NonNegativeInt = 200
     max_substep_depth: NonNegativeInt = 3

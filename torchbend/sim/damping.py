@@ -22,8 +22,9 @@ and below ``1e-9`` of the reference, or once the residual is below ``1e-3`` of t
 minimum), it is zero: the last iterations are undamped Newton steps (the
 damping vanishes at convergence, so the equilibrium and the quadratic convergence are Newton's).  The
 reference ``mu_ref`` is the median over free DOFs of ``H_ii / m_i`` at the first iterate [1/s^2]
-(dimensionless in the stiffness: the same start suits ``Y t = 1e2`` and ``1e7`` N/m); the first
-direction uses ``mu = START mu_ref``, ``mu_min = 1e-6 mu_ref``.  While ``mu > 0`` an exact Hessian
+(dimensionless in the stiffness: the same scale suits ``Y t = 1e2`` and ``1e7`` N/m); the first
+direction is undamped (``START = 0``: a stiff problem that Newton solves alone is not slowed) and the first
+poor step, failed line search or far step sets ``mu = 2 mu_min``, ``mu_min = 1e-6 mu_ref``.  While ``mu > 0`` an exact Hessian
 (``projection="exact"``) is replaced by its eigenvalue-magnitude projection (``"abs"``): far from the
 minimum the exact model's negative curvature only misleads the step; once ``mu`` is zero the exact
 Hessian drives the final iterations.
@@ -43,8 +44,8 @@ __all__ = ["Damping"]
 class Damping:
     """The damping state of one static Newton solve (module docstring).  ``mass``: ``(V,)`` lumped masses [kg]."""
 
-    START = 1e-3
-    """The first direction's ``mu`` relative to ``mu_ref``."""
+    START = 0.0
+    """The first direction's ``mu`` relative to ``mu_ref``: undamped (the damping starts at the first poor step)."""
     MIN = 1e-6
     """``mu_min`` (the restart value after ``mu`` reached zero) relative to ``mu_ref``."""
     ZERO = 1e-9

@@ -844,7 +844,7 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
     ``time_limit`` [s] (> 0): wall-time bound of the whole call (checked between Newton iterations
     and relaxation steps), after which the best state is returned with ``stop_reason="time_limit"``;
     the default ``"auto"`` is 120 s (:data:`~torchbend.sim.options.DEFAULT_TIME_LIMITS`), None lifts it.
-    ``damping`` (default False): Levenberg-Marquardt damping of the Newton matrix by the lumped masses,
+    ``damping`` (default True; False: plain Newton): Levenberg-Marquardt damping of the Newton matrix by the lumped masses,
     driven by the agreement of the quadratic model and vanishing at convergence (:mod:`torchbend.sim.damping`:
     it bounds the steps along the soft modes of a hanging garment: sliding along a collider, turning about
     a pin, buckling).  ``max_cg_iters`` (>= 1): CG

@@ -128,8 +128,8 @@ class NewtonOptions:
       state is returned with ``stop_reason="time_limit"``; ``"auto"`` (default) is :data:`DEFAULT_TIME_LIMITS`
       (a static solve 120 s, a time step 30 s), None lifts it;
     * ``damping`` (static solves): Levenberg-Marquardt damping by the lumped masses, vanishing at convergence
-      (:mod:`torchbend.sim.damping`; default False: it bounds the steps along the soft modes of a hanging
-      garment, but slows the large rotations of a soft beam, benchmarks/garments.py);
+      (:mod:`torchbend.sim.damping`; default True: it bounds the steps along the soft modes of a hanging
+      garment, benchmarks/garments.py; False: plain Newton);
     * ``continuation`` (static solves): ``"auto"``, ``"membrane"``, ``"relaxation"``, True (= ``"auto"``),
       False/None; ``max_relax_steps`` (int >= 0): the pseudo-transient steps at most;
     * ``max_substep_depth`` (time steps, int >= 0): halvings of a failed step at most.
@@ -144,7 +144,7 @@ class NewtonOptions:
     max_iters: int | None = None
     check_minimum: bool | None = None
     time_limit: float | str | None = "auto"
-    damping: bool = False
+    damping: bool = True
     continuation: bool | str | None = "auto"
     max_relax_steps: int = 200
     max_substep_depth: int = 3
@@ -209,7 +209,7 @@ class Controls:
     deadline: float | None
     callback: Callable | None
     check_minimum: bool
-    damping: bool = False
+    damping: bool = True
     started: float = field(default_factory=time.perf_counter)
     """When the public call began (``time.perf_counter()``): its progress lines go out at INFO after 5 s."""
 
