@@ -23,7 +23,7 @@ minimum), it is zero: the last iterations are undamped Newton steps (the
 damping vanishes at convergence, so the equilibrium and the quadratic convergence are Newton's).  The
 reference ``mu_ref`` is the median over free DOFs of ``H_ii / m_i`` at the first iterate [1/s^2]
 (dimensionless in the stiffness: the same scale suits ``Y t = 1e2`` and ``1e7`` N/m); the first
-direction is undamped (``START = 0``: a stiff problem that Newton solves alone is not slowed) and the first
+direction is undamped (a stiff problem that Newton solves alone is not slowed) and the first
 poor step, failed line search or far step sets ``mu = 2 mu_min``, ``mu_min = 1e-6 mu_ref``.  While ``mu > 0`` an exact Hessian
 (``projection="exact"``) is replaced by its eigenvalue-magnitude projection (``"abs"``): far from the
 minimum the exact model's negative curvature only misleads the step; once ``mu`` is zero the exact
@@ -44,8 +44,7 @@ __all__ = ["Damping"]
 class Damping:
     """The damping state of one static Newton solve (module docstring).  ``mass``: ``(V,)`` lumped masses [kg]."""
 
-    START = 0.0
-    """The first direction's ``mu`` relative to ``mu_ref``: undamped (the damping starts at the first poor step)."""
+
     MIN = 1e-6
     """``mu_min`` (the restart value after ``mu`` reached zero) relative to ``mu_ref``."""
     ZERO = 1e-9
@@ -57,6 +56,7 @@ class Damping:
         self.mass, self.enabled = mass_free, enabled
         self.mu, self.nu, self.ref = 0.0, 2.0, math.nan
         self._pMp = 0.0
+        self._mass_np = None  # the masses as a NumPy array (directions are NumPy), made on first use
 
     @property
     def active(self) -> bool:
@@ -76,8 +76,6 @@ class Damping:
         self.ref = float(ratio.median()) if ratio.numel() else 0.0
         if not self.ref > 0:
             self.enabled = False
-            return
-        self.mu = self.START * self.ref
 
     def matrix_option(self, option: Projection) -> Projection:
         """The projection of the Newton matrix: ``"abs"`` for an exact Hessian while damped."""
@@ -89,8 +87,9 @@ class Damping:
 
     def record_direction(self, p) -> None:
         """Remember ``p.M p`` of the direction ``p (nf,)`` on the free DOFs (for the model's prediction)."""
-        m = self.mass.detach().cpu().double().numpy()
-        self._pMp = float((m * p * p).sum()) if self.active else 0.0
+        if self._mass_np is None:
+            self._mass_np = self.mass.detach().cpu().double().numpy()
+        self._pMp = float((self._mass_np * p * p).sum()) if self.active else 0.0
 
     def predicted(self, slope: float, alpha: float) -> float:
         """The decrease [J] the undamped quadratic model predicts for the step ``alpha p``; ``slope = g.p``

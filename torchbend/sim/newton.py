@@ -288,10 +288,8 @@ class _Potential:
         (:mod:`~torchbend.sim.damping`); torch sparse CSR ``(nf, nf)`` [N/m] on ``x``'s device."""
         damping = self.damping
         A = self.hessian_op.assemble(x, self.terms, self.ctx, damping.matrix_option(self.option))
-        if damping.pending:
+        if damping.pending:  # the first matrix: its diagonal sets the scale (the first direction is undamped)
             damping.start(self.hessian_op.diagonal(A))
-            if damping.active:  # the first matrix was assembled undamped: in the projection of a damped one
-                A = self.hessian_op.assemble(x, self.terms, self.ctx, damping.matrix_option(self.option))
         if damping.active:
             A = self.hessian_op.shifted(A, damping.shift(A.values()))
         return A
@@ -355,13 +353,12 @@ def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver,
                info: SolveInfo) -> tuple[np.ndarray, float]:
     """A descent direction on the free DOFs and its slope ``g . p`` [J]; a direction that is not one
     (or not finite) is replaced by the steepest-descent step ``-g min(1, 1/|g|)``.  With damping
-    (:mod:`~torchbend.sim.damping`), a direction of an indefinite exact Hessian away from a minimum, or one
-    that moves a vertex farther than a tenth of the cloth's extent, is recomputed with more damping
-    (counted in ``info.regularized_steps``)."""
+    (:mod:`~torchbend.sim.damping`), a direction that moves a vertex farther than a tenth of the cloth's
+    extent is recomputed with more damping (counted in ``info.regularized_steps``)."""
     reach = 0.1 * float((x.amax(0) - x.amin(0)).norm()) if x.shape[0] else math.inf
     while True:
         p, slope = _one_direction(phi, x, gf, linear, relative_residual, info)
-        far = float(phi.full(p, x).norm(dim=-1).max()) > reach if p.size else False
+        far = phi.damping.enabled and p.size > 0 and float(phi.full(p, x).norm(dim=-1).max()) > reach
         if not far or not phi.damping.increase():
             break
         info.regularized_steps += 1
