@@ -272,9 +272,8 @@ def test_torch_compile_fullgraph_energy(fresh_dynamo, damped):
     assert _eps_ulp(compiled(x, **call), bend(x, **call), F64) <= 4  # the graph may sum in another order
 
 
-def test_torch_compile_fullgraph_training_step(fresh_dynamo, monkeypatch):
+def test_torch_compile_fullgraph_training_step(fresh_dynamo):
     """loss = energy, then .backward(), all inside one compiled graph (learnable stiffness and rest angles)."""
-    monkeypatch.setattr(torch._dynamo.config, "trace_autograd_ops", True)
     bend, x, _ = _setup("quadratic", F64, False, (), learn=True)
 
     def step(y):
@@ -284,7 +283,8 @@ def test_torch_compile_fullgraph_training_step(fresh_dynamo, monkeypatch):
 
     compiled = torch.compile(step, fullgraph=True)
     y1, y2 = x.clone().requires_grad_(), x.clone().requires_grad_()
-    l1 = compiled(y1)
+    with torch._dynamo.config.patch(trace_autograd_ops=True):  # (a config patch, undone exactly)
+        l1 = compiled(y1)
     g1 = [_grad(p).clone() for p in (y1, bend.stiffness, bend.rest_angles)]
     bend.zero_grad()
     l2 = step(y2)
@@ -307,6 +307,47 @@ def test_compiled_module_backward_and_eager_double_backward(fresh_dynamo):
     v = torch.randn_like(x)
     (hv,) = torch.autograd.grad(g, z, v)
     assert torch.allclose(hv, bend.hvp(x, v), rtol=1e-13, atol=0)
+
+
+def test_double_backward_through_a_compiled_energy_raises_a_clear_error(fresh_dynamo):
+    """create_graph=True through a compiled region: PyTorch cannot differentiate the backward it compiled (the
+    gradient's graph would not lead back to x, and the next grad would fail with "appears to not have been used
+    in the graph"); the error names the limitation and the eager alternatives, which give the analytic HVP."""
+    bend, x, _ = _setup("tan", F64, False, ())
+    compiled = torch.compile(bend, fullgraph=True)
+    y = x.clone().requires_grad_()
+    with pytest.raises(tb.backends.CompiledDoubleBackwardError, match=r"create_graph=True.*without torch.compile.*hvp"):
+        torch.autograd.grad(compiled(y), y, create_graph=True)
+    v = torch.randn_like(x)
+
+    def hvp(z):  # the whole double backward inside a compiled function
+        (g,) = torch.autograd.grad(bend(z), z, create_graph=True)
+        return torch.autograd.grad(g, z, v)[0]
+
+    with pytest.raises(tb.backends.CompiledDoubleBackwardError, match="differentiated with create_graph=True"):
+        torch.compile(hvp)(x.clone().requires_grad_())
+    # the alternatives the message names agree with each other
+    z = x.clone().requires_grad_()
+    (g,) = torch.autograd.grad(bend(z), z, create_graph=True)
+    (hv,) = torch.autograd.grad(g, z, v)
+    assert torch.allclose(hv, bend.hvp(x, v), rtol=1e-13, atol=0)
+    # first order through the compiled region is unaffected: backward(), and retain_graph without create_graph
+    compiled(y).backward()
+    g1 = _grad(y).clone()
+    assert torch.allclose(g1, g.detach(), rtol=1e-14, atol=0)
+
+
+def test_compiled_energy_backward_with_retain_graph_is_not_refused(fresh_dynamo, monkeypatch):
+    monkeypatch.setattr(torch._functorch.config, "donated_buffer", False)  # PyTorch's own retain_graph limit
+    bend, x, _ = _setup("quadratic", F64, False, ())
+    compiled = torch.compile(bend, fullgraph=True)
+    y = x.clone().requires_grad_()
+    e = compiled(y)
+    e.backward(retain_graph=True)
+    e.backward()
+    z = x.clone().requires_grad_()
+    bend(z).backward()
+    assert torch.allclose(_grad(y), 2 * _grad(z), rtol=1e-14, atol=0)
 
 
 def test_torch_export_energy_module():

@@ -24,8 +24,9 @@ from torch.autograd import forward_ad
 from ..options import Backend
 from . import native
 from ._table import DIFFERENTIABLE, ENTRY_POINTS, ONE_MESH
+from .compile_guard import CompiledDoubleBackwardError
 
-__all__ = ["Backend", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
+__all__ = ["Backend", "CompiledDoubleBackwardError", "NATIVE_OPS", "select_backend", "native_unavailable_reason", "use_backend"]
 
 NATIVE_OPS = frozenset(ENTRY_POINTS)
 """Operations with a compiled kernel (:data:`torchbend.backends._table.ENTRY_POINTS`, which says on which devices)."""

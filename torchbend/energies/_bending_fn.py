@@ -31,6 +31,7 @@ from torch import Tensor
 
 from ..backends import kernels
 from ..backends import ops as _ops  # registers torch.ops.torchbend
+from ..backends.compile_guard import compiled_backward_guard
 from ..ops import hinge as geometry
 from ..ops.psi import THETA, BendingModel, contract_hessian, psi_derivatives, psi_theta_derivatives
 from ..ops.stencil import cat_or_none, chunks, gather_soa, scatter_soa, sliced
@@ -256,6 +257,7 @@ def _make(model: BendingModel):
 
         @staticmethod
         def backward(ctx, gE):
+            gE = compiled_backward_guard(gE)
             x, hinges, seg, a, *params = ctx.saved_tensors
             out = _Gradient.apply(gE, x, hinges, seg, a, *params)
             gx, gps = out[0], out[1:]
@@ -377,6 +379,7 @@ def _make_kernel(model: BendingModel):
 
         @staticmethod
         def backward(ctx, gE):
+            gE = compiled_backward_guard(gE)  # a compiled backward cannot be differentiated: a clear error
             x, hinges, seg, a, k, rest, c, prev, ptr, idx, g1, gp1 = ctx.saved_tensors
             needs = ctx.needs_input_grad
             params = any(needs[5:9])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..backends.compile_guard import compiled_backward_guard
 from ..ops.membrane import (
     MembraneModel,
     check_collapsed,
@@ -112,6 +113,7 @@ def _make(model: MembraneModel):
 
         @staticmethod
         def backward(ctx, gE):
+            gE = compiled_backward_guard(gE)
             x, faces, D, coef, mu, lam = ctx.saved_tensors
             return _Gradient.apply(gE, x, faces, D, coef, mu, lam), None, None, None, None, None
 
