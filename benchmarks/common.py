@@ -26,6 +26,41 @@ def cpu_model() -> str:
     return cpu
 
 
+VECTOR_EXTENSIONS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_fp16",
+                     "amx_tile", "asimd", "sve")
+"""The CPU flags the benchmarks report (the vector instruction sets the kernels can be built for)."""
+
+
+def cpu_vector_extensions() -> list[str]:
+    """The vector extensions of :data:`VECTOR_EXTENSIONS` this CPU has (``/proc/cpuinfo`` flags; empty elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    have = set(line.split(":", 1)[1].split())
+                    return [x for x in VECTOR_EXTENSIONS if x in have]
+    except OSError:
+        pass
+    return []
+
+
+def kernel_build() -> dict:
+    """How the CPU kernels in use were built: ``{"march": "native" | "x86-64-v3" | ..., "arch": its cache tag, "cflags": [...], "source": "install" | "jit"}``
+    (:func:`torchbend.backends.native.build_info`; ``{}`` without the extension)."""
+    from torchbend.backends import native
+
+    try:
+        if native.load() is None:
+            return {}
+        info = dict(native.build_info())
+    except Exception:  # no compiler, or a failed build: the eager path runs (the backends line says so)
+        return {}
+    out = {k: info[k] for k in ("arch", "cflags", "source") if k in info}
+    march = [f.split("=", 1)[1] for f in out.get("cflags", []) if f.startswith("-march=")]
+    out["march"] = march[-1] if march else "none"  # the compiler's baseline
+    return out
+
+
 def machine() -> str:
     return (
         f"{cpu_model()} | {os.cpu_count()} cores | torch {torch.__version__} | threads {torch.get_num_threads()} | "
@@ -36,7 +71,8 @@ def machine() -> str:
 def machine_info(device: str = "cpu") -> dict:
     """What the results files record about the machine (CPU model, cores, threads, library versions)."""
     info = {"cpu": cpu_model(), "cores": os.cpu_count(), "threads": torch.get_num_threads(),
-            "torch": torch.__version__, "python": platform.python_version(), "device": device}
+            "torch": torch.__version__, "python": platform.python_version(), "device": device,
+            "vector_extensions": cpu_vector_extensions(), "kernels": kernel_build()}
     try:
         import numpy
 

@@ -4,6 +4,11 @@
     python benchmarks/report.py --quick    # harness check: 1e3 and 1e4 hinges, short repeats, no accuracy/solver
     python benchmarks/report.py --from-json benchmarks/results/throughput_cpu.json   # re-render a saved run
 
+On x86-64 the default path is measured a second time with its kernels built for ``-march=x86-64-v3`` (AVX2 +
+FMA: the narrowest vectors of the x86-64 machines in use, on whatever CPU runs the report; a JIT build,
+``TORCHBEND_PREBUILT=0 TORCHBEND_CPU_ARCH=x86-64-v3``), float64, rows ``torchbend[x86-64-v3]`` and
+``torchbend.backward[x86-64-v3]``, and every CPU target is evaluated for both builds (``--arch-rows``).
+
 Throughput (:mod:`bm_throughput`: torchbend's default path against eager autograd, torch.func,
 torch.compile and JAX jit; ns per hinge), the machine's floors (:mod:`floors`: STREAM bandwidth, matmul
 flop rate, bytes and flops per hinge) and the ratio to them, compile times, the acceptance targets
@@ -19,7 +24,10 @@ import glob
 import importlib.util
 import json
 import os
+import platform
+import subprocess
 import sys
+import tempfile
 import time
 
 import bm_throughput
@@ -35,6 +43,41 @@ FULL_SIZES = [1000, 10_000, 100_000, 1_000_000]
 QUICK_SIZES = [1000, 10_000]
 
 
+DEFAULT_ARCH_ROWS = ["x86-64-v3"] if platform.machine() in ("x86_64", "AMD64") else []
+
+
+def arch_rows(result: dict, arch: str, sizes, threads, budget: float, min_repeat: int, log=print) -> None:
+    """Measure the default path (``torchbend``, ``torchbend.backward``; float64) with the CPU kernels built for
+    ``-march=<arch>`` in a child process (JIT build, ``TORCHBEND_PREBUILT=0``) and add its rows to ``result``
+    as ``torchbend[<arch>]`` and ``torchbend.backward[<arch>]``, next to the same sizes' other methods; the
+    child's kernel build is recorded in ``result["arch_rows"]``.  A child that did not run kernels built for
+    ``arch`` is an error (its rows would be the other build's)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "rows.json")
+        cmd = [sys.executable, os.path.join(ROOT, "benchmarks", "bm_throughput.py"), "--sizes", *map(str, sizes),
+               "--dtypes", "float64", "--methods", "torchbend", "torchbend.backward", "--budget", str(budget),
+               "--min-repeat", str(min_repeat), "--json", out] + ([] if threads is None else ["--threads", str(threads)])
+        env = dict(os.environ, TORCHBEND_PREBUILT="0", TORCHBEND_CPU_ARCH=arch)
+        log(f"default path with the kernels built for -march={arch}: {' '.join(cmd[1:])}")
+        subprocess.run(cmd, env=env, check=True)
+        with open(out) as f:
+            sub = json.load(f)
+    built = sub["machine"].get("kernels", {})
+    if built.get("march") != arch:
+        raise RuntimeError(f"the -march={arch} measurement ran kernels built for {built or 'nothing'}")
+    shown = ["python", "benchmarks/bm_throughput.py", *cmd[2:cmd.index("--json")], *cmd[cmd.index("--json") + 2:]]
+    result.setdefault("arch_rows", {})[arch] = {"kernels": built, "command": " ".join(shown)}
+    by_key = {(c["dtype"], c.get("hinges")): c for c in result["configs"]}
+    for c in sub["configs"]:
+        into = by_key.get((c["dtype"], c.get("hinges")))
+        if into is None:  # a size the main run did not measure: keep it as a configuration of its own
+            into = dict(c, rows=[])
+            result["configs"].append(into)
+        for r in c.get("rows", []):
+            if r["method"] in ("torchbend", "torchbend.backward"):
+                into["rows"].append(dict(r, method=f"{r['method']}[{arch}]"))
+
+
 # --------------------------------------------------------------------------- plots
 def plot_throughput(result: dict, dtype: str, path: str) -> None:
     import matplotlib
@@ -46,12 +89,12 @@ def plot_throughput(result: dict, dtype: str, path: str) -> None:
     ops = tables.OPS
     fig, axes = plt.subplots(1, len(ops), figsize=(4 * len(ops), 3.6))
     for ax, op in zip(axes, ops, strict=True):
-        for m in tables.METHODS:
+        for m in tables.METHODS + [b for b, _ in tables.builds(result)[1:]]:
             pts = sorted((h, r["ns"]) for (mm, o, d, h), r in rows.items()
                          if mm == m and o == op and d == dtype and r.get("ns") is not None)
-            if pts:
-                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m, color=COLORS[m],
-                          lw=2.5 if m == "torchbend" else 1.2)
+            if pts:  # another build of the default path: its colour, dashed
+                ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-" if m in COLORS else "s--", label=m,
+                          color=COLORS.get(m, "tab:blue"), lw=2.5 if m == "torchbend" else 1.2)
         cs = tables.configs(result, dtype)
         if cs:
             fl = [max(tables.floor_ns(result, c, op)[2:]) for c in cs]
@@ -266,6 +309,11 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            f"measurement, at least {result['min_repeat']}, one for calls over 2 s) after a checked call and a warm-up "
            "call (the checked call is the warm-up of calls over 1 s)",
            "- what the default path (`backend=\"auto\"`) ran:"] + [f"  {line}" for line in tables.backends_line(result)]
+    for arch, info in result.get("arch_rows", {}).items():
+        md += [f"- `torchbend[{arch}]`, `torchbend.backward[{arch}]`: the same default path with the CPU kernels built "
+               f"for `-march={arch}` ({' '.join(info['kernels'].get('cflags', []))}; {info['kernels'].get('source', '?')} "
+               f"build), measured on the same machine after the main run: `{info['command']}` with "
+               f"`TORCHBEND_PREBUILT=0 TORCHBEND_CPU_ARCH={arch}`"]
     md += ["", "Methods: `torchbend` = the default path's methods (`bend(x)`, `.gradient`, `.hvp`, `.hinge_hessians`, "
            "`.hessian`); `torchbend.backward` = the default path through `torch.autograd` (backward, double backward); "
            "`torchbend.eager` = `backend=\"eager\"`; `autograd` = eager PyTorch of the plain atan2 energy (forward, "
@@ -343,6 +391,9 @@ def main(argv=None) -> None:
     p.add_argument("--from-json", help="render this saved record instead of measuring")
     p.add_argument("--no-accuracy", action="store_true")
     p.add_argument("--no-solver", action="store_true")
+    p.add_argument("--arch-rows", nargs="*", default=DEFAULT_ARCH_ROWS, metavar="ARCH",
+                   help="also measure the default path with the CPU kernels built for these -march values "
+                        f"(default: {' '.join(DEFAULT_ARCH_ROWS) or 'none'}; no value: none)")
     a = p.parse_args(argv)
     os.makedirs(PLOTS, exist_ok=True)
     command = " ".join(["python benchmarks/report.py", *(sys.argv[1:] if argv is None else argv)])
@@ -357,6 +408,8 @@ def main(argv=None) -> None:
         print("machine:", tables.machine_line({"machine": __import__("common").machine_info()}), flush=True)
         result = bm_throughput.run_all(sizes, a.dtypes, "cpu", a.methods, budget, 3 if quick else 5,
                                        log=lambda s: print(s, flush=True), threads=a.threads, quick=quick)
+        for arch in a.arch_rows:
+            arch_rows(result, arch, sizes, a.threads, budget, 3 if quick else 5, log=lambda s: print(s, flush=True))
         result["command"] = command
         raw = a.raw or os.path.join(RESULTS, "throughput_cpu_quick.json" if quick else "throughput_cpu.json")
         os.makedirs(os.path.dirname(raw), exist_ok=True)
