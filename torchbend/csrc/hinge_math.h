@@ -61,33 +61,43 @@ TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
 
-// ---- vectorizable sin/cos and atan2 (the CPU lane loops) -------------------------------------
+// ---- vectorizable sin/cos and atan2 (the CPU lane loops; the same code on the GPU) --------------
 // The C library's sin, cos and atan2 are calls that no lane loop vectorizes, and in the energy and
 // gradient kernels they cost more than all the geometry.  tb_sincos and tb_atan2v are branch-free
-// (selects only), so that GCC vectorizes them across the lanes of a tile; on the GPU they are the
-// CUDA library's functions.  Double: fdlibm's kernels (__kernel_sin / __kernel_cos on [-pi/4, pi/4]
-// with a two-part Cody-Waite reduction by pi/2; atan's polynomial on |t| < 7/16 with the reductions
-// about 1/2 and 1, the division's rounding error carried, hi/lo constants per octant): max 0.77 ulp (sin,
-// cos) and 0.79 ulp (atan2) over 2e7 random arguments against long double.  Float: the double evaluation
-// rounded once (correctly rounded but for the double rounding).
+// (selects only, no library calls), so that GCC vectorizes them across the lanes of a tile; the CUDA
+// driver compiles the same definitions (TB_HD; rint, fabs, copysign and fma are the C functions, builtins
+// of both compilers), so that both devices compute the same values.  Double: fdlibm's kernels
+// (__kernel_sin / __kernel_cos on [-pi/4, pi/4] with a two-part Cody-Waite reduction by pi/2, and
+// __ieee754_rem_pio2's second and third steps near a multiple of pi/2; atan's polynomial on |t| < 7/16 with
+// the reductions about 1/2 and 1, the division's rounding error carried, hi/lo constants per octant, huge
+// and tiny arguments scaled by a power of two).  Float: the double evaluation rounded once (correctly
+// rounded but for the double rounding).  Both within 0.8 ulp of the exact value (tests/test_vector_math_ulp.py:
+// a 40-digit reference, -march=native and x86-64-v3, signed zeros, +-pi, subnormal and huge arguments).
 // tb_sincos: |x| < 2^19 (the kernels take half-angles; beyond it the reduction loses accuracy, and inf
-// or NaN give NaN).  tb_atan2v: IEEE's signed zeros and quadrants (atan2(+-0, -0) = +-pi), NaN in ->
-// NaN out; infinite arguments are not supported (the kernels' are finite).
-#if defined(__CUDACC__)
-TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) { sincosf(x, &s, &c); }
-TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { sincos(x, &s, &c); }
-TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return atan2f(y, x); }
-TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) { return atan2(y, x); }
-TB_UNARY_PAIR(TB_HD static TB_FORCEINLINE, tb_floorv, floorf, floor)
-TB_UNARY_PAIR(TB_HD static TB_FORCEINLINE, tb_ceilv, ceilf, ceil)
-#else
-static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
+// or NaN give NaN), sin(-0) = -0.  tb_atan2v: every finite argument, IEEE's signed zeros and quadrants
+// (atan2(+-0, -0) = +-pi), NaN in -> NaN out; infinite arguments are not supported (the kernels' are finite).
+TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
   const double two_over_pi = 6.36619772367581382433e-01;
   const double pio2_1 = 1.57079632673412561417e+00;   // first 33 bits of pi/2 (q * pio2_1 exact)
   const double pio2_1t = 6.07710050650619224932e-11;  // pi/2 - pio2_1
-  double q = __builtin_rint(x * two_over_pi);
+  const double pio2_2 = 6.07710050630396597660e-11;   // second 33 bits of pi/2
+  const double pio2_2t = 2.02226624879595063154e-21;  // pi/2 - pio2_1 - pio2_2
+  const double pio2_3 = 2.02226624871116645580e-21;   // third 33 bits of pi/2
+  const double pio2_3t = 8.47842766036889956997e-32;  // pi/2 - pio2_1 - pio2_2 - pio2_3
+  // + 0.0: q = +0 for x = -0, so that r = -0 and sin(-0) = -0 (the same q, r for every other x)
+  double q = rint(x * two_over_pi) + 0.0;
   double r = x - q * pio2_1, w = q * pio2_1t;
-  double y0 = r - w, y1 = (r - y0) - w;  // x - q pi/2 = y0 + y1
+  double y0 = r - w, y1 = (r - y0) - w;  // x - q pi/2 = y0 + y1, to about |q| 1.3e-26
+  // Near a multiple of pi/2 (|y0| < |q| 2^-22) that is too few digits of pi: fdlibm's second and third
+  // steps (__ieee754_rem_pio2: pi/2 to 152 bits), computed for every lane and selected
+  double t2 = r, w2 = q * pio2_2, r2 = t2 - w2;
+  w2 = q * pio2_2t - ((t2 - r2) - w2);
+  double t3 = r2, w3 = q * pio2_3, r3 = t3 - w3;
+  w3 = q * pio2_3t - ((t3 - r3) - w3);
+  double y0c = r3 - w3, y1c = (r3 - y0c) - w3;
+  bool cancel = fabs(y0) < fabs(q) * 0x1p-22;
+  y0 = cancel ? y0c : y0;
+  y1 = cancel ? y1c : y1;
   double z = y0 * y0, v = z * y0;
   // __kernel_sin(y0, y1)
   double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
@@ -107,18 +117,22 @@ static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
   c = (n == 1 || n == 2) ? -cc : cc;
 }
 
-static TB_FORCEINLINE double tb_atan2v(double y, double x) {
-  double ax = __builtin_fabs(x), ay = __builtin_fabs(y);
+TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
+  double ax = fabs(x), ay = fabs(y);
   bool swap = ay > ax;  // atan2 = pi/2 - atan(ax / ay)
   double num = swap ? ax : ay, den = swap ? ay : ax;
   den = den == 0.0 ? 1.0 : den;  // atan2(+-0, +-0): z = 0
+  // huge or tiny arguments scaled by a power of two (exact, and t, tl are scale-invariant): 16 num, 7 den and
+  // 2 den + num stay finite near DBL_MAX, and the division's residual stays normal for subnormal arguments
+  double sc = (den > 0x1p1000 ? 0x1p-60 : 1.0) * (den < 0x1p-900 ? 0x1p120 : 1.0);
+  num *= sc; den *= sc;
   // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (z < 7/16),
   // (2z - 1) / (2 + z) about A = atan(1/2) (z < 11/16), (z - 1) / (z + 1) about A = atan(1) (else)
   bool r0 = 16.0 * num < 7.0 * den, r1 = !r0 && 16.0 * num < 11.0 * den;
   double tn = r0 ? num : (r1 ? 2.0 * num - den : num - den);
   double td = r0 ? den : (r1 ? 2.0 * den + num : num + den);
   double t = tn / td;
-  double tl = __builtin_fma(-t, td, tn) / td;  // the division's rounding error: t + tl = tn / td
+  double tl = fma(-t, td, tn) / td;  // the division's rounding error: t + tl = tn / td
   double z = t * t, w = z * z;
   double s1 = z * (3.33333333333329318027e-01 + w * (1.42857142725034663711e-01 + w * (9.09088713343650656196e-02 +
               w * (6.66107313738753120669e-02 + w * (4.97687799461593236017e-02 + w * 1.62858201153657823623e-02)))));
@@ -127,7 +141,7 @@ static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
   // atan2(|y|, x) = K + sg atan(t + tl): K = A (sg = 1), pi/2 - A (swapped, sg = -1), pi - A (x < 0,
   // sg = -1), pi/2 + A (both, sg = 1), each as hi + lo; x < 0 by its sign bit (atan2(+-0, -0) = +-pi)
-  bool xneg = __builtin_copysign(1.0, x) < 0.0;  // (x = -0, y != 0: swapped with t = 0, pi/2 either way)
+  bool xneg = copysign(1.0, x) < 0.0;  // (x = -0, y != 0: swapped with t = 0, pi/2 either way)
   // the constants by range as exact blends m0 c0 + m1 c1 + m2 c2 (one m is 1, the others 0): nested
   // selects of constants become branches that GCC does not if-convert
   double m0 = r0 ? 1.0 : 0.0, m1 = r1 ? 1.0 : 0.0, m2 = 1.0 - m0 - m1;
@@ -143,22 +157,21 @@ static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double klo = xneg ? (swap ? k3l : k2l) : (swap ? k1l : k0l);
   double sg = swap != xneg ? -1.0 : 1.0;
   double res = khi + (sg * t + (sg * corr + klo));
-  return __builtin_copysign(res, y);
+  return copysign(res, y);
 }
 
 // floor and ceil from rint (exact for finite values): GCC vectorizes rint but not floor/ceil here
-static TB_FORCEINLINE double tb_floorv(double v) { double r = __builtin_rint(v); return r > v ? r - 1.0 : r; }
-static TB_FORCEINLINE double tb_ceilv(double v) { double r = __builtin_rint(v); return r < v ? r + 1.0 : r; }
-static TB_FORCEINLINE float tb_floorv(float v) { float r = __builtin_rintf(v); return r > v ? r - 1.0f : r; }
-static TB_FORCEINLINE float tb_ceilv(float v) { float r = __builtin_rintf(v); return r < v ? r + 1.0f : r; }
+TB_HD static TB_FORCEINLINE double tb_floorv(double v) { double r = rint(v); return r > v ? r - 1.0 : r; }
+TB_HD static TB_FORCEINLINE double tb_ceilv(double v) { double r = rint(v); return r < v ? r + 1.0 : r; }
+TB_HD static TB_FORCEINLINE float tb_floorv(float v) { float r = rintf(v); return r > v ? r - 1.0f : r; }
+TB_HD static TB_FORCEINLINE float tb_ceilv(float v) { float r = rintf(v); return r < v ? r + 1.0f : r; }
 
-static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) {
+TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) {
   double sd, cd;
   tb_sincos(double(x), sd, cd);
   s = float(sd); c = float(cd);
 }
-static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
-#endif
+TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
 
 template <typename T> TB_HD static inline void cross(const T* u, const T* v, T* o) {
   o[0] = u[1] * v[2] - u[2] * v[1]; o[1] = u[2] * v[0] - u[0] * v[2]; o[2] = u[0] * v[1] - u[1] * v[0];
