@@ -84,6 +84,13 @@ class Harness:
     def half_sincos(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> tuple[np.ndarray, np.ndarray]:
         return self._pair("half_sincos", x, dtype, vec)
 
+    def half_tan(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> np.ndarray:
+        x = np.ascontiguousarray(x, dtype)
+        out = np.empty_like(x)
+        name = f"tb_half_tan_{'vec' if vec else 'scalar'}_{'f64' if dtype == F64 else 'f32'}"
+        self._fn(name)(self._ptr(x), self._ptr(out), ctypes.c_long(x.size))
+        return out
+
 
 @pytest.fixture(scope="module", params=ARCHS)
 def harness(request, tmp_path_factory) -> Harness:
@@ -97,12 +104,13 @@ def harness(request, tmp_path_factory) -> Harness:
            f"-fopt-info-vec-optimized={report}", HARNESS, "-o", lib]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, f"{' '.join(cmd)}\n{proc.stdout}\n{proc.stderr}"
-    # the six *_vec loops (atan2, sincos, half_sincos; double and float) must vectorize as the kernels' do
+    # the ten *_vec loops (atan2, sincos, sincos_fast, half_sincos, half_tan; double and float) must vectorize
+    # as the kernels' do
     with open(report) as fh:
         widths = [int(m.group(1)) for m in re.finditer(r"vector_math\.cpp:\d+:\d+: optimized: loop vectorized "
                                                       r"using (\d+) byte vectors", fh.read())]
     wide = [w for w in widths if w >= (32 if arch == "x86-64-v3" else 16)]
-    assert len(wide) >= 6, f"-march={arch}: the harness loops did not vectorize (vector widths {widths})"
+    assert len(wide) >= 10, f"-march={arch}: the harness loops did not vectorize (vector widths {widths})"
     return Harness(lib)
 
 
@@ -348,12 +356,33 @@ def test_sincos_ulp(harness, dtype, vec):
     assert np.array_equal(sn, -s) and np.array_equal(cn, c)
 
 
+@pytest.mark.parametrize("vec", [True, False], ids=["vector", "scalar"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
+def test_sincos_fast_ulp_on_the_kernels_domain(harness, dtype, vec):
+    """tb_sincos (the kernels' one: the first reduction step only) within 1 ulp on [-pi, pi] but within 1e-9 of
+    +-pi/2 and +-pi (where the kernels never use the tiny value, see phi_diff), and bit for bit
+    tb_sincos_accurate on [-pi/4, pi/4] (no reduction: the kernels' half angles)."""
+    x, sin, cos = _reference("sincos", dtype, lambda: _sincos_ref(dtype))
+    keep = (np.abs(x) <= np.pi) & np.all([np.abs(np.abs(x.astype(np.float64)) - k * np.pi / 2) > 1e-9
+                                          for k in (1, 2)], axis=0)
+    xs = x[keep]
+    s, c = harness._pair("sincos_fast", xs, dtype, vec)
+    es = _ulp_errors(s, [v for v, k in zip(sin, keep) if k], dtype)
+    ec = _ulp_errors(c, [v for v, k in zip(cos, keep) if k], dtype)
+    assert xs.size > 500 and max(float(es.max()), float(ec.max())) <= 1.0, _worst("fast sin", (xs,), es)
+    small = x[np.abs(x) <= np.pi / 4]
+    s1, c1 = harness._pair("sincos_fast", small, dtype, vec)
+    s2, c2 = harness.sincos(small, dtype, vec)
+    assert np.array_equal(s1, s2) and np.array_equal(c1, c2)
+
+
 @pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
 def test_half_sincos_ulp(harness, dtype):
-    """tb_half_sincos (sin(t/2), cos(t/2) for t in [-pi, pi], near +-pi too; the kernels' tan(t/2) is s / c),
-    to its documented accuracy, "a few ulps": 1.5 ulps each (the complement w = ((pi_hi - |t|) + pi_lo) / 2
-    is rounded once before tb_sincos: measured 0.94 / 1.28 ulps in double, 0.67 / 1.12 in float) and s / c
-    within 2.5 ulps of tan(t/2) (two rounded values and a rounded quotient: measured 2.2 / 1.9)."""
+    """tb_half_sincos (sin(t/2), cos(t/2) for t in [-pi, pi], near +-pi too) to its documented accuracy, "a few
+    ulps": 1.5 ulps each (the complement w = ((pi_hi - |t|) + pi_lo) / 2 is rounded once before tb_sincos:
+    measured 0.94 / 1.28 ulps in double, 0.67 / 1.12 in float); s / c within 2.5 ulps of tan(t/2) (two rounded
+    values and a rounded quotient: measured 2.2 / 1.9), which is why the kernels take tan(t/2) from
+    tb_half_tan (test_half_tan_ulp)."""
     x, sin, cos, tan = _reference("half", dtype, lambda: _half_ref(dtype))
     for vec in (True, False):
         s, c = harness.half_sincos(x, dtype, vec)
@@ -362,6 +391,20 @@ def test_half_sincos_ulp(harness, dtype):
             et = _ulp_errors(s / c, tan, dtype)
         msg = "; ".join(_worst(f"half {n} {dtype.name}", (x,), e) for n, e in (("sin", es), ("cos", ec), ("tan", et)))
         assert es.max() <= 1.5 and ec.max() <= 1.5 and et.max() <= 2.5, msg
+
+
+@pytest.mark.parametrize("vec", [True, False], ids=["vector", "scalar"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
+def test_half_tan_ulp(harness, dtype, vec):
+    """tb_half_tan, the kernels' tan(t/2) (the tan model's u), within 1 ulp for t in [-pi, pi] (float: to the
+    float pi, just above pi), near 0, +-pi/2 (the kernel's switch about pi/4) and +-pi (values up to 1e16);
+    odd bit for bit."""
+    x, _, _, tan = _reference("half", dtype, lambda: _half_ref(dtype))
+    u = harness.half_tan(x, dtype, vec)
+    _check(f"tb_half_tan {dtype.name}", (x,), _ulp_errors(u, tan, dtype))
+    assert np.array_equal(harness.half_tan(-x, dtype, vec), -u)
+    z = harness.half_tan(np.array([0.0, -0.0], dtype), dtype, vec)
+    assert np.all(z == 0) and list(np.signbit(z)) == [False, True]
 
 
 def test_cuda_device_code_compiles(tmp_path):

@@ -1,5 +1,5 @@
-// Torch-free harness of the vectorizable math of torchbend/csrc/hinge_math.h (tb_atan2v, tb_sincos,
-// tb_half_sincos), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
+// Torch-free harness of the vectorizable math of torchbend/csrc/hinge_math.h (tb_atan2v, tb_sincos_accurate
+// ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_tan), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
 // flags and loaded with ctypes.  The *_vec loops are written as the kernels' lane loops are (a plain loop
 // with the header's functions inlined, TB_IVDEP), so that GCC vectorizes them; the *_scalar loops call one
 // non-inlined scalar evaluation per element (the code a loop that does not vectorize runs).
@@ -7,12 +7,16 @@
 
 using torchbend::tb_atan2v;
 using torchbend::tb_half_sincos;
+using torchbend::tb_half_tan;
 using torchbend::tb_sincos;
+using torchbend::tb_sincos_accurate;
 
 namespace {
 template <typename T> __attribute__((noinline)) T atan2_one(T y, T x) { return tb_atan2v(y, x); }
-template <typename T> __attribute__((noinline)) void sincos_one(T x, T* s, T* c) { tb_sincos(x, *s, *c); }
+template <typename T> __attribute__((noinline)) void sincos_one(T x, T* s, T* c) { tb_sincos_accurate(x, *s, *c); }
+template <typename T> __attribute__((noinline)) void sincos_fast_one(T x, T* s, T* c) { tb_sincos(x, *s, *c); }
 template <typename T> __attribute__((noinline)) void half_one(T x, T* s, T* c) { tb_half_sincos(x, *s, *c); }
+template <typename T> __attribute__((noinline)) T half_tan_one(T x) { return tb_half_tan(x); }
 }  // namespace
 
 #define TB_HARNESS(T, SUFFIX)                                                                              \
@@ -25,12 +29,22 @@ template <typename T> __attribute__((noinline)) void half_one(T x, T* s, T* c) {
   void tb_sincos_vec_##SUFFIX(const T* __restrict x, T* __restrict s, T* __restrict c, long n) {           \
     TB_IVDEP for (long i = 0; i < n; ++i) {                                                                \
       T si, ci;                                                                                            \
-      tb_sincos(x[i], si, ci);                                                                             \
+      tb_sincos_accurate(x[i], si, ci);                                                                    \
       s[i] = si; c[i] = ci;                                                                                \
     }                                                                                                      \
   }                                                                                                        \
   void tb_sincos_scalar_##SUFFIX(const T* x, T* s, T* c, long n) {                                         \
     for (long i = 0; i < n; ++i) sincos_one<T>(x[i], s + i, c + i);                                        \
+  }                                                                                                        \
+  void tb_sincos_fast_vec_##SUFFIX(const T* __restrict x, T* __restrict s, T* __restrict c, long n) {      \
+    TB_IVDEP for (long i = 0; i < n; ++i) {                                                                \
+      T si, ci;                                                                                            \
+      tb_sincos(x[i], si, ci);                                                                             \
+      s[i] = si; c[i] = ci;                                                                                \
+    }                                                                                                      \
+  }                                                                                                        \
+  void tb_sincos_fast_scalar_##SUFFIX(const T* x, T* s, T* c, long n) {                                    \
+    for (long i = 0; i < n; ++i) sincos_fast_one<T>(x[i], s + i, c + i);                                   \
   }                                                                                                        \
   void tb_half_sincos_vec_##SUFFIX(const T* __restrict x, T* __restrict s, T* __restrict c, long n) {      \
     TB_IVDEP for (long i = 0; i < n; ++i) {                                                                \
@@ -41,6 +55,12 @@ template <typename T> __attribute__((noinline)) void half_one(T x, T* s, T* c) {
   }                                                                                                        \
   void tb_half_sincos_scalar_##SUFFIX(const T* x, T* s, T* c, long n) {                                    \
     for (long i = 0; i < n; ++i) half_one<T>(x[i], s + i, c + i);                                          \
+  }                                                                                                        \
+  void tb_half_tan_vec_##SUFFIX(const T* __restrict x, T* __restrict o, long n) {                          \
+    TB_IVDEP for (long i = 0; i < n; ++i) o[i] = tb_half_tan(x[i]);                                        \
+  }                                                                                                        \
+  void tb_half_tan_scalar_##SUFFIX(const T* x, T* o, long n) {                                             \
+    for (long i = 0; i < n; ++i) o[i] = half_tan_one<T>(x[i]);                                             \
   }
 
 extern "C" {

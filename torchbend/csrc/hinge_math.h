@@ -76,7 +76,14 @@ template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b 
 // tb_sincos: |x| < 2^19 (the kernels take half-angles; beyond it the reduction loses accuracy, and inf
 // or NaN give NaN), sin(-0) = -0.  tb_atan2v: every finite argument, IEEE's signed zeros and quadrants
 // (atan2(+-0, -0) = +-pi), NaN in -> NaN out; infinite arguments are not supported (the kernels' are finite).
-TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
+// tb_sincos: fdlibm's first reduction step (pi/2 in 33 + 53 bits): within 1 ulp wherever the reduced
+// argument keeps its digits, which is all of [-pi/4, pi/4] (no reduction: the kernels' half angles) and every
+// |x| < 2^19 but within about |q| 2^-22 of a nonzero multiple q pi/2 (there sin or cos is tiny and loses
+// digits: cos(pi/2) by 1e6 ulps).  The kernels take it where such a value is never the one they use (see
+// phi_diff).  tb_sincos_accurate adds fdlibm's second and third steps (pi/2 to 152 bits), computed for every
+// lane and selected near those multiples: within 1 ulp over all of |x| < 2^19, at about 20% of an energy.
+template <bool Accurate>
+TB_HD static TB_FORCEINLINE void tb_sincos_impl(double x, double& s, double& c) {
   const double two_over_pi = 6.36619772367581382433e-01;
   const double pio2_1 = 1.57079632673412561417e+00;   // first 33 bits of pi/2 (q * pio2_1 exact)
   const double pio2_1t = 6.07710050650619224932e-11;  // pi/2 - pio2_1
@@ -90,14 +97,16 @@ TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
   double y0 = r - w, y1 = (r - y0) - w;  // x - q pi/2 = y0 + y1, to about |q| 1.3e-26
   // Near a multiple of pi/2 (|y0| < |q| 2^-22) that is too few digits of pi: fdlibm's second and third
   // steps (__ieee754_rem_pio2: pi/2 to 152 bits), computed for every lane and selected
-  double t2 = r, w2 = q * pio2_2, r2 = t2 - w2;
-  w2 = q * pio2_2t - ((t2 - r2) - w2);
-  double t3 = r2, w3 = q * pio2_3, r3 = t3 - w3;
-  w3 = q * pio2_3t - ((t3 - r3) - w3);
-  double y0c = r3 - w3, y1c = (r3 - y0c) - w3;
-  bool cancel = fabs(y0) < fabs(q) * 0x1p-22;
-  y0 = cancel ? y0c : y0;
-  y1 = cancel ? y1c : y1;
+  if constexpr (Accurate) {
+    double t2 = r, w2 = q * pio2_2, r2 = t2 - w2;
+    w2 = q * pio2_2t - ((t2 - r2) - w2);
+    double t3 = r2, w3 = q * pio2_3, r3 = t3 - w3;
+    w3 = q * pio2_3t - ((t3 - r3) - w3);
+    double y0c = r3 - w3, y1c = (r3 - y0c) - w3;
+    bool cancel = fabs(y0) < fabs(q) * 0x1p-22;
+    y0 = cancel ? y0c : y0;
+    y1 = cancel ? y1c : y1;
+  }
   double z = y0 * y0, v = z * y0;
   // __kernel_sin(y0, y1)
   double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
@@ -116,6 +125,8 @@ TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) {
   s = n >= 2 ? -ss : ss;
   c = (n == 1 || n == 2) ? -cc : cc;
 }
+TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { tb_sincos_impl<false>(x, s, c); }
+TB_HD static TB_FORCEINLINE void tb_sincos_accurate(double x, double& s, double& c) { tb_sincos_impl<true>(x, s, c); }
 
 TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double ax = fabs(x), ay = fabs(y);
@@ -169,6 +180,11 @@ TB_HD static TB_FORCEINLINE float tb_ceilv(float v) { float r = rintf(v); return
 TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) {
   double sd, cd;
   tb_sincos(double(x), sd, cd);
+  s = float(sd); c = float(cd);
+}
+TB_HD static TB_FORCEINLINE void tb_sincos_accurate(float x, float& s, float& c) {
+  double sd, cd;
+  tb_sincos_accurate(double(x), sd, cd);
   s = float(sd); c = float(cd);
 }
 TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
@@ -278,12 +294,59 @@ template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s,
   c = big ? sn : cs;
 }
 
+// tan(t/2) for t in [-pi, pi] (a little beyond, to the float pi) within 1 ulp (tests/test_vector_math_ulp.py):
+// fdlibm's __kernel_tan on [-pi/4, pi/4] with the argument's tail, branch-free.  |t| <= pi/2: tan(x) at x = t/2
+// (exact); |t| > pi/2: tan(t/2) = -sign(t) (-1 / tan(x + y)) with x + y = ((pi_hi - |t|) + pi_lo) / 2 as a
+// normalized pair (pi_hi - |t| exact by Sterbenz): no digit of the huge value near +-pi is lost.  One
+// division: w^2 / (w + iy) in the kernel's range about pi/4, -1 / w (refined with its 32-bit halves) below it.
+TB_HD static TB_FORCEINLINE double tb_clear_low32(double v) {
+  uint64_t b;
+  __builtin_memcpy(&b, &v, sizeof b);
+  b &= 0xffffffff00000000ull;
+  __builtin_memcpy(&v, &b, sizeof v);
+  return v;
+}
+TB_HD static TB_FORCEINLINE double tb_half_tan(double t) {
+  const double pi_hi = 3.14159265358979311600e+00, pi_lo = 1.22464679914735320717e-16;
+  const double pio4 = 7.85398163397448278999e-01, pio4lo = 3.06161699786838301793e-17;
+  double a = fabs(t);
+  bool big = a > 0.5 * pi_hi;
+  double h = 0.5 * (pi_hi - a), l = 0.5 * pi_lo;
+  double hs = h + l, ls = l - (hs - h);  // Fast2Sum: h is 0 or a multiple of ulp(pi) / 2 > l
+  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0, iy = big ? -1.0 : 1.0;
+  // __kernel_tan(x, y, iy): about pi/4 (|x| >= 0.67434, fdlibm's 0x3FE59428) from tan(pi/4 - x)
+  bool hi = fabs(x) >= 0.6743354797363281;
+  double sx = x < 0.0 ? -1.0 : 1.0;
+  double xr = (pio4 - sx * x) + (pio4lo - sx * y);
+  x = hi ? xr : x;
+  y = hi ? 0.0 : y;
+  double z = x * x, w = z * z;
+  double r = 1.33333333333201242699e-01 + w * (2.18694882948595424599e-02 + w * (3.59207910759131235356e-03 +
+             w * (5.88041240820264096874e-04 + w * (7.81794442939557092300e-05 + w * -1.85586374855275456654e-05))));
+  double v = z * (5.39682539762260521377e-02 + w * (8.86323982359930005737e-03 + w * (1.45620945432529025516e-03 +
+             w * (2.46463134818469906812e-04 + w * (7.14072491382608190305e-05 + w * 2.59073051863633712884e-05)))));
+  double s = z * x;
+  r = y + z * (s * (r + v) + y);
+  r += 3.33333333333334091986e-01 * s;
+  w = x + r;
+  double q = (hi ? w * w : -1.0) / (hi ? w + iy : w);
+  double k_hi = sx * (iy - 2.0 * (x - (q - r)));
+  double zt = tb_clear_low32(w), tt = tb_clear_low32(q);  // -1 / (x + r) accurately (fdlibm)
+  double k_inv = tt + q * ((1.0 + tt * zt) + tt * (r - (zt - x)));
+  double k = hi ? k_hi : (big ? k_inv : copysign(w, x));  // (tan(-0) = -0)
+  return big && t > 0.0 ? -k : k;
+}
+TB_HD static TB_FORCEINLINE float tb_half_tan(float t) { return float(tb_half_tan(double(t))); }
+
 // phi(theta') - phi(ref) and phi', phi'' at theta' (torchbend.ops.psi.phi_difference): model 0 quadratic,
 // 1 tan, 2 sin.  theta' = ref + wrap(theta - ref) (wrap into (-pi, pi]) for quadratic and sin, theta for tan;
 // the difference is written without cancellation (tan: 2 sin((t-r)/2) / (cos(t/2) cos(r/2)) where t and r
 // have the same sign, 2 (sin(t/2) cos(r/2) - sin(r/2) cos(t/2)) / (cos(t/2) cos(r/2)) where they differ,
 // two terms of one sign, the half angles from tb_half_sincos; sin: 4 cos((t+r)/4) sin((t-r)/4)).
-// Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.
+// Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.  tb_sincos (not tb_sincos_accurate)
+// suffices: the half angles are in [-pi/4, pi/4] (no reduction), sin((t - r)/2) is used where t and r have the
+// same sign (|t - r| / 2 < pi/2: tiny only near 0, unreduced), and the sin model's cos((t + r)/4) is tiny only
+// for |t|, |r| both at pi, where its difference term d vanishes with it.
 template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
 #if !defined(__CUDACC__)
   if constexpr (M == 1 && sizeof(T) == sizeof(float)) {
@@ -304,7 +367,7 @@ template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T re
     tb_sincos(T(0.5) * delta, sd, cd);
     bool opposite = (t < T(0)) != (ref < T(0));
     T num = opposite ? sh * cr - sr * ch : sd;
-    T u = sh / ch, s2 = T(1) + u * u;
+    T u = tb_half_tan(t), s2 = T(1) + u * u;  // tan(t/2) to 1 ulp (sh / ch: 2.2)
     d = T(2) * num / (ch * cr); f1 = s2; f2 = s2 * u;
     return;
   }
