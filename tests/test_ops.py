@@ -338,7 +338,9 @@ def test_double_backward_through_a_compiled_energy_raises_a_clear_error(fresh_dy
 
 
 def test_compiled_energy_backward_with_retain_graph_is_not_refused(fresh_dynamo, monkeypatch):
-    monkeypatch.setattr(torch._functorch.config, "donated_buffer", False)  # PyTorch's own retain_graph limit
+    import torch._functorch.config as functorch_config
+
+    monkeypatch.setattr(functorch_config, "donated_buffer", False)  # PyTorch's own retain_graph limit
     bend, x, _ = _setup("quadratic", F64, False, ())
     compiled = torch.compile(bend, fullgraph=True)
     y = x.clone().requires_grad_()

@@ -49,7 +49,7 @@ def _inside_compiled_double_backward() -> bool:
 
 @torch.library.custom_op("torchbend::compiled_backward_guard", mutates_args=())
 def _guard(g: Tensor) -> Tensor:
-    if torch._C._current_graph_task_id() != -1 and torch._C._autograd._get_current_graph_task_keep_graph() and (
+    if torch._C._current_graph_task_id() != -1 and torch._C._autograd._get_current_graph_task_keep_graph() and (  # pyright: ignore[reportAttributeAccessIssue]
             torch.is_grad_enabled() or _inside_compiled_double_backward()):
         raise CompiledDoubleBackwardError(MESSAGE)
     return g.clone()
