@@ -51,7 +51,7 @@ def _global_kernels() -> list[tuple[str, bool]]:
 
 
 def test_csrc_is_shipped_for_the_jit_fallback():
-    for f in (*cfg.NATIVE_SOURCES, *cfg.CUDA_SOURCES, cfg.CUDA_BINDING, "hinge_math.h", "hinge_ops.h"):
+    for f in (*cfg.NATIVE_SOURCES, *cfg.CUDA_SOURCES, cfg.CUDA_BINDING, "hinge_math.h", "vector_math.h", "hinge_ops.h"):
         assert os.path.exists(os.path.join(cfg.CSRC, f)), f
 
 

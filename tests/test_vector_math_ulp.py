@@ -1,4 +1,4 @@
-"""The vectorizable math of ``torchbend/csrc/hinge_math.h`` (``tb_atan2v``, ``tb_sincos``, ``tb_half_sincos``)
+"""The vectorizable math of ``torchbend/csrc/vector_math.h`` (``tb_atan2v``, ``tb_sincos``, ``tb_half_sincos``, ``tb_half_tan``)
 against a 40-digit reference (mpmath): at most 1 ulp of the exact value over the whole domain, float64 and
 float32, IEEE's signed zeros and quadrants exactly.
 

@@ -1,7 +1,7 @@
 """Check that the CPU kernels' hot lane loops vectorize for a given instruction set (default ``x86-64-v3``:
 AVX2 + FMA, the widest vectors of every x86-64 CPU sold since 2015).
 
-The kernels are written as loops over the lanes of a tile of hinges (``TB_LANES`` in ``csrc/hinge_math.h``);
+The kernels are written as loops over the lanes of a tile of hinges (``TB_LANES`` in ``csrc/vector_math.h``);
 their speed depends on GCC vectorizing those loops, which a harmless-looking edit (a branch the compiler
 cannot if-convert, a call it cannot inline, a dropped flag) silently undoes.  With AVX-512 the compiler can
 if-convert almost anything with masked instructions; with AVX2 it needs ``-fno-trapping-math`` and

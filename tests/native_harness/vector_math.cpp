@@ -1,9 +1,9 @@
-// Torch-free harness of the vectorizable math of torchbend/csrc/hinge_math.h (tb_atan2v, tb_sincos_accurate
+// Torch-free harness of the vectorizable math of torchbend/csrc/vector_math.h (tb_atan2v, tb_sincos_accurate
 // ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_tan), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
 // flags and loaded with ctypes.  The *_vec loops are written as the kernels' lane loops are (a plain loop
 // with the header's functions inlined, TB_IVDEP), so that GCC vectorizes them; the *_scalar loops call one
 // non-inlined scalar evaluation per element (the code a loop that does not vectorize runs).
-#include "torchbend/csrc/hinge_math.h"
+#include "torchbend/csrc/vector_math.h"
 
 using torchbend::tb_atan2v;
 using torchbend::tb_half_sincos;

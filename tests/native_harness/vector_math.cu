@@ -1,7 +1,7 @@
 // Compile-only check (tests/test_vector_math_ulp.py, when nvcc is found) that the vectorizable math of
-// torchbend/csrc/hinge_math.h (tb_atan2v, tb_sincos, tb_half_sincos, tb_floorv, tb_ceilv) compiles as
+// torchbend/csrc/vector_math.h (tb_atan2v, tb_sincos, tb_half_sincos, tb_floorv, tb_ceilv) compiles as
 // CUDA device code: one definition serves the CPU lane loops and the GPU.
-#include "torchbend/csrc/hinge_math.h"
+#include "torchbend/csrc/vector_math.h"
 
 template <typename T>
 __global__ void tb_vector_math_kernel(const T* y, const T* x, T* out, int n) {

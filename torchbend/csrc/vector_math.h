@@ -1,0 +1,245 @@
+// The vectorizable elementary functions of torchbend's compiled kernels (included by hinge_math.h): the
+// host/device spellings of the C functions, branch-free sincos, atan2, floor, ceil, and the half-angle sin, cos
+// and tan of the bend angle, one definition for the CPU lane loops (g++, vectorized across the lanes of a tile)
+// and the GPU (nvcc).  Their accuracy against a 40-digit reference: tests/test_vector_math_ulp.py.  The platform
+// macros (TB_HD, TB_FORCEINLINE, the lane loops) are defined here.
+#pragma once
+
+#include <cfloat>
+#include <cmath>
+#include <cstdint>
+
+#if defined(__CUDACC__)
+#define TB_HD __host__ __device__
+#define TB_FORCEINLINE __forceinline__
+#define TB_SIMD
+#define TB_IVDEP
+#else
+#define TB_HD
+#define TB_FORCEINLINE inline __attribute__((always_inline))
+#define TB_SIMD _Pragma("omp simd")
+#if defined(__clang__)
+#define TB_IVDEP _Pragma("clang loop vectorize(assume_safety)")
+#else
+#define TB_IVDEP _Pragma("GCC ivdep")
+#endif
+#endif
+// A loop over the W lanes of a tile, vectorized across hinges on the CPU.  TB_LANES (`omp simd`) is for
+// bodies of scalar locals only: GCC turns every aggregate or address-taken local of an `omp simd` body
+// into a per-lane array in memory, which defeats vectorization.  Bodies that use the V3 / Tri values of
+// tri_frame take TB_LANES_AGG (`ivdep`: no loop-carried dependences, no privatization), whose locals
+// become registers; it vectorizes when the cost model agrees, which with -fno-math-errno (sqrt without
+// its errno branch) it does.
+#define TB_LANES(W) TB_SIMD for (int l = 0; l < (W); ++l)
+#define TB_LANES_AGG(W) TB_IVDEP for (int l = 0; l < (W); ++l)
+
+namespace torchbend {
+
+
+// ---- scalar helpers (host and device spellings of the same C functions) ----------------------
+// the float and the double overload of a unary C function (fname, dname: its float and double spellings)
+#define TB_UNARY_PAIR(QUAL, name, fname, dname) \
+  QUAL float name(float v) { return fname(v); } \
+  QUAL double name(double v) { return dname(v); }
+TB_UNARY_PAIR(TB_HD static inline, tb_sqrt, sqrtf, sqrt)
+TB_UNARY_PAIR(TB_HD static inline, tb_tan, tanf, tan)
+TB_UNARY_PAIR(TB_HD static inline, tb_sin, sinf, sin)
+TB_UNARY_PAIR(TB_HD static inline, tb_cos, cosf, cos)
+TB_UNARY_PAIR(TB_HD static inline, tb_ceil, ceilf, ceil)
+TB_UNARY_PAIR(TB_HD static inline, tb_floor, floorf, floor)
+TB_HD static inline float tb_atan2(float y, float x) { return atan2f(y, x); }
+TB_HD static inline double tb_atan2(double y, double x) { return atan2(y, x); }
+TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
+TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
+template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
+
+// ---- vectorizable sin/cos and atan2 (the CPU lane loops; the same code on the GPU) --------------
+// The C library's sin, cos and atan2 are calls that no lane loop vectorizes, and in the energy and
+// gradient kernels they cost more than all the geometry.  tb_sincos and tb_atan2v are branch-free
+// (selects only, no library calls), so that GCC vectorizes them across the lanes of a tile; the CUDA
+// driver compiles the same definitions (TB_HD; rint, fabs, copysign and fma are the C functions, builtins
+// of both compilers), so that both devices compute the same values.  Double: fdlibm's kernels
+// (__kernel_sin / __kernel_cos on [-pi/4, pi/4] with a two-part Cody-Waite reduction by pi/2, and
+// __ieee754_rem_pio2's second and third steps near a multiple of pi/2; atan's polynomial on |t| < 7/16 with
+// the reductions about 1/2 and 1, the division's rounding error carried, hi/lo constants per octant, huge
+// and tiny arguments scaled by a power of two).  Float: the double evaluation rounded once (correctly
+// rounded but for the double rounding).  Both within 0.8 ulp of the exact value (tests/test_vector_math_ulp.py:
+// a 40-digit reference, -march=native and x86-64-v3, signed zeros, +-pi, subnormal and huge arguments).
+// tb_sincos: |x| < 2^19 (the kernels take half-angles; beyond it the reduction loses accuracy, and inf
+// or NaN give NaN), sin(-0) = -0.  tb_atan2v: every finite argument, IEEE's signed zeros and quadrants
+// (atan2(+-0, -0) = +-pi), NaN in -> NaN out; infinite arguments are not supported (the kernels' are finite).
+// tb_sincos: fdlibm's first reduction step (pi/2 in 33 + 53 bits): within 1 ulp wherever the reduced
+// argument keeps its digits, which is all of [-pi/4, pi/4] (no reduction: the kernels' half angles) and every
+// |x| < 2^19 but within about |q| 2^-22 of a nonzero multiple q pi/2 (there sin or cos is tiny and loses
+// digits: cos(pi/2) by 1e6 ulps).  The kernels take it where such a value is never the one they use (see
+// phi_diff).  tb_sincos_accurate adds fdlibm's second and third steps (pi/2 to 152 bits), computed for every
+// lane and selected near those multiples: within 1 ulp over all of |x| < 2^19, at about 20% of an energy.
+template <bool Accurate>
+TB_HD static TB_FORCEINLINE void tb_sincos_impl(double x, double& s, double& c) {
+  const double two_over_pi = 6.36619772367581382433e-01;
+  const double pio2_1 = 1.57079632673412561417e+00;   // first 33 bits of pi/2 (q * pio2_1 exact)
+  const double pio2_1t = 6.07710050650619224932e-11;  // pi/2 - pio2_1
+  const double pio2_2 = 6.07710050630396597660e-11;   // second 33 bits of pi/2
+  const double pio2_2t = 2.02226624879595063154e-21;  // pi/2 - pio2_1 - pio2_2
+  const double pio2_3 = 2.02226624871116645580e-21;   // third 33 bits of pi/2
+  const double pio2_3t = 8.47842766036889956997e-32;  // pi/2 - pio2_1 - pio2_2 - pio2_3
+  // + 0.0: q = +0 for x = -0, so that r = -0 and sin(-0) = -0 (the same q, r for every other x)
+  double q = rint(x * two_over_pi) + 0.0;
+  double r = x - q * pio2_1, w = q * pio2_1t;
+  double y0 = r - w, y1 = (r - y0) - w;  // x - q pi/2 = y0 + y1, to about |q| 1.3e-26
+  // Near a multiple of pi/2 (|y0| < |q| 2^-22) that is too few digits of pi: fdlibm's second and third
+  // steps (__ieee754_rem_pio2: pi/2 to 152 bits), computed for every lane and selected
+  if constexpr (Accurate) {
+    double t2 = r, w2 = q * pio2_2, r2 = t2 - w2;
+    w2 = q * pio2_2t - ((t2 - r2) - w2);
+    double t3 = r2, w3 = q * pio2_3, r3 = t3 - w3;
+    w3 = q * pio2_3t - ((t3 - r3) - w3);
+    double y0c = r3 - w3, y1c = (r3 - y0c) - w3;
+    bool cancel = fabs(y0) < fabs(q) * 0x1p-22;
+    y0 = cancel ? y0c : y0;
+    y1 = cancel ? y1c : y1;
+  }
+  double z = y0 * y0, v = z * y0;
+  // __kernel_sin(y0, y1)
+  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
+              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
+  double ks = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01);
+  // __kernel_cos(y0, y1)
+  double zz = z * z;
+  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
+              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
+  double hz = 0.5 * z, w1 = 1.0 - hz;
+  double kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
+  // quadrant n = q mod 4: (sin, cos) = (ks, kc), (kc, -ks), (-ks, -kc), (-kc, ks)
+  int n = int(q) & 3;
+  bool odd = (n & 1) != 0;
+  double ss = odd ? kc : ks, cc = odd ? ks : kc;
+  s = n >= 2 ? -ss : ss;
+  c = (n == 1 || n == 2) ? -cc : cc;
+}
+TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { tb_sincos_impl<false>(x, s, c); }
+TB_HD static TB_FORCEINLINE void tb_sincos_accurate(double x, double& s, double& c) { tb_sincos_impl<true>(x, s, c); }
+
+TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
+  double ax = fabs(x), ay = fabs(y);
+  bool swap = ay > ax;  // atan2 = pi/2 - atan(ax / ay)
+  double num = swap ? ax : ay, den = swap ? ay : ax;
+  den = den == 0.0 ? 1.0 : den;  // atan2(+-0, +-0): z = 0
+  // huge or tiny arguments scaled by a power of two (exact, and t, tl are scale-invariant): 16 num, 7 den and
+  // 2 den + num stay finite near DBL_MAX, and the division's residual stays normal for subnormal arguments
+  double sc = (den > 0x1p1000 ? 0x1p-60 : 1.0) * (den < 0x1p-900 ? 0x1p120 : 1.0);
+  num *= sc; den *= sc;
+  // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (z < 7/16),
+  // (2z - 1) / (2 + z) about A = atan(1/2) (z < 11/16), (z - 1) / (z + 1) about A = atan(1) (else)
+  bool r0 = 16.0 * num < 7.0 * den, r1 = !r0 && 16.0 * num < 11.0 * den;
+  double tn = r0 ? num : (r1 ? 2.0 * num - den : num - den);
+  double td = r0 ? den : (r1 ? 2.0 * den + num : num + den);
+  double t = tn / td;
+  double tl = fma(-t, td, tn) / td;  // the division's rounding error: t + tl = tn / td
+  double z = t * t, w = z * z;
+  double s1 = z * (3.33333333333329318027e-01 + w * (1.42857142725034663711e-01 + w * (9.09088713343650656196e-02 +
+              w * (6.66107313738753120669e-02 + w * (4.97687799461593236017e-02 + w * 1.62858201153657823623e-02)))));
+  double s2 = w * (-1.99999999998764832476e-01 + w * (-1.11111104054623557880e-01 + w * (-7.69187620504482999495e-02 +
+              w * (-5.83357013379057348645e-02 + w * -3.65315727442169155270e-02))));
+  double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
+  // atan2(|y|, x) = K + sg atan(t + tl): K = A (sg = 1), pi/2 - A (swapped, sg = -1), pi - A (x < 0,
+  // sg = -1), pi/2 + A (both, sg = 1), each as hi + lo; x < 0 by its sign bit (atan2(+-0, -0) = +-pi)
+  bool xneg = copysign(1.0, x) < 0.0;  // (x = -0, y != 0: swapped with t = 0, pi/2 either way)
+  // the constants by range as exact blends m0 c0 + m1 c1 + m2 c2 (one m is 1, the others 0): nested
+  // selects of constants become branches that GCC does not if-convert
+  double m0 = r0 ? 1.0 : 0.0, m1 = r1 ? 1.0 : 0.0, m2 = 1.0 - m0 - m1;
+  double k0h = m1 * 0.4636476090008061 + m2 * 0.7853981633974483;  // A
+  double k0l = m1 * 2.2698777452961687e-17 + m2 * 3.061616997868383e-17;
+  double k1h = m0 * 1.5707963267948966 + m1 * 1.1071487177940904 + m2 * 0.7853981633974483;  // pi/2 - A
+  double k1l = m0 * 6.123233995736766e-17 + m1 * 9.40447137356638e-17 + m2 * 3.061616997868383e-17;
+  double k2h = m0 * 3.141592653589793 + m1 * 2.677945044588987 + m2 * 2.356194490192345;  // pi - A
+  double k2l = m0 * 1.2246467991473532e-16 + m1 * 1.5527705369303147e-16 + m2 * 9.184850993605148e-17;
+  double k3h = m0 * 1.5707963267948966 + m1 * 2.0344439357957027 + m2 * 2.356194490192345;  // pi/2 + A
+  double k3l = m0 * 6.123233995736766e-17 + m1 * 2.841996617907152e-17 + m2 * 9.184850993605148e-17;
+  double khi = xneg ? (swap ? k3h : k2h) : (swap ? k1h : k0h);
+  double klo = xneg ? (swap ? k3l : k2l) : (swap ? k1l : k0l);
+  double sg = swap != xneg ? -1.0 : 1.0;
+  double res = khi + (sg * t + (sg * corr + klo));
+  return copysign(res, y);
+}
+
+// floor and ceil from rint (exact for finite values): GCC vectorizes rint but not floor/ceil here
+TB_HD static TB_FORCEINLINE double tb_floorv(double v) { double r = rint(v); return r > v ? r - 1.0 : r; }
+TB_HD static TB_FORCEINLINE double tb_ceilv(double v) { double r = rint(v); return r < v ? r + 1.0 : r; }
+TB_HD static TB_FORCEINLINE float tb_floorv(float v) { float r = rintf(v); return r > v ? r - 1.0f : r; }
+TB_HD static TB_FORCEINLINE float tb_ceilv(float v) { float r = rintf(v); return r < v ? r + 1.0f : r; }
+
+TB_HD static TB_FORCEINLINE void tb_sincos(float x, float& s, float& c) {
+  double sd, cd;
+  tb_sincos(double(x), sd, cd);
+  s = float(sd); c = float(cd);
+}
+TB_HD static TB_FORCEINLINE void tb_sincos_accurate(float x, float& s, float& c) {
+  double sd, cd;
+  tb_sincos_accurate(double(x), sd, cd);
+  s = float(sd); c = float(cd);
+}
+TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
+
+// sin(t/2) and cos(t/2) to a few ulps for t in [-pi, pi], near +-pi too (torchbend.ops.psi.half_angle_sincos):
+// for |t| > pi/2 from the complement w = (pi - |t|)/2, formed exactly (pi_hi - |t| by Sterbenz, then the
+// tail pi_lo), sin(t/2) = sign(t) cos(w), cos(t/2) = sin(w): t/2 rounded (and a reduction by pi/2 that keeps
+// too few digits of pi) would make the tiny cosine near +-pi wrong in most of its digits.  One tb_sincos of
+// an argument in [-pi/4, pi/4]; branch-free.
+template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
+  const T pi_hi = T(3.14159265358979323846);
+  const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
+  T a = t < T(0) ? -t : t;
+  bool big = a > T(0.5) * pi_hi;
+  T w = T(0.5) * ((pi_hi - a) + pi_lo);
+  T sn, cs;
+  tb_sincos(big ? w : T(0.5) * t, sn, cs);
+  s = big ? (t < T(0) ? -cs : cs) : sn;
+  c = big ? sn : cs;
+}
+
+// tan(t/2) for t in [-pi, pi] (a little beyond, to the float pi) within 1 ulp (tests/test_vector_math_ulp.py):
+// fdlibm's __kernel_tan on [-pi/4, pi/4] with the argument's tail, branch-free.  |t| <= pi/2: tan(x) at x = t/2
+// (exact); |t| > pi/2: tan(t/2) = -sign(t) (-1 / tan(x + y)) with x + y = ((pi_hi - |t|) + pi_lo) / 2 as a
+// normalized pair (pi_hi - |t| exact by Sterbenz): no digit of the huge value near +-pi is lost.  One
+// division: w^2 / (w + iy) in the kernel's range about pi/4, -1 / w (refined with its 32-bit halves) below it.
+TB_HD static TB_FORCEINLINE double tb_clear_low32(double v) {
+  uint64_t b;
+  __builtin_memcpy(&b, &v, sizeof b);
+  b &= 0xffffffff00000000ull;
+  __builtin_memcpy(&v, &b, sizeof v);
+  return v;
+}
+TB_HD static TB_FORCEINLINE double tb_half_tan(double t) {
+  const double pi_hi = 3.14159265358979311600e+00, pi_lo = 1.22464679914735320717e-16;
+  const double pio4 = 7.85398163397448278999e-01, pio4lo = 3.06161699786838301793e-17;
+  double a = fabs(t);
+  bool big = a > 0.5 * pi_hi;
+  double h = 0.5 * (pi_hi - a), l = 0.5 * pi_lo;
+  double hs = h + l, ls = l - (hs - h);  // Fast2Sum: h is 0 or a multiple of ulp(pi) / 2 > l
+  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0, iy = big ? -1.0 : 1.0;
+  // __kernel_tan(x, y, iy): about pi/4 (|x| >= 0.67434, fdlibm's 0x3FE59428) from tan(pi/4 - x)
+  bool hi = fabs(x) >= 0.6743354797363281;
+  double sx = x < 0.0 ? -1.0 : 1.0;
+  double xr = (pio4 - sx * x) + (pio4lo - sx * y);
+  x = hi ? xr : x;
+  y = hi ? 0.0 : y;
+  double z = x * x, w = z * z;
+  double r = 1.33333333333201242699e-01 + w * (2.18694882948595424599e-02 + w * (3.59207910759131235356e-03 +
+             w * (5.88041240820264096874e-04 + w * (7.81794442939557092300e-05 + w * -1.85586374855275456654e-05))));
+  double v = z * (5.39682539762260521377e-02 + w * (8.86323982359930005737e-03 + w * (1.45620945432529025516e-03 +
+             w * (2.46463134818469906812e-04 + w * (7.14072491382608190305e-05 + w * 2.59073051863633712884e-05)))));
+  double s = z * x;
+  r = y + z * (s * (r + v) + y);
+  r += 3.33333333333334091986e-01 * s;
+  w = x + r;
+  double q = (hi ? w * w : -1.0) / (hi ? w + iy : w);
+  double k_hi = sx * (iy - 2.0 * (x - (q - r)));
+  double zt = tb_clear_low32(w), tt = tb_clear_low32(q);  // -1 / (x + r) accurately (fdlibm)
+  double k_inv = tt + q * ((1.0 + tt * zt) + tt * (r - (zt - x)));
+  double k = hi ? k_hi : (big ? k_inv : copysign(w, x));  // (tan(-0) = -0)
+  return big && t > 0.0 ? -k : k;
+}
+TB_HD static TB_FORCEINLINE float tb_half_tan(float t) { return float(tb_half_tan(double(t))); }
+
+}  // namespace torchbend
