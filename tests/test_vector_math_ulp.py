@@ -11,7 +11,6 @@ scalar (not inlined) evaluation is checked as well.  Skipped without g++."""
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 import os
 import platform
 import re
@@ -22,6 +21,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
+
+from torchbend.backends import _build_config as cfg
 
 mpmath = pytest.importorskip("mpmath")
 mp = mpmath.mp
@@ -37,16 +38,6 @@ pytestmark = pytest.mark.skipif(CXX is None or not sys.platform.startswith("linu
 F64, F32 = np.dtype(np.float64), np.dtype(np.float32)
 DTYPES = [F64, F32]
 SINCOS_LIMIT = 2.0**19  # tb_sincos's documented domain: |x| < 2^19
-
-
-def _build_config():
-    """torchbend.backends._build_config, loaded by its path (standard library only: no torch)."""
-    path = os.path.join(ROOT, "torchbend", "backends", "_build_config.py")
-    spec = importlib.util.spec_from_file_location("_tb_build_config", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 class Harness:
@@ -96,7 +87,6 @@ class Harness:
 def harness(request, tmp_path_factory) -> Harness:
     """The harness built for one -march (once per module and architecture)."""
     arch = request.param
-    cfg = _build_config()
     flags = [f for f in cfg.NATIVE_CFLAGS if not f.startswith(("-march=", "-mtune=", "-mcpu="))]
     out = tmp_path_factory.mktemp(f"vector_math_{arch.replace('-', '_')}")
     lib, report = str(out / "vector_math.so"), str(out / "vector_math.vec")
@@ -410,7 +400,6 @@ def test_half_tan_ulp(harness, dtype, vec):
 def test_cuda_device_code_compiles(tmp_path):
     """The same definitions compile as CUDA device code (compile only: nvcc to PTX, no GPU needed), inlined
     into the kernel without a call (no library function on either device)."""
-    cfg = _build_config()
     nvcc = cfg.find_nvcc()
     if nvcc is None or not os.path.exists(nvcc):
         pytest.skip("nvcc not found")

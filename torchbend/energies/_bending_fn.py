@@ -207,6 +207,15 @@ def _energy_jvp(model: BendingModel, saved: tuple, seg_count: int, t_x, t_params
     return _reduce(torch.zeros_like(theta) if d is None else d, seg, seg_count)
 
 
+def _save_energy_inputs(ctx, inputs, output) -> None:
+    """The energy Function's ``setup_context``: the inputs but ``seg_count`` saved for backward and forward mode
+    (``seg_count``, an int, kept on ``ctx``)."""
+    x, hinges, seg, seg_count, a, *params = inputs
+    ctx.save_for_backward(x, hinges, seg, a, *params)
+    ctx.save_for_forward(x, hinges, seg, a, *params)
+    ctx.seg_count = seg_count
+
+
 def _make(model: BendingModel):
     """The pair of Functions for one bending model (bodies in the module-level functions above)."""
 
@@ -248,12 +257,7 @@ def _make(model: BendingModel):
         def forward(x, hinges, seg, seg_count, a, *params):
             return _energy_forward(model, x, hinges, seg, seg_count, a, params)
 
-        @staticmethod
-        def setup_context(ctx, inputs, output):
-            x, hinges, seg, seg_count, a, *params = inputs
-            ctx.save_for_backward(x, hinges, seg, a, *params)
-            ctx.save_for_forward(x, hinges, seg, a, *params)
-            ctx.seg_count = seg_count
+        setup_context = staticmethod(_save_energy_inputs)
 
         @staticmethod
         def backward(ctx, gE):
