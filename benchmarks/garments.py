@@ -11,12 +11,18 @@ Cases (each loaded as a user would: an OBJ with unwelded UV seams read by ``tb.m
 * ``towel``: a 31 x 31 sheet (0.5 m, 961 vertices) hanging over a capsule rail, its centre vertex pinned
   (frictionless, a towel over a rail slides off either side).
 
+``--contact cubic`` gives the sleeves' arm and the towel's rail the C2 contact law ``k max(0, d)^3``
+(``law="barrier", power=3, stiffness=1e8`` J/m^3) instead of the default penalty ``k/2 max(0, d)^2``, whose
+curvature jumps from 0 to ``k`` where a vertex touches (the Newton model changes under every vertex that
+touches or leaves the surface).  ``--continuation off`` runs the static solves with ``continuation=False``.
+
 For each: a static solve from the rest shape with the default options (damped) and with ``damping=False``
 (plain Newton, the default before the damping), and 30
 implicit-Euler steps of 0.01 s from rest (default options).  One thread (``torch.set_num_threads(1)``).
 
     python benchmarks/garments.py                 # every case, the table on stdout
     python benchmarks/garments.py --cases sleeve  # some of them
+    python benchmarks/garments.py --cases sleeve sleeve+pin --contact cubic --continuation off
 """
 from __future__ import annotations
 
@@ -32,6 +38,10 @@ from common import machine
 import torchbend as tb
 from torchbend.scenes.builders import build_scene
 from torchbend.scenes.config import load_config
+
+CONTACT = {"penalty": {}, "cubic": {"law": "barrier", "power": 3.0, "stiffness": 1e8}}
+"""The contact laws of ``--contact``: the colliders' keyword arguments."""
+_contact: dict = {}
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -52,7 +62,7 @@ def sleeve(pin: bool) -> tuple[tb.ClothModel, torch.Tensor]:
     k = tb.stiffness_from_material(2e5, 5e-4, 0.3)
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=k)
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
-    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04)
+    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04, **_contact)
     pinned = None
     if pin:  # the seam vertex at the top of the shoulder (z = 0.06: angle 0, where the two panels meet)
         pinned = [int(torch.argmin((rest - torch.tensor([0.0, 0.0, 0.06], dtype=rest.dtype)).norm(dim=-1)))]
@@ -69,7 +79,7 @@ def towel() -> tuple[tb.ClothModel, torch.Tensor]:
     rest = rest - torch.tensor([0.25, 0.25, -0.03], dtype=torch.float64)  # centred 3 cm above the rail's top
     bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=tb.stiffness_from_material(1e5, 1e-3, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=1e5, poisson=0.3, thickness=1e-3)
-    rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02)
+    rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02, **_contact)
     centre = int(torch.argmin(rest[:, :2].norm(dim=-1)))
     return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[rail], density=0.3,
                          pinned=[centre]), rest
@@ -103,18 +113,29 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
     ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--contact", choices=list(CONTACT), default="penalty",
+                    help="the sleeves' and the towel's contact law (the skirt keeps its config's)")
+    ap.add_argument("--continuation", choices=["auto", "off"], default="auto", help="of the static solves")
+    ap.add_argument("--max-iters", type=int, default=None, help="of the static solves (default: the solver's)")
     args = ap.parse_args(argv)
+    _contact.clear()
+    _contact.update(CONTACT[args.contact])
+    cont = {} if args.continuation == "auto" else {"continuation": False}
+    if args.max_iters is not None:
+        cont["max_iters"] = args.max_iters
     torch.set_num_threads(1)
     flags = [f for f in ("avx512f", "avx2", "fma") if f in open("/proc/cpuinfo").read().split()] if os.path.exists("/proc/cpuinfo") else []
     print(machine(), "|", " ".join(flags))
-    print("threads: 1; float64; direct solver; static solves from the rest shape, steps of 0.01 s from rest\n")
+    print(f"threads: 1; float64; direct solver; static solves from the rest shape (continuation {args.continuation}, "
+          f"max_iters {args.max_iters or 'default'}), "
+          f"steps of 0.01 s from rest; contact law: {args.contact} {CONTACT[args.contact] or '(default)'}\n")
     head = (f"{'case':<11} {'V':>5}  {'static (defaults)':<34} {'static (damping=False)':<34} "
             f"{'30 steps: total / slowest step / iterations':<44}")
     print(head)
     print("-" * len(head))
     for name in args.cases:
         model, x0 = CASES[name]()
-        rows = [static_row(model, x0), static_row(model, x0, damping=False)]
+        rows = [static_row(model, x0, **cont), static_row(model, x0, damping=False, **cont)]
         cells = [f"{'ok ' if r['converged'] else 'FAIL'} {r['iterations']:4d} it {r['solves']:3d} solves {r['seconds']:6.1f} s"
                  for r in rows]
         st = steps_row(model, x0, args.steps) if args.steps else None

@@ -104,17 +104,21 @@ def test_damped_and_plain_newton_reach_the_same_equilibrium():
     assert damped.minimum is True
 
 
-def test_damping_holds_a_cloth_that_can_slide_along_a_collider():
-    """A tube on a capsule, nothing pinned: free to slide along the capsule (a singular Hessian).  The damped
-    solve converges to a state that still hangs on the capsule; its potential is no higher than the
-    undamped solve's (which may slide off the end and fall: unbounded below)."""
+def _tube_on_capsule() -> tuple[tb.ClothModel, torch.Tensor]:
     p, f, uv = tb.mesh.skirt(12, 7, waist_radius=0.06, hem_radius=0.06, length=0.3, dtype=torch.float64)
     rest = torch.stack((-p[:, 2], p[:, 0], p[:, 1]), -1).contiguous()
     rest, faces = tb.mesh.clean(rest, f)[:2]
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(2e5, 5e-4, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
     arm = tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04)
-    model = tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[arm], density=0.2)
+    return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[arm], density=0.2), rest
+
+
+def test_damping_holds_a_cloth_that_can_slide_along_a_collider():
+    """A tube on a capsule, nothing pinned: free to slide along the capsule (a singular Hessian).  The damped
+    solve converges to a state that still hangs on the capsule; its potential is no higher than the
+    undamped solve's (which may slide off the end and fall: unbounded below)."""
+    model, rest = _tube_on_capsule()
     x, info = tb.solve_static(model, rest, continuation=False, damping=True, max_iters=150)
     assert info.converged, info.message
     assert float(x[:, 2].max()) >= 0.035  # the top still rests on the arm (radius 4 cm)
@@ -146,3 +150,23 @@ def test_an_impact_step_with_an_indefinite_exact_hessian_takes_the_clamped_direc
         assert info.converged and info.substeps == 1, info.message
     assert any(m.endswith("/clamp") for m in methods) and methods.count("lu") > 0
     assert float(state.x[:, 2].max()) > 0.035  # resting on the arm, not through it
+
+
+def test_auto_gives_a_damped_garment_on_a_collider_a_long_first_attempt():
+    """continuation="auto" with the damping and a collider: the first attempt may take 4 max_iters iterations
+    (newton._DAMPED_FIRST_FACTOR), so a tube that the damped Newton finishes in more than max_iters iterations
+    converges in that one solve, to the equilibrium a long damped run reaches; without a collider (the
+    cantilever) the first attempt is cut at min(max_iters, 20) as before and the homotopy follows."""
+    model, rest = _tube_on_capsule()
+    _, long_run = tb.solve_static(model, rest, continuation=False, max_iters=150)
+    assert long_run.converged and long_run.iterations > 10, long_run.message
+    max_iters = max(long_run.iterations // 2, 1)  # the run needs more than max_iters, less than 4 max_iters
+    x, info = tb.solve_static(model, rest, max_iters=max_iters)
+    assert info.converged and info.solves == 1 and info.phase == "newton", info.message
+    assert info.iterations == long_run.iterations
+    _, cut = tb.solve_static(model, rest, max_iters=max_iters, damping=False)
+    assert cut.solves > 1  # undamped: the 20-iteration rule, then the homotopy
+    beam, beam_rest, _ = cantilever(11, 3)
+    _, first = tb.solve_static(beam, beam_rest, max_iters=1, continuation=False)
+    _, auto = tb.solve_static(beam, beam_rest, max_iters=1)
+    assert not first.converged and auto.solves > 1  # no collider: one iteration, then the homotopy
