@@ -41,7 +41,6 @@ from torchbend.scenes.config import load_config
 
 CONTACT = {"penalty": {}, "cubic": {"law": "barrier", "power": 3.0, "stiffness": 1e8}}
 """The contact laws of ``--contact``: the colliders' keyword arguments."""
-_contact: dict = {}
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -55,14 +54,14 @@ def _loaded(positions, faces, uvs) -> tuple[torch.Tensor, torch.Tensor]:
     return rest, faces
 
 
-def sleeve(pin: bool) -> tuple[tb.ClothModel, torch.Tensor]:
+def sleeve(pin: bool, contact: dict) -> tuple[tb.ClothModel, torch.Tensor]:
     p, f, uv = tb.mesh.skirt(24, 17, waist_radius=0.06, hem_radius=0.06, length=0.5, dtype=torch.float64)
     p = torch.stack((-p[:, 2], p[:, 1], p[:, 0]), -1)  # axis along +x, the shoulder at x = 0, a seam on top
     rest, faces = _loaded(p, f, uv)
     k = tb.stiffness_from_material(2e5, 5e-4, 0.3)
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=k)
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
-    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04, **_contact)
+    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.6, 0.0, 0.0), radius=0.04, **contact)
     pinned = None
     if pin:  # the seam vertex at the top of the shoulder (z = 0.06: angle 0, where the two panels meet)
         pinned = [int(torch.argmin((rest - torch.tensor([0.0, 0.0, 0.06], dtype=rest.dtype)).norm(dim=-1)))]
@@ -74,18 +73,20 @@ def skirt() -> tuple[tb.ClothModel, torch.Tensor]:
     return model, x0
 
 
-def towel() -> tuple[tb.ClothModel, torch.Tensor]:
+def towel(contact: dict) -> tuple[tb.ClothModel, torch.Tensor]:
     rest, faces = tb.scenes.grid(31, 31, (0.5, 0.5), dtype=torch.float64)
     rest = rest - torch.tensor([0.25, 0.25, -0.03], dtype=torch.float64)  # centred 3 cm above the rail's top
     bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=tb.stiffness_from_material(1e5, 1e-3, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=1e5, poisson=0.3, thickness=1e-3)
-    rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02, **_contact)
+    rail = tb.Capsule((-0.4, 0.0, -0.02), (0.4, 0.0, -0.02), radius=0.02, **contact)
     centre = int(torch.argmin(rest[:, :2].norm(dim=-1)))
     return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[rail], density=0.3,
                          pinned=[centre]), rest
 
 
-CASES = {"sleeve": lambda: sleeve(False), "sleeve+pin": lambda: sleeve(True), "skirt": skirt, "towel": towel}
+CASES = {"sleeve": lambda contact: sleeve(False, contact), "sleeve+pin": lambda contact: sleeve(True, contact),
+         "skirt": lambda contact: skirt(), "towel": towel}
+"""Each case from the colliders' contact keyword arguments (:data:`CONTACT`; the skirt keeps its config's)."""
 
 
 def static_row(model, x0, **kw) -> dict:
@@ -118,8 +119,6 @@ def main(argv=None) -> None:
     ap.add_argument("--continuation", choices=["auto", "off"], default="auto", help="of the static solves")
     ap.add_argument("--max-iters", type=int, default=None, help="of the static solves (default: the solver's)")
     args = ap.parse_args(argv)
-    _contact.clear()
-    _contact.update(CONTACT[args.contact])
     cont = {} if args.continuation == "auto" else {"continuation": False}
     if args.max_iters is not None:
         cont["max_iters"] = args.max_iters
@@ -134,7 +133,7 @@ def main(argv=None) -> None:
     print(head)
     print("-" * len(head))
     for name in args.cases:
-        model, x0 = CASES[name]()
+        model, x0 = CASES[name](CONTACT[args.contact])
         rows = [static_row(model, x0, **cont), static_row(model, x0, damping=False, **cont)]
         cells = [f"{'ok ' if r['converged'] else 'FAIL'} {r['iterations']:4d} it {r['solves']:3d} solves {r['seconds']:6.1f} s"
                  for r in rows]

@@ -901,8 +901,8 @@ def _done(x: Tensor, info: SolveInfo, phase: str, ctl: Controls) -> tuple[Tensor
 
 
 _AUTO_FIRST_ITERS = 20
-"""Newton iterations of the first attempt of an undamped ``continuation="auto"`` before the homotopy takes over
-(unless the attempt is converging: :func:`_converging`)."""
+"""Newton iterations of the first attempt of ``continuation="auto"`` (undamped, or without a collider) before the
+homotopy takes over (unless the attempt is converging: :func:`_converging`)."""
 _DAMPED_FIRST_FACTOR = 4
 """The first attempt of a damped ``continuation="auto"`` with a collider takes at most this many times ``max_iters``
 iterations (benchmarks/results/garments_cpu_1thread.txt: the garments of benchmarks/garments.py take 50-476 Newton
