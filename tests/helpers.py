@@ -15,7 +15,12 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 import torchbend as tb
+from torchbend.sim import pardiso
 from torchbend.testing import plain_bending_energy
+
+DIRECT_METHOD = "ldlt" if pardiso.available() else "lu"
+"""The factorisation the default direct solver uses here (``linear_method`` of a Newton direction):
+MKL PARDISO's ``L D L^T`` where ``mkl`` is installed, SciPy's SuperLU elsewhere."""
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIGS = os.path.join(ROOT, "configs")

@@ -16,7 +16,7 @@ from torchbend.scenes.config import build_scene, load_config
 from torchbend.sim import linear, newton
 from torchbend.sim.terms import InertiaTerm, StepContext
 
-from .helpers import CONFIGS, DevicelessFactories, cantilever, requires_gpu
+from .helpers import CONFIGS, DIRECT_METHOD, DevicelessFactories, cantilever, requires_gpu
 
 F64 = torch.float64
 requires_cholespy = pytest.mark.skipif(not linear.has_cholespy(), reason="cholespy not installed")
@@ -335,7 +335,7 @@ def test_cg_direction_matches_direct_direction():
         phi = newton._Potential(model, x, option)
         gf = phi.free_gradient(x)
         p_direct, shifts = phi.direct_direction(x, gf)
-        assert shifts == 0 and phi.positive_definite is True and phi.linear_method == "lu"
+        assert shifts == 0 and phi.positive_definite is True and phi.linear_method == DIRECT_METHOD
         for pre in ("auto", "block_jacobi", "ilu"):
             phi.linear = newton.LinearSolver("cg", preconditioner=pre)
             p_cg, its = phi.cg_direction(x, gf, relative_residual=0.0)  # the tightest forcing term

@@ -27,7 +27,7 @@ from ..ops.membrane import MembraneModel
 from ..ops.psi import BendingModel
 from ..options import Projection
 from ..sim.linear import Preconditioner
-from ..sim.options import LinearMethod, LinearSolver, NewtonOptions
+from ..sim.options import Factorization, LinearMethod, LinearSolver, NewtonOptions
 from .wording import MAX_ERRORS, ConfigError, describe, short_repr
 
 __all__ = [
@@ -330,18 +330,20 @@ MeshSpec = Annotated[Union[GridMesh, FileMesh], Field(discriminator="type")]
 class LinearSolverSection(Section):
     """``solver.linear_solver`` as a mapping, one to one with :class:`~torchbend.LinearSolver`: ``method``
     (``direct``, ``cg``), ``preconditioner`` (``auto``, ``block_jacobi``, ``ilu``, ``amg``), ``cholesky``,
-    ``max_cg_iters``; a string is the ``method``."""
+    ``max_cg_iters``, ``factorization`` (``auto``, ``ldlt``, ``lu``); a string is the ``method``."""
 
     method: str = "direct"
     preconditioner: str = "auto"
     cholesky: bool = False
     max_cg_iters: PositiveInt | None = None
+    factorization: str = "auto"
 
     _check_method = field_validator("method")(_option(LinearMethod, "linear solver"))
     _check_preconditioner = field_validator("preconditioner")(_option(Preconditioner, "preconditioner"))
+    _check_factorization = field_validator("factorization")(_option(Factorization, "factorization"))
 
     def linear_solver(self) -> LinearSolver:
-        return LinearSolver(self.method, self.preconditioner, self.cholesky, self.max_cg_iters)
+        return LinearSolver(self.method, self.preconditioner, self.cholesky, self.max_cg_iters, self.factorization)
 
 
 def _linear_shorthand(value):

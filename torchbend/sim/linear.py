@@ -4,11 +4,13 @@ r"""Linear solves for Newton directions on the free degrees of freedom.
   free DOFs (plus an optional diagonal, the inertia ``M/dt^2``), assembled once per Newton iteration
   into one torch sparse CSR matrix on the positions' device (its pattern is built once per model and
   pinned set); :meth:`FreeHessian.to_scipy` gives the same matrix as ``scipy.sparse`` on the CPU.
-* :func:`direct_solve`: sparse LU (``scipy.sparse.linalg.splu`` in symmetric mode: minimum degree on
-  ``A + A^T``, diagonal pivots), or on request a sparse Cholesky (CHOLMOD through the optional
-  ``cholespy``, ``pip install torchbend[solvers]``) with the LU as fallback for indefinite matrices;
+* :func:`direct_solve`: MKL PARDISO's supernodal ``L D L^T`` when the optional ``mkl`` is installed
+  (``pip install torchbend[solvers]``; :mod:`~torchbend.sim.pardiso`, the ordering and symbolic analysis
+  kept per pattern by :meth:`FreeHessian.direct_factor`), else sparse LU (``scipy.sparse.linalg.splu`` in
+  symmetric mode: minimum degree on ``A + A^T``, diagonal pivots), or on request a sparse Cholesky
+  (CHOLMOD through the optional ``cholespy``) with the factorisation as fallback for indefinite matrices;
   Levenberg shifts when the direction is not a descent direction.  It reports whether the matrix was
-  found positive definite (the inertia of the diagonally pivoted LU, or the Cholesky's success).
+  found positive definite (the inertia of the factorisation, or the Cholesky's success).
 * :func:`pcg`: preconditioned conjugate gradients in torch on any device, truncated at negative
   curvature (Steihaug), bounded, with no host round trip per iteration on a GPU.
 * Preconditioners (:class:`Preconditioner`): block-Jacobi (torch, any device, SPD by construction),
@@ -36,6 +38,7 @@ import torch
 from torch import Tensor
 
 from ..options import Option, Projection
+from . import pardiso
 from .terms import as_csr
 
 __all__ = ["Preconditioner", "DirectResult", "CGResult", "FreeHessian", "direct_solve", "lu_solve", "cholesky_solve",
@@ -112,6 +115,7 @@ class _Pattern:
         self.block_pos = as_dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
         self.free_vertices = as_dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
         self.scipy_indices = (keys % nf, crow)
+        self.factor: pardiso.SymmetricFactor | None = None  # built on first use (direct solves with MKL)
 
 
 def _same_patterns(a: tuple, b: tuple) -> bool:
@@ -215,6 +219,18 @@ class FreeHessian:
         """The ``(Vf, 3, 3)`` diagonal blocks of an assembled free Hessian ``A`` (on its device)."""
         assert self._pattern is not None, "assemble() first"
         return A.values()[self._pattern.block_pos]
+
+    def direct_factor(self) -> pardiso.SymmetricFactor | None:
+        """The sparse ``L D L^T`` factorisation (:class:`~torchbend.sim.pardiso.SymmetricFactor`) bound to the
+        current pattern, or ``None`` without MKL.  Kept with the pattern: PARDISO's ordering and symbolic
+        analysis run once per model and pinned set, every Newton matrix after that is a numeric
+        factorisation only."""
+        assert self._pattern is not None, "assemble() first"
+        pat = self._pattern
+        if pat.factor is None and pardiso.available():
+            col, crow = pat.scipy_indices
+            pat.factor = pardiso.SymmetricFactor(crow, col)
+        return pat.factor
 
     def to_scipy(self, A: Tensor) -> sp.csr_matrix:
         """An assembled free Hessian as ``scipy.sparse`` CSR float64 (copied to the CPU)."""
@@ -321,27 +337,47 @@ def lu_solve(A: sp.spmatrix, rhs: np.ndarray) -> tuple[np.ndarray | None, bool |
         return None, definite
 
 
-def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = False) -> DirectResult:
+def _ldlt_solve(factor: pardiso.SymmetricFactor, A: sp.csr_matrix, rhs: np.ndarray,
+                shift: float) -> tuple[np.ndarray | None, bool]:
+    """``((A + shift I)^{-1} rhs, positive definite?)`` by the PARDISO factorisation bound to ``A``'s pattern;
+    ``(None, False)`` when the matrix is singular."""
+    if not factor.factor(A.data, shift):
+        return None, False
+    return factor.solve(rhs), factor.positive_definite
+
+
+def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = False,
+                 factor: pardiso.SymmetricFactor | None = None) -> DirectResult:
     """Solve ``A p = rhs`` for a descent direction (``rhs . p > 0``, ``rhs = -gradient``).
 
-    ``A``: ``scipy.sparse`` ``(n, n)`` symmetric, ``rhs``: ``(n,)``.  By :func:`lu_solve` (symmetric
-    sparse LU, which also gives the inertia), or with ``cholesky=True`` and ``cholespy`` installed by a
-    sparse Cholesky first (CHOLMOD; on these matrices no faster than the symmetric LU, see
-    benchmarks/bm_linear.py), the LU when ``A`` is not positive definite.  The direction of an
-    indefinite matrix is kept if it is a descent direction.  A singular matrix, a non-finite solution
-    or one that is not a descent direction is retried with the Levenberg shift ``A + mu I``,
-    ``mu = 1e-8 max|diag A|`` growing tenfold (at most ``max_shifts`` tries; then the steepest-descent
-    direction ``rhs`` itself).  Returns a :class:`DirectResult`; its ``positive_definite`` is that of
-    the unshifted ``A``."""
+    ``A``: ``scipy.sparse`` ``(n, n)`` symmetric, ``rhs``: ``(n,)``.  With ``factor`` (a
+    :class:`~torchbend.sim.pardiso.SymmetricFactor` of ``A``'s CSR pattern, e.g.
+    :meth:`FreeHessian.direct_factor`) by MKL PARDISO's supernodal ``L D L^T`` (its pivots give the
+    inertia; 5-7x faster than the LU on the cloth matrices, benchmarks/bm_scale.py), else by
+    :func:`lu_solve` (symmetric sparse LU, which also gives the inertia); with ``cholesky=True`` and
+    ``cholespy`` installed by a sparse Cholesky first (CHOLMOD), the factorisation above when ``A`` is not
+    positive definite.  The direction of an indefinite matrix is kept if it is a descent direction.  A
+    singular matrix, a non-finite solution or one that is not a descent direction is retried with the
+    Levenberg shift ``A + mu I``, ``mu = 1e-8 max|diag A|`` growing tenfold (at most ``max_shifts`` tries;
+    then the steepest-descent direction ``rhs`` itself).  Returns a :class:`DirectResult`; its
+    ``positive_definite`` is that of the unshifted ``A``."""
     n = A.shape[0]
     use_chol = bool(cholesky) and has_cholespy()
+    if factor is not None:
+        A = sp.csr_matrix(A)
+        if factor.n != n or factor.nnz != A.nnz:
+            raise ValueError(f"direct_solve: factor is bound to a pattern of {factor.n} rows and {factor.nnz} "
+                             f"values, A has {n} and {A.nnz}")
     diag_scale = float(abs(A.diagonal()).max()) if n else 1.0
     diag_scale = diag_scale if diag_scale > 0 and math.isfinite(diag_scale) else 1.0
     shift, definite = 0.0, None
     for tries in range(max_shifts):
-        M = A if shift == 0 else A + sp.identity(n, format="csr") * shift
+        M = A if shift == 0 or factor is not None else A + sp.identity(n, format="csr") * shift
         p, method, pd = (cholesky_solve(M, rhs), "cholesky", True) if use_chol else (None, "lu", None)
-        if p is None:
+        if p is None and factor is not None:
+            p, fac_pd = _ldlt_solve(factor, A, rhs, shift)
+            method, pd = "ldlt", (False if use_chol else fac_pd)
+        elif p is None:
             p, lu_pd = lu_solve(M, rhs)
             method, pd = "lu", (False if use_chol else lu_pd)
         if tries == 0:

@@ -106,6 +106,7 @@ from .model import ClothModel, ClothState
 from .options import (
     UNSET,
     Controls,
+    Factorization,
     LinearMethod,
     LinearSolver,
     NewtonOptions,
@@ -170,7 +171,9 @@ class SolveInfo:
     ``iterations``: Newton iterations in all (every sub-solve); ``solves``: Newton solves in all
     (continuation and substeps make several); ``energy_history`` / ``residual_history``: one entry
     per accepted iterate; ``regularized_steps``: Newton directions that needed a Levenberg shift or
-    the steepest-descent fallback; ``cg_iterations``: in all (CG solver); ``substeps``:
+    the steepest-descent fallback; ``cg_iterations``: in all (CG solver); ``linear_seconds``: wall time
+    [s] of the linear solves of the Newton directions (factorisations and solves, or CG with its
+    preconditioner; not the assembly of the matrix); ``substeps``:
     implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
     produced the returned state: ``"newton"`` (Newton alone), ``"membrane"`` (the membrane-stiffness
     homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
@@ -189,6 +192,7 @@ class SolveInfo:
     residual_history: list = field(default_factory=list)
     regularized_steps: int = 0
     cg_iterations: int = 0
+    linear_seconds: float = 0.0
     substeps: int = 1
     stop_reason: str = ""
     minimum: bool | None = None
@@ -227,6 +231,7 @@ class _Potential:
         self.positive_definite: bool | None = None
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
+        self.linear_seconds = 0.0  # in the linear solves, all directions (SolveInfo.linear_seconds)
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
         # Levenberg-Marquardt damping by the lumped masses (static solves only: a step has its inertia)
         mass_free = model.mass.to(x.device).repeat_interleave(3)[self.free_mask]
@@ -294,18 +299,36 @@ class _Potential:
             A = self.hessian_op.shifted(A, damping.shift(A.values()))
         return A
 
+    def _factor(self):
+        """The PARDISO factorisation of the assembled pattern (``linear.factorization``: ``"auto"`` when MKL
+        is installed, ``"ldlt"``), or ``None`` for SuperLU."""
+        kind = self.linear.factorization
+        if kind is Factorization.LU:
+            return None
+        factor = self.hessian_op.direct_factor()
+        if factor is None and kind is Factorization.LDLT:
+            raise ValueError("linear_solver: factorization='ldlt' needs MKL's PARDISO (pip install mkl, or "
+                             "torchbend[solvers]); use 'auto' or 'lu'")
+        return factor
+
     def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
         sparse Cholesky first if ``linear.cholesky``); ``(p, Levenberg shifts)``; sets
         ``positive_definite`` and ``linear_method``."""
-        res = direct_solve(self.hessian_op.to_scipy(self.free_hessian(x)), -gf,
-                           cholesky=self.linear.cholesky)
+        A = self.hessian_op.to_scipy(self.free_hessian(x))
+        factor = self._factor()
+        t0 = time.perf_counter()
+        res = direct_solve(A, -gf, cholesky=self.linear.cholesky, factor=factor)
+        self.linear_seconds += time.perf_counter() - t0
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
         if res.positive_definite is False and self.ctx.dynamic and self.option is Projection.NONE:
             # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction
             # (positive semi-definite elements plus the inertia: definite), not a Levenberg-shifted exact one
             A = self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)
-            clamped = direct_solve(self.hessian_op.to_scipy(A), -gf, cholesky=self.linear.cholesky)
+            A = self.hessian_op.to_scipy(A)
+            t0 = time.perf_counter()
+            clamped = direct_solve(A, -gf, cholesky=self.linear.cholesky, factor=factor)
+            self.linear_seconds += time.perf_counter() - t0
             self.linear_method = f"{clamped.method}/clamp"
             return clamped.p, clamped.shifts + 1
         return res.p, res.shifts
@@ -322,6 +345,7 @@ class _Potential:
         ``g.p + p.Ap/2`` is kept.  ``(p, CG iterations)``; sets ``negative_curvature``, ``positive_definite``
         (``False`` when negative curvature was met, else unknown) and ``linear_method``."""
         A = self.free_hessian(x)
+        t0 = time.perf_counter()
         b = -torch.as_tensor(gf, device=x.device).to(x.dtype)
         tol = max(min(0.1, math.sqrt(relative_residual)) * 1e-2, 1e-10, 100 * torch.finfo(x.dtype).eps)
         maxiter = cg_iteration_bound(len(gf), self.max_cg_iters)
@@ -346,7 +370,9 @@ class _Potential:
         self.negative_curvature = res.negative_curvature
         self.positive_definite = False if res.negative_curvature is not None else None
         self.linear_method = f"cg/{used.value}"
-        return res.x.detach().cpu().double().numpy(), iterations
+        p = res.x.detach().cpu().double().numpy()
+        self.linear_seconds += time.perf_counter() - t0
+        return p, iterations
 
 
 def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver, relative_residual: float,
@@ -369,12 +395,14 @@ def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver,
 def _one_direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver, relative_residual: float,
                    info: SolveInfo) -> tuple[np.ndarray, float]:
     """One direction of :func:`_direction` with the current Newton matrix."""
+    before = phi.linear_seconds
     if linear.is_direct:
         p, shifts = phi.direct_direction(x, gf)
         info.regularized_steps += shifts
     else:
         p, cg_it = phi.cg_direction(x, gf, relative_residual)
         info.cg_iterations += cg_it
+    info.linear_seconds += phi.linear_seconds - before
     slope = float(gf @ p)
     if not slope < 0 or not np.all(np.isfinite(p)):
         info.regularized_steps += 1
@@ -796,6 +824,7 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
     out.line_search_failures = sum(i.line_search_failures for i in infos)
     out.regularized_steps = sum(i.regularized_steps for i in infos)
     out.cg_iterations = sum(i.cg_iterations for i in infos)
+    out.linear_seconds = sum(i.linear_seconds for i in infos)
     out.negative_curvature_steps = sum(i.negative_curvature_steps for i in infos)
     return out
 

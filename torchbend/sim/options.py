@@ -20,7 +20,7 @@ from .._checks import positive
 from ..options import Option, Projection, projection_argument
 from .linear import Preconditioner
 
-__all__ = ["LinearMethod", "LinearSolver", "NewtonOptions", "SOLVER_PROJECTIONS"]
+__all__ = ["Factorization", "LinearMethod", "LinearSolver", "NewtonOptions", "SOLVER_PROJECTIONS"]
 
 
 def int_at_least(value, name: str, minimum: int) -> int:
@@ -44,6 +44,18 @@ def positive_value(value, name: str) -> float:
         raise ValueError(f"{name} must be positive and finite, got {value!r}") from None
 
 
+class Factorization(Option):
+    """The sparse factorisation of ``linear_solver="direct"``: ``"auto"`` (PARDISO when MKL is installed,
+    else SuperLU), ``"ldlt"`` (MKL PARDISO's supernodal ``L D L^T``, symbolic analysis once per pattern;
+    needs ``mkl``), ``"lu"`` (SciPy's SuperLU in symmetric mode)."""
+
+    __label__ = "factorization"
+
+    AUTO = "auto"
+    LDLT = "ldlt"
+    LU = "lu"
+
+
 class LinearMethod(Option):
     """How Newton directions are solved: sparse direct factorisation or matrix-free CG."""
 
@@ -62,7 +74,10 @@ class LinearSolver:
       the positions' device);
     * ``preconditioner`` (CG): ``"auto"`` (the incomplete ``L |D| L^T`` factorisation on the CPU,
       block-Jacobi elsewhere), ``"block_jacobi"``, ``"ilu"`` or ``"amg"`` (needs ``pyamg``);
-    * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; LU when it fails);
+    * ``factorization`` (direct): ``"auto"`` (default: MKL PARDISO's supernodal ``L D L^T`` when ``mkl`` is
+      installed, ``pip install torchbend[solvers]``, else SciPy's SuperLU), ``"ldlt"`` or ``"lu"``
+      (see :class:`Factorization`);
+    * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; the factorisation above when it fails);
     * ``max_cg_iters`` (CG): iterations per direction at most (``None``: ``min(2 n, max(100, 20 sqrt(n)))``).
 
     ``tb.LinearSolver("cg", preconditioner="amg")``; invalid values are a ``ValueError`` naming the field."""
@@ -71,6 +86,7 @@ class LinearSolver:
     preconditioner: Preconditioner | str = "auto"
     cholesky: bool = False
     max_cg_iters: int | None = None
+    factorization: Factorization | str = "auto"
 
     DIRECT: ClassVar[LinearMethod] = LinearMethod.DIRECT
     CG: ClassVar[LinearMethod] = LinearMethod.CG
@@ -78,6 +94,7 @@ class LinearSolver:
     def __post_init__(self):
         object.__setattr__(self, "method", LinearMethod.parse(self.method))
         object.__setattr__(self, "preconditioner", Preconditioner.parse(self.preconditioner))
+        object.__setattr__(self, "factorization", Factorization.parse(self.factorization))
         if not isinstance(self.cholesky, bool):
             raise ValueError(f"LinearSolver: cholesky must be True or False, got {self.cholesky!r}")
         if self.max_cg_iters is not None:
