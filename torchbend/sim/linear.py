@@ -372,7 +372,8 @@ def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = F
     diag_scale = diag_scale if diag_scale > 0 and math.isfinite(diag_scale) else 1.0
     shift, definite = 0.0, None
     for tries in range(max_shifts):
-        M = A if shift == 0 or factor is not None else A + sp.identity(n, format="csr") * shift
+        # the shifted matrix for the Cholesky and the LU (the factor takes the shift itself)
+        M = A if shift == 0 or not (use_chol or factor is None) else A + sp.identity(n, format="csr") * shift
         p, method, pd = (cholesky_solve(M, rhs), "cholesky", True) if use_chol else (None, "lu", None)
         if p is None and factor is not None:
             p, fac_pd = _ldlt_solve(factor, A, rhs, shift)

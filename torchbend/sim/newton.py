@@ -315,20 +315,19 @@ class _Potential:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
         sparse Cholesky first if ``linear.cholesky``); ``(p, Levenberg shifts)``; sets
         ``positive_definite`` and ``linear_method``."""
-        A = self.hessian_op.to_scipy(self.free_hessian(x))
-        factor = self._factor()
-        t0 = time.perf_counter()
-        res = direct_solve(A, -gf, cholesky=self.linear.cholesky, factor=factor)
-        self.linear_seconds += time.perf_counter() - t0
+        def solve(A: Tensor):  # an assembled matrix; timed in linear_seconds
+            A_host, factor = self.hessian_op.to_scipy(A), self._factor()  # the factor of A's pattern
+            t0 = time.perf_counter()
+            out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor)
+            self.linear_seconds += time.perf_counter() - t0
+            return out
+
+        res = solve(self.free_hessian(x))
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
         if res.positive_definite is False and self.ctx.dynamic and self.option is Projection.NONE:
             # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction
             # (positive semi-definite elements plus the inertia: definite), not a Levenberg-shifted exact one
-            A = self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)
-            A = self.hessian_op.to_scipy(A)
-            t0 = time.perf_counter()
-            clamped = direct_solve(A, -gf, cholesky=self.linear.cholesky, factor=factor)
-            self.linear_seconds += time.perf_counter() - t0
+            clamped = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
             self.linear_method = f"{clamped.method}/clamp"
             return clamped.p, clamped.shifts + 1
         return res.p, res.shifts
