@@ -14,7 +14,9 @@ Cases (each loaded as a user would: an OBJ with unwelded UV seams read by ``tb.m
 ``--contact cubic`` gives the sleeves' arm and the towel's rail the C2 contact law ``k max(0, d)^3``
 (``law="barrier", power=3, stiffness=1e8`` J/m^3) instead of the default penalty ``k/2 max(0, d)^2``, whose
 curvature jumps from 0 to ``k`` where a vertex touches (the Newton model changes under every vertex that
-touches or leaves the surface).  ``--continuation off`` runs the static solves with ``continuation=False``.
+touches or leaves the surface).  ``--contact ipc`` gives them the log barrier of Incremental Potential Contact
+(``law="ipc", stiffness=1.0`` J/m^2, ``margin=2e-3`` m: C2 where a vertex comes within 2 mm, infinite on the
+surface, never reached).  ``--continuation off`` runs the static solves with ``continuation=False``.
 
 For each: a static solve from the rest shape with the default options (damped) and with ``damping=False``
 (plain Newton, the default before the damping), and 30
@@ -39,7 +41,8 @@ import torchbend as tb
 from torchbend.scenes.builders import build_scene
 from torchbend.scenes.config import load_config
 
-CONTACT = {"penalty": {}, "cubic": {"law": "barrier", "power": 3.0, "stiffness": 1e8}}
+CONTACT = {"penalty": {}, "cubic": {"law": "barrier", "power": 3.0, "stiffness": 1e8},
+           "ipc": {"law": "ipc", "stiffness": 1.0, "margin": 2e-3}}
 """The contact laws of ``--contact``: the colliders' keyword arguments."""
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

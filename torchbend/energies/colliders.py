@@ -69,7 +69,7 @@ class Collider:
         object.__setattr__(self, "stiffness", positive(self.stiffness, f"{name}.stiffness"))
         object.__setattr__(self, "margin", nonnegative(self.margin, f"{name}.margin"))
         try:
-            law = contact_law(self.law, self.stiffness, self.power)
+            law = contact_law(self.law, self.stiffness, self.power, margin=self.margin)
         except ValueError as e:
             raise ValueError(f"{name}: {e}") from None
         object.__setattr__(self, "power", law.power)
@@ -109,7 +109,8 @@ class Collider:
         if not isinstance(dx, Tensor) or dx.shape != x.shape:
             raise ValueError(f"{name}.max_step: dx must have the shape of x {tuple(x.shape)}, got "
                              f"{getattr(dx, 'shape', type(dx))}")
-        depth = positive(depth, f"{name}.max_step depth")
+        # a bounded law (ipc) is infinite on the surface: the vertices may come close to it, never reach it
+        depth = 0.0 if self.contact.bounded else positive(depth, f"{name}.max_step depth")
         if not 0 < safety < 1:
             raise ValueError(f"{name}.max_step: safety must lie in (0, 1), got {safety!r}")
         x, dx = x.detach(), dx.detach().to(x.dtype)

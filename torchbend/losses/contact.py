@@ -101,6 +101,9 @@ class BodyContact(LossTerm):
         super().__init__()
         self.stiffness = positive(stiffness, "BodyContact: stiffness")
         self.eps = nonnegative(eps, "BodyContact: eps")
+        if law == "ipc" or getattr(law, "bounded", False):
+            raise ValueError("BodyContact: the ipc law is infinite inside the body, which a prediction may be: a "
+                             "training loss takes law='barrier' or 'penalty'")
         try:
             self.law = contact_law(law, self.stiffness, power)
         except ValueError as e:

@@ -273,25 +273,30 @@ class MembraneSection(Section):
 
 class ContactSection(Section):
     """``contact``: a contact law (:mod:`torchbend.energies.contact`): ``law`` (``penalty``: ``k/2 max(0, d)^2``,
-    ``k`` [N/m]; ``barrier``: ``k max(0, d)^p``, ``k`` [J/m^p]), ``stiffness`` ``k``, ``margin`` [m] (the
-    depth ``d`` is ``margin`` minus the signed distance), ``power`` ``p`` (the barrier's, default 3).  Every
+    ``k`` [N/m]; ``barrier``: ``k max(0, d)^p``, ``k`` [J/m^p]; ``ipc``: ``-k d^2 log(1 - d / margin)``, ``k``
+    [J/m^2], infinite on the surface), ``stiffness`` ``k``, ``margin`` [m] (the depth ``d`` is ``margin`` minus
+    the signed distance; the ``ipc`` law's activation distance, > 0), ``power`` ``p`` (the barrier's, default 3).  Every
     collider has these keys; the training scripts' ``contact`` section is the law of the bodies they draw
     per sample (spheres, a body mesh)."""
 
     stiffness: Positive = 1e4
     margin: NonNegative = 0.0
-    law: Literal["penalty", "barrier"] = "penalty"
+    law: Literal["penalty", "barrier", "ipc"] = "penalty"
     power: Annotated[float, Field(gt=1), BeforeValidator(_number)] | None = None
 
     @model_validator(mode="after")
     def _power_of_law(self):
         if self.law == "penalty" and self.power is not None and self.power != 2:
             raise ValueError("the penalty law has power 2: give law: barrier for another power")
+        if self.law == "ipc" and self.power is not None:
+            raise ValueError("the ipc law has no power (it is C2 where a point comes within margin)")
+        if self.law == "ipc" and not self.margin > 0:
+            raise ValueError("the ipc law needs margin > 0 (its activation distance) [m]")
         return self
 
     def contact_law(self) -> ContactLaw:
         """The :class:`~torchbend.energies.contact.ContactLaw` of this section."""
-        return contact_law(self.law, self.stiffness, self.power)
+        return contact_law(self.law, self.stiffness, self.power, margin=self.margin)
 
 
 class _ColliderSpec(ContactSection):

@@ -812,7 +812,13 @@ def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
     x = torch.as_tensor(x)
     if x.shape != (model.vertex_count, 3):
         raise ValueError(f"{name} must have shape ({model.vertex_count}, 3), got {tuple(x.shape)}")
-    return check_positions(x, model.vertex_count, name)
+    x = check_positions(x, model.vertex_count, name)
+    if name != "state.v":
+        for term in model.terms:
+            why = term.inadmissible(x)
+            if why:
+                raise ValueError(f"{name}: {why}")
+    return x
 
 
 def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:

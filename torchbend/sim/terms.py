@@ -12,6 +12,7 @@ A potential over positions ``x (V, 3)`` [m] is a sum of terms.  The solvers (:fu
 ``hessian(x, ctx, projection=None)``      ``(3V, 3V)`` torch sparse matrix [N/m]; default: from ``vertex_blocks``
 ``vertex_blocks(x, ctx, projection)``     optional: ``(V, 3, 3)`` when the Hessian is block diagonal per vertex
 ``max_step(x, dx, ctx)``                  the largest safe fraction of a step ``dx`` in ``(0, 1]``; default 1
+``inadmissible(x)``                       why a solve cannot start at ``x`` (e.g. inside a barrier), or ""
 ``begin_step(ctx)``                       stores lagged data of a time step in ``ctx.lagged[name]``
 ``force_magnitudes(x, ctx)``              ``(V, 3)`` [N] magnitudes for the stopping test; default ``|gradient|``
 ========================================  ===================================================================
@@ -147,6 +148,10 @@ class EnergyTerm:
 
     def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
         return 1.0
+
+    def inadmissible(self, x: Tensor) -> str:
+        """Why a solve cannot start at ``x (V, 3)`` (a state where the term is infinite), or "" (the default)."""
+        return ""
 
     def begin_step(self, ctx: StepContext) -> None:
         return None
@@ -299,6 +304,17 @@ class ColliderTerm(EnergyTerm):
 
     def max_step(self, x, dx, ctx):
         return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
+
+    def inadmissible(self, x):
+        c = self.collider
+        if not c.contact.bounded or not x.shape[0]:
+            return ""
+        s = c._sd(x.detach())[0]
+        i = int(torch.argmin(s))
+        if float(s[i]) > 0:
+            return ""
+        return (f"{self.name}: vertex {i} is {-float(s[i]):.3g} m inside the {type(c).__name__} ({int((s <= 0).sum())} "
+                f"vertices on or inside it); its {type(c.contact).__name__} contact is infinite there: start outside")
 
 
 class InertiaTerm(EnergyTerm):
