@@ -53,14 +53,18 @@ __all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 @dataclass(frozen=True, kw_only=True)
 class Collider:
     """Base of the rigid colliders: a signed distance and the one-sided contact potential on it, with
-    ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier), ``margin`` [m] (>= 0), ``law``
-    (``"penalty"`` or ``"barrier"``, :mod:`torchbend.energies.contact`) and ``power`` (the barrier's, default
-    3) as keyword arguments of every collider."""
+    ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier, [J/m^2] for ipc), ``margin`` [m]
+    (>= 0), ``law`` (``"penalty"``, ``"barrier"`` or ``"ipc"``, :mod:`torchbend.energies.contact`), ``power``
+    (the barrier's, default 3), ``friction`` (the Coulomb coefficient ``mu`` >= 0 of time steps, lagged and
+    smoothed below the sliding speed ``eps_v`` [m/s], :mod:`torchbend.energies.friction`) as keyword arguments of
+    every collider."""
 
     stiffness: float = 1e4
     margin: float = 0.0
     law: str = "penalty"
     power: float | None = None
+    friction: float = 0.0
+    eps_v: float = 1e-3
     _contact: ClassVar[ContactLaw]  # set by _check_penalty (not a field)
 
     def _check_penalty(self) -> None:
@@ -68,6 +72,8 @@ class Collider:
         name = type(self).__name__
         object.__setattr__(self, "stiffness", positive(self.stiffness, f"{name}.stiffness"))
         object.__setattr__(self, "margin", nonnegative(self.margin, f"{name}.margin"))
+        object.__setattr__(self, "friction", nonnegative(self.friction, f"{name}.friction"))
+        object.__setattr__(self, "eps_v", positive(self.eps_v, f"{name}.eps_v"))
         try:
             law = contact_law(self.law, self.stiffness, self.power, margin=self.margin)
         except ValueError as e:
@@ -236,9 +242,9 @@ class Capsule(Collider):
         differentiable with respect to them (used to differentiate through contacts with robot links)."""
         if isinstance(a, Tensor) or isinstance(b, Tensor):
             return _TensorCapsule(a, b, radius=self.radius, stiffness=self.stiffness, margin=self.margin, law=self.law,
-                                  power=self.power)
+                                  power=self.power, friction=self.friction, eps_v=self.eps_v)
         return Capsule(a=a, b=b, radius=self.radius, stiffness=self.stiffness, margin=self.margin, law=self.law,
-                       power=self.power)
+                       power=self.power, friction=self.friction, eps_v=self.eps_v)
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:
         return x.new_tensor(self.a), x.new_tensor(self.b)
@@ -258,11 +264,11 @@ class _TensorCapsule(Capsule):
     ends: tuple[Tensor, Tensor]
 
     def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float, law: str = "penalty",
-                 power: float | None = None):
+                 power: float | None = None, friction: float = 0.0, eps_v: float = 1e-3):
         # an end point given as Python numbers is kept in float64 (cast to the positions' dtype per call)
         a, b = (e if isinstance(e, Tensor) else torch.as_tensor(e, dtype=torch.float64) for e in (a, b))
         super().__init__(a=tuple(a.detach().tolist()), b=tuple(b.detach().tolist()), radius=radius, stiffness=stiffness,
-                         margin=margin, law=law, power=power)
+                         margin=margin, law=law, power=power, friction=friction, eps_v=eps_v)
         object.__setattr__(self, "ends", (a, b))
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:

@@ -300,11 +300,15 @@ class ContactSection(Section):
 
 
 class _ColliderSpec(ContactSection):
-    pass
+    """A collider's contact law and its ``friction`` (Coulomb's ``mu`` >= 0, time steps only) smoothed below the
+    sliding speed ``eps_v`` [m/s] (:mod:`torchbend.energies.friction`)."""
+
+    friction: NonNegative = 0.0
+    eps_v: Positive = 1e-3
 
 
 class SphereSpec(_ColliderSpec):
-    """``{type: sphere, center, radius, stiffness, margin, law, power}`` (:class:`~torchbend.Sphere`)."""
+    """``{type: sphere, center, radius, stiffness, margin, law, power, friction, eps_v}`` (:class:`~torchbend.Sphere`)."""
 
     type: Literal["sphere"]
     center: Vec3 = (0.0, 0.0, 0.0)
@@ -312,7 +316,7 @@ class SphereSpec(_ColliderSpec):
 
 
 class PlaneSpec(_ColliderSpec):
-    """``{type: plane, point, normal, stiffness, margin, law, power}`` (:class:`~torchbend.Plane`)."""
+    """``{type: plane, point, normal, stiffness, margin, law, power, friction, eps_v}`` (:class:`~torchbend.Plane`)."""
 
     type: Literal["plane"]
     point: Vec3 = (0.0, 0.0, 0.0)
@@ -320,7 +324,7 @@ class PlaneSpec(_ColliderSpec):
 
 
 class CapsuleSpec(_ColliderSpec):
-    """``{type: capsule, a, b, radius, stiffness, margin, law, power}`` (:class:`~torchbend.Capsule`)."""
+    """``{type: capsule, a, b, radius, stiffness, margin, law, power, friction, eps_v}`` (:class:`~torchbend.Capsule`)."""
 
     type: Literal["capsule"]
     a: Vec3 = (0.0, 0.0, 0.0)

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from ..energies.bending import BendingEnergy
 from ..energies.colliders import Collider
+from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..options import Projection
 
@@ -279,7 +280,9 @@ class GravityTerm(EnergyTerm):
 class ColliderTerm(EnergyTerm):
     """A collider (:class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule`) as a
     term: per-vertex Hessian blocks (the curvature term dropped for every projection), and the continuous
-    step bound with penetration ``depth`` [m]."""
+    step bound with penetration ``depth`` [m].  With ``friction > 0`` a time step adds the lagged smooth
+    friction of :mod:`~torchbend.energies.friction` (normals and contact forces taken at the step's start by
+    :meth:`begin_step`); a static solve has none."""
 
     contact = True
     confines = True
@@ -293,14 +296,34 @@ class ColliderTerm(EnergyTerm):
         """The penetration [m] a vertex may reach in one step (a callable given is evaluated on first use)."""
         return float(self._depth() if callable(self._depth) else self._depth)
 
+    def begin_step(self, ctx):
+        # friction (a time step only): the contact normals and force magnitudes at the step's start, lagged
+        c = self.collider
+        if c.friction > 0 and ctx.x_prev is not None and ctx.dt is not None and ctx.x_prev.ndim == 2:
+            x_prev = ctx.x_prev.detach()
+            s, n, _ = c._sd(x_prev)
+            lam = c.contact.slope(c.margin - s)
+            lam = torch.where(torch.isfinite(lam), lam, torch.zeros_like(lam))
+            ctx.lagged[self.name] = {"x_prev": x_prev, "n": n, "weight": c.friction * lam, "eps": c.eps_v * ctx.dt}
+
+    def _friction(self, x, ctx):
+        f = ctx.lagged.get(self.name) if ctx is not None else None
+        return f if f is not None and x.ndim == 2 else None
+
     def energy(self, x, ctx):
-        return self.collider.energy(x)
+        e = self.collider.energy(x)
+        f = self._friction(x, ctx)
+        return e if f is None else e + friction_energy(x, f["x_prev"], f["n"], f["weight"], f["eps"])
 
     def gradient(self, x, ctx):
-        return self.collider.gradient(x)
+        g = self.collider.gradient(x)
+        f = self._friction(x, ctx)
+        return g if f is None else g + friction_gradient(x, f["x_prev"], f["n"], f["weight"], f["eps"])
 
     def vertex_blocks(self, x, ctx, projection=None):
-        return self.collider.hessian_blocks(x, projection=_projection(projection))
+        H = self.collider.hessian_blocks(x, projection=_projection(projection))
+        f = self._friction(x, ctx)
+        return H if f is None else H + friction_blocks(x, f["x_prev"], f["n"], f["weight"], f["eps"])
 
     def max_step(self, x, dx, ctx):
         return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
