@@ -220,6 +220,10 @@ class ClothModel(TermSum):
         self.pinned = _pinned_mask(pinned, V, rest.device)
         self.colliders = _check_colliders(colliders)
         self.mass = density * lumped_areas(topo.faces.to(rest.device), rest)
+        for t in extra:  # terms over the mesh itself (self-contact) take it from the model
+            bind = getattr(t, "bind", None)
+            if callable(bind):
+                bind(topo, rest, self.mass)
         self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
 
     CONTACT_DEPTH = 0.01

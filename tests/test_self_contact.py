@@ -1,0 +1,218 @@
+"""Self-contact (``tb.SelfContact``; :mod:`torchbend.ops.distance`, :mod:`torchbend.sim.self_contact`):
+squared distances of every type against the IPC toolkit (``ipctk``, optional) and its derivatives, the
+barrier and mollifier against ``ipctk``'s; the term's gradient and Hessian against central differences and
+autograd; the step bound that keeps a path free of intersections (an exact segment-triangle test); two
+sheets that fall onto each other and rest apart."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend.ops.distance import (
+    barrier,
+    edge_edge_distance_sq,
+    edge_edge_type,
+    mollifier,
+    point_triangle_distance_sq,
+    point_triangle_type,
+    typed_distance_sq,
+)
+
+F64 = torch.float64
+
+
+def random_stencils(n: int, seed: int, near_parallel: bool = False) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    X = torch.randn(n, 4, 3, generator=gen, dtype=F64)
+    if near_parallel:  # the second edge nearly parallel to the first, offset
+        d = X[:, 1] - X[:, 0]
+        X[:, 2] = X[:, 0] + 0.3 * torch.randn(n, 3, generator=gen, dtype=F64)
+        X[:, 3] = X[:, 2] + d * (0.5 + torch.rand(n, 1, generator=gen, dtype=F64)) + 1e-7 * torch.randn(n, 3, generator=gen, dtype=F64)
+    return X
+
+
+def typed_derivatives(X: torch.Tensor, classify):
+    """(squared distances, gradients (N, 12), Hessians (N, 12, 12)) by autograd of each stencil's typed formula."""
+    types = classify(X)
+    D, G, H = [], [], []
+    for i in range(X.shape[0]):
+        kind = int(types[i])
+
+        def f(z, kind=kind):
+            return typed_distance_sq(z.reshape(1, 4, 3), kind).sum()
+
+        z = X[i].reshape(12)
+        D.append(f(z))
+        G.append(torch.func.grad(f)(z))
+        H.append(torch.func.hessian(f)(z))
+    return torch.stack(D), torch.stack(G), torch.stack(H)
+
+
+def test_point_triangle_distances_and_derivatives_match_ipctk():
+    ipctk = pytest.importorskip("ipctk")
+    X = random_stencils(300, 1)
+    D, G, H = typed_derivatives(X, point_triangle_type)
+    torch.testing.assert_close(point_triangle_distance_sq(X), D, rtol=0, atol=0)
+    seen = set()
+    for i in range(X.shape[0]):
+        p, t0, t1, t2 = (X[i, k].numpy() for k in range(4))
+        seen.add(int(point_triangle_type(X[i:i + 1])[0]))
+        ref = ipctk.point_triangle_distance(p, t0, t1, t2)
+        assert math.isclose(float(D[i]), ref, rel_tol=1e-12), i
+        np.testing.assert_allclose(G[i].numpy(), ipctk.point_triangle_distance_gradient(p, t0, t1, t2), rtol=1e-10,
+                                   atol=1e-12 * float(G[i].abs().max()))
+        np.testing.assert_allclose(H[i].numpy(), ipctk.point_triangle_distance_hessian(p, t0, t1, t2), rtol=1e-9,
+                                   atol=1e-10 * float(H[i].abs().max()))
+    assert len(seen) == 7  # every type met
+
+
+@pytest.mark.parametrize("near_parallel", [False, True], ids=["random", "near_parallel"])
+def test_edge_edge_distances_match_ipctk(near_parallel):
+    ipctk = pytest.importorskip("ipctk")
+    X = random_stencils(300, 2, near_parallel)
+    D = edge_edge_distance_sq(X)
+    u, v = X[:, 1] - X[:, 0], X[:, 3] - X[:, 2]
+    # the line-line formula's conditioning: |u|^2 |v|^2 / |u x v|^2 (near-parallel edges: ipctk keeps the
+    # line-line formula down to sin^2 = 1e-20, this code takes a corner-edge pair below 1e-10)
+    cond = (u * u).sum(-1) * (v * v).sum(-1) / (torch.linalg.cross(u, v) ** 2).sum(-1)
+    for i in range(X.shape[0]):
+        a0, a1, b0, b1 = (X[i, k].numpy() for k in range(4))
+        ref = ipctk.edge_edge_distance(a0, a1, b0, b1)
+        tol = 1e-10 + 100 * 2.2e-16 * float(cond[i])
+        assert math.isclose(float(D[i]), ref, rel_tol=tol, abs_tol=1e-14 * float((X[i] ** 2).sum())), i
+    if not near_parallel:
+        _, G, H = typed_derivatives(X[:100], edge_edge_type)
+        agree = 0
+        for i in range(100):
+            a0, a1, b0, b1 = (X[i, k].numpy() for k in range(4))
+            g = ipctk.edge_edge_distance_gradient(a0, a1, b0, b1)
+            np.testing.assert_allclose(G[i].numpy(), g, rtol=1e-9, atol=1e-11 * float(np.abs(g).max()))
+            np.testing.assert_allclose(H[i].numpy(), ipctk.edge_edge_distance_hessian(a0, a1, b0, b1), rtol=1e-8,
+                                       atol=1e-9 * float(H[i].abs().max()))
+            agree += 1
+        assert agree == 100
+
+
+def test_barrier_and_mollifier_match_ipctk():
+    ipctk = pytest.importorskip("ipctk")
+    dhat = 1e-3
+    for D in (1e-12, 1e-9, 2.5e-7, 9.9e-7, 2e-6):  # squared distances around dhat^2 = 1e-6
+        ref = ipctk.barrier(D, dhat ** 2) if D < dhat ** 2 else 0.0
+        got = float(barrier(torch.tensor([D], dtype=F64), dhat ** 2, 1.0))
+        assert math.isclose(got, ref, rel_tol=1e-13, abs_tol=0), D
+    X = random_stencils(50, 3, near_parallel=True)
+    for i in range(50):
+        a0, a1, b0, b1 = (X[i, k].numpy() for k in range(4))
+        eps_x = ipctk.edge_edge_mollifier_threshold(a0, a1, b0, b1)
+        ref = ipctk.edge_edge_mollifier(a0, a1, b0, b1, eps_x)
+        got = float(mollifier(X[i:i + 1], torch.tensor([eps_x], dtype=F64)))
+        assert math.isclose(got, ref, rel_tol=1e-10, abs_tol=1e-15), i
+
+
+def two_sheets(n: int = 4, gap: float = 0.01, dhat: float = 2e-3, size: float = 0.1):
+    """A pinned sheet and a free one ``gap`` above it (one mesh of two components)."""
+    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=F64)
+    V = rest.shape[0]
+    shift = torch.tensor([0.013, 0.007, gap], dtype=F64)  # not vertex above vertex: every distance type occurs
+    x = torch.cat([rest, rest + shift])
+    f = torch.cat([faces, faces + V])
+    sc = tb.SelfContact(dhat=dhat)
+    model = tb.ClothModel(f, x, membrane=tb.MembraneEnergy(f, x, young=1e5, poisson=0.3, thickness=5e-4),
+                          bending=tb.BendingEnergy(f, x, stiffness=1e-5), terms=[sc], density=0.2,
+                          pinned=torch.arange(V))
+    return model, x, sc, V
+
+
+def segment_crosses_triangle(p0, p1, t0, t1, t2) -> torch.Tensor:
+    """Exact-arithmetic-free but robust Moller-Trumbore test ``(N,)``: segment p0->p1 crosses triangle (t0, t1, t2)."""
+    e1, e2, d = t1 - t0, t2 - t0, p1 - p0
+    h = torch.linalg.cross(d, e2)
+    a = (e1 * h).sum(-1)
+    ok = a.abs() > 1e-300
+    f = 1 / torch.where(ok, a, torch.ones_like(a))
+    s = p0 - t0
+    u = f * (s * h).sum(-1)
+    q = torch.linalg.cross(s, e1)
+    v = f * (d * q).sum(-1)
+    t = f * (e2 * q).sum(-1)
+    return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+def intersects(x: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor) -> bool:
+    """Whether some edge crosses a triangle that does not contain either of its vertices."""
+    E, F = edges.shape[0], faces.shape[0]
+    ei = edges[:, None, :].expand(E, F, 2).reshape(-1, 2)
+    fi = faces[None].expand(E, F, 3).reshape(-1, 3)
+    keep = (ei[:, :, None] != fi[:, None, :]).all(-1).all(-1)
+    ei, fi = ei[keep], fi[keep]
+    return bool(segment_crosses_triangle(x[ei[:, 0]], x[ei[:, 1]], x[fi[:, 0]], x[fi[:, 1]], x[fi[:, 2]]).any())
+
+
+def test_self_contact_gradient_and_hessian_match_differences_and_autograd():
+    model, x, sc, V = two_sheets(gap=1.2e-3)
+    ctx = tb.StepContext()
+    e0 = float(sc.energy(x, ctx))
+    d, count = sc.min_distance(x)
+    assert e0 > 0 and count > 20 and 0 < d < 2e-3
+    g = sc.gradient(x, ctx)
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
+    best = math.inf
+    for h in (1e-6, 1e-7, 1e-8, 1e-9):
+        fd = (float(sc.energy(x + h * v, ctx)) - float(sc.energy(x - h * v, ctx))) / (2 * h)
+        best = min(best, abs(fd - float((g * v).sum())) / abs(float((g * v).sum())))
+    assert best < 1e-7, best
+    H = sc.hessian(x, ctx).to_dense()
+    Hv = (H @ v.reshape(-1)).reshape(-1, 3)
+    best = math.inf
+    for h in (1e-6, 1e-7, 1e-8):
+        fd = (sc.gradient(x + h * v, ctx) - sc.gradient(x - h * v, ctx)) / (2 * h)
+        best = min(best, float((fd - Hv).norm() / Hv.norm()))
+    assert best < 1e-6, best
+    torch.testing.assert_close(H, H.T, rtol=0, atol=1e-12 * float(H.abs().max()))
+    P = sc.hessian(x, ctx, tb.Projection.CLAMP).to_dense()
+    assert float(torch.linalg.eigvalsh(P).min()) >= -1e-9 * float(P.abs().max())
+    assert float(g.sum(0).norm()) <= 1e-10 * float(g.norm())  # internal forces: no net force
+
+
+def test_self_contact_step_bound_keeps_every_path_free_of_intersections():
+    model, x, sc, V = two_sheets(gap=1.5e-3)
+    topo = model.topology
+    gen = torch.Generator().manual_seed(5)
+    for trial in range(5):
+        dx = torch.zeros_like(x)
+        dx[V:] = 0.01 * torch.randn(V, 3, generator=gen, dtype=F64) - torch.tensor([0, 0, 0.01], dtype=F64)
+        alpha = sc.max_step(x, dx, tb.StepContext())
+        assert 0 < alpha <= 1
+        for t in torch.linspace(0, 1, 41, dtype=F64).tolist():
+            y = x + t * alpha * dx
+            assert not intersects(y, topo.faces, topo.edges), (trial, t)
+            assert sc.min_distance(y, radius=0.05)[0] > 0
+        assert alpha < 1  # the whole step would have pushed the sheet through
+
+
+def test_a_sheet_falls_onto_another_and_rests_apart_in_every_step():
+    model, x, sc, V = two_sheets(gap=6e-3)
+    topo = model.topology
+    state = tb.ClothState(x.clone(), torch.zeros_like(x))
+    gaps = []
+    for _ in range(8):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged, info.message
+        d, _ = sc.min_distance(state.x, radius=0.05)
+        assert d > 0 and not intersects(state.x, topo.faces, topo.edges)
+        gaps.append(d)
+    assert gaps[-1] < 2e-3  # it came within dhat: the barrier holds it
+
+
+def test_self_contact_names_what_is_wrong():
+    with pytest.raises(ValueError, match="SelfContact: dhat"):
+        tb.SelfContact(dhat=0.0)
+    with pytest.raises(ValueError, match="friction between cloth layers is not modelled yet"):
+        tb.SelfContact(friction=0.3)
+    with pytest.raises(ValueError, match="has no mesh"):
+        tb.SelfContact().energy(torch.zeros(3, 3, dtype=F64), tb.StepContext())
+    model, x, sc, V = two_sheets(gap=0.0)  # the sheets touch
+    with pytest.raises(ValueError, match="x0: self_contact: two non-adjacent primitives of the cloth touch"):
+        tb.solve_static(model, x)

@@ -1,0 +1,253 @@
+r"""Self-contact of a cloth: IPC's log barrier on the squared distances of its point-triangle and edge-edge
+pairs, as an energy term (:class:`SelfContact`, ``tb.SelfContact``), with a conservative step bound that keeps
+every path of a solve free of intersections.
+
+For positions ``x (V, 3)`` the pairs are every vertex against every triangle that does not contain it and
+every edge against every edge that shares no vertex with it, closer than ``dhat`` (:func:`candidate_pairs`,
+axis-aligned boxes, brute force in chunks).  The energy (:mod:`torchbend.ops.distance`)::
+
+    E = sum_PT b(d^2) + sum_EE m_k b(d^2),      b(D) = -kappa (D - dhat^2)^2 log(D / dhat^2)
+
+``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
+``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
+(:meth:`SelfContact.bind`).  The gradient is the autograd of that sum; the
+Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (``torch.func`` of the pair's typed formula),
+each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
+
+**Step bound** (:meth:`SelfContact.max_step`): along ``x + t dx`` every point of a primitive moves at most as
+far as the farthest of its vertices, so two primitives at distance ``d`` whose vertices move at most ``m_A``
+and ``m_B`` cannot meet before ``t = d / (m_A + m_B)``; the bound is ``0.9`` of the smallest such time over
+the pairs within ``dhat`` plus the farthest motion (pairs farther apart cannot meet in the step), at most 1.
+No intersection can appear along a step so bounded (distances stay above a tenth of their start).
+
+Friction between cloth layers is not modelled yet (``friction`` must be 0).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .._checks import nonnegative, positive
+from ..ops.distance import barrier, edge_edge_type, mollifier, point_triangle_type, typed_distance_sq
+from ..options import Projection
+from .terms import EnergyTerm, StepContext
+
+__all__ = ["SelfContact", "candidate_pairs"]
+
+_CHUNK = 256
+
+
+def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
+    """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad`` (brute force in
+    chunks of A)."""
+    out = []
+    for s in range(0, lo_a.shape[0], _CHUNK):
+        la, ha = lo_a[s:s + _CHUNK, None], hi_a[s:s + _CHUNK, None]
+        hit = ((la <= hi_b[None] + 2 * pad) & (ha + 2 * pad >= lo_b[None])).all(-1)
+        ij = hit.nonzero()
+        ij[:, 0] += s
+        out.append(ij)
+    return torch.cat(out) if out else lo_a.new_zeros((0, 2), dtype=torch.int64)
+
+
+def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Point-triangle stencils ``(P, 4)`` (vertex, face's three), edge-edge stencils ``(Q, 4)`` (each edge pair
+    once) and their edge indices ``(Q, 2)``, of the primitives whose boxes lie within ``radius`` [m], without
+    the pairs that share a vertex."""
+    x = x.detach()
+    V = x.shape[0]
+    idx = torch.arange(V, device=x.device)
+    tri = x[faces]
+    pt = _box_pairs(x, x, tri.amin(1), tri.amax(1), 0.5 * radius)
+    pt = pt[(faces[pt[:, 1]] != idx[pt[:, 0], None]).all(-1)]
+    pt = torch.cat([pt[:, :1], faces[pt[:, 1]]], 1)
+    seg = x[edges]
+    ee = _box_pairs(seg.amin(1), seg.amax(1), seg.amin(1), seg.amax(1), 0.5 * radius)
+    ee = ee[ee[:, 0] < ee[:, 1]]
+    ea, eb = edges[ee[:, 0]], edges[ee[:, 1]]
+    disjoint = (ea[:, :, None] != eb[:, None, :]).all(-1).all(-1)
+    return pt, torch.cat([ea[disjoint], eb[disjoint]], 1), ee[disjoint]
+
+
+class SelfContact(EnergyTerm):
+    """IPC's barrier between the cloth's own non-adjacent primitives (module docstring).
+
+    Args:
+        dhat: the activation distance [m] (> 0): pairs closer than this repel.
+        stiffness: ``kappa`` [J/m^4] of the barrier on squared distances, or None: chosen from the cloth's
+            weight when the term joins a :class:`~torchbend.ClothModel`.
+        friction, eps_v: friction between layers (not modelled yet: ``friction`` must be 0).
+    """
+
+    contact = True
+    confines = False
+
+    def __init__(self, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
+                 eps_v: float = 1e-3, name: str = "self_contact"):
+        self.dhat = positive(dhat, "SelfContact: dhat")
+        self.stiffness = None if stiffness is None else positive(stiffness, "SelfContact: stiffness")
+        self._auto = stiffness is None  # chosen per model by bind
+        if nonnegative(friction, "SelfContact: friction") > 0:
+            raise ValueError("SelfContact: friction between cloth layers is not modelled yet (give friction=0)")
+        self.eps_v = positive(eps_v, "SelfContact: eps_v")
+        self.name = name
+        self.faces: Tensor | None = None
+        self.edges: Tensor | None = None
+        self._rest_len_sq: Tensor | None = None
+
+    # ---- binding to a model
+    def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
+        """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
+        ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
+        faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
+        self.faces, self.edges = faces, edges
+        e = rest[edges[:, 1]] - rest[edges[:, 0]]
+        self._rest_len_sq = (e * e).sum(-1)
+        if self._auto:
+            weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
+            # -b'(D) 2 d at d = dhat / 2 is 4.33 kappa dhat^3 (D = d^2, Dhat = dhat^2)
+            self.stiffness = 10 * weight / (4.33 * self.dhat ** 3)
+
+    def _mesh(self) -> tuple[Tensor, Tensor]:
+        if self.faces is None or self.edges is None:
+            raise ValueError("SelfContact: the term has no mesh: give it to a ClothModel (terms=[...]) first")
+        return self.faces, self.edges
+
+    # ---- pairs and their energies
+    def _active(self, x: Tensor, radius: float | None = None):
+        faces, edges = self._mesh()
+        pt, ee, pairs = candidate_pairs(x, faces.to(x.device), edges.to(x.device), self.dhat if radius is None else radius)
+        assert self._rest_len_sq is not None
+        r = self._rest_len_sq.to(device=x.device, dtype=x.dtype)
+        return pt, ee, 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
+
+    def _groups(self, x: Tensor):
+        """``[(stencils (N, 4), kind, eps_x or None)]`` of the pairs within ``dhat``, grouped by distance type."""
+        pt, ee, eps = self._active(x)
+        out = []
+        dh2 = self.dhat ** 2
+        if pt.shape[0]:
+            X = x.detach()[pt]
+            types = point_triangle_type(X)
+            for kind in torch.unique(types).tolist():
+                sel = types == kind
+                D = typed_distance_sq(X[sel], int(kind))
+                keep = D < dh2
+                if bool(keep.any()):
+                    out.append((pt[sel][keep], int(kind), None))
+        if ee.shape[0]:
+            X = x.detach()[ee]
+            types = edge_edge_type(X)
+            for kind in torch.unique(types).tolist():
+                sel = types == kind
+                D = typed_distance_sq(X[sel], int(kind))
+                keep = D < dh2
+                if bool(keep.any()):
+                    out.append((ee[sel][keep], int(kind), eps[sel][keep]))
+        return out
+
+    def _pair_energy(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
+        assert self.stiffness is not None
+        e = barrier(typed_distance_sq(X, kind), self.dhat ** 2, self.stiffness)
+        return e if eps is None else e * mollifier(X, eps)
+
+    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
+        total = x.new_zeros(())
+        for st, kind, eps in self._groups(x):
+            total = total + self._pair_energy(x[st], kind, eps).sum()
+        return total
+
+    def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            e = self.energy(y, ctx)
+            if not e.requires_grad:
+                return torch.zeros_like(x)
+            (g,) = torch.autograd.grad(e, y)
+        return g
+
+    def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        V = x.shape[0]
+        rows, cols, vals = [], [], []
+        proj = Projection.NONE if projection is None else Projection.parse(projection)
+        for st, kind, eps in self._groups(x):
+            X = x.detach()[st].reshape(-1, 12)
+
+            def f(z, e=None, kind=kind):
+                Z = z.reshape(1, 4, 3)
+                return self._pair_energy(Z, kind, None if e is None else e.reshape(1)).sum()
+
+            if eps is None:
+                H = torch.func.vmap(torch.func.hessian(f))(X)
+            else:
+                H = torch.func.vmap(torch.func.hessian(f), in_dims=(0, 0))(X, eps)
+            H = _project(H, proj)
+            dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
+            rows.append(dof[:, :, None].expand(-1, 12, 12).reshape(-1))
+            cols.append(dof[:, None, :].expand(-1, 12, 12).reshape(-1))
+            vals.append(H.reshape(-1))
+        if not vals:
+            return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
+                                           x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
+        idx = torch.stack([torch.cat(rows), torch.cat(cols)])
+        return torch.sparse_coo_tensor(idx, torch.cat(vals).to(x.dtype), (3 * V, 3 * V),
+                                       check_invariants=False).coalesce()
+
+    # ---- the step bound and the contact statistics
+    def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
+        move = dx.detach().norm(dim=-1)
+        m = float(move.max()) if move.numel() else 0.0
+        if m == 0:
+            return 1.0
+        pt, ee, _ = self._active(x, radius=self.dhat + 2 * m)
+        alpha = 1.0
+        for st in (pt, ee):
+            if not st.shape[0]:
+                continue
+            X = x.detach()[st]
+            types = point_triangle_type(X) if st is pt else edge_edge_type(X)
+            d = torch.empty(st.shape[0], dtype=x.dtype, device=x.device)
+            for kind in torch.unique(types).tolist():
+                sel = types == kind
+                d[sel] = typed_distance_sq(X[sel], int(kind)).clamp_min(0).sqrt()
+            mv = move[st]
+            rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
+            ok = rate > 0
+            if bool(ok.any()):
+                alpha = min(alpha, float((0.9 * d[ok] / rate[ok]).min()))
+        return max(alpha, 0.0)
+
+    def min_distance(self, x: Tensor, radius: float | None = None) -> tuple[float, int]:
+        """(the smallest distance [m] between non-adjacent primitives within ``radius`` (default ``dhat``), or
+        ``inf``; the number of pairs closer than ``dhat``)."""
+        pt, ee, _ = self._active(x, radius=radius)
+        best, count = math.inf, 0
+        for st, classify in ((pt, point_triangle_type), (ee, edge_edge_type)):
+            if not st.shape[0]:
+                continue
+            X = x.detach()[st]
+            types = classify(X)
+            for kind in torch.unique(types).tolist():
+                D = typed_distance_sq(X[types == kind], int(kind))
+                best = min(best, float(D.min().clamp_min(0).sqrt()))
+                count += int((D < self.dhat ** 2).sum())
+        return best, count
+
+    def inadmissible(self, x: Tensor) -> str:
+        if self.faces is None:
+            return ""
+        d, _ = self.min_distance(x)
+        if d > 0:
+            return ""
+        return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+
+
+def _project(H: Tensor, proj: Projection) -> Tensor:
+    if proj is Projection.NONE:
+        return H
+    w, Q = torch.linalg.eigh(H)
+    w = w.abs() if proj is Projection.ABS else w.clamp_min(0)
+    return (Q * w[:, None, :]) @ Q.transpose(-1, -2)
+
