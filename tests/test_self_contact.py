@@ -216,3 +216,17 @@ def test_self_contact_names_what_is_wrong():
     model, x, sc, V = two_sheets(gap=0.0)  # the sheets touch
     with pytest.raises(ValueError, match="x0: self_contact: two non-adjacent primitives of the cloth touch"):
         tb.solve_static(model, x)
+
+
+@pytest.mark.parametrize("kind", range(16))
+def test_pair_hessians_of_every_type_are_those_of_torch_func(kind):
+    from torchbend.ops.distance import EE_A0B0
+    sc = tb.SelfContact(dhat=1.0, stiffness=2.0)
+    X = 0.2 * torch.randn(6, 12, generator=torch.Generator().manual_seed(kind), dtype=F64)
+    eps = torch.full((6,), 1e-3, dtype=F64) if kind >= EE_A0B0 else None
+
+    def f(z, e):
+        return sc._pair_energy(z.reshape(1, 4, 3), kind, e).sum()
+
+    ref = torch.stack([torch.func.hessian(f)(X[i], None if eps is None else eps[i:i + 1]) for i in range(6)])
+    torch.testing.assert_close(sc._pair_hessians(X, kind, eps), ref, rtol=1e-12, atol=1e-12 * float(ref.abs().max()))

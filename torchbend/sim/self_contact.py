@@ -11,7 +11,7 @@ axis-aligned boxes, brute force in chunks).  The energy (:mod:`torchbend.ops.dis
 ``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
 ``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
 (:meth:`SelfContact.bind`).  The gradient is the autograd of that sum; the
-Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (``torch.func`` of the pair's typed formula),
+Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed formulas),
 each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
 
 **Step bound** (:meth:`SelfContact.max_step`): along ``x + t dx`` every point of a primitive moves at most as
@@ -153,6 +153,15 @@ class SelfContact(EnergyTerm):
         e = barrier(typed_distance_sq(X, kind), self.dhat ** 2, self.stiffness)
         return e if eps is None else e * mollifier(X, eps)
 
+    def _pair_hessians(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
+        """``(N, 12, 12)`` Hessians of the pairs' energies: the pairs are independent, so row ``j`` of every
+        pair's Hessian is one batched backward of the ``j``-th gradient component summed over the pairs."""
+        with torch.enable_grad():
+            Z = X.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self._pair_energy(Z.reshape(-1, 4, 3), kind, eps).sum(), Z, create_graph=True)
+            rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
+        return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
+
     def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
         total = x.new_zeros(())
         for st, kind, eps in self._groups(x):
@@ -173,16 +182,7 @@ class SelfContact(EnergyTerm):
         rows, cols, vals = [], [], []
         proj = Projection.NONE if projection is None else Projection.parse(projection)
         for st, kind, eps in self._groups(x):
-            X = x.detach()[st].reshape(-1, 12)
-
-            def f(z, e=None, kind=kind):
-                Z = z.reshape(1, 4, 3)
-                return self._pair_energy(Z, kind, None if e is None else e.reshape(1)).sum()
-
-            if eps is None:
-                H = torch.func.vmap(torch.func.hessian(f))(X)
-            else:
-                H = torch.func.vmap(torch.func.hessian(f), in_dims=(0, 0))(X, eps)
+            H = self._pair_hessians(x.detach()[st].reshape(-1, 12), kind, eps)
             H = _project(H, proj)
             dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
             rows.append(dof[:, :, None].expand(-1, 12, 12).reshape(-1))
