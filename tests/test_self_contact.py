@@ -230,3 +230,16 @@ def test_pair_hessians_of_every_type_are_those_of_torch_func(kind):
 
     ref = torch.stack([torch.func.hessian(f)(X[i], None if eps is None else eps[i:i + 1]) for i in range(6)])
     torch.testing.assert_close(sc._pair_hessians(X, kind, eps), ref, rtol=1e-12, atol=1e-12 * float(ref.abs().max()))
+
+
+@pytest.mark.parametrize("n,m,pad", [(1, 1, 0.0), (50, 80, 0.01), (600, 700, 0.002), (300, 200, 0.2)])
+def test_broad_phase_finds_exactly_the_overlapping_padded_boxes(n, m, pad):
+    from torchbend.sim.self_contact import _box_pairs
+    g = torch.Generator().manual_seed(n)
+    la = torch.rand(n, 3, generator=g, dtype=F64)
+    ha = la + 0.05 * torch.rand(n, 3, generator=g, dtype=F64)
+    lb = torch.rand(m, 3, generator=g, dtype=F64) - 0.3
+    hb = lb + 0.3 * torch.rand(m, 3, generator=g, dtype=F64) ** 4  # a few long boxes
+    got = _box_pairs(la, ha, lb, hb, pad)
+    brute = ((la[:, None] <= hb[None] + 2 * pad) & (ha[:, None] + 2 * pad >= lb[None])).all(-1).nonzero()
+    assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, brute.tolist()))

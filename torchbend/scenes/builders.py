@@ -11,7 +11,7 @@ from torch import Tensor
 from ..energies import BendingEnergy, Capsule, MembraneEnergy, Plane, Sphere, stiffness_from_material
 from ..mesh import procedural
 from ..robot import LinkCapsule, LinkPins, Robot, RobotScene
-from ..sim import ClothModel
+from ..sim import ClothModel, SelfContact
 from .schema import (
     _AXES,
     BendingSection,
@@ -190,8 +190,10 @@ def build_model(cfg, *, mesh: tuple[Tensor, Tensor] | None = None, pinned: Tenso
             mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
         except ValueError as e:
             raise ConfigError(f"config key 'membrane': {e}") from None
+    terms = [] if cfg.self_contact is None else [SelfContact(dhat=cfg.self_contact.dhat,
+                                                             stiffness=cfg.self_contact.stiffness)]
     return ClothModel(faces, rest, bending=bend, membrane=mem, density=density, gravity=cfg.gravity, pinned=pinned,
-                      colliders=built)
+                      colliders=built, terms=terms)
 
 
 def _build(cfg: SceneConfig, thickness, resolution, device):

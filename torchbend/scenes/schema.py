@@ -299,6 +299,14 @@ class ContactSection(Section):
         return contact_law(self.law, self.stiffness, self.power, margin=self.margin)
 
 
+class SelfContactSection(Section):
+    """``self_contact``: the cloth's own contact (:class:`~torchbend.SelfContact`): ``dhat`` [m] the activation
+    distance of the barrier, ``stiffness`` its ``kappa`` [J/m^4] (absent: chosen from the cloth's weight)."""
+
+    dhat: Positive = 1e-3
+    stiffness: Positive | None = None
+
+
 class _ColliderSpec(ContactSection):
     """A collider's contact law and its ``friction`` (Coulomb's ``mu`` >= 0, time steps only) smoothed below the
     sliding speed ``eps_v`` [m/s] (:mod:`torchbend.energies.friction`)."""
@@ -483,7 +491,7 @@ MeshField = Annotated[MeshSpec | None, BeforeValidator(_optional_mesh)]
 class PhysicsConfig(Section):
     """The physics sections shared by scene configs and every training script: ``mesh``, ``material``,
     ``bending`` and ``membrane`` (a term each, absent: no such term), ``colliders``, ``contact`` (the law of
-    the bodies a training script draws) and ``gravity``; :func:`~torchbend.scenes.builders.build_model` builds
+    the bodies a training script draws), ``self_contact`` (absent: none) and ``gravity``; :func:`~torchbend.scenes.builders.build_model` builds
     their :class:`~torchbend.ClothModel`."""
 
     mesh: MeshSection = GridMesh()
@@ -492,6 +500,7 @@ class PhysicsConfig(Section):
     membrane: MembraneSection | None = None
     colliders: list[ColliderSpec] = []
     contact: ContactSection | None = None
+    self_contact: SelfContactSection | None = None
     gravity: Vec3 = (0.0, 0.0, -9.81)
 
     @field_validator("material", "colliders", mode="before")

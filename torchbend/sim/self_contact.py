@@ -36,20 +36,43 @@ from .terms import EnergyTerm, StepContext
 
 __all__ = ["SelfContact", "candidate_pairs"]
 
-_CHUNK = 256
-
-
 def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
-    """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad`` (brute force in
-    chunks of A)."""
-    out = []
-    for s in range(0, lo_a.shape[0], _CHUNK):
-        la, ha = lo_a[s:s + _CHUNK, None], hi_a[s:s + _CHUNK, None]
-        hit = ((la <= hi_b[None] + 2 * pad) & (ha + 2 * pad >= lo_b[None])).all(-1)
-        ij = hit.nonzero()
-        ij[:, 0] += s
-        out.append(ij)
-    return torch.cat(out) if out else lo_a.new_zeros((0, 2), dtype=torch.int64)
+    """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad``.
+
+    A uniform grid of cell size ``h`` = the largest box extent plus ``2 pad``: each box of B is filed under
+    the cell of its lower corner, and a box of A can only meet boxes filed in the 27 cells around its own
+    lower corner's (their lower corners lie within ``h`` of it on every axis); the candidates of those cells
+    (sorted cell keys, ranges by ``searchsorted``) are then tested exactly.  Cost: the boxes and the pairs."""
+    device = lo_a.device
+    if lo_a.shape[0] == 0 or lo_b.shape[0] == 0:
+        return torch.zeros((0, 2), dtype=torch.int64, device=device)
+    ext = torch.maximum((hi_a - lo_a).amax(), (hi_b - lo_b).amax())
+    h = float(ext) + 2 * pad
+    h = h if h > 0 else 1.0
+    origin = torch.minimum(lo_a.amin(0), lo_b.amin(0))
+    ca = torch.floor((lo_a - origin) / h).to(torch.int64)
+    cb = torch.floor((lo_b - origin) / h).to(torch.int64)
+    span = int(torch.maximum(ca.amax(), cb.amax())) + 3  # keys of the cells (and their neighbours) are unique
+
+    def key(c: Tensor) -> Tensor:
+        return ((c[..., 0] + 1) * span + (c[..., 1] + 1)) * span + (c[..., 2] + 1)
+
+    kb = key(cb)
+    kb_sorted, order = torch.sort(kb)
+    off = torch.stack(torch.meshgrid(*(torch.arange(-1, 2, device=device),) * 3, indexing="ij"), -1).reshape(27, 3)
+    q = key(ca[:, None, :] + off[None])  # (A, 27)
+    left = torch.searchsorted(kb_sorted, q, right=False)
+    right = torch.searchsorted(kb_sorted, q, right=True)
+    count = (right - left).reshape(-1)
+    total = int(count.sum())
+    if total == 0:
+        return torch.zeros((0, 2), dtype=torch.int64, device=device)
+    ia = torch.arange(lo_a.shape[0], device=device).repeat_interleave(27).repeat_interleave(count)
+    start = left.reshape(-1).repeat_interleave(count)
+    within = torch.arange(total, device=device) - (torch.cumsum(count, 0) - count).repeat_interleave(count)
+    ib = order[start + within]
+    hit = ((lo_a[ia] <= hi_b[ib] + 2 * pad) & (hi_a[ia] + 2 * pad >= lo_b[ib])).all(-1)
+    return torch.stack([ia[hit], ib[hit]], 1)
 
 
 def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
