@@ -243,3 +243,17 @@ def test_broad_phase_finds_exactly_the_overlapping_padded_boxes(n, m, pad):
     got = _box_pairs(la, ha, lb, hb, pad)
     brute = ((la[:, None] <= hb[None] + 2 * pad) & (ha[:, None] + 2 * pad >= lb[None])).all(-1).nonzero()
     assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, brute.tolist()))
+
+
+def test_config_self_contact_section_builds_the_term():
+    from torchbend.scenes.builders import build_model
+    model = build_model({"mesh": {"type": "grid", "nx": 4, "ny": 4}, "membrane": {"model": "stvk"},
+                         "self_contact": {"dhat": 1.5e-3, "stiffness": 7.0}})
+    (sc,) = [t for t in model.terms if isinstance(t, tb.SelfContact)]
+    assert sc.dhat == 1.5e-3 and sc.stiffness == 7.0 and sc.faces is not None
+    auto = build_model({"mesh": {"type": "grid", "nx": 4, "ny": 4}, "self_contact": {}})
+    (sc,) = [t for t in auto.terms if isinstance(t, tb.SelfContact)]
+    w = 9.81 * float(auto.mass.mean())
+    assert math.isclose(sc.stiffness, 10 * w / (4.33 * 1e-3 ** 3), rel_tol=1e-12)
+    with pytest.raises(ValueError, match="self_contact.dhat"):
+        build_model({"self_contact": {"dhat": -1.0}})
