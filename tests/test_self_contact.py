@@ -257,3 +257,17 @@ def test_config_self_contact_section_builds_the_term():
     assert math.isclose(sc.stiffness, 10 * w / (4.33 * 1e-3 ** 3), rel_tol=1e-12)
     with pytest.raises(ValueError, match="self_contact.dhat"):
         build_model({"self_contact": {"dhat": -1.0}})
+
+
+def test_solve_info_reports_the_smallest_distance_and_the_contacts():
+    model, x, sc, V = two_sheets(gap=6e-3)
+    state = tb.ClothState(x.clone(), torch.zeros_like(x))
+    for _ in range(6):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+    d, n = sc.min_distance(state.x)
+    assert info.contact_count == n > 0 and info.min_distance == d and 0 < d < 2e-3
+    rest, faces = tb.scenes.grid(3, 3, (0.1, 0.1), dtype=F64)
+    free = tb.ClothModel(faces, rest, membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                         colliders=[tb.Plane(point=(0.0, 0.0, -1.0))], pinned=[0, 2])
+    y, info = tb.solve_static(free, rest)
+    assert info.contact_count == 0 and math.isclose(info.min_distance, float(y[:, 2].min()) + 1.0, rel_tol=1e-12)

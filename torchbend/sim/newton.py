@@ -114,7 +114,7 @@ from .options import (
     positive_value,
     resolve_options,
 )
-from .terms import InertiaTerm, StepContext, softens
+from .terms import InertiaTerm, StepContext, contact_stats, softens
 
 __all__ = ["ClothModel", "ClothState", "SolveInfo", "LinearSolver", "LinearMethod", "NewtonOptions", "solve_static",
            "implicit_euler_step"]
@@ -177,7 +177,10 @@ class SolveInfo:
     implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
     produced the returned state: ``"newton"`` (Newton alone), ``"membrane"`` (the membrane-stiffness
     homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
-    step retried as halves)."""
+    step retried as halves).  ``min_distance`` [m]: the smallest distance the contact terms report at the
+    returned state (cloth-cloth between non-adjacent primitives, cloth-collider; negative: a penetration of a
+    penalty collider; ``inf`` without contact), ``contact_count``: the pairs and vertices in contact there
+    (within a barrier's ``dhat`` or a collider's margin)."""
 
     converged: bool = False
     iterations: int = 0
@@ -202,6 +205,8 @@ class SolveInfo:
     solves: int = 1
     best_iteration: int = 0
     phase: str = "newton"
+    min_distance: float = math.inf
+    contact_count: int = 0
 
 
 # -------------------------------------------------------------------- Newton
@@ -651,10 +656,12 @@ class _RunRecord:
         if ret is not None:
             info.residual, info.energy, info.energies = ret.residual, ret.energy, ret.terms
             info.tolerance, info.force_scale, info.best_iteration = ret.tolerance, ret.scale, ret.iteration
+        out = ret.x if ret is not None else x
+        info.min_distance, info.contact_count = contact_stats(self.phi.terms, out)
         info.seconds = time.perf_counter() - self.t0
         _log.log(_level(self.started), "newton: %s (%d iterations, residual %.3e N, %.2f s)", info.message, info.iterations,
                  info.residual, info.seconds)
-        return (ret.x if ret is not None else x), info
+        return out, info
 
 
 class _NewtonRun(_RunRecord):

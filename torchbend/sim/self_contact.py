@@ -258,6 +258,9 @@ class SelfContact(EnergyTerm):
                 count += int((D < self.dhat ** 2).sum())
         return best, count
 
+    def contact_stats(self, x: Tensor) -> tuple[float, int]:
+        return self.min_distance(x) if self.faces is not None else (math.inf, 0)
+
     def inadmissible(self, x: Tensor) -> str:
         if self.faces is None:
             return ""

@@ -13,6 +13,7 @@ A potential over positions ``x (V, 3)`` [m] is a sum of terms.  The solvers (:fu
 ``vertex_blocks(x, ctx, projection)``     optional: ``(V, 3, 3)`` when the Hessian is block diagonal per vertex
 ``max_step(x, dx, ctx)``                  the largest safe fraction of a step ``dx`` in ``(0, 1]``; default 1
 ``inadmissible(x)``                       why a solve cannot start at ``x`` (e.g. inside a barrier), or ""
+``contact_stats(x)``                      ``(min distance [m], contacts)`` of a contact term (default ``(inf, 0)``)
 ``begin_step(ctx)``                       stores lagged data of a time step in ``ctx.lagged[name]``
 ``force_magnitudes(x, ctx)``              ``(V, 3)`` [N] magnitudes for the stopping test; default ``|gradient|``
 ========================================  ===================================================================
@@ -30,6 +31,7 @@ one call; default False: sample by sample).
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -43,7 +45,7 @@ from ..energies.membrane import MEMBRANE_PROJECTIONS, MembraneEnergy
 from ..options import Projection
 
 __all__ = ["EnergyTerm", "StepContext", "BendingTerm", "MembraneTerm", "GravityTerm", "ColliderTerm", "InertiaTerm",
-           "TermLoss", "as_csr", "softens", "sparse_from_vertex_blocks"]
+           "TermLoss", "as_csr", "contact_stats", "softens", "sparse_from_vertex_blocks"]
 
 
 @dataclass
@@ -154,6 +156,11 @@ class EnergyTerm:
         """Why a solve cannot start at ``x (V, 3)`` (a state where the term is infinite), or "" (the default)."""
         return ""
 
+    def contact_stats(self, x: Tensor) -> tuple[float, int]:
+        """``(the smallest contact distance [m], the number of contacts)`` at ``x`` (:class:`SolveInfo
+        <torchbend.SolveInfo>`'s ``min_distance`` and ``contact_count``); ``(inf, 0)`` for a term without contact."""
+        return math.inf, 0
+
     def begin_step(self, ctx: StepContext) -> None:
         return None
 
@@ -164,6 +171,15 @@ class EnergyTerm:
         """The term with its stiffness scaled by ``factor`` for the stiffness homotopy of
         :func:`~torchbend.solve_static` (``continuation``), or None (the default): not part of it."""
         return None
+
+
+def contact_stats(terms, x: Tensor) -> tuple[float, int]:
+    """The smallest distance and the number of contacts over ``terms`` (:meth:`EnergyTerm.contact_stats`)."""
+    best, count = math.inf, 0
+    for t in terms:
+        d, n = t.contact_stats(x)
+        best, count = min(best, d), count + n
+    return best, count
 
 
 def softens(term: EnergyTerm) -> bool:
@@ -327,6 +343,13 @@ class ColliderTerm(EnergyTerm):
 
     def max_step(self, x, dx, ctx):
         return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
+
+    def contact_stats(self, x):
+        if not x.shape[0]:
+            return math.inf, 0
+        c = self.collider
+        s = c._sd(x.detach())[0]
+        return float(s.min()), int((s < c.margin).sum())
 
     def inadmissible(self, x):
         c = self.collider
