@@ -119,13 +119,14 @@ class SelfContact(EnergyTerm):
         self.faces: Tensor | None = None
         self.edges: Tensor | None = None
         self._rest_len_sq: Tensor | None = None
+        self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
 
     # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
         ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
         faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
-        self.faces, self.edges = faces, edges
+        self.faces, self.edges, self._cache = faces, edges, None
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
         self._rest_len_sq = (e * e).sum(-1)
         if self._auto:
@@ -140,11 +141,24 @@ class SelfContact(EnergyTerm):
 
     # ---- pairs and their energies
     def _active(self, x: Tensor, radius: float | None = None):
+        """The candidate pairs within ``radius`` (default ``dhat``) of ``x`` and the edge pairs' mollifier
+        thresholds.  The pairs found for a larger radius ``R`` at ``x_ref`` (by :meth:`max_step`) serve every
+        ``x`` within ``(R - radius) / 2`` of it (no pair can have come closer), so a line search and the next
+        iterate reuse them."""
+        r_need = self.dhat if radius is None else radius
+        c = self._cache
+        if c is not None and c[0].shape == x.shape and c[0].device == x.device and c[0].dtype == x.dtype:
+            moved = float((x.detach() - c[0]).norm(dim=-1).max()) if x.shape[0] else 0.0
+            if 2 * moved <= c[1] - r_need:
+                return c[2], c[3], c[4]
         faces, edges = self._mesh()
-        pt, ee, pairs = candidate_pairs(x, faces.to(x.device), edges.to(x.device), self.dhat if radius is None else radius)
+        pt, ee, pairs = candidate_pairs(x, faces.to(x.device), edges.to(x.device), r_need)
         assert self._rest_len_sq is not None
         r = self._rest_len_sq.to(device=x.device, dtype=x.dtype)
-        return pt, ee, 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
+        eps = 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
+        if radius is not None:
+            self._cache = (x.detach().clone(), r_need, pt, ee, eps)
+        return pt, ee, eps
 
     def _groups(self, x: Tensor):
         """``[(stencils (N, 4), kind, eps_x or None)]`` of the pairs within ``dhat``, grouped by distance type."""
