@@ -302,3 +302,29 @@ def test_a_strip_folded_onto_itself_never_passes_through_itself():
         assert d > 0 and info.min_distance > 0
         touched += int(n > 0)
     assert touched >= 5  # the upper half rested on the lower one
+
+
+def test_self_contact_energy_gradient_and_hessian_match_ipctk_on_a_folded_grid():
+    ipctk = pytest.importorskip("ipctk")
+    n, size, dhat = 12, 0.2, 2e-3
+    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=F64)
+    h = size / (n - 1)
+    x = torch.cat([rest, rest + torch.tensor([h / 3, h / 5, 1e-3], dtype=F64)])
+    f = torch.cat([faces, faces + rest.shape[0]])
+    sc = tb.SelfContact(dhat=dhat, stiffness=3.0)
+    tb.ClothModel(f, x, terms=[sc])
+    V, F = x.numpy(), f.numpy().astype(np.int32)
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    coll = ipctk.NormalCollisions()
+    coll.build(mesh, V, dhat)
+    assert len(coll) > 100
+    B = ipctk.BarrierPotential(dhat, 3.0)
+    ctx = tb.StepContext()
+    e = float(sc.energy(x, ctx))
+    assert math.isclose(e, B(coll, mesh, V), rel_tol=1e-10)
+    g = sc.gradient(x, ctx).reshape(-1).numpy()
+    g_ref = B.gradient(coll, mesh, V)
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-10 * np.abs(g_ref).max())
+    H = sc.hessian(x, ctx).to_dense().numpy()
+    H_ref = B.hessian(coll, mesh, V, ipctk.PSDProjectionMethod.NONE).toarray()
+    np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())

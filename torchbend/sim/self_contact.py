@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from .._checks import nonnegative, positive
-from ..ops.distance import barrier, edge_edge_type, mollifier, point_triangle_type, typed_distance_sq
+from ..ops.distance import (PT_E01, PT_E12, PT_E20, PT_P0, PT_P1, PT_P2, barrier, edge_edge_type, mollifier,
+                             point_triangle_type, typed_distance_sq)
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
@@ -173,7 +174,7 @@ class SelfContact(EnergyTerm):
                 D = typed_distance_sq(X[sel], int(kind))
                 keep = D < dh2
                 if bool(keep.any()):
-                    out.append((pt[sel][keep], int(kind), None))
+                    out.append((_distinct(pt[sel][keep], int(kind)), int(kind), None))
         if ee.shape[0]:
             X = x.detach()[ee]
             types = edge_edge_type(X)
@@ -267,9 +268,11 @@ class SelfContact(EnergyTerm):
             X = x.detach()[st]
             types = classify(X)
             for kind in torch.unique(types).tolist():
-                D = typed_distance_sq(X[types == kind], int(kind))
+                sel = types == kind
+                D = typed_distance_sq(X[sel], int(kind))
                 best = min(best, float(D.min().clamp_min(0).sqrt()))
-                count += int((D < self.dhat ** 2).sum())
+                close = st[sel][D < self.dhat ** 2]
+                count += int((_distinct(close, int(kind)) if classify is point_triangle_type else close).shape[0])
         return best, count
 
     def contact_stats(self, x: Tensor) -> tuple[float, int]:
@@ -282,6 +285,23 @@ class SelfContact(EnergyTerm):
         if d > 0:
             return ""
         return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+
+
+_PT_SUB = {PT_P0: [1], PT_P1: [2], PT_P2: [3], PT_E01: [1, 2], PT_E12: [2, 3], PT_E20: [3, 1]}
+
+
+def _distinct(st: Tensor, kind: int) -> Tensor:
+    """The point-triangle stencils of one type with each vertex-vertex or vertex-edge contact once: a vertex
+    nearest an edge (or a corner) is so for every triangle around it, and the contact is counted once (as
+    IPC's collision sets do); vertex-face contacts are distinct already."""
+    sub = _PT_SUB.get(kind)
+    if sub is None or st.shape[0] < 2:
+        return st
+    key = torch.cat([st[:, :1], st[:, sub].sort(1).values], 1)
+    _, inverse = torch.unique(key, dim=0, return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1,), st.shape[0], dtype=torch.int64, device=st.device)
+    first = first.scatter_reduce(0, inverse, torch.arange(st.shape[0], device=st.device), reduce="amin")
+    return st[first]
 
 
 def _project(H: Tensor, proj: Projection) -> Tensor:

@@ -1,0 +1,113 @@
+"""Self-contact cost per contact: torchbend's SelfContact against the IPC toolkit (``ipctk``) on the same scene.
+
+A square grid folded onto itself: the lower half flat, the upper half 1 mm above it (shifted by a third of an
+edge so every distance type occurs), ``dhat`` 2 mm: every vertex of one layer is in contact with the other.
+For each: the contacts' barrier energy, gradient and PSD-projected Hessian (ipctk: ``NormalCollisions.build``
+with its default broad phase, ``BarrierPotential`` with clamp projection; torchbend: the term's ``energy``,
+``gradient`` and ``hessian(projection="clamp")``, which find their own pairs), one thread, best of
+``--repeats``, and the microseconds per contact.  The step bound (``max_step``) of a step of 1 mm is timed
+beside.
+
+    python benchmarks/bm_contact.py                      # 20x20 and 50x50 grids
+    python benchmarks/bm_contact.py --sizes 20 50 80 --repeats 3
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import torchbend as tb  # noqa: E402
+from common import machine  # noqa: E402
+
+
+def folded(n: int, size: float = 0.5):
+    """Two layers of an ``n x n``-vertex grid ``size`` wide, 1 mm apart (one mesh of two components)."""
+    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=torch.float64)
+    h = size / (n - 1)
+    upper = rest + torch.tensor([h / 3, h / 5, 1e-3], dtype=torch.float64)
+    x = torch.cat([rest, upper])
+    f = torch.cat([faces, faces + rest.shape[0]])
+    return x, f
+
+
+def best(fn, repeats: int) -> float:
+    fn()
+    out = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return min(out)
+
+
+def run_torchbend(x, f, dhat, repeats):
+    sc = tb.SelfContact(dhat=dhat, stiffness=1.0)
+    tb.ClothModel(f, x, terms=[sc])  # binds the mesh
+    ctx = tb.StepContext()
+    _, count = sc.min_distance(x)
+
+    def work():
+        sc._cache = None  # each call finds its pairs
+        sc.energy(x, ctx)
+        sc.gradient(x, ctx)
+        sc.hessian(x, ctx, tb.Projection.CLAMP)
+
+    dx = torch.zeros_like(x)
+    dx[x.shape[0] // 2:, 2] = -1e-3
+    seconds = best(work, repeats)
+    bound = best(lambda: sc.max_step(x, dx, ctx), repeats)
+    return count, seconds, bound
+
+
+def run_ipctk(x, f, dhat, repeats):
+    import ipctk
+    import numpy as np
+    V = x.numpy()
+    F = f.numpy().astype(np.int32)
+    E = ipctk.edges(F)
+    mesh = ipctk.CollisionMesh(V, E, F)
+    B = ipctk.BarrierPotential(dhat, 1.0)
+    holder = {}
+
+    def work():
+        c = ipctk.NormalCollisions()
+        c.build(mesh, V, dhat)
+        B(c, mesh, V)
+        B.gradient(c, mesh, V)
+        B.hessian(c, mesh, V, ipctk.PSDProjectionMethod.CLAMP)
+        holder["n"] = len(c)
+
+    seconds = best(work, repeats)
+    return holder["n"], seconds
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="*", default=[20, 50])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--dhat", type=float, default=2e-3)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    print(machine())
+    print(f"one thread, float64, dhat {args.dhat:g} m, best of {args.repeats}; energy + gradient + clamp-projected Hessian "
+          f"with each code's own pair search\n")
+    print(f"{'grid':>6} {'V':>6} | {'torchbend pairs':>15} {'s':>8} {'us/pair':>8} {'max_step s':>10} | "
+          f"{'ipctk pairs':>11} {'s':>8} {'us/pair':>8} | ratio")
+    for n in args.sizes:
+        x, f = folded(n)
+        count, sec, bound = run_torchbend(x, f, args.dhat, args.repeats)
+        try:
+            ic, isec = run_ipctk(x, f, args.dhat, args.repeats)
+            tail = f"{ic:>11} {isec:8.3f} {1e6 * isec / max(ic, 1):8.1f} | {sec / isec * ic / max(count, 1):5.2f}x (torchbend / ipctk per pair)"
+        except ImportError:
+            tail = "ipctk not installed (pip install ipctk)"
+        print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.3f} {1e6 * sec / max(count, 1):8.1f} {bound:10.4f} | {tail}")
+
+
+if __name__ == "__main__":
+    main()
