@@ -21,8 +21,9 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import torchbend as tb  # noqa: E402
 from common import machine  # noqa: E402
+
+import torchbend as tb  # noqa: E402
 
 
 def folded(n: int, size: float = 0.5):

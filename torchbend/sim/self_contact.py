@@ -30,8 +30,19 @@ import torch
 from torch import Tensor
 
 from .._checks import nonnegative, positive
-from ..ops.distance import (PT_E01, PT_E12, PT_E20, PT_P0, PT_P1, PT_P2, barrier, edge_edge_type, mollifier,
-                             point_triangle_type, typed_distance_sq)
+from ..ops.distance import (
+    PT_E01,
+    PT_E12,
+    PT_E20,
+    PT_P0,
+    PT_P1,
+    PT_P2,
+    barrier,
+    edge_edge_type,
+    mollifier,
+    point_triangle_type,
+    typed_distance_sq,
+)
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
