@@ -126,11 +126,13 @@ def two_sheets(n: int = 4, gap: float = 0.01, dhat: float = 2e-3, size: float = 
 
 
 def segment_crosses_triangle(p0, p1, t0, t1, t2) -> torch.Tensor:
-    """Exact-arithmetic-free but robust Moller-Trumbore test ``(N,)``: segment p0->p1 crosses triangle (t0, t1, t2)."""
+    """Moller-Trumbore test ``(N,)``: segment p0->p1 crosses triangle (t0, t1, t2) (segments within 1e-10 rad of
+    the triangle's plane are not tested: coplanar overlaps do not occur between non-adjacent primitives here)."""
     e1, e2, d = t1 - t0, t2 - t0, p1 - p0
     h = torch.linalg.cross(d, e2)
     a = (e1 * h).sum(-1)
-    ok = a.abs() > 1e-300
+    # a segment (nearly) in the triangle's plane: u, v, t are round-off there; such a pair is not a crossing
+    ok = a.abs() > 1e-10 * d.norm(dim=-1) * e1.norm(dim=-1) * e2.norm(dim=-1)
     f = 1 / torch.where(ok, a, torch.ones_like(a))
     s = p0 - t0
     u = f * (s * h).sum(-1)
@@ -140,12 +142,15 @@ def segment_crosses_triangle(p0, p1, t0, t1, t2) -> torch.Tensor:
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
-def intersects(x: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor) -> bool:
-    """Whether some edge crosses a triangle that does not contain either of its vertices."""
+def intersects(x: torch.Tensor, faces: torch.Tensor, edges: torch.Tensor, cloth: int | None = None) -> bool:
+    """Whether some edge crosses a triangle that does not contain either of its vertices (with ``cloth``: only
+    the pairs that involve one of the first ``cloth`` vertices, the cloth's, beside a body's)."""
     E, F = edges.shape[0], faces.shape[0]
     ei = edges[:, None, :].expand(E, F, 2).reshape(-1, 2)
     fi = faces[None].expand(E, F, 3).reshape(-1, 3)
     keep = (ei[:, :, None] != fi[:, None, :]).all(-1).all(-1)
+    if cloth is not None:
+        keep &= (ei[:, 0] < cloth) | (fi[:, 0] < cloth)
     ei, fi = ei[keep], fi[keep]
     return bool(segment_crosses_triangle(x[ei[:, 0]], x[ei[:, 1]], x[fi[:, 0]], x[fi[:, 1]], x[fi[:, 2]]).any())
 
@@ -254,7 +259,7 @@ def test_config_self_contact_section_builds_the_term():
     auto = build_model({"mesh": {"type": "grid", "nx": 4, "ny": 4}, "self_contact": {}})
     (sc,) = [t for t in auto.terms if isinstance(t, tb.SelfContact)]
     w = 9.81 * float(auto.mass.mean())
-    assert math.isclose(sc.stiffness, 10 * w / (4.33 * 1e-3 ** 3), rel_tol=1e-12)
+    assert sc.stiffness is not None and math.isclose(sc.stiffness, 10 * w / (4.33 * 1e-3 ** 3), rel_tol=1e-12)
     with pytest.raises(ValueError, match="self_contact.dhat"):
         build_model({"self_contact": {"dhat": -1.0}})
 
@@ -328,3 +333,62 @@ def test_self_contact_energy_gradient_and_hessian_match_ipctk_on_a_folded_grid()
     H = sc.hessian(x, ctx).to_dense().numpy()
     H_ref = B.hessian(coll, mesh, V, ipctk.PSDProjectionMethod.NONE).toarray()
     np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())
+
+
+def box(lo, hi):
+    """A closed box mesh: 8 corners, 12 triangles."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = torch.tensor([[x, y, z] for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)], dtype=F64)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = torch.tensor([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=torch.int64)
+    return v, f
+
+
+def cloth_over_box(gap: float):
+    rest, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    rest = rest + torch.tensor([0.03, 0.041, gap], dtype=F64)
+    bv, bf = box((0.0, 0.0, -0.1), (0.2, 0.2, 0.0))
+    body = tb.MeshCollider(bv, bf, dhat=2e-3)
+    model = tb.ClothModel(faces, rest, membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                          bending=tb.BendingEnergy(faces, rest, stiffness=1e-5), colliders=[body], density=0.2)
+    return model, rest, body, bv, bf
+
+
+def test_mesh_collider_matches_ipctk_on_the_cloth_and_body_mesh():
+    ipctk = pytest.importorskip("ipctk")
+    model, rest, body, bv, bf = cloth_over_box(1e-3)
+    x = rest.clone()
+    x[:, 2] += 2e-4 * torch.sin(40 * x[:, 0])  # not flat: several distance types
+    V = x.shape[0]
+    allv = torch.cat([x, bv]).numpy()
+    allf = torch.cat([model.topology.faces, bf + V]).numpy().astype(np.int32)
+    mesh = ipctk.CollisionMesh(allv, ipctk.edges(allf), allf)
+    coll = ipctk.NormalCollisions()
+    coll.build(mesh, allv, 2e-3)
+    assert len(coll) > 10
+    assert body.stiffness is not None
+    B = ipctk.BarrierPotential(2e-3, body.stiffness)
+    ctx = tb.StepContext()
+    assert math.isclose(float(body.energy(x, ctx)), B(coll, mesh, allv), rel_tol=1e-10)
+    g_ref = B.gradient(coll, mesh, allv).reshape(-1, 3)[:V]
+    np.testing.assert_allclose(body.gradient(x, ctx).numpy(), g_ref, rtol=0, atol=1e-10 * np.abs(g_ref).max())
+    H_ref = B.hessian(coll, mesh, allv, ipctk.PSDProjectionMethod.NONE).toarray()[: 3 * V, : 3 * V]
+    np.testing.assert_allclose(body.hessian(x, ctx).to_dense().numpy(), H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())
+
+
+def test_a_cloth_dropped_on_a_body_mesh_rests_on_it_without_passing_through():
+    model, rest, body, bv, bf = cloth_over_box(8e-3)
+    V = rest.shape[0]
+    allf = torch.cat([model.topology.faces, bf + V])
+    alle = torch.cat([allf[:, [0, 1]], allf[:, [1, 2]], allf[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    for _ in range(10):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged, info.message
+        assert not intersects(torch.cat([state.x, bv]), allf, alle, cloth=V)
+        assert info.min_distance > 0
+    assert info.contact_count > 0 and float(state.x[:, 2].max()) < 2e-3  # resting within dhat above the top
+    with pytest.raises(ValueError, match="mesh_collider: the cloth touches the body mesh"):
+        tb.solve_static(model, rest - torch.tensor([0.0, 0.0, 8e-3], dtype=F64))
+    with pytest.raises(ValueError, match="MeshCollider: faces index vertices"):
+        tb.MeshCollider(bv, bf + 1)

@@ -5,8 +5,8 @@ from .adjoint import solve_static_adjoint
 from .model import ClothModel, ClothState
 from .newton import SolveInfo, implicit_euler_step, solve_static
 from .options import LinearSolver, NewtonOptions
-from .self_contact import SelfContact
+from .self_contact import MeshCollider, SelfContact
 from .terms import EnergyTerm, StepContext
 
-__all__ = ["ClothModel", "ClothState", "EnergyTerm", "StepContext", "LinearSolver", "NewtonOptions", "SelfContact", "SolveInfo", "implicit_euler_step", "solve_static",
+__all__ = ["ClothModel", "ClothState", "EnergyTerm", "StepContext", "LinearSolver", "MeshCollider", "NewtonOptions", "SelfContact", "SolveInfo", "implicit_euler_step", "solve_static",
            "solve_static_adjoint"]

@@ -274,7 +274,8 @@ def _split_terms(terms, bending, membrane, colliders) -> tuple:
     :class:`EnergyTerm` instances; a second bending or membrane energy is a ``ValueError``."""
     if isinstance(terms, (EnergyTerm, BendingEnergy, MembraneEnergy, Collider)):
         terms = (terms,)
-    colliders, extra = list(colliders), []
+    extra = [c for c in colliders if isinstance(c, EnergyTerm)]  # a body mesh collider is a term of its own
+    colliders = [c for c in colliders if not isinstance(c, EnergyTerm)]
     for i, t in enumerate(terms):
         if isinstance(t, BendingEnergy):
             if bending is not None:
@@ -316,7 +317,7 @@ def _check_colliders(colliders) -> tuple:
     colliders = tuple(colliders)
     for i, c in enumerate(colliders):
         if not isinstance(c, Collider):
-            raise ValueError(f"colliders[{i}] must be a Sphere, Plane or Capsule, got {type(c).__name__}")
+            raise ValueError(f"colliders[{i}] must be a Sphere, Plane, Capsule or MeshCollider, got {type(c).__name__}")
     return colliders
 
 

@@ -46,7 +46,7 @@ from ..ops.distance import (
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
-__all__ = ["SelfContact", "candidate_pairs"]
+__all__ = ["SelfContact", "MeshCollider", "candidate_pairs"]
 
 def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
     """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad``.
@@ -132,6 +132,7 @@ class SelfContact(EnergyTerm):
         self.edges: Tensor | None = None
         self._rest_len_sq: Tensor | None = None
         self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
+        self._V = 0
 
     # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
@@ -139,6 +140,7 @@ class SelfContact(EnergyTerm):
         ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
         faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
         self.faces, self.edges, self._cache = faces, edges, None
+        self._V = rest.shape[0]
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
         self._rest_len_sq = (e * e).sum(-1)
         if self._auto:
@@ -152,6 +154,16 @@ class SelfContact(EnergyTerm):
         return self.faces, self.edges
 
     # ---- pairs and their energies
+    def _points(self, x: Tensor) -> Tensor:
+        """The positions the pairs index: the cloth's ``x`` (a body collider appends its own vertices)."""
+        return x
+
+    def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Point-triangle and edge-edge stencils within ``radius`` over :meth:`_points` and the edge pairs'
+        indices into the rest lengths (:func:`candidate_pairs` over the cloth's own mesh)."""
+        faces, edges = self._mesh()
+        return candidate_pairs(xa, faces.to(xa.device), edges.to(xa.device), radius)
+
     def _active(self, x: Tensor, radius: float | None = None):
         """The candidate pairs within ``radius`` (default ``dhat``) of ``x`` and the edge pairs' mollifier
         thresholds.  The pairs found for a larger radius ``R`` at ``x_ref`` (by :meth:`max_step`) serve every
@@ -163,8 +175,7 @@ class SelfContact(EnergyTerm):
             moved = float((x.detach() - c[0]).norm(dim=-1).max()) if x.shape[0] else 0.0
             if 2 * moved <= c[1] - r_need:
                 return c[2], c[3], c[4]
-        faces, edges = self._mesh()
-        pt, ee, pairs = candidate_pairs(x, faces.to(x.device), edges.to(x.device), r_need)
+        pt, ee, pairs = self._candidates(self._points(x).detach(), r_need)
         assert self._rest_len_sq is not None
         r = self._rest_len_sq.to(device=x.device, dtype=x.dtype)
         eps = 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
@@ -175,10 +186,11 @@ class SelfContact(EnergyTerm):
     def _groups(self, x: Tensor):
         """``[(stencils (N, 4), kind, eps_x or None)]`` of the pairs within ``dhat``, grouped by distance type."""
         pt, ee, eps = self._active(x)
+        xa = self._points(x).detach()
         out = []
         dh2 = self.dhat ** 2
         if pt.shape[0]:
-            X = x.detach()[pt]
+            X = xa[pt]
             types = point_triangle_type(X)
             for kind in torch.unique(types).tolist():
                 sel = types == kind
@@ -187,7 +199,7 @@ class SelfContact(EnergyTerm):
                 if bool(keep.any()):
                     out.append((_distinct(pt[sel][keep], int(kind)), int(kind), None))
         if ee.shape[0]:
-            X = x.detach()[ee]
+            X = xa[ee]
             types = edge_edge_type(X)
             for kind in torch.unique(types).tolist():
                 sel = types == kind
@@ -213,8 +225,9 @@ class SelfContact(EnergyTerm):
 
     def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
         total = x.new_zeros(())
+        xa = self._points(x)
         for st, kind, eps in self._groups(x):
-            total = total + self._pair_energy(x[st], kind, eps).sum()
+            total = total + self._pair_energy(xa[st], kind, eps).sum()
         return total
 
     def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
@@ -230,13 +243,17 @@ class SelfContact(EnergyTerm):
         V = x.shape[0]
         rows, cols, vals = [], [], []
         proj = Projection.NONE if projection is None else Projection.parse(projection)
+        xa = self._points(x).detach()
         for st, kind, eps in self._groups(x):
-            H = self._pair_hessians(x.detach()[st].reshape(-1, 12), kind, eps)
+            H = self._pair_hessians(xa[st].reshape(-1, 12), kind, eps)
             H = _project(H, proj)
             dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
-            rows.append(dof[:, :, None].expand(-1, 12, 12).reshape(-1))
-            cols.append(dof[:, None, :].expand(-1, 12, 12).reshape(-1))
-            vals.append(H.reshape(-1))
+            r, c, v = (dof[:, :, None].expand(-1, 12, 12).reshape(-1), dof[:, None, :].expand(-1, 12, 12).reshape(-1),
+                       H.reshape(-1))
+            own = (r < 3 * V) & (c < 3 * V)  # a body's vertices are not unknowns
+            rows.append(r[own])
+            cols.append(c[own])
+            vals.append(v[own])
         if not vals:
             return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
                                            x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
@@ -251,11 +268,13 @@ class SelfContact(EnergyTerm):
         if m == 0:
             return 1.0
         pt, ee, _ = self._active(x, radius=self.dhat + 2 * m)
+        xa = self._points(x).detach()
+        move = torch.cat([move, move.new_zeros(xa.shape[0] - x.shape[0])])  # a body is still during a step
         alpha = 1.0
         for st in (pt, ee):
             if not st.shape[0]:
                 continue
-            X = x.detach()[st]
+            X = xa[st]
             types = point_triangle_type(X) if st is pt else edge_edge_type(X)
             d = torch.empty(st.shape[0], dtype=x.dtype, device=x.device)
             for kind in torch.unique(types).tolist():
@@ -272,11 +291,12 @@ class SelfContact(EnergyTerm):
         """(the smallest distance [m] between non-adjacent primitives within ``radius`` (default ``dhat``), or
         ``inf``; the number of pairs closer than ``dhat``)."""
         pt, ee, _ = self._active(x, radius=radius)
+        xa = self._points(x).detach()
         best, count = math.inf, 0
         for st, classify in ((pt, point_triangle_type), (ee, edge_edge_type)):
             if not st.shape[0]:
                 continue
-            X = x.detach()[st]
+            X = xa[st]
             types = classify(X)
             for kind in torch.unique(types).tolist():
                 sel = types == kind
@@ -296,6 +316,70 @@ class SelfContact(EnergyTerm):
         if d > 0:
             return ""
         return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+
+
+class MeshCollider(SelfContact):
+    """A rigid triangle-mesh body (``vertices (Vb, 3)`` [m], ``faces (Fb, 3)``) the cloth cannot pass through: the
+    barrier of :class:`SelfContact` between the cloth and the body (cloth vertices against body triangles, body
+    vertices against cloth triangles, cloth edges against body edges), the same step bound (the body does not
+    move within a step).  Give it in ``colliders=`` (or ``terms=``) of a :class:`~torchbend.ClothModel`.  The
+    body may be moved between steps by assigning ``vertices`` (a robot link, an animation frame); a move must
+    leave the cloth outside it, or the next step refuses its start.  ``stiffness=None``: ``kappa`` from the
+    cloth's weight, as :class:`SelfContact`'s.  Friction on a body mesh is not modelled yet."""
+
+    def __init__(self, vertices, faces, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
+                 eps_v: float = 1e-3, name: str = "mesh_collider"):
+        if nonnegative(friction, "MeshCollider: friction") > 0:
+            raise ValueError("MeshCollider: friction on a body mesh is not modelled yet (give friction=0)")
+        super().__init__(dhat=dhat, stiffness=stiffness, eps_v=eps_v, name=name)
+        v = torch.as_tensor(vertices)
+        f = torch.as_tensor(faces)
+        if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point() or not bool(torch.isfinite(v).all()):
+            raise ValueError(f"MeshCollider: vertices must be a finite (Vb, 3) float tensor, got {tuple(v.shape)} "
+                             f"{v.dtype}")
+        if f.ndim != 2 or f.shape[-1] != 3 or f.is_floating_point() or f.numel() == 0:
+            raise ValueError(f"MeshCollider: faces must be a non-empty (Fb, 3) integer tensor, got {tuple(f.shape)}")
+        if int(f.min()) < 0 or int(f.max()) >= v.shape[0]:
+            raise ValueError(f"MeshCollider: faces index vertices 0..{v.shape[0] - 1}, found {int(f.min())}.."
+                             f"{int(f.max())}")
+        self.vertices, self.body_faces = v, f.long()
+        e = torch.cat([self.body_faces[:, [0, 1]], self.body_faces[:, [1, 2]], self.body_faces[:, [2, 0]]])
+        self.body_edges = e.sort(1).values.unique(dim=0)
+
+    def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
+        super().bind(topology, rest, mass)
+        self._V = rest.shape[0]
+        vb = self.vertices.to(device=rest.device, dtype=rest.dtype)
+        be = self.body_edges.to(rest.device)
+        d = vb[be[:, 1]] - vb[be[:, 0]]
+        assert self._rest_len_sq is not None
+        self._rest_len_sq = torch.cat([self._rest_len_sq, (d * d).sum(-1)])
+
+    def _points(self, x: Tensor) -> Tensor:
+        return torch.cat([x, self.vertices.to(device=x.device, dtype=x.dtype)])
+
+    def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+        faces, edges = self._mesh()
+        faces, edges = faces.to(xa.device), edges.to(xa.device)
+        V = self._V
+        bf = self.body_faces.to(xa.device) + V
+        be = self.body_edges.to(xa.device) + V
+        cloth, body = xa[:V], xa[V:]
+        tb_, tc = xa[bf], xa[faces]
+        half = 0.5 * radius
+        a = _box_pairs(cloth, cloth, tb_.amin(1), tb_.amax(1), half)  # cloth vertex - body triangle
+        b = _box_pairs(body, body, tc.amin(1), tc.amax(1), half)  # body vertex - cloth triangle
+        pt = torch.cat([torch.cat([a[:, :1], bf[a[:, 1]]], 1), torch.cat([b[:, :1] + V, faces[b[:, 1]]], 1)])
+        sc, sb = xa[edges], xa[be]
+        ee = _box_pairs(sc.amin(1), sc.amax(1), sb.amin(1), sb.amax(1), half)
+        stencils = torch.cat([edges[ee[:, 0]], be[ee[:, 1]]], 1)
+        return pt, stencils, torch.stack([ee[:, 0], ee[:, 1] + edges.shape[0]], 1)
+
+    def inadmissible(self, x: Tensor) -> str:
+        if self.faces is None:
+            return ""
+        d, _ = self.min_distance(x)
+        return "" if d > 0 else f"{self.name}: the cloth touches the body mesh (distance {d:.3g} m): start apart"
 
 
 _PT_SUB = {PT_P0: [1], PT_P1: [2], PT_P2: [3], PT_E01: [1, 2], PT_E12: [2, 3], PT_E20: [3, 1]}
