@@ -30,7 +30,7 @@ from torch import Tensor
 
 __all__ = ["PT_P0", "PT_P1", "PT_P2", "PT_E01", "PT_E12", "PT_E20", "PT_FACE", "EE_A0B0", "EE_A0B1", "EE_A1B0",
            "EE_A1B1", "EE_AB0", "EE_AB1", "EE_A0B", "EE_A1B", "EE_LINES", "point_triangle_type", "edge_edge_type",
-           "typed_distance_sq", "point_triangle_distance_sq", "edge_edge_distance_sq", "barrier", "mollifier"]
+           "typed_distance_sq", "by_type", "point_triangle_distance_sq", "edge_edge_distance_sq", "barrier", "mollifier"]
 
 PT_P0, PT_P1, PT_P2, PT_E01, PT_E12, PT_E20, PT_FACE = range(7)
 EE_A0B0, EE_A0B1, EE_A1B0, EE_A1B1, EE_AB0, EE_AB1, EE_A0B, EE_A1B, EE_LINES = range(7, 16)
@@ -174,11 +174,17 @@ def typed_distance_sq(X: Tensor, kind: int) -> Tensor:
     raise ValueError(f"unknown distance type {kind}")
 
 
-def _by_type(X: Tensor, types: Tensor) -> Tensor:
-    out = X.new_zeros(X.shape[0])
+def by_type(X: Tensor, types: Tensor):
+    """For each distance type present in ``types (N,)``: ``(kind, sel (N,) bool, squared distances of X[sel])``."""
     for kind in torch.unique(types).tolist():
         sel = types == kind
-        out = out.index_put((sel.nonzero()[:, 0],), typed_distance_sq(X[sel], int(kind)))
+        yield int(kind), sel, typed_distance_sq(X[sel], int(kind))
+
+
+def _by_type(X: Tensor, types: Tensor) -> Tensor:
+    out = X.new_zeros(X.shape[0])
+    for _, sel, D in by_type(X, types):
+        out = out.index_put((sel.nonzero()[:, 0],), D)
     return out
 
 

@@ -38,6 +38,7 @@ from ..ops.distance import (
     PT_P1,
     PT_P2,
     barrier,
+    by_type,
     edge_edge_type,
     mollifier,
     point_triangle_type,
@@ -189,24 +190,19 @@ class SelfContact(EnergyTerm):
         xa = self._points(x).detach()
         out = []
         dh2 = self.dhat ** 2
-        if pt.shape[0]:
-            X = xa[pt]
-            types = point_triangle_type(X)
-            for kind in torch.unique(types).tolist():
-                sel = types == kind
-                D = typed_distance_sq(X[sel], int(kind))
+        for st, classify, thresholds in ((pt, point_triangle_type, None), (ee, edge_edge_type, eps)):
+            if not st.shape[0]:
+                continue
+            X = xa[st]
+            for kind, sel, D in by_type(X, classify(X)):
                 keep = D < dh2
-                if bool(keep.any()):
-                    out.append((_distinct(pt[sel][keep], int(kind)), int(kind), None))
-        if ee.shape[0]:
-            X = xa[ee]
-            types = edge_edge_type(X)
-            for kind in torch.unique(types).tolist():
-                sel = types == kind
-                D = typed_distance_sq(X[sel], int(kind))
-                keep = D < dh2
-                if bool(keep.any()):
-                    out.append((ee[sel][keep], int(kind), eps[sel][keep]))
+                if not bool(keep.any()):
+                    continue
+                close = st[sel][keep]
+                if thresholds is None:
+                    out.append((_distinct(close, kind), kind, None))
+                else:
+                    out.append((close, kind, thresholds[sel][keep]))
         return out
 
     def _pair_energy(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
@@ -277,9 +273,8 @@ class SelfContact(EnergyTerm):
             X = xa[st]
             types = point_triangle_type(X) if st is pt else edge_edge_type(X)
             d = torch.empty(st.shape[0], dtype=x.dtype, device=x.device)
-            for kind in torch.unique(types).tolist():
-                sel = types == kind
-                d[sel] = typed_distance_sq(X[sel], int(kind)).clamp_min(0).sqrt()
+            for _, sel, D in by_type(X, types):
+                d[sel] = D.clamp_min(0).sqrt()
             mv = move[st]
             rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
             ok = rate > 0
@@ -297,13 +292,10 @@ class SelfContact(EnergyTerm):
             if not st.shape[0]:
                 continue
             X = xa[st]
-            types = classify(X)
-            for kind in torch.unique(types).tolist():
-                sel = types == kind
-                D = typed_distance_sq(X[sel], int(kind))
+            for kind, sel, D in by_type(X, classify(X)):
                 best = min(best, float(D.min().clamp_min(0).sqrt()))
                 close = st[sel][D < self.dhat ** 2]
-                count += int((_distinct(close, int(kind)) if classify is point_triangle_type else close).shape[0])
+                count += int((_distinct(close, kind) if classify is point_triangle_type else close).shape[0])
         return best, count
 
     def contact_stats(self, x: Tensor) -> tuple[float, int]:
