@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchbend as tb
+from torchbend.energies.colliders import _TensorCapsule
 from torchbend.energies.contact import LogBarrier, contact_law
 from torchbend.scenes.config import SceneConfig, build_collider, validate
 
@@ -67,7 +68,7 @@ def test_ipc_law_names_what_is_wrong():
     with pytest.raises(ValueError, match="ipc contact law has no power"):
         contact_law("ipc", 2.0, 3.0, margin=1e-3)
     with pytest.raises(ValueError, match="Sphere: the ipc contact law needs margin > 0"):
-        tb.Sphere(radius=0.5, law="ipc", stiffness=1.0)
+        tb.Sphere(radius=0.5, law="ipc", stiffness=1.0, margin=0.0)
     with pytest.raises(ValueError, match="stiffness must be positive"):
         LogBarrier(-1.0, 1e-3)
     with pytest.raises(ValueError, match="BodyContact: the ipc law is infinite inside the body"):
@@ -180,6 +181,62 @@ def test_config_colliders_take_the_ipc_law():
     cfg = validate({"colliders": [{"type": "capsule", "law": "ipc", "stiffness": 2.0, "margin": 1e-3}]}, SceneConfig)
     assert build_collider(cfg.colliders[0]).contact == LogBarrier(2.0, 1e-3)
     with pytest.raises(ValueError, match="the ipc law needs margin > 0"):
-        validate({"colliders": [{"type": "sphere", "law": "ipc", "stiffness": 1.0}]}, SceneConfig)
+        validate({"colliders": [{"type": "sphere", "law": "ipc", "stiffness": 1.0, "margin": 0.0}]}, SceneConfig)
     with pytest.raises(ValueError, match="the ipc law has no power"):
         validate({"colliders": [{"type": "sphere", "law": "ipc", "margin": 1e-3, "power": 3}]}, SceneConfig)
+
+
+# ---- the default law: ipc, margin 1 mm, stiffness chosen by the model from the cloth's weight
+def test_colliders_default_to_the_ipc_law_and_a_penalty_keeps_its_defaults():
+    c = tb.Sphere(radius=0.3)
+    assert c.law == "ipc" and c.margin == tb.Sphere.DEFAULT_MARGIN == 1e-3 and c.stiffness is None
+    with pytest.raises(ValueError, match="Sphere: stiffness=None: the ipc law's stiffness is chosen"):
+        c.energy(torch.zeros(2, 3, dtype=F64))
+    assert tb.Sphere(radius=0.3, stiffness=2.0).contact == LogBarrier(2.0, 1e-3)
+    p = tb.Plane(law="penalty")
+    assert p.margin == 0.0 and p.stiffness == 1e4 and p.contact == contact_law("penalty", 1e4)
+    assert tb.Capsule(law="barrier").contact == contact_law("barrier", 1e4, 3.0)
+
+
+@pytest.mark.parametrize("gravity", [(0.0, 0.0, -9.81), (0.0, -3.0, 0.0), (0.0, 0.0, 0.0)])
+def test_a_model_chooses_the_ipc_stiffness_that_holds_ten_vertex_weights_at_half_the_margin(gravity):
+    rest, faces = tb.scenes.grid(6, 6, (0.4, 0.4), dtype=F64)
+    rail = tb.Capsule(a=(-0.5, 0.0, -0.05), b=(0.5, 0.0, -0.05), radius=0.02)
+    model = tb.ClothModel(faces, rest, density=0.3, gravity=gravity, colliders=[rail, tb.Plane(law="penalty")])
+    g = math.hypot(*gravity) or 9.81  # no gravity: a standard weight
+    weight = g * 0.3 * 0.16 / 36  # |g| times the mean lumped vertex mass (the area over the vertex count)
+    chosen, plane = model.colliders
+    assert plane.stiffness == 1e4  # a stiffness given (or a penalty's default) is kept
+    # the force -phi'(d) at the gap margin / 2 (d = margin / 2) is ten mean vertex weights
+    force = chosen.contact.slope(torch.tensor([0.5 * chosen.margin], dtype=F64))
+    torch.testing.assert_close(force, torch.tensor([10 * weight], dtype=F64), rtol=1e-12, atol=0)
+    assert rail.stiffness is None  # the user's collider is not changed
+    model.colliders = [rail]  # assigned colliders are chosen for too
+    assert model.colliders[0].stiffness == chosen.stiffness
+
+
+def test_a_tensor_capsule_keeps_its_end_points_when_its_stiffness_is_chosen():
+    a = torch.tensor([-0.5, 0.0, -0.05], dtype=F64, requires_grad=True)
+    cap = tb.Capsule(radius=0.02).transformed(a, torch.tensor([0.5, 0.0, -0.05], dtype=F64))
+    chosen = cap.with_weight(1e-3)
+    assert chosen.stiffness == pytest.approx(cap.stiffness_for(1e-3))
+    assert isinstance(chosen, _TensorCapsule) and chosen.ends[0] is a  # the same tensor: a moved capsule keeps its graph
+    x = torch.tensor([[0.0, 0.0, -0.0295]], dtype=F64)  # 0.5 mm above the rail
+    chosen.energy(x).backward()
+    assert a.grad is not None and float(a.grad.abs().sum()) > 0
+
+
+def test_defaults_solve_a_cloth_onto_a_rail_and_keep_it_outside():
+    model, rest, _ = hanging_cloth({})  # the rail with every contact default
+    x, info = tb.solve_static(model, rest)
+    assert info.converged, info.message
+    s = model.colliders[0]._sd(x)[0]
+    assert 0 < float(s.min()) < 1e-3 and info.min_distance == pytest.approx(float(s.min()))
+    assert info.contact_count == int((s < 1e-3).sum()) > 0
+
+
+def test_config_colliders_default_to_ipc():
+    cfg = validate({"colliders": [{"type": "plane"}, {"type": "sphere", "law": "penalty"}]}, SceneConfig)
+    ipc, pen = (build_collider(c) for c in cfg.colliders)
+    assert (ipc.law, ipc.margin, ipc.stiffness) == ("ipc", 1e-3, None)
+    assert (pen.law, pen.margin, pen.stiffness) == ("penalty", 0.0, 1e4)

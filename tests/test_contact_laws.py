@@ -45,7 +45,7 @@ def test_contact_law_names_what_is_wrong():
     with pytest.raises(ValueError, match="stiffness must be positive"):
         Penalty(-1.0)
     with pytest.raises(ValueError, match="Sphere: the penalty contact law has power 2"):
-        tb.Sphere(radius=0.5, power=3.0)
+        tb.Sphere(radius=0.5, power=3.0, law="penalty")
 
 
 COLLIDERS = [
@@ -92,7 +92,7 @@ def test_a_strip_rests_on_a_barrier_plane_above_the_margin_depth_the_law_gives()
 
 def test_the_contact_loss_takes_the_same_laws():
     x = torch.tensor([[[0.0, 0.0, -0.01], [0.0, 0.0, 0.5], [0.1, 0.0, 0.002]]], dtype=F64)
-    plane = tb.Plane(point=(0.0, 0.0, 0.0))
+    plane = tb.Plane(point=(0.0, 0.0, 0.0), stiffness=1.0)  # the loss uses its signed distance only
     barrier = tb.losses.BodyContact(stiffness=2.0, eps=0.004, power=3.0, colliders=[plane])
     penalty = tb.losses.BodyContact(stiffness=2.0, eps=0.004, law="penalty", colliders=[plane])
     d = 0.004 - x[0, :, 2]
@@ -110,9 +110,10 @@ def test_config_colliders_take_the_law():
                    SceneConfig)
     c = build_collider(cfg.colliders[0])
     assert c.contact == PowerBarrier(1e5, 3.0) and c.margin == 1e-3
-    assert build_collider(validate({"colliders": [{"type": "sphere"}]}, SceneConfig).colliders[0]).contact == Penalty(1e4)
+    penalty = validate({"colliders": [{"type": "sphere", "law": "penalty"}]}, SceneConfig).colliders[0]
+    assert build_collider(penalty).contact == Penalty(1e4)  # the penalty's defaults: 1e4 N/m, margin 0
     with pytest.raises(ValueError, match="'colliders\\[0\\]': the penalty law has power 2"):
-        validate({"colliders": [{"type": "sphere", "power": 3}]}, SceneConfig)
+        validate({"colliders": [{"type": "sphere", "law": "penalty", "power": 3}]}, SceneConfig)
     with pytest.raises(ValueError, match="colliders\\[0\\].law"):
         validate({"colliders": [{"type": "sphere", "law": "spring"}]}, SceneConfig)
 

@@ -123,23 +123,24 @@ def test_capsule_with_number_end_points_is_not_rounded_to_float32():
     a, b, radius = (0.0, 0.0, 0.0), (0.1, 0.2, 0.3), 0.2
     gen = torch.Generator().manual_seed(1)
     x = 0.15 * torch.randn(40, 3, generator=gen, dtype=F64) + torch.tensor(b, dtype=F64) / 2
-    plain = Capsule(a=a, b=b, radius=radius, stiffness=1e4)
-    moved = Capsule(radius=radius, stiffness=1e4).transformed(torch.tensor(a, dtype=F64), list(b))
+    plain = Capsule(a=a, b=b, radius=radius, stiffness=1e4, law="penalty")
+    moved = Capsule(radius=radius, stiffness=1e4, law="penalty").transformed(torch.tensor(a, dtype=F64), list(b))
     assert float(plain.energy(x)) > 0
     torch.testing.assert_close(moved.energy(x), plain.energy(x), rtol=1e-14, atol=0)
     torch.testing.assert_close(moved.gradient(x), plain.gradient(x), rtol=1e-13, atol=1e-15)
     assert moved.energy(x.float()).dtype == torch.float32
 
 
-@pytest.mark.parametrize("collider", [Sphere(center=(0.1, 0.2, 0.3), radius=0.7, stiffness=3.0, margin=0.01),
-                                      Plane(point=(0.1, 0.2, 0.3), normal=(0.3, 0.1, 1.0), stiffness=3.0),
-                                      Capsule(a=(0.1, 0.2, 0.3), b=(0.7, 0.1, 0.3), radius=0.3, stiffness=3.0)],
+@pytest.mark.parametrize("collider", [Sphere(center=(0.1, 0.2, 0.3), radius=0.7, stiffness=3.0, margin=0.01, law="penalty"),
+                                      Plane(point=(0.1, 0.2, 0.3), normal=(0.3, 0.1, 1.0), stiffness=3.0, law="penalty"),
+                                      Capsule(a=(0.1, 0.2, 0.3), b=(0.7, 0.1, 0.3), radius=0.3, stiffness=3.0, law="penalty")],
                          ids=["sphere", "plane", "capsule"])
 def test_collider_numbers_follow_the_positions_dtype(collider):
     """The colliders' Python-number parameters are used in the positions' dtype: float64 energies match a float64
     evaluation of the signed distance, float32 positions give float32 results."""
     x = _shell((0.1, 0.2, 0.3), 0.7, 50, 0.1)
-    s = collider.margin - collider.depth(x)
+    s = collider.signed_distance(x)
+    assert collider.margin is not None and collider.stiffness is not None
     if isinstance(collider, Sphere):
         ref_s = (x - torch.tensor(collider.center, dtype=F64)).norm(dim=-1) - collider.radius
     elif isinstance(collider, Plane):

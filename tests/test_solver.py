@@ -111,8 +111,9 @@ def test_viscous_bending_damping_enters_the_step():
 
 def test_colliders_derivatives_match_autograd():
     x = torch.randn(50, 3, dtype=F64) * 0.5
-    for c in (Sphere((0.1, 0.0, 0.0), 0.4, stiffness=100.0, margin=0.05), Plane((0, 0, 0.1), (0, 1, 1), stiffness=50.0),
-              Capsule((-0.3, 0, 0), (0.3, 0.1, 0), 0.3, stiffness=70.0)):
+    for c in (Sphere((0.1, 0.0, 0.0), 0.4, stiffness=100.0, margin=0.05, law="penalty"),
+              Plane((0, 0, 0.1), (0, 1, 1), stiffness=50.0, law="penalty"),
+              Capsule((-0.3, 0, 0), (0.3, 0.1, 0), 0.3, stiffness=70.0, law="penalty")):
         y = x.clone().requires_grad_()
         (g,) = torch.autograd.grad(c.energy(y), y)
         assert float((c.gradient(x) - g).norm()) <= 1e-12 * max(float(g.norm()), 1.0)
@@ -125,7 +126,7 @@ def test_colliders_derivatives_match_autograd():
 def test_model_tensors_live_on_the_device_of_the_rest_positions():
     rest, faces = tb.scenes.grid(5, 3, (0.2, 0.05), dtype=F64)
     meta = rest.to("meta")  # shapes only: a tensor created on the CPU cannot mix with it
-    colliders = (Sphere((0.1, 0.0, -0.3), 0.3, margin=0.01), Plane((0, 0, -0.1), (0, 0, 1)))
+    colliders = (Sphere((0.1, 0.0, -0.3), 0.3, margin=0.01, law="penalty"), Plane((0, 0, -0.1), (0, 0, 1), law="penalty"))
     x = torch.empty(15, 3, dtype=F64, device="meta")
     for pinned in (None, [0, 5, 10], rest[:, 0] <= 0):
         model = ClothModel(faces, meta, density=0.5, pinned=pinned, colliders=colliders)
@@ -172,7 +173,8 @@ def test_solvers_create_no_tensor_on_a_default_device():
 def test_collider_hessian_is_block_diagonal():
     rest, faces = tb.scenes.grid(8, 5, (1.0, 1.0), dtype=F64)
     x = rest + 0.3 * torch.randn_like(rest)
-    colliders = (Sphere((0.5, 0.5, 0.0), 0.4, stiffness=100.0, margin=0.05), Capsule((0, 0, 0), (1, 1, 0), 0.3, stiffness=70.0))
+    colliders = (Sphere((0.5, 0.5, 0.0), 0.4, stiffness=100.0, margin=0.05, law="penalty"),
+                 Capsule((0, 0, 0), (1, 1, 0), 0.3, stiffness=70.0, law="penalty"))
     model = ClothModel(faces, rest, colliders=colliders)
     for option in (Projection.NONE, Projection.CLAMP):
         H = model.hessian(x, option)

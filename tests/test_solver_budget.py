@@ -110,7 +110,7 @@ def _tube_on_capsule() -> tuple[tb.ClothModel, torch.Tensor]:
     rest, faces = tb.mesh.clean(rest, f)[:2]
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(2e5, 5e-4, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
-    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04)
+    arm = tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04, law="penalty")
     return tb.ClothModel(faces, rest, bending=bend, membrane=mem, colliders=[arm], density=0.2), rest
 
 
@@ -134,7 +134,7 @@ def test_an_impact_step_with_an_indefinite_exact_hessian_takes_the_clamped_direc
     bend = tb.BendingEnergy(faces, rest, model="quadratic", stiffness=tb.stiffness_from_material(2e5, 5e-4, 0.3))
     mem = tb.MembraneEnergy(faces, rest, model="stvk", young=2e5, poisson=0.3, thickness=5e-4)
     model = tb.ClothModel(faces, rest, bending=bend, membrane=mem, density=0.2,
-                          colliders=[tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04)])
+                          colliders=[tb.Capsule((-0.1, 0.0, 0.0), (0.4, 0.0, 0.0), radius=0.04, law="penalty")])
     methods: list = []
     real = newton._Potential.direct_direction
 

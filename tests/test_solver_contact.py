@@ -48,9 +48,9 @@ def sampled_impact(c, x, dx, tau, n=20001, t_end=1.2):
     return torch.where(first < n, t[first.clamp(max=n - 1)], torch.full_like(first, math.inf, dtype=F64))
 
 
-COLLIDERS = [Sphere((0.1, -0.2, 0.05), 0.6, stiffness=100.0, margin=0.02),
-             Plane((0.0, 0.0, -0.1), (0.3, -0.2, 1.0)),
-             Capsule((-0.5, 0.1, 0.0), (0.4, -0.3, 0.2), 0.35, stiffness=70.0)]
+COLLIDERS = [Sphere((0.1, -0.2, 0.05), 0.6, stiffness=100.0, margin=0.02, law="penalty"),  # a penalty: the allowed depth
+             Plane((0.0, 0.0, -0.1), (0.3, -0.2, 1.0), law="penalty"),
+             Capsule((-0.5, 0.1, 0.0), (0.4, -0.3, 0.2), 0.35, stiffness=70.0, law="penalty")]
 
 
 def random_segments(c, V=300, seed=0):
@@ -98,7 +98,7 @@ def test_max_step_matches_dense_sampling(collider, tau):
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_vertex_aimed_through_a_sphere_stops_before_it(dtype):
-    sphere = Sphere((0.0, 0.0, 0.0), 1.0)
+    sphere = Sphere((0.0, 0.0, 0.0), 1.0, law="penalty")
     x = torch.tensor([[0.0, 0.0, 2.0],     # aimed straight through the centre
                       [0.0, 0.0, 1.0],     # on the surface, moving in
                       [0.0, 0.0, 1.0],     # on the surface, moving tangentially
@@ -120,7 +120,7 @@ def test_vertex_aimed_through_a_sphere_stops_before_it(dtype):
 
 
 def test_max_step_bad_input():
-    sphere = Sphere((0.0, 0.0, 0.0), 1.0)
+    sphere = Sphere((0.0, 0.0, 0.0), 1.0, law="penalty")
     x = torch.zeros(4, 3, dtype=F64)
     with pytest.raises(ValueError, match="dx must have the shape of x"):
         sphere.max_step(x, torch.zeros(3, 3, dtype=F64), depth=0.1)
@@ -141,8 +141,8 @@ def test_model_max_step_is_the_minimum_over_colliders():
     dx = torch.randn_like(x, generator=torch.Generator().manual_seed(1)) * 0.5
     free = ClothModel(faces, rest)
     assert free.max_step(x, dx) == 1.0 and free.max_step(x, 1e6 * dx) == 1.0
-    colliders = (Sphere((0.0, 0.0, 0.0), 0.3), Plane((0.0, 0.0, -0.1), (0.0, 0.0, 1.0)),
-                 Capsule((-0.5, 0.0, 0.0), (0.5, 0.0, 0.1), 0.1))
+    colliders = (Sphere((0.0, 0.0, 0.0), 0.3, law="penalty"), Plane((0.0, 0.0, -0.1), (0.0, 0.0, 1.0), law="penalty"),
+                 Capsule((-0.5, 0.0, 0.0), (0.5, 0.0, 0.1), 0.1, law="penalty"))
     model = ClothModel(faces, rest, colliders=colliders)
     # a 6x6 grid over 1 m: the rest edges are 0.2 m long (the diagonals 0.2 sqrt 2)
     assert 0.2 < model.contact_depth / ClothModel.CONTACT_DEPTH < 0.2 * math.sqrt(2)
@@ -152,8 +152,11 @@ def test_model_max_step_is_the_minimum_over_colliders():
     assert ClothModel(faces, rest, colliders=colliders, contact_depth=0.05).contact_depth == 0.05
 
 
-def drape_model(n=11):
+def drape_model(n=11, law=None):
+    """The cloth_sphere drape at ``n x n``; ``law`` (e.g. "penalty"): the sphere's contact law instead of the config's."""
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    if law is not None:
+        cfg["colliders"][0]["law"] = law
     model, x0, _ = build_scene(cfg, resolution=(n, n))
     return model, x0
 
@@ -224,7 +227,7 @@ def test_large_time_step_does_not_tunnel(monkeypatch):
 
 def test_contact_projection_of_the_model_hessian():
     """``contact=`` projects the collider blocks alone: the bending/membrane part stays exact."""
-    model, x0 = drape_model(6)
+    model, x0 = drape_model(6, law="penalty")  # vertices inside the sphere
     x = x0 + 0.05 * torch.randn_like(x0, generator=torch.Generator().manual_seed(2))
     x[:, 2] = x[:, 2] - 0.1  # the vertices near the top inside the sphere (up to ~8 cm deep)
     sphere = model.colliders[0]
@@ -269,7 +272,7 @@ def test_escape_and_roundoff_steps_respect_the_bound():
     straight down."""
     cloth, faces = tb.scenes.grid(5, 5, (0.4, 0.4), dtype=F64)
     cloth = cloth + torch.tensor([0.0, 0.0, 0.01], dtype=F64)
-    plane = Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1e-3)
+    plane = Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1e-3, law="penalty")
     model = ClothModel(faces, cloth, density=0.2, pinned=[0], colliders=[plane])
     phi = newton._Potential(model, cloth, tb.Projection.NONE)
     gf = phi.free_gradient(cloth)

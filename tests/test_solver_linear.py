@@ -10,7 +10,7 @@ import scipy.sparse as sp
 import torch
 from torch.overrides import TorchFunctionMode
 
-from torchbend import ClothModel, ClothState, implicit_euler_step, solve_static
+from torchbend import ClothModel, ClothState, Sphere, implicit_euler_step, solve_static
 from torchbend.options import Projection
 from torchbend.scenes.config import build_scene, load_config
 from torchbend.sim import linear, newton
@@ -294,8 +294,9 @@ def test_cg_iteration_bound():
 def drape_model(n=7):
     cfg = load_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
     scene, x0, faces = build_scene(cfg, resolution=(n, n))
+    sphere = scene.colliders[0]  # with a penalty, so that vertices moved into the sphere give collider blocks
     model = ClothModel(faces, x0, bending=scene.bending, membrane=scene.membrane, pinned=[0, n - 1],
-                       colliders=scene.colliders)
+                       colliders=[Sphere(sphere.center, sphere.radius, law="penalty", margin=0.01)])
     return model, x0
 
 

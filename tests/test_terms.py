@@ -159,7 +159,7 @@ def test_terms_argument_is_checked():
     with pytest.raises(ValueError, match=r"the name 'gravity' .* is already taken"):
         tb.ClothModel(faces, rest, terms=[b])
     # the shorthands and terms= build the same model
-    sphere = tb.Sphere((0, 0, -1), 0.5)
+    sphere = tb.Sphere((0, 0, -1), 0.5, stiffness=1.0)  # a stiffness given: the model keeps the collider itself
     m1 = tb.ClothModel(faces, rest, terms=[mem, bend, sphere])
     m2 = tb.ClothModel(faces, rest, membrane=mem, bending=bend, colliders=[sphere])
     assert [t.name for t in m1.terms] == [t.name for t in m2.terms] == ["membrane", "bending", "gravity", "collider0"]
@@ -182,7 +182,7 @@ def test_cloth_loss_of_the_model_terms_is_the_model_potential():
     """``model.loss()`` composes the model's own term objects over a batch: per sample, its values are the
     model's energies and its total the potential, and its autograd gradient is the model's gradient."""
     model, rest, springs = springs_model()
-    model.colliders = (tb.Sphere((0.15, 0.15, -0.3), 0.3),)
+    model.colliders = (tb.Sphere((0.15, 0.15, -0.3), 0.3, law="penalty"),)  # finite for every sample
     gen = torch.Generator().manual_seed(3)
     x = rest + 0.01 * torch.randn((4, *rest.shape), generator=gen, dtype=F64)
     loss = model.loss(reduction="none")
@@ -209,7 +209,7 @@ def test_projection_keyword_and_its_deprecated_alias():
     rest, faces, mem, bend = sheet()
     x = rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
     v = torch.randn_like(x)
-    sphere = tb.Sphere((0.15, 0.15, -0.2), 0.25)
+    sphere = tb.Sphere((0.15, 0.15, -0.2), 0.25, law="penalty")
     calls = [(bend.hessian, (x,), "BendingEnergy.hessian"), (bend.hvp, (x, v), "BendingEnergy.hvp"),
              (bend.hinge_hessians, (x,), "BendingEnergy.hinge_hessians"),
              (mem.hessian, (x,), "MembraneEnergy.hessian"), (mem.hvp, (x, v), "MembraneEnergy.hvp"),

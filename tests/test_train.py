@@ -427,3 +427,13 @@ def test_the_skirt_check_solves_with_the_pins_of_training():
     assert torch.equal(m.pinned, physics.pinned)
     assert [type(c).__name__ for c in m.colliders] == ["Sphere"]  # the hips under the contact law, no ground
     assert m.colliders[0].contact == physics.contact.contact_law()
+
+
+def test_training_refuses_a_collider_with_the_ipc_law(tiny):
+    # a network's prediction may lie inside a body, where the (default) ipc barrier of the solver is infinite
+    cfg = load_config(tiny, drape_net.Config)
+    cfg["colliders"] = [{"type": "plane", "point": [0.0, 0.0, -0.4]}]
+    with pytest.raises(common.ConfigError, match=r"colliders\[0\].law': a training loss needs a law that is finite"):
+        ClothPhysics(cfg)
+    cfg["colliders"][0]["law"] = "penalty"
+    assert ClothPhysics(cfg).solver_model.colliders[0].stiffness == 1e4

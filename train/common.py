@@ -150,6 +150,10 @@ class ClothPhysics:
             rest, faces = mesh[0].to(dtype=dtype, device=device), mesh[1].to(device)
             self.pinned = None
         self.cfg, self.rest, self.faces = cfg, rest, faces
+        for i, c in enumerate(cfg.colliders):
+            if c.law == "ipc":  # a network's prediction may lie inside a body, where the log barrier is infinite
+                raise ConfigError(f"config key 'colliders[{i}].law': a training loss needs a law that is finite inside "
+                                  f"the collider (penalty or barrier), got ipc")
         self.solver_model = build_model(cfg, mesh=(rest, faces), pinned=self.pinned, dtype=dtype, device=device)
         modules: dict = {t.name: TermLoss(t) for t in self.solver_model.terms}
         self.contact = None

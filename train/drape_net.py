@@ -107,7 +107,7 @@ class Config(sc.PhysicsConfig):
     material: sc.MaterialSection = sc.MaterialSection(young=2e4, poisson=0.3, thickness=1e-3, density=0.2)
     bending: sc.BendingSection | None = sc.BendingSection(model="tan", stiffness=1e-4)
     membrane: sc.MembraneSection | None = sc.MembraneSection()
-    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, -0.4), stiffness=2e3)]
+    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, -0.4), stiffness=2e3, law="penalty")]
     contact: sc.ContactSection | None = sc.ContactSection(stiffness=2e3)
     scene: SceneSection = SceneSection()
     model: tc.ModelSection = tc.ModelSection()

@@ -59,7 +59,7 @@ class Config(sc.PhysicsConfig):
     material: sc.MaterialSection = sc.MaterialSection(young=1e5, poisson=0.3, thickness=1e-3, density=0.2)
     bending: sc.BendingSection | None = sc.BendingSection(model="sin", stiffness=1e-4)
     membrane: sc.MembraneSection | None = sc.MembraneSection()
-    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, 0.0), stiffness=1e3)]
+    colliders: list[sc.ColliderSpec] = [sc.PlaneSpec(type="plane", point=(0.0, 0.0, 0.0), stiffness=1e3, law="penalty")]
     robot: PoseSection = PoseSection()
     model: tc.ModelSection = tc.ModelSection()
     train: TrainSection = TrainSection()

@@ -1,12 +1,25 @@
 r"""Rigid colliders with a smooth one-sided contact potential (analytic gradient and Hessian).
 
-Each collider has a signed distance ``s(x)`` (positive outside) and penalises every vertex closer
-than ``margin`` by a contact law of :mod:`torchbend.energies.contact` (``law="penalty"``, the default, or
-``"barrier"`` with ``power``)::
+Each collider has a signed distance ``s(x)`` (positive outside) and acts on every vertex closer than
+``margin`` by a contact law of :mod:`torchbend.energies.contact`: ``law="ipc"``, the default, the log
+barrier of Incremental Potential Contact, infinite on the surface, so that the cloth never touches it;
+``"penalty"`` or ``"barrier"`` (with ``power``), which let a vertex sink into the collider::
 
-    E = sum_i  phi(d_i),   d_i = margin - s(x_i),   penalty: phi = k/2 max(0, d)^2  [J],  k = stiffness [N/m]
+    E = sum_i  phi(d_i),   d_i = margin - s(x_i)
+    ipc:      phi = -k d^2 log(1 - d / margin)  [J],  k = stiffness [J/m^2],  margin = dhat (default 1 mm)
+    penalty:  phi = k/2 max(0, d)^2             [J],  k = stiffness [N/m]    (default 1e4; margin default 0)
 
     grad_i = -phi'(d_i) grad s,          Hess_i = phi''(d_i) grad s grad s^T  -  phi'(d_i) Hess s
+
+The ipc law's default ``stiffness=None`` is chosen by the :class:`~torchbend.ClothModel` the collider is
+given to (:meth:`Collider.with_weight`): ten times the cloth's mean vertex weight is held at the gap
+``margin / 2``, i.e. ``k = 10 m g / ((1/2 + ln 2) margin)``; a cloth resting on the collider then keeps a
+gap of about ``0.8 margin``, a vertex pressed harder comes closer (the barrier's force grows without bound
+as the gap closes), and a collider used on its own needs a ``stiffness``.  The ipc law is C2 where a vertex
+comes within ``margin``, so the Newton model sees a contact before it is made (the penalty's curvature jumps
+from 0 to ``k`` at the surface, which makes a damped Newton solve chatter on an active set).  A law that
+lets a vertex inside (``penalty``, ``barrier``) is what the training losses need, where a network's
+prediction may lie inside a body.
 
 ``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
 term ``-phi'(d) Hess s`` is negative semi-definite; every projection but ``none``
@@ -26,9 +39,10 @@ and, for the sphere and the capsule, at most ``(R + d)/2`` (half way from the cu
 centre or the axis, ``R`` the radius): a vertex outside the surface may sink at most ``tau`` below it
 in one step, one inside may at most double its depth (plus ``tau``) and never reaches the centre or
 the axis, where the penalty's normal flips and a vertex would be pushed out through the far side.
-A zero ``tau`` (a barrier exactly at the surface) is not offered: a penalty acts only below
-``s = margin``, and with the usual ``margin = 0`` a vertex that may never cross the surface never
-feels the collider, so the solver would stall above it.  The doubling lets a vertex reach any
+For the ipc law (infinite on the surface) ``tau`` is zero: a step
+carries no vertex beyond ``safety`` of the way to the surface.  For a penalty a zero ``tau`` is not
+offered: a penalty acts only below ``s = margin``, and with ``margin = 0`` a vertex that may never
+cross the surface never feels the collider, so the solver would stall above it.  The doubling lets a vertex reach any
 equilibrium depth in a few steps while no step can tunnel.  Plane: a linear equation; sphere: a
 quadratic; capsule: the union of an infinite-cylinder quadratic (hits whose axial coordinate lies on
 the segment) and the two end-sphere quadratics, exact.  Roots use the cancellation-free form
@@ -36,6 +50,7 @@ the segment) and the two end-sphere quadratics, exact.  Roots use the cancellati
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -53,38 +68,76 @@ __all__ = ["Sphere", "Plane", "Capsule", "Collider"]
 @dataclass(frozen=True, kw_only=True)
 class Collider:
     """Base of the rigid colliders: a signed distance and the one-sided contact potential on it, with
-    ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier, [J/m^2] for ipc), ``margin`` [m]
-    (>= 0), ``law`` (``"penalty"``, ``"barrier"`` or ``"ipc"``, :mod:`torchbend.energies.contact`), ``power``
+    ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier, [J/m^2] for ipc; None: 1e4 for the penalty
+    and the barrier, chosen from the cloth's weight by a model for ipc), ``margin`` [m] (>= 0; ipc's activation
+    distance, > 0; None: ``DEFAULT_MARGIN`` for ipc, 0 otherwise), ``law`` (``"ipc"``, the default, ``"penalty"`` or
+    ``"barrier"``, :mod:`torchbend.energies.contact`), ``power``
     (the barrier's, default 3), ``friction`` (the Coulomb coefficient ``mu`` >= 0 of time steps, lagged and
     smoothed below the sliding speed ``eps_v`` [m/s], :mod:`torchbend.energies.friction`) as keyword arguments of
     every collider."""
 
-    stiffness: float = 1e4
-    margin: float = 0.0
-    law: str = "penalty"
+    stiffness: float | None = None
+    margin: float | None = None
+    law: str = "ipc"
     power: float | None = None
     friction: float = 0.0
     eps_v: float = 1e-3
-    _contact: ClassVar[ContactLaw]  # set by _check_penalty (not a field)
+    _contact: ClassVar[ContactLaw | None]  # set by _check_penalty (not a field)
+
+    DEFAULT_MARGIN: ClassVar[float] = 1e-3
+    """The ipc law's default activation distance ``margin`` [m]."""
+    DEFAULT_STIFFNESS: ClassVar[float] = 1e4
+    """The penalty's and the barrier's default stiffness ([N/m], [J/m^p])."""
+    WEIGHT_FACTOR: ClassVar[float] = 10.0
+    """The ipc law's chosen stiffness holds this many mean vertex weights at the gap ``margin / 2``."""
 
     def _check_penalty(self) -> None:
-        """Validate (and store as floats) ``stiffness`` (> 0), ``margin`` (>= 0), ``law`` and ``power``."""
+        """Validate (and store as floats) ``stiffness`` (> 0), ``margin`` (>= 0), ``law`` and ``power``; fill the
+        law's defaults (an ipc stiffness None stays None until :meth:`with_weight`)."""
         name = type(self).__name__
-        object.__setattr__(self, "stiffness", positive(self.stiffness, f"{name}.stiffness"))
-        object.__setattr__(self, "margin", nonnegative(self.margin, f"{name}.margin"))
+        ipc = self.law == "ipc"
+        margin = (self.DEFAULT_MARGIN if ipc else 0.0) if self.margin is None else self.margin
+        object.__setattr__(self, "margin", nonnegative(margin, f"{name}.margin"))
+        stiffness = self.stiffness
+        if stiffness is None and not ipc:
+            stiffness = self.DEFAULT_STIFFNESS
+        if stiffness is not None:
+            object.__setattr__(self, "stiffness", positive(stiffness, f"{name}.stiffness"))
         object.__setattr__(self, "friction", nonnegative(self.friction, f"{name}.friction"))
         object.__setattr__(self, "eps_v", positive(self.eps_v, f"{name}.eps_v"))
-        try:
-            law = contact_law(self.law, self.stiffness, self.power, margin=self.margin)
+        try:  # the law is checked even before its stiffness is known
+            law = contact_law(self.law, 1.0 if stiffness is None else stiffness, self.power, margin=self.margin)
         except ValueError as e:
             raise ValueError(f"{name}: {e}") from None
         object.__setattr__(self, "power", law.power)
-        object.__setattr__(self, "_contact", law)  # built once: every energy, gradient and Hessian uses it
+        # built once: every energy, gradient and Hessian uses it
+        object.__setattr__(self, "_contact", None if stiffness is None else law)
 
     @property
     def contact(self) -> ContactLaw:
-        """The collider's contact law (:mod:`torchbend.energies.contact`)."""
+        """The collider's contact law (:mod:`torchbend.energies.contact`); a ``ValueError`` for an ipc collider
+        whose stiffness is still to be chosen by a model."""
+        if self._contact is None:
+            raise ValueError(f"{type(self).__name__}: stiffness=None: the ipc law's stiffness is chosen from the "
+                             f"cloth's weight by the ClothModel the collider is given to (model.colliders holds the "
+                             f"chosen one); give stiffness= [J/m^2] to use the collider on its own")
         return self._contact
+
+    def stiffness_for(self, weight: float) -> float:
+        """The ipc stiffness [J/m^2] that holds ``WEIGHT_FACTOR * weight`` [N] at the gap ``margin / 2``
+        (``-phi'`` there is ``(1/2 + ln 2) k margin``)."""
+        assert self.margin is not None
+        return self.WEIGHT_FACTOR * weight / ((0.5 + math.log(2.0)) * self.margin)
+
+    def with_weight(self, weight: float) -> Collider:
+        """This collider, with its stiffness chosen for a mean vertex weight ``weight`` [N] (> 0) when it is None
+        (the ipc law's default; :meth:`stiffness_for`), else itself."""
+        if self.stiffness is not None:
+            return self
+        return self._replace(stiffness=self.stiffness_for(positive(weight, "weight")))
+
+    def _replace(self, **changes) -> Collider:
+        return dataclasses.replace(self, **changes)
 
     def _sd(self, x: Tensor):  # pragma: no cover - abstract
         """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
@@ -92,7 +145,12 @@ class Collider:
 
     def depth(self, x: Tensor) -> Tensor:
         """Penetration depth ``margin - s(x)`` ``(V,)`` [m] (positive = inside the margin)."""
+        assert self.margin is not None  # filled by the validation
         return self.margin - self._sd(x)[0]
+
+    def signed_distance(self, x: Tensor) -> Tensor:
+        """The signed distance ``s(x)`` [m] of ``x (..., 3)`` from the surface (positive outside): ``(...,)``."""
+        return self._sd(x.reshape(-1, 3))[0].reshape(x.shape[:-1])
 
     def energy(self, x: Tensor) -> Tensor:
         """The contact energy [J] of ``x (..., V, 3)`` [m]: ``(...,)``."""
@@ -263,13 +321,18 @@ class _TensorCapsule(Capsule):
 
     ends: tuple[Tensor, Tensor]
 
-    def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float, margin: float, law: str = "penalty",
+    def __init__(self, a: Tensor, b: Tensor, *, radius: float, stiffness: float | None, margin: float | None,
+                 law: str = "ipc",
                  power: float | None = None, friction: float = 0.0, eps_v: float = 1e-3):
         # an end point given as Python numbers is kept in float64 (cast to the positions' dtype per call)
         a, b = (e if isinstance(e, Tensor) else torch.as_tensor(e, dtype=torch.float64) for e in (a, b))
         super().__init__(a=tuple(a.detach().tolist()), b=tuple(b.detach().tolist()), radius=radius, stiffness=stiffness,
                          margin=margin, law=law, power=power, friction=friction, eps_v=eps_v)
         object.__setattr__(self, "ends", (a, b))
+
+    def _replace(self, **changes) -> Collider:
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("a", "b")}
+        return _TensorCapsule(*self.ends, **{**kw, **changes})
 
     def _ends(self, x: Tensor) -> tuple[Tensor, Tensor]:
         a, b = self.ends

@@ -6,7 +6,7 @@ offset by ``margin`` (``s`` the signed distance, positive outside), zero for ``d
 second derivatives in closed form:
 
 * :class:`Penalty` (``"penalty"``): ``phi = k/2 max(0, d)^2``, ``k`` [N/m]; the force ``k d`` grows linearly
-  with the depth (the solver's colliders by default);
+  with the depth (the training losses' usual law; a solver's collider with ``law="penalty"``);
 * :class:`PowerBarrier` (``"barrier"``): ``phi = k max(0, d)^p``, ``k`` [J/m^p], ``p > 1`` (default 3): HOOD's
   and SNUG's collision term ``k max(0, eps - s)^3`` with ``margin = eps`` a few millimetres;
 * :class:`LogBarrier` (``"ipc"``): the barrier of Incremental Potential Contact on the gap ``s`` with the
@@ -14,7 +14,7 @@ second derivatives in closed form:
   i.e. ``-k d^2 log(1 - d / dhat)``, ``k`` [J/m^2]: zero with its first two derivatives where a point comes
   within ``dhat`` (C2: the Newton model sees a contact before it is made, where the penalty's curvature jumps
   from 0 to ``k``), convex, and infinite on the surface (``s <= 0``), which a point never reaches: the
-  colliders' step bound keeps every step of a solve outside (``bounded``).
+  colliders' step bound keeps every step of a solve outside (``bounded``).  The solver's colliders' default.
 
 ``p = 2`` and ``k_barrier = k_penalty / 2`` is the same potential.  A colliding point's energy, gradient and
 Hessian follow by the chain rule from ``s``'s gradient (the unit normal ``n``) and Hessian::

@@ -6,7 +6,7 @@ For cloth positions ``x (B, V, 3)`` [m] and every contact source::
     E = sum_i phi(eps - s_i),    phi(d) = k max(0, d)^p   [J],   k = stiffness [J/m^p], p = power (default 3)
 
 the power barrier of :mod:`torchbend.energies.contact` (``law="barrier"``; ``law="penalty"`` is
-``k/2 max(0, d)^2``, the solver colliders' default: the same module serves both)
+``k/2 max(0, d)^2``, a solver collider's ``law="penalty"``: the same module serves both)
 
 with ``s_i`` the signed distance of cloth vertex ``i`` from the body (positive outside):
 
@@ -21,8 +21,8 @@ with ``s_i`` the signed distance of cloth vertex ``i`` from the body (positive o
   and ``law`` are not used: this term's law is);
 * per-sample spheres ``sphere_center (B, 3)``, ``sphere_radius (B,)``: ``s_i = |x_i - c| - r``.
 
-``law="penalty", eps=0`` and ``stiffness = k_c`` give the quadratic penalty ``k_c/2 max(0, -s)^2`` of the
-solver's colliders (as ``power=2`` with ``stiffness = k_c / 2`` does).
+``law="penalty", eps=0`` and ``stiffness = k_c`` give the quadratic penalty ``k_c/2 max(0, -s)^2`` of a
+solver collider with ``law="penalty"`` (as ``power=2`` with ``stiffness = k_c / 2`` does).
 """
 from __future__ import annotations
 
@@ -160,7 +160,7 @@ class BodyContact(LossTerm):
         elif body is not None:
             raise ValueError(f"{name}: a body was given but the term has no body_faces")
         for c in self.colliders:
-            s = c.margin - c.depth(x.reshape(-1, 3)).reshape(x.shape[:-1])
+            s = c.signed_distance(x)
             out = out + self._penalty(s)
             sources += 1
         if (sphere_center is None) != (sphere_radius is None):

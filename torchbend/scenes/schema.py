@@ -290,7 +290,7 @@ class ContactSection(Section):
             raise ValueError("the penalty law has power 2: give law: barrier for another power")
         if self.law == "ipc" and self.power is not None:
             raise ValueError("the ipc law has no power (it is C2 where a point comes within margin)")
-        if self.law == "ipc" and not self.margin > 0:
+        if self.law == "ipc" and self.margin is not None and not self.margin > 0:
             raise ValueError("the ipc law needs margin > 0 (its activation distance) [m]")
         return self
 
@@ -309,8 +309,13 @@ class SelfContactSection(Section):
 
 class _ColliderSpec(ContactSection):
     """A collider's contact law and its ``friction`` (Coulomb's ``mu`` >= 0, time steps only) smoothed below the
-    sliding speed ``eps_v`` [m/s] (:mod:`torchbend.energies.friction`)."""
+    sliding speed ``eps_v`` [m/s] (:mod:`torchbend.energies.friction`).  The solver's colliders default to the
+    ``ipc`` law (:class:`~torchbend.energies.colliders.Collider`): ``margin`` absent is 1 mm, ``stiffness`` absent
+    is chosen from the cloth's weight (for ``penalty`` and ``barrier``: 0 and 1e4)."""
 
+    stiffness: Positive | None = None  # pyright: ignore[reportIncompatibleVariableOverride]
+    margin: NonNegative | None = None  # pyright: ignore[reportIncompatibleVariableOverride]
+    law: Literal["penalty", "barrier", "ipc"] = "ipc"
     friction: NonNegative = 0.0
     eps_v: Positive = 1e-3
 
@@ -447,7 +452,7 @@ class LinkCapsuleSpec(Section):
     a: Vec3 = (0.0, 0.0, 0.0)
     b: Vec3 = (0.1, 0.0, 0.0)
     radius: Positive = 0.02
-    stiffness: Positive = 1e4
+    stiffness: Positive = 1e4  # the penalty's [N/m]: a moving link keeps the penalty law (LinkCapsule)
     margin: NonNegative = 0.0
 
 

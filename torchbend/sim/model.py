@@ -218,13 +218,35 @@ class ClothModel(TermSum):
         self.density = density
         self.gravity = torch.tensor(_gravity(gravity), dtype=rest.dtype, device=rest.device)
         self.pinned = _pinned_mask(pinned, V, rest.device)
-        self.colliders = _check_colliders(colliders)
         self.mass = density * lumped_areas(topo.faces.to(rest.device), rest)
+        self.colliders = colliders
         for t in extra:  # terms over the mesh itself (self-contact) take it from the model
             bind = getattr(t, "bind", None)
             if callable(bind):
                 bind(topo, rest, self.mass)
         self._contact_depth = None if contact_depth is None else positive(contact_depth, "contact_depth")
+
+    @property
+    def colliders(self) -> tuple:
+        """The colliders (class docstring), an ipc collider's ``stiffness=None`` replaced by the one chosen from
+        :meth:`vertex_weight` (:meth:`Collider.with_weight <torchbend.energies.colliders.Collider.with_weight>`)."""
+        return self._colliders
+
+    @colliders.setter
+    def colliders(self, colliders) -> None:
+        colliders = _check_colliders(colliders)
+        if any(c.stiffness is None for c in colliders) and self.mass.device.type != "meta":
+            w = self.vertex_weight()
+            colliders = tuple(c.with_weight(w) for c in colliders)
+        self._colliders = colliders
+
+    def vertex_weight(self) -> float:
+        """The mean vertex weight ``|g| mean(m)`` [N] (with ``|g| = 9.81`` m/s^2 under no gravity): the scale the
+        contact terms choose their default stiffness from."""
+        g = float(self.gravity.norm())
+        m = float(self.mass.mean()) if self.mass.numel() else 0.0
+        w = (g if g > 0 else 9.81) * m
+        return w if w > 0 else 1.0
 
     CONTACT_DEPTH = 0.01
     """Default :attr:`contact_depth` relative to the mean rest edge length."""
