@@ -74,6 +74,28 @@ def test_direct_solve_indefinite_falls_back_to_lu_and_shifts(cholesky):
     assert descent and non_descent  # both branches were exercised
 
 
+def test_direct_solve_stops_at_an_indefinite_matrix_when_asked():
+    """``indefinite_stop=True`` (a time step that takes the clamped Hessian's direction instead): the first,
+    unshifted solution comes back with ``positive_definite=False`` and no shifted retries, descent or not;
+    a positive definite matrix is solved as without it."""
+    n = 24
+    A = random_symmetric(n, np.r_[-2.0, -0.5, np.linspace(1.0, 10.0, n - 2)], seed=3)
+    rng = np.random.default_rng(4)
+    retried = 0
+    for _ in range(10):
+        b = rng.standard_normal(n)
+        retried += linear.direct_solve(A, b).shifts > 0
+        res = linear.direct_solve(A, b, indefinite_stop=True)
+        assert res.positive_definite is False and res.shifts == 0
+        np.testing.assert_allclose(res.p, np.linalg.solve(A.toarray(), b), rtol=1e-8)
+    assert retried  # without it, some of these were retried with shifts
+    P = random_symmetric(n, np.linspace(1.0, 10.0, n), seed=5)
+    b = rng.standard_normal(n)
+    res = linear.direct_solve(P, b, indefinite_stop=True)
+    assert res.positive_definite is True and res.shifts == 0
+    np.testing.assert_allclose(res.p, np.linalg.solve(P.toarray(), b), rtol=1e-10)
+
+
 def test_lu_inertia_flag_matches_eigenvalues():
     rng = np.random.default_rng(5)
     for seed in range(12):

@@ -347,7 +347,7 @@ def _ldlt_solve(factor: pardiso.SymmetricFactor, A: sp.csr_matrix, rhs: np.ndarr
 
 
 def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = False,
-                 factor: pardiso.SymmetricFactor | None = None) -> DirectResult:
+                 factor: pardiso.SymmetricFactor | None = None, indefinite_stop: bool = False) -> DirectResult:
     """Solve ``A p = rhs`` for a descent direction (``rhs . p > 0``, ``rhs = -gradient``).
 
     ``A``: ``scipy.sparse`` ``(n, n)`` symmetric, ``rhs``: ``(n,)``.  With ``factor`` (a
@@ -360,7 +360,9 @@ def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = F
     singular matrix, a non-finite solution or one that is not a descent direction is retried with the
     Levenberg shift ``A + mu I``, ``mu = 1e-8 max|diag A|`` growing tenfold (at most ``max_shifts`` tries;
     then the steepest-descent direction ``rhs`` itself).  Returns a :class:`DirectResult`; its
-    ``positive_definite`` is that of the unshifted ``A``."""
+    ``positive_definite`` is that of the unshifted ``A``.  ``indefinite_stop``: return at once (the first
+    solution, unshifted, or ``rhs``) when the first factorisation finds ``A`` not positive definite, for a
+    caller that then takes another matrix's direction (no shifted retries spent on it)."""
     n = A.shape[0]
     use_chol = bool(cholesky) and has_cholespy()
     if factor is not None:
@@ -383,6 +385,8 @@ def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = F
             method, pd = "lu", (False if use_chol else lu_pd)
         if tries == 0:
             definite = pd
+            if indefinite_stop and pd is False:
+                return DirectResult(rhs.copy() if p is None else p, 0, False, method)
         if p is not None and np.all(np.isfinite(p)) and float(rhs @ p) > 0:
             return DirectResult(p, tries, definite, method)
         shift = max(shift * 10, 1e-8 * diag_scale)

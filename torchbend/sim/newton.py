@@ -237,6 +237,7 @@ class _Potential:
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
         self.linear_seconds = 0.0  # in the linear solves, all directions (SolveInfo.linear_seconds)
+        self.skip_exact = False  # a time step's exact Hessian was just indefinite: the next direction is clamped's
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
         # Levenberg-Marquardt damping by the lumped masses (static solves only: a step has its inertia)
         mass_free = model.mass.to(x.device).repeat_interleave(3)[self.free_mask]
@@ -320,20 +321,33 @@ class _Potential:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
         sparse Cholesky first if ``linear.cholesky``); ``(p, Levenberg shifts)``; sets
         ``positive_definite`` and ``linear_method``."""
-        def solve(A: Tensor):  # an assembled matrix; timed in linear_seconds
+        # an indefinite exact Hessian in a time step gives way to the clamped one (below): no shifted retries
+        clamp_if_indefinite = self.ctx.dynamic and self.option is Projection.NONE
+
+        def solve(A: Tensor, indefinite_stop: bool = False):  # an assembled matrix; timed in linear_seconds
             A_host, factor = self.hessian_op.to_scipy(A), self._factor()  # the factor of A's pattern
             t0 = time.perf_counter()
-            out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor)
+            out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor,
+                               indefinite_stop=indefinite_stop)
             self.linear_seconds += time.perf_counter() - t0
             return out
 
-        res = solve(self.free_hessian(x))
+        if clamp_if_indefinite and self.skip_exact:
+            # the exact Hessian was indefinite at the last iterate: its neighbour's is too, as a rule (a buckle
+            # takes several iterations), so one direction is the clamped one's without the exact attempt
+            self.skip_exact = False
+            clamped = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
+            self.positive_definite, self.negative_curvature = None, None
+            self.linear_method = f"{clamped.method}/clamp"
+            return clamped.p, clamped.shifts
+        res = solve(self.free_hessian(x), indefinite_stop=clamp_if_indefinite)
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
-        if res.positive_definite is False and self.ctx.dynamic and self.option is Projection.NONE:
+        if res.positive_definite is False and clamp_if_indefinite:
             # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction
             # (positive semi-definite elements plus the inertia: definite), not a Levenberg-shifted exact one
             clamped = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
             self.linear_method = f"{clamped.method}/clamp"
+            self.skip_exact = True
             return clamped.p, clamped.shifts + 1
         return res.p, res.shifts
 
