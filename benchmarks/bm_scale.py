@@ -15,6 +15,7 @@ at most V^1.1).  No assertions on time.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import os
 import time
@@ -33,7 +34,8 @@ def warm_state(n: int, warm: int):
     cfg = load_config(CONFIG)
     model, x0, _ = build_scene(cfg, resolution=(n, n))
     dt = cfg["solver"]["dt"]
-    path = f"/tmp/torchbend_bm_scale_{n}_{warm}.pt"
+    key = hashlib.sha1(open(CONFIG, "rb").read()).hexdigest()[:10]  # a changed scene is warmed again
+    path = f"/tmp/torchbend_bm_scale_{n}_{warm}_{key}.pt"
     if os.path.exists(path):
         x, v = torch.load(path)
         return model, tb.ClothState(x, v), dt
