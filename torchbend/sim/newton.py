@@ -960,7 +960,7 @@ _AUTO_FIRST_ITERS = 20
 homotopy takes over (unless the attempt is converging: :func:`_converging`)."""
 _DAMPED_FIRST_FACTOR = 4
 """The first attempt of a damped ``continuation="auto"`` with a collider takes at most this many times ``max_iters``
-iterations (benchmarks/results/garments_cpu_1thread.txt: the garments of benchmarks/garments.py take 50-476 Newton
+iterations (benchmarks/results/garments_penalty_1thread.txt: the garments of benchmarks/garments.py take 50-476 Newton
 iterations in all, where a 20-iteration first attempt handed every one to the homotopy and the relaxation: 200-990;
 without a collider, the softest paper beam, the homotopy is the faster: 53 iterations against 93)."""
 _HOMOTOPY_FACTORS = (1e-3, 1e-1)
