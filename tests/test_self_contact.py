@@ -214,8 +214,8 @@ def test_a_sheet_falls_onto_another_and_rests_apart_in_every_step():
 def test_self_contact_names_what_is_wrong():
     with pytest.raises(ValueError, match="SelfContact: dhat"):
         tb.SelfContact(dhat=0.0)
-    with pytest.raises(ValueError, match="friction between cloth layers is not modelled yet"):
-        tb.SelfContact(friction=0.3)
+    with pytest.raises(ValueError, match="SelfContact: friction must be >= 0"):
+        tb.SelfContact(friction=-0.3)
     with pytest.raises(ValueError, match="has no mesh"):
         tb.SelfContact().energy(torch.zeros(3, 3, dtype=F64), tb.StepContext())
     model, x, sc, V = two_sheets(gap=0.0)  # the sheets touch

@@ -20,7 +20,19 @@ and ``m_B`` cannot meet before ``t = d / (m_A + m_B)``; the bound is ``0.9`` of 
 the pairs within ``dhat`` plus the farthest motion (pairs farther apart cannot meet in the step), at most 1.
 No intersection can appear along a step so bounded (distances stay above a tenth of their start).
 
-Friction between cloth layers is not modelled yet (``friction`` must be 0).
+**Friction** (``friction = mu > 0``, time steps only): IPC's lagged smooth Coulomb friction per pair in
+contact at the step's start ``x_n`` (:meth:`SelfContact.begin_step`).  A pair's closest points are
+``c_A = sum_k w_k x_k`` over side A (the point of a point-triangle pair, the first edge of an edge-edge pair)
+and ``c_B`` over side B, with weights from the gradient of the squared distance ``D``: by the envelope
+theorem ``dD/dx_k = 2 w_k (c_A - c_B)`` (signed weights, ``+`` on side A, ``-`` on side B), so the lagged
+normal is ``n = (sum_A dD/dx_k) / |.|`` and ``w_k = dD/dx_k . n / |sum_A dD/dx_k|``.  The lagged normal force is
+``lam = -b'(D) 2 sqrt(D)`` (times the mollifier of an edge-edge pair).  With the relative displacement
+``delta = sum_k w_k (x_k - x_k^n)`` of the closest points the pair adds ``mu lam f0(|P delta|)``, ``P = I - n n^T``
+(:mod:`torchbend.energies.friction`'s ``f0`` with ``eps = eps_v dt``): Coulomb's ``mu lam`` against the relative
+sliding once it is faster than ``eps_v``.  Its gradient is ``w_k`` times the point friction's and its Hessian
+``w_k w_l`` times the point friction's ``3 x 3`` block, positive semi-definite (no projection needed).  A body
+mesh's vertices (:class:`MeshCollider`) do not move within a step, so a cloth slides on the body as on a
+collider with ``friction=``.
 """
 from __future__ import annotations
 
@@ -30,6 +42,7 @@ import torch
 from torch import Tensor
 
 from .._checks import nonnegative, positive
+from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..ops.distance import (
     PT_E01,
     PT_E12,
@@ -114,7 +127,8 @@ class SelfContact(EnergyTerm):
         dhat: the activation distance [m] (> 0): pairs closer than this repel.
         stiffness: ``kappa`` [J/m^4] of the barrier on squared distances, or None: chosen from the cloth's
             weight when the term joins a :class:`~torchbend.ClothModel`.
-        friction, eps_v: friction between layers (not modelled yet: ``friction`` must be 0).
+        friction: Coulomb's ``mu`` (>= 0) between the layers in time steps (module docstring); 0: none.
+        eps_v: the sliding speed [m/s] (> 0) below which the friction is smoothed (static-like).
     """
 
     contact = True
@@ -125,8 +139,7 @@ class SelfContact(EnergyTerm):
         self.dhat = positive(dhat, "SelfContact: dhat")
         self.stiffness = None if stiffness is None else positive(stiffness, "SelfContact: stiffness")
         self._auto = stiffness is None  # chosen per model by bind
-        if nonnegative(friction, "SelfContact: friction") > 0:
-            raise ValueError("SelfContact: friction between cloth layers is not modelled yet (give friction=0)")
+        self.friction = nonnegative(friction, f"{type(self).__name__}: friction")
         self.eps_v = positive(eps_v, "SelfContact: eps_v")
         self.name = name
         self.faces: Tensor | None = None
@@ -219,30 +232,109 @@ class SelfContact(EnergyTerm):
             rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
         return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
 
-    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
+    def _barrier_energy(self, x: Tensor) -> Tensor:
         total = x.new_zeros(())
         xa = self._points(x)
         for st, kind, eps in self._groups(x):
             total = total + self._pair_energy(xa[st], kind, eps).sum()
         return total
 
+    # ---- friction of a time step (module docstring)
+    def _pair_frames(self, X: Tensor, kind: int, eps: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(w (N, 4), n (N, 3), lam (N,))``: the closest points' signed weights, the unit normal from side B to
+        side A and the normal force magnitude [N] of stencils ``X (N, 4, 3)`` of one type (``eps``: the edge
+        pairs' mollifier thresholds, None for point-triangle pairs)."""
+        assert self.stiffness is not None
+        with torch.enable_grad():
+            Z = X.detach().requires_grad_(True)
+            D = typed_distance_sq(Z, kind)
+            (g,) = torch.autograd.grad(D.sum(), Z)
+            Dd = D.detach().requires_grad_(True)
+            (db,) = torch.autograd.grad(barrier(Dd, self.dhat ** 2, self.stiffness).sum(), Dd)
+        D = D.detach()
+        two_gap = g[:, :1].sum(1) if eps is None else g[:, :2].sum(1)  # 2 (c_A - c_B): side A's weights sum to 1
+        size = two_gap.norm(dim=-1).clamp_min(torch.finfo(X.dtype).tiny)
+        n = two_gap / size[:, None]
+        w = (g * n[:, None, :]).sum(-1) / size[:, None]
+        lam = (-db * 2 * D.clamp_min(0).sqrt()).clamp_min(0)
+        if eps is not None:
+            lam = lam * mollifier(X.detach(), eps)
+        return w, n, lam
+
+    def begin_step(self, ctx: StepContext) -> None:
+        if not self.friction > 0 or self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
+            return
+        x_prev = ctx.x_prev.detach()
+        xa = self._points(x_prev).detach()
+        parts = []
+        for st, kind, eps in self._groups(x_prev):
+            w, n, lam = self._pair_frames(xa[st], kind, eps)
+            keep = lam > 0
+            if bool(keep.any()):
+                parts.append((st[keep], w[keep], n[keep], lam[keep]))
+        if not parts:
+            return
+        st, w, n, lam = (torch.cat(p) for p in zip(*parts))
+        ctx.lagged[self.name] = {"stencils": st, "w": w, "n": n, "weight": self.friction * lam, "x_prev": xa,
+                                 "eps": self.eps_v * ctx.dt}
+
+    def _slip(self, x: Tensor, ctx: StepContext | None):
+        """``(lagged data, delta (M, 3))``: the pairs' relative displacements since the step's start, or None."""
+        f = ctx.lagged.get(self.name) if ctx is not None else None
+        if f is None or x.ndim != 2:
+            return None
+        st = f["stencils"]
+        xa = self._points(x)
+        delta = (f["w"][:, :, None] * (xa[st] - f["x_prev"][st].to(xa.dtype))).sum(1)
+        return f, delta
+
+    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
+        total = self._barrier_energy(x)
+        s = self._slip(x, ctx)
+        if s is not None:
+            f, delta = s
+            total = total + friction_energy(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        return total
+
     def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
         with torch.enable_grad():
             y = x.detach().requires_grad_(True)
-            e = self.energy(y, ctx)
-            if not e.requires_grad:
-                return torch.zeros_like(x)
-            (g,) = torch.autograd.grad(e, y)
+            e = self._barrier_energy(y)
+            g = torch.autograd.grad(e, y)[0] if e.requires_grad else torch.zeros_like(x)
+        s = self._slip(x.detach(), ctx)
+        if s is not None:
+            f, delta = s
+            gd = friction_gradient(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+            V = x.shape[0]
+            out = g.new_zeros(self._points(x).shape[0], 3)
+            out.index_add_(0, f["stencils"].reshape(-1), (f["w"][:, :, None] * gd[:, None, :]).reshape(-1, 3).to(g.dtype))
+            g = g + out[:V]
         return g
+
+    def hvp(self, x: Tensor, v: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        if x.ndim != 2:
+            return super().hvp(x, v, ctx, projection)
+        H = self.hessian(x, ctx, projection)
+        return (H @ v.reshape(-1, 1).to(H.dtype)).reshape(x.shape).to(x.dtype)
+
+    def _friction_blocks(self, x: Tensor, ctx: StepContext | None) -> tuple[Tensor, Tensor] | None:
+        """``(stencils (M, 4), Hessians (M, 12, 12))`` of the friction pairs (``w_k w_l`` times the point block)."""
+        s = self._slip(x.detach(), ctx)
+        if s is None:
+            return None
+        f, delta = s
+        H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        w = f["w"].to(H3.dtype)
+        H = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
+        return f["stencils"], H
 
     def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
         V = x.shape[0]
         rows, cols, vals = [], [], []
         proj = Projection.NONE if projection is None else Projection.parse(projection)
         xa = self._points(x).detach()
-        for st, kind, eps in self._groups(x):
-            H = self._pair_hessians(xa[st].reshape(-1, 12), kind, eps)
-            H = _project(H, proj)
+
+        def add(st: Tensor, H: Tensor) -> None:
             dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
             r, c, v = (dof[:, :, None].expand(-1, 12, 12).reshape(-1), dof[:, None, :].expand(-1, 12, 12).reshape(-1),
                        H.reshape(-1))
@@ -250,6 +342,12 @@ class SelfContact(EnergyTerm):
             rows.append(r[own])
             cols.append(c[own])
             vals.append(v[own])
+
+        for st, kind, eps in self._groups(x):
+            add(st, _project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
+        fb = self._friction_blocks(x, ctx)
+        if fb is not None:  # positive semi-definite: the same for every projection
+            add(*fb)
         if not vals:
             return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
                                            x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
@@ -317,13 +415,12 @@ class MeshCollider(SelfContact):
     move within a step).  Give it in ``colliders=`` (or ``terms=``) of a :class:`~torchbend.ClothModel`.  The
     body may be moved between steps by assigning ``vertices`` (a robot link, an animation frame); a move must
     leave the cloth outside it, or the next step refuses its start.  ``stiffness=None``: ``kappa`` from the
-    cloth's weight, as :class:`SelfContact`'s.  Friction on a body mesh is not modelled yet."""
+    cloth's weight, as :class:`SelfContact`'s.  ``friction = mu``: IPC's lagged friction on the body in time
+    steps (module docstring)."""
 
     def __init__(self, vertices, faces, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
                  eps_v: float = 1e-3, name: str = "mesh_collider"):
-        if nonnegative(friction, "MeshCollider: friction") > 0:
-            raise ValueError("MeshCollider: friction on a body mesh is not modelled yet (give friction=0)")
-        super().__init__(dhat=dhat, stiffness=stiffness, eps_v=eps_v, name=name)
+        super().__init__(dhat=dhat, stiffness=stiffness, friction=friction, eps_v=eps_v, name=name)
         v = torch.as_tensor(vertices)
         f = torch.as_tensor(faces)
         if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point() or not bool(torch.isfinite(v).all()):

@@ -1,0 +1,165 @@
+"""IPC's lagged smooth friction between contact pairs (``SelfContact(friction=)``, ``MeshCollider(friction=)``):
+the closest points' weights and normals against the pairs' own distances, the friction gradient and Hessian
+against autograd and central differences, positive semi-definite blocks; in time steps a cloth on an inclined
+body mesh, or on a pinned cloth layer, sticks below the friction angle and slides with Coulomb's acceleration
+``g (sin a - mu cos a)`` above it, as on an analytic plane with ``friction=`` (tests/test_friction.py)."""
+import math
+
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend.ops.distance import by_type, edge_edge_type, point_triangle_type
+from torchbend.options import Projection
+
+F64 = torch.float64
+
+
+def folded_sheet(seed: int = 0):
+    """A 6 x 6 sheet folded over itself with its layers 0.6 mm apart (self-contact pairs of every type), and a
+    lagged time-step context with friction; returns ``(model, term, x_prev, ctx)``."""
+    flat, faces = tb.scenes.grid(6, 12, (0.05, 0.1), dtype=F64)
+    y = flat[:, 1]
+    fold = y > 0.05
+    x = flat.clone()
+    x[fold, 1] = 0.1 - y[fold] + 1e-3 * torch.rand(int(fold.sum()), generator=torch.Generator().manual_seed(seed),
+                                                      dtype=F64)
+    x[fold, 2] = 6e-4 + 2e-4 * torch.rand(int(fold.sum()), generator=torch.Generator().manual_seed(seed + 1),
+                                          dtype=F64)
+    sc = tb.SelfContact(dhat=1e-3, stiffness=1e3, friction=0.4, eps_v=1e-3)
+    model = tb.ClothModel(faces, x, terms=[sc], density=0.2)
+    ctx = tb.StepContext.for_step(model.terms, x, torch.zeros_like(x), 0.01)
+    return model, sc, x, ctx
+
+
+def test_pair_weights_give_the_closest_points_and_the_normal():
+    _, sc, x, _ = folded_sheet()
+    checked = 0
+    for st, kind, eps in sc._groups(x):
+        X = x[st]
+        w, n, lam = sc._pair_frames(X, kind, eps)
+        side_a = 1 if eps is None else 2
+        torch.testing.assert_close(w[:, :side_a].sum(1), torch.ones(len(w), dtype=F64), rtol=0, atol=1e-12)
+        torch.testing.assert_close(w[:, side_a:].sum(1), -torch.ones(len(w), dtype=F64), rtol=0, atol=1e-12)
+        gap = (w[:, :, None] * X).sum(1)  # c_A - c_B
+        classify = point_triangle_type if eps is None else edge_edge_type
+        (_, _, D), = [g for g in by_type(X, classify(X))]  # one type per group
+        torch.testing.assert_close(gap.norm(dim=-1), D.sqrt(), rtol=1e-10, atol=0)
+        torch.testing.assert_close(gap / gap.norm(dim=-1, keepdim=True), n, rtol=0, atol=1e-10)
+        assert bool((lam > 0).all()) and bool((w[:, :side_a] >= -1e-12).all()) and bool((w[:, side_a:] <= 1e-12).all())
+        checked += len(w)
+    assert checked > 20
+
+
+def displaced(x, seed: int, scale: float):
+    return x + scale * torch.randn(x.shape, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+@pytest.mark.parametrize("scale", [2e-6, 3e-5])  # slip below and above eps = eps_v dt = 1e-5 m
+def test_friction_gradient_and_hessian_match_autograd(scale):
+    model, sc, x_prev, ctx = folded_sheet()
+    assert sc.name in ctx.lagged and len(ctx.lagged[sc.name]["weight"]) > 20
+    x = displaced(x_prev, 3, scale)
+    lagged = ctx.lagged.pop(sc.name)
+    plain = tb.StepContext(x_prev=ctx.x_prev, v_prev=ctx.v_prev, dt=ctx.dt, x_hat=ctx.x_hat)
+    ctx.lagged[sc.name] = lagged
+    with torch.enable_grad():  # the friction part alone: the energy with the lagged data minus the one without
+        y = x.clone().requires_grad_(True)
+        e = sc.energy(y, ctx) - sc.energy(y, plain)
+        (g,) = torch.autograd.grad(e, y, create_graph=True)
+        vs = torch.randn((4, *x.shape), generator=torch.Generator().manual_seed(7), dtype=F64)
+        Hv = torch.stack([torch.autograd.grad(g, y, v, retain_graph=True)[0] for v in vs])  # autograd's HVPs
+    g = g.detach()
+    g_friction = sc.gradient(x, ctx) - sc.gradient(x, plain)
+    torch.testing.assert_close(g_friction, g, rtol=1e-9, atol=1e-12 * float(g.abs().max()))
+    Hf = (sc.hessian(x, ctx, Projection.NONE) - sc.hessian(x, plain, Projection.NONE)).to_dense()
+    ours = vs.reshape(4, -1) @ Hf  # symmetric
+    torch.testing.assert_close(ours, Hv.reshape(4, -1), rtol=1e-8, atol=1e-9 * float(Hv.abs().max()))
+    torch.testing.assert_close(Hf, Hf.T, rtol=0, atol=1e-12 * float(Hf.abs().max()))
+    assert float(torch.linalg.eigvalsh(Hf).min()) >= -1e-9 * float(Hf.abs().max())  # PSD
+    # projections leave the friction blocks as they are; the HVP is the matrix's
+    Hc = (sc.hessian(x, ctx, Projection.CLAMP) - sc.hessian(x, plain, Projection.CLAMP)).to_dense()
+    torch.testing.assert_close(Hc, Hf, rtol=1e-10, atol=1e-12 * float(Hf.abs().max()))
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+    hv = sc.hvp(x, v, ctx)
+    torch.testing.assert_close(hv.reshape(-1), sc.hessian(x, ctx, Projection.NONE).to_dense() @ v.reshape(-1), rtol=1e-10,
+                               atol=1e-12 * float(hv.abs().max()))
+
+
+def test_friction_gradient_matches_central_differences_over_an_epsilon_sweep():
+    _, sc, x_prev, ctx = folded_sheet(seed=2)
+    x = displaced(x_prev, 4, 2e-5)
+    d = torch.randn(x.shape, generator=torch.Generator().manual_seed(6), dtype=F64)
+    slope = float((sc.gradient(x, ctx) * d).sum())
+    errs = []
+    for h in (1e-7, 1e-8, 1e-9):
+        fd = (float(sc.energy(x + h * d, ctx)) - float(sc.energy(x - h * d, ctx))) / (2 * h)
+        errs.append(abs(fd - slope))
+    assert min(errs) <= 1e-6 * abs(slope), (errs, slope)
+
+
+def test_no_friction_at_the_start_of_a_step_and_none_in_static_solves():
+    model, sc, x_prev, ctx = folded_sheet()
+    static = tb.StepContext()
+    f = ctx.lagged[sc.name]  # zero slip: each pair's f0(0) = eps / 3
+    torch.testing.assert_close(sc.energy(x_prev, ctx) - sc.energy(x_prev, static), f["weight"].sum() * f["eps"] / 3,
+                               rtol=1e-10, atol=0)
+    # zero slip: the friction force is zero
+    torch.testing.assert_close(sc.gradient(x_prev, ctx), sc.gradient(x_prev, static), rtol=0, atol=1e-15)
+    assert sc.name not in static.lagged
+    off = tb.SelfContact(dhat=1e-3, stiffness=1e3)
+    tb.ClothModel(model.topology.faces, x_prev, terms=[off])
+    quiet = tb.StepContext.for_step([off], x_prev, torch.zeros_like(x_prev), 0.01)
+    assert off.name not in quiet.lagged  # friction 0: nothing lagged
+
+
+def incline(angle_deg: float, mu: float, body: str, steps: int = 40):
+    """A 10 cm sheet on an inclined body: a two-triangle ``MeshCollider`` or a pinned lower cloth layer
+    (``SelfContact``); the mean downhill velocity after each step."""
+    a = math.radians(angle_deg)
+    n = torch.tensor([math.sin(a), 0.0, math.cos(a)], dtype=F64)
+    downhill = torch.tensor([math.cos(a), 0.0, -math.sin(a)], dtype=F64)
+    across = torch.tensor([0.0, 1.0, 0.0], dtype=F64)
+    flat, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    sheet = flat[:, :1] * downhill + flat[:, 1:2] * across + 5e-4 * n
+    pinned = None
+    if body == "mesh":
+        corners = torch.stack([-downhill - across, 2 * downhill - across, 2 * downhill + across, -downhill + across])
+        terms = [tb.MeshCollider(corners, torch.tensor([[0, 1, 2], [0, 2, 3]]), dhat=1e-3, friction=mu, eps_v=1e-4)]
+        rest = sheet
+    else:  # a larger layer under it, every vertex pinned, one mesh of two components
+        low, low_faces = tb.scenes.grid(4, 4, (0.6, 0.4), dtype=F64)
+        low = (low[:, :1] - 0.25) * downhill + (low[:, 1:2] - 0.15) * across
+        rest = torch.cat([sheet, low])
+        faces = torch.cat([faces, low_faces + len(sheet)])
+        pinned = torch.arange(len(sheet), len(rest))
+        terms = [tb.SelfContact(dhat=1e-3, friction=mu, eps_v=1e-4)]
+    model = tb.ClothModel(faces, rest, bending=tb.BendingEnergy(faces, rest, stiffness=1e-5),
+                          membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                          terms=terms, density=0.2, pinned=pinned)
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    v = []
+    for _ in range(steps):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged, info.message
+        assert 0 < info.min_distance < 1e-3  # on the body, never through it
+        v.append(float((state.v[:25] @ downhill).mean()))
+    return v
+
+
+@pytest.mark.parametrize("body", ["mesh", "layer"])
+def test_a_cloth_on_an_inclined_body_sticks_below_the_friction_angle(body):
+    v = incline(20.0, 0.5, body, steps=25)  # tan 20 deg = 0.36 < mu
+    assert max(abs(s) for s in v[10:]) < 1e-4  # at most eps_v: static friction's creep
+    assert abs(v[-1] - v[15]) < 1e-5
+
+
+@pytest.mark.parametrize("body", ["mesh", "layer"])
+def test_a_cloth_on_an_inclined_body_slides_with_the_coulomb_acceleration(body):
+    mu, angle = 0.5, math.radians(35.0)
+    v = incline(35.0, mu, body, steps=30)
+    expected = 9.81 * (math.sin(angle) - mu * math.cos(angle))
+    measured = (v[-1] - v[14]) / (0.01 * (len(v) - 15))
+    assert math.isclose(measured, expected, rel_tol=0.02), (measured, expected)
+    frictionless = incline(35.0, 0.0, body, steps=12)
+    assert math.isclose((frictionless[-1] - frictionless[5]) / 0.06, 9.81 * math.sin(angle), rel_tol=0.02)
