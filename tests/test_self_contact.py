@@ -253,15 +253,18 @@ def test_broad_phase_finds_exactly_the_overlapping_padded_boxes(n, m, pad):
 def test_config_self_contact_section_builds_the_term():
     from torchbend.scenes.builders import build_model
     model = build_model({"mesh": {"type": "grid", "nx": 4, "ny": 4}, "membrane": {"model": "stvk"},
-                         "self_contact": {"dhat": 1.5e-3, "stiffness": 7.0}})
+                         "self_contact": {"dhat": 1.5e-3, "stiffness": 7.0, "friction": 0.3, "eps_v": 2e-3}})
     (sc,) = [t for t in model.terms if isinstance(t, tb.SelfContact)]
     assert sc.dhat == 1.5e-3 and sc.stiffness == 7.0 and sc.faces is not None
+    assert sc.friction == 0.3 and sc.eps_v == 2e-3
     auto = build_model({"mesh": {"type": "grid", "nx": 4, "ny": 4}, "self_contact": {}})
     (sc,) = [t for t in auto.terms if isinstance(t, tb.SelfContact)]
     w = 9.81 * float(auto.mass.mean())
     assert sc.stiffness is not None and math.isclose(sc.stiffness, 10 * w / (4.33 * 1e-3 ** 3), rel_tol=1e-12)
     with pytest.raises(ValueError, match="self_contact.dhat"):
         build_model({"self_contact": {"dhat": -1.0}})
+    with pytest.raises(ValueError, match="self_contact.friction"):
+        build_model({"self_contact": {"friction": -0.5}})
 
 
 def test_solve_info_reports_the_smallest_distance_and_the_contacts():

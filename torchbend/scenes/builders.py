@@ -190,8 +190,7 @@ def build_model(cfg, *, mesh: tuple[Tensor, Tensor] | None = None, pinned: Tenso
             mem = MembraneEnergy(faces, rest, model=cfg.membrane.model, young=mat.young, poisson=mat.poisson, thickness=t)
         except ValueError as e:
             raise ConfigError(f"config key 'membrane': {e}") from None
-    terms = [] if cfg.self_contact is None else [SelfContact(dhat=cfg.self_contact.dhat,
-                                                             stiffness=cfg.self_contact.stiffness)]
+    terms = [] if cfg.self_contact is None else [SelfContact(**cfg.self_contact.model_dump())]
     return ClothModel(faces, rest, bending=bend, membrane=mem, density=density, gravity=cfg.gravity, pinned=pinned,
                       colliders=built, terms=terms)
 

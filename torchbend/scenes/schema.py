@@ -301,10 +301,13 @@ class ContactSection(Section):
 
 class SelfContactSection(Section):
     """``self_contact``: the cloth's own contact (:class:`~torchbend.SelfContact`): ``dhat`` [m] the activation
-    distance of the barrier, ``stiffness`` its ``kappa`` [J/m^4] (absent: chosen from the cloth's weight)."""
+    distance of the barrier, ``stiffness`` its ``kappa`` [J/m^4] (absent: chosen from the cloth's weight),
+    ``friction`` Coulomb's ``mu`` between the layers (time steps) smoothed below ``eps_v`` [m/s]."""
 
     dhat: Positive = 1e-3
     stiffness: Positive | None = None
+    friction: NonNegative = 0.0
+    eps_v: Positive = 1e-3
 
 
 class _ColliderSpec(ContactSection):
