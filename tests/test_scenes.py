@@ -123,3 +123,26 @@ def test_skirt_drape_config_runs_the_shipped_garment(tmp_path):
     assert all(float(c._sd(x)[0].min()) > 0 for c in model.colliders)
     assert stats["max_penetration"] == 0.0
     assert (tmp_path / "snapshot.png").is_file() and (tmp_path / "frames" / f"frame_{steps:04d}.obj").is_file()
+
+
+def test_incline_config_slides_with_the_coulomb_acceleration(tmp_path):
+    """configs/incline.yaml: a sheet on a plane with friction under gravity tilted past the friction angle."""
+    import os
+
+    from torchbend.scenes.config import load_config
+    from torchbend.scenes.run import run_config
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cfg = load_config(os.path.join(root, "configs", "incline.yaml"))
+    v = {}
+    for steps in (10, 30):  # the downhill velocity after the settling of the first steps and 20 steps later
+        stats = run_config(cfg, str(tmp_path / str(steps)), steps=steps, progress=False)
+        assert all(s["converged"] for s in stats["steps"]) and stats["max_penetration"] == 0.0
+        v[steps] = torch.load(tmp_path / str(steps) / "checkpoint.pt", weights_only=True)["v"]
+    g = torch.tensor(cfg["gravity"], dtype=torch.float64)
+    a = math.atan2(float(g[0]), -float(g[2]))  # the slope angle
+    mu = cfg["colliders"][0]["friction"]
+    expected = float(g.norm()) * (math.sin(a) - mu * math.cos(a))
+    measured = float((v[30][:, 0] - v[10][:, 0]).mean()) / (20 * cfg["solver"]["dt"])
+    assert math.isclose(measured, expected, rel_tol=0.02), (measured, expected)
+    assert float(v[30][:, 1].abs().max()) < 1e-3 * float(v[30][:, 0].mean())  # straight down the slope
