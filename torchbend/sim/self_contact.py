@@ -172,6 +172,10 @@ class SelfContact(EnergyTerm):
         """The positions the pairs index: the cloth's ``x`` (a body collider appends its own vertices)."""
         return x
 
+    def _points_require_grad(self) -> bool:
+        """Whether positions other than the cloth's (a body's vertices) require grad."""
+        return False
+
     def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
         """Point-triangle and edge-edge stencils within ``radius`` over :meth:`_points` and the edge pairs'
         indices into the rest lengths (:func:`candidate_pairs` over the cloth's own mesh)."""
@@ -297,10 +301,12 @@ class SelfContact(EnergyTerm):
         return total
 
     def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
+        # a body mesh whose vertices require grad (the adjoint's parameters): the gradient keeps its graph to them
+        graph = torch.is_grad_enabled() and self._points_require_grad()
         with torch.enable_grad():
             y = x.detach().requires_grad_(True)
             e = self._barrier_energy(y)
-            g = torch.autograd.grad(e, y)[0] if e.requires_grad else torch.zeros_like(x)
+            g = torch.autograd.grad(e, y, create_graph=graph)[0] if e.requires_grad else torch.zeros_like(x)
         s = self._slip(x.detach(), ctx)
         if s is not None:
             f, delta = s
@@ -438,7 +444,7 @@ class MeshCollider(SelfContact):
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         super().bind(topology, rest, mass)
         self._V = rest.shape[0]
-        vb = self.vertices.to(device=rest.device, dtype=rest.dtype)
+        vb = self.vertices.detach().to(device=rest.device, dtype=rest.dtype)
         be = self.body_edges.to(rest.device)
         d = vb[be[:, 1]] - vb[be[:, 0]]
         assert self._rest_len_sq is not None
@@ -446,6 +452,9 @@ class MeshCollider(SelfContact):
 
     def _points(self, x: Tensor) -> Tensor:
         return torch.cat([x, self.vertices.to(device=x.device, dtype=x.dtype)])
+
+    def _points_require_grad(self) -> bool:
+        return self.vertices.requires_grad
 
     def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
         faces, edges = self._mesh()
