@@ -238,5 +238,6 @@ def test_defaults_solve_a_cloth_onto_a_rail_and_keep_it_outside():
 def test_config_colliders_default_to_ipc():
     cfg = validate({"colliders": [{"type": "plane"}, {"type": "sphere", "law": "penalty"}]}, SceneConfig)
     ipc, pen = (build_collider(c) for c in cfg.colliders)
+    assert isinstance(ipc, tb.Plane) and isinstance(pen, tb.Sphere)
     assert (ipc.law, ipc.margin, ipc.stiffness) == ("ipc", 1e-3, None)
     assert (pen.law, pen.margin, pen.stiffness) == ("penalty", 0.0, 1e4)

@@ -109,7 +109,7 @@ def test_config_colliders_take_the_law():
     cfg = validate({"colliders": [{"type": "plane", "law": "barrier", "power": 3, "stiffness": 1e5, "margin": 1e-3}]},
                    SceneConfig)
     c = build_collider(cfg.colliders[0])
-    assert c.contact == PowerBarrier(1e5, 3.0) and c.margin == 1e-3
+    assert isinstance(c, tb.Plane) and c.contact == PowerBarrier(1e5, 3.0) and c.margin == 1e-3
     penalty = validate({"colliders": [{"type": "sphere", "law": "penalty"}]}, SceneConfig).colliders[0]
     assert build_collider(penalty).contact == Penalty(1e4)  # the penalty's defaults: 1e4 N/m, margin 0
     with pytest.raises(ValueError, match="'colliders\\[0\\]': the penalty law has power 2"):

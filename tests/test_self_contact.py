@@ -395,3 +395,33 @@ def test_a_cloth_dropped_on_a_body_mesh_rests_on_it_without_passing_through():
         tb.solve_static(model, rest - torch.tensor([0.0, 0.0, 8e-3], dtype=F64))
     with pytest.raises(ValueError, match="MeshCollider: faces index vertices"):
         tb.MeshCollider(bv, bf + 1)
+
+
+def test_skirt_on_the_mannequin_config_drapes_with_friction_and_never_crosses_the_body(tmp_path):
+    """configs/skirt_mannequin.yaml: the shipped skirt on the procedural mannequin (a MeshCollider with friction):
+    the steps converge, the skirt comes within dhat of the body and no cloth edge crosses a body triangle, nor a
+    body edge a cloth triangle, at any saved state."""
+    import os
+
+    from torchbend.scenes.config import build_scene, load_config
+    from torchbend.scenes.run import run_config
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cfg = load_config(os.path.join(root, "configs", "skirt_mannequin.yaml"))
+    model, x0, faces = build_scene(cfg)
+    (body,) = [t for t in model.terms if isinstance(t, tb.MeshCollider)]
+    assert body.friction == 0.3 and body.vertices.shape[0] > 1000
+    stats = run_config(cfg, str(tmp_path), steps=8, progress=False)
+    assert all(s["converged"] for s in stats["steps"])
+    x = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["x"]
+    d, count = body.min_distance(x, radius=0.05)
+    assert 0 < d < body.dhat and count > 0  # on the hips, never through them
+    cloth_edges, body_faces = model.topology.edges, body.body_faces
+    bv = body.vertices.to(x.dtype)
+    for a, b, tri in ((x[cloth_edges[:, 0]], x[cloth_edges[:, 1]], bv[body_faces]),
+                      (bv[body.body_edges[:, 0]], bv[body.body_edges[:, 1]], x[model.topology.faces.to(torch.int64)])):
+        for lo in range(0, a.shape[0], 256):  # in chunks of edges against every triangle
+            A, B = a[lo:lo + 256, None].expand(-1, tri.shape[0], 3), b[lo:lo + 256, None].expand(-1, tri.shape[0], 3)
+            T = tri[None].expand(A.shape[0], -1, 3, 3)
+            assert not bool(segment_crosses_triangle(A.reshape(-1, 3), B.reshape(-1, 3), T[..., 0, :].reshape(-1, 3),
+                                                     T[..., 1, :].reshape(-1, 3), T[..., 2, :].reshape(-1, 3)).any())

@@ -151,9 +151,10 @@ class ClothPhysics:
             self.pinned = None
         self.cfg, self.rest, self.faces = cfg, rest, faces
         for i, c in enumerate(cfg.colliders):
-            if c.law == "ipc":  # a network's prediction may lie inside a body, where the log barrier is infinite
+            law = getattr(c, "law", "a body mesh's barrier")
+            if law != "penalty" and law != "barrier":  # a prediction may lie inside a body: a barrier is infinite
                 raise ConfigError(f"config key 'colliders[{i}].law': a training loss needs a law that is finite inside "
-                                  f"the collider (penalty or barrier), got ipc")
+                                  f"the collider (penalty or barrier), got {law}")
         self.solver_model = build_model(cfg, mesh=(rest, faces), pinned=self.pinned, dtype=dtype, device=device)
         modules: dict = {t.name: TermLoss(t) for t in self.solver_model.terms}
         self.contact = None

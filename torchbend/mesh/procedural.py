@@ -15,7 +15,7 @@ from torch import Tensor
 
 from .._checks import integer, positive
 
-__all__ = ["grid", "icosphere", "cylinder", "random_curved_sheet", "single_hinge"]
+__all__ = ["grid", "icosphere", "cylinder", "mannequin", "random_curved_sheet", "single_hinge"]
 
 
 def _quad_faces(nu: int, nv: int, wrap: bool, device) -> Tensor:
@@ -124,6 +124,39 @@ def cylinder(
     phi = k * (2 * math.pi / n_around)
     vertices = torch.stack((radius * phi.cos(), radius * phi.sin(), z), -1).reshape(-1, 3)
     return vertices, _quad_faces(n_around, n_along, True, vertices.device)
+
+
+def mannequin(subdivisions: int = 3, n_around: int = 16, n_along: int = 12, *, hip_center=(0.0, 0.0, -0.12),
+              hip_radius: float = 0.175, leg_radius: float = 0.07, legs=(((0.08, 0.0, -0.2), (0.1, 0.0, -0.9)),
+                                                                     ((-0.08, 0.0, -0.2), (-0.1, 0.0, -0.9))),
+              dtype=None, device=None) -> tuple[Tensor, Tensor]:
+    """A simple body of triangles for a skirt to drape on (a :class:`~torchbend.MeshCollider`): the hips, an
+    icosphere of ``hip_radius`` [m] at ``hip_center`` [m] (``subdivisions``), and the legs, open tubes of
+    ``leg_radius`` [m] (``n_around`` x ``n_along``) along the segments ``legs`` [m], the defaults those of
+    ``configs/skirt_drape.yaml``'s sphere and capsules (the waist ring of the shipped skirt at ``z = 0``).  The
+    pieces overlap; each is inscribed in its primitive.  Returns ``vertices (Vb, 3)`` [m] and ``faces (Fb, 3)``."""
+    dtype = dtype or torch.get_default_dtype()
+    parts = [icosphere(subdivisions, hip_radius, hip_center, dtype=dtype, device=device)]
+    for a, b in legs:
+        a = torch.as_tensor(a, dtype=dtype, device=device)
+        b = torch.as_tensor(b, dtype=dtype, device=device)
+        axis = b - a
+        length = float(axis.norm())
+        tube, faces = cylinder(n_around, n_along, leg_radius, length, dtype=dtype, device=device)
+        w = axis / length  # the tube's z axis onto the leg, by the rotation taking e_z to w
+        ez = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
+        v = torch.linalg.cross(ez, w)
+        c = float(w @ ez)
+        K = torch.tensor([[0.0, -float(v[2]), float(v[1])], [float(v[2]), 0.0, -float(v[0])],
+                          [-float(v[1]), float(v[0]), 0.0]], dtype=dtype, device=device)
+        R = torch.eye(3, dtype=dtype, device=device) + K + K @ K / (1 + c)  # (w != -e_z for these legs)
+        parts.append((tube @ R.T + a, faces))
+    vertices, faces, offset = [], [], 0
+    for v_, f_ in parts:
+        vertices.append(v_)
+        faces.append(f_ + offset)
+        offset += v_.shape[0]
+    return torch.cat(vertices), torch.cat(faces)
 
 
 def random_curved_sheet(

@@ -11,7 +11,7 @@ from torch import Tensor
 from ..energies import BendingEnergy, Capsule, MembraneEnergy, Plane, Sphere, stiffness_from_material
 from ..mesh import procedural
 from ..robot import LinkCapsule, LinkPins, Robot, RobotScene
-from ..sim import ClothModel, SelfContact
+from ..sim import ClothModel, MeshCollider, SelfContact
 from .schema import (
     _AXES,
     BendingSection,
@@ -145,8 +145,19 @@ def _region_mask(pin: PinRegion, local: Tensor) -> Tensor:
 
 
 def build_collider(spec):
-    """The :class:`~torchbend.Sphere`, :class:`~torchbend.Plane` or :class:`~torchbend.Capsule` of a
-    ``colliders`` entry (a validated spec)."""
+    """The :class:`~torchbend.Sphere`, :class:`~torchbend.Plane`, :class:`~torchbend.Capsule` or
+    :class:`~torchbend.MeshCollider` of a ``colliders`` entry (a validated spec)."""
+    if spec.type == "mesh":
+        if spec.shape == "mannequin":
+            vertices, faces = procedural.mannequin(dtype=torch.float64)
+        else:
+            from ..mesh import load
+            from .schema import mesh_file
+            vertices, faces = load(mesh_file(spec.path))
+            vertices = vertices.to(torch.float64)
+        vertices = vertices + torch.tensor(spec.offset, dtype=vertices.dtype)
+        return MeshCollider(vertices, faces, dhat=spec.dhat, stiffness=spec.stiffness, friction=spec.friction,
+                            eps_v=spec.eps_v)
     kinds = {"sphere": Sphere, "plane": Plane, "capsule": Capsule}
     return kinds[spec.type](**spec.model_dump(exclude={"type"}))
 

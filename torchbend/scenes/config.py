@@ -211,14 +211,19 @@ def _yaml_kind(value) -> str:
 def read_config(path: str, schema: type[M] | None = None, overrides=()) -> M:
     """Read the YAML config ``path``, apply ``overrides`` (``["solver.tol=1e-8", ...]``) and return it
     validated against ``schema`` (default :class:`SceneConfig`): the validated object, the defaults filled
-    in, to pass on as it is.  A relative ``mesh.path`` becomes relative to the config's folder
+    in, to pass on as it is.  A relative ``mesh.path`` (or a body mesh collider's ``path``) becomes relative to the config's folder
     (``asset:NAME``, a shipped mesh, stays as it is).
     :class:`ConfigError` (a ``ValueError``) naming the key for anything unknown or invalid."""
     cfg = apply_overrides(read_yaml(path), overrides)
     model = validate(cfg, schema or SceneConfig, source=path)
     mesh = getattr(model, "mesh", None)
+    here = os.path.dirname(os.path.abspath(path))
     if (isinstance(mesh, FileMesh) and not os.path.isabs(mesh.path) and not mesh.path.startswith(ASSET_PREFIX)):
-        mesh.path = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(path)), mesh.path))
+        mesh.path = os.path.normpath(os.path.join(here, mesh.path))
+    for c in getattr(model, "colliders", None) or ():  # a body mesh's file too
+        p = getattr(c, "path", None)
+        if isinstance(p, str) and not os.path.isabs(p) and not p.startswith(ASSET_PREFIX):
+            c.path = os.path.normpath(os.path.join(here, p))
     return cast(M, model)
 
 

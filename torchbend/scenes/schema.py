@@ -348,7 +348,33 @@ class CapsuleSpec(_ColliderSpec):
     radius: Positive = 0.1
 
 
-ColliderSpec = Annotated[Union[SphereSpec, PlaneSpec, CapsuleSpec], Field(discriminator="type")]
+class MeshColliderSpec(Section):
+    """``{type: mesh, shape: mannequin, offset, dhat, stiffness, friction, eps_v}``: a rigid body of triangles
+    (:class:`~torchbend.MeshCollider`, the barrier of self-contact between the cloth and the body): ``shape`` a
+    procedural body (``mannequin``: :func:`torchbend.scenes.mannequin`, hips and legs) or ``path`` a mesh file
+    (``asset:NAME`` or a path), moved by ``offset`` [m]; ``dhat`` [m] the activation distance, ``stiffness`` its
+    ``kappa`` [J/m^4] (absent: from the cloth's weight), ``friction`` Coulomb's ``mu`` on the body (time steps)
+    smoothed below ``eps_v`` [m/s]."""
+
+    type: Literal["mesh"]
+    shape: Literal["mannequin"] | None = None
+    path: str | None = None
+    offset: Vec3 = (0.0, 0.0, 0.0)
+    dhat: Positive = 1e-3
+    stiffness: Positive | None = None
+    friction: NonNegative = 0.0
+    eps_v: Positive = 1e-3
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.shape is None) == (self.path is None):
+            raise ValueError("give either 'shape: mannequin' or 'path: <mesh file>'")
+        if self.path is not None:
+            mesh_file(self.path)  # an unknown asset name: ValueError listing the shipped meshes
+        return self
+
+
+ColliderSpec = Annotated[Union[SphereSpec, PlaneSpec, CapsuleSpec, MeshColliderSpec], Field(discriminator="type")]
 MeshSpec = Annotated[Union[GridMesh, FileMesh], Field(discriminator="type")]
 
 
