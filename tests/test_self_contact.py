@@ -425,3 +425,58 @@ def test_skirt_on_the_mannequin_config_drapes_with_friction_and_never_crosses_th
             T = tri[None].expand(A.shape[0], -1, 3, 3)
             assert not bool(segment_crosses_triangle(A.reshape(-1, 3), B.reshape(-1, 3), T[..., 0, :].reshape(-1, 3),
                                                      T[..., 1, :].reshape(-1, 3), T[..., 2, :].reshape(-1, 3)).any())
+
+
+def _pile(tmp_path, steps: int, resolution: int | None):
+    """configs/pile.yaml (optionally coarser): every step converges; at every saved frame no cloth edge crosses a
+    cloth triangle and the layers are apart; at the end the four layers rest on the floor in their order."""
+    import os
+
+    from torchbend.scenes.config import build_scene, load_config
+    from torchbend.scenes.run import run_config
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    overrides = [] if resolution is None else [f"mesh.nx={resolution}", f"mesh.ny={resolution}"]
+    cfg = load_config(os.path.join(root, "configs", "pile.yaml"), overrides=overrides)
+    cfg["output"]["every"] = 5
+    model, x0, faces = build_scene(cfg)
+    (sc,) = [t for t in model.terms if isinstance(t, tb.SelfContact)]
+    stats = run_config(cfg, str(tmp_path), steps=steps, progress=False)
+    assert all(s["converged"] for s in stats["steps"])
+    topo = model.topology
+    frames = sorted((tmp_path / "frames").glob("frame_*.obj"))
+    assert len(frames) >= steps // 5
+    for path in frames:
+        x, _ = tb.mesh.load(str(path), weld_tol=None, dtype=torch.float64)
+        assert x.shape == x0.shape
+        d, _ = sc.min_distance(x, radius=0.05)
+        assert d > 0 and not intersects(x, topo.faces, topo.edges), path.name
+    x = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["x"]
+    n = x.shape[0] // 4
+    heights = [float(x[k * n:(k + 1) * n, 2].mean()) for k in range(4)]
+    assert 0 < heights[0] < heights[1] < heights[2] < heights[3] < 5e-3  # piled on the floor, in order
+
+
+def test_a_pile_of_four_sheets_stays_apart(tmp_path):
+    _pile(tmp_path, steps=25, resolution=6)
+
+
+@pytest.mark.slow
+def test_the_pile_config_stays_apart(tmp_path):
+    _pile(tmp_path, steps=40, resolution=None)
+
+
+def test_grid_layers_are_a_stack_of_turned_sheets():
+    from torchbend.scenes.builders import build_mesh
+    from torchbend.scenes.config import SceneConfig, validate
+    rest, faces = build_mesh({"type": "grid", "nx": 3, "size": [0.2, 0.2], "layers": 3, "layer_gap": 0.01,
+                              "layer_twist": 90.0})
+    one, one_faces = build_mesh({"type": "grid", "nx": 3, "size": [0.2, 0.2]})
+    assert rest.shape == (27, 3) and torch.equal(faces, torch.cat([one_faces + 9 * k for k in range(3)]))
+    torch.testing.assert_close(rest[:9], one)
+    c = one.mean(0)
+    turned = torch.stack([c[0] - (one[:, 1] - c[1]), c[1] + (one[:, 0] - c[0]), one[:, 2] + 0.01], -1)  # 90 degrees
+    torch.testing.assert_close(rest[9:18], turned, rtol=0, atol=1e-15)
+    assert torch.allclose(rest[18:, 2], torch.full((9,), 0.02, dtype=rest.dtype))
+    with pytest.raises(ValueError, match="pin: corners names vertices of one sheet"):
+        validate({"mesh": {"type": "grid", "layers": 2, "pin": "corners"}}, SceneConfig)

@@ -65,6 +65,17 @@ def build_mesh(mesh, *, resolution: tuple | None = None, dtype=torch.float64, de
         nx, ny = (check_resolution(*resolution, where="--resolution") if resolution is not None
                   else (mesh.nx, mesh.ny or mesh.nx))
         rest, faces = procedural.grid(nx, ny, mesh.size, dtype=dtype, device=device)
+        if mesh.layers > 1:  # a stack of sheets, each turned about its centre from the one below
+            centre = rest.mean(0)
+            sheets, tris = [], []
+            for k in range(mesh.layers):
+                a = math.radians(k * mesh.layer_twist)
+                R = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                                 dtype=dtype, device=rest.device)
+                sheets.append((rest - centre) @ R.T + centre + torch.tensor([0.0, 0.0, k * mesh.layer_gap], dtype=dtype,
+                                                                             device=rest.device))
+                tris.append(faces + k * rest.shape[0])
+            rest, faces = torch.cat(sheets), torch.cat(tris)
     else:
         from ..mesh import load  # pyright: ignore[reportAttributeAccessIssue]
 

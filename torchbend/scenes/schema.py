@@ -181,7 +181,9 @@ FilePin = Optional[Annotated[Union[
 class GridMesh(Section):
     """``mesh`` of ``type: grid`` (the default): ``nx * ny`` vertices on ``size`` [m] in the z = 0
     plane, moved by ``offset`` [m]; ``pin``: ``first_two_columns`` (a clamped beam), ``corners`` (the
-    two corners of the first row), a list of vertex indices or a region (:class:`PinRegion`)."""
+    two corners of the first row), a list of vertex indices or a region (:class:`PinRegion`).  ``layers``
+    (>= 1): a stack of that many separate sheets, ``layer_gap`` [m] apart in z, each turned by ``layer_twist``
+    [degrees] about its centre from the one below (a pile; the named pins need one layer)."""
 
     type: Literal["grid"] = "grid"
     nx: Annotated[int, Field(ge=2), BeforeValidator(_number)] = 11
@@ -189,12 +191,19 @@ class GridMesh(Section):
     size: Annotated[tuple[Positive, Positive], BeforeValidator(_pair)] = (1.0, 1.0)
     offset: Vec3 = (0.0, 0.0, 0.0)
     pin: GridPin = None
+    layers: Annotated[int, Field(ge=1), BeforeValidator(_number)] = 1
+    layer_gap: Positive = 0.01
+    layer_twist: Annotated[float, BeforeValidator(_number)] = 0.0
 
     @model_validator(mode="after")
     def _size(self):
         n, m = self.nx, self.ny or self.nx
-        if n * m > MAX_GRID_VERTICES:
-            raise ValueError(f"nx x ny = {n} x {m} vertices is more than the {MAX_GRID_VERTICES} a grid may have")
+        if n * m * self.layers > MAX_GRID_VERTICES:
+            raise ValueError(f"nx x ny x layers = {n} x {m} x {self.layers} vertices is more than the "
+                             f"{MAX_GRID_VERTICES} a grid may have")
+        if self.layers > 1 and isinstance(self.pin, str):
+            raise ValueError(f"pin: {self.pin} names vertices of one sheet: give vertex indices or a region for "
+                             f"{self.layers} layers")
         return self
 
 
