@@ -480,3 +480,33 @@ def test_grid_layers_are_a_stack_of_turned_sheets():
     assert torch.allclose(rest[18:, 2], torch.full((9,), 0.02, dtype=rest.dtype))
     with pytest.raises(ValueError, match="pin: corners names vertices of one sheet"):
         validate({"mesh": {"type": "grid", "layers": 2, "pin": "corners"}}, SceneConfig)
+
+
+def test_an_adaptive_kappa_doubles_while_a_contact_is_pressed_too_close():
+    """stiffness=None: a sheet pressed onto a body mesh (gravity x 30) lands within a tenth of dhat; kappa then
+    doubles at the next step's start and the contact settles farther, above a tenth of dhat; the same initial
+    kappa given as a stiffness stays as it is and the contact stays that close."""
+    rest, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    rest = rest - torch.tensor([0.05, 0.05, -1e-3], dtype=F64)
+    floor = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], dtype=F64)
+
+    def run(stiffness):
+        body = tb.MeshCollider(floor, torch.tensor([[0, 1, 2], [0, 2, 3]]), dhat=2e-3, stiffness=stiffness)
+        model = tb.ClothModel(faces, rest, colliders=[body], density=0.2, gravity=(0.0, 0.0, -30 * 9.81),
+                              membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                              bending=tb.BendingEnergy(faces, rest, stiffness=1e-5))
+        state = tb.ClothState(rest, torch.zeros_like(rest))
+        kappa, dist = [], []
+        for _ in range(8):
+            state, info = tb.implicit_euler_step(model, state, 0.01)
+            assert info.converged, info.message
+            kappa.append(float(body.stiffness))
+            dist.append(info.min_distance)
+        return body, kappa, dist
+
+    body, kappa, dist = run(None)
+    k0 = body._kappa0
+    assert k0 is not None and kappa[0] == k0 and kappa[-1] == 2 * k0  # doubled once
+    assert dist[0] < 0.1 * body.dhat < dist[-1]
+    _, kappa_fixed, dist_fixed = run(k0)
+    assert set(kappa_fixed) == {k0} and dist_fixed[-1] < 0.1 * body.dhat

@@ -10,7 +10,10 @@ axis-aligned boxes, brute force in chunks).  The energy (:mod:`torchbend.ops.dis
 
 ``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
 ``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
-(:meth:`SelfContact.bind`).  The gradient is the autograd of that sum; the
+(:meth:`SelfContact.bind`), and then adapted as IPC adapts it: at the start of a time step whose smallest
+distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, ``kappa`` doubles (at
+most ``KAPPA_GROWTH`` times the initial one), so that contacts pressed hard stay at a distance the float
+arithmetic resolves; ``bind`` (a new model) starts it over.  The gradient is the autograd of that sum; the
 Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed formulas),
 each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
 
@@ -147,6 +150,13 @@ class SelfContact(EnergyTerm):
         self._rest_len_sq: Tensor | None = None
         self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
         self._V = 0
+        self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
+        self._last_min = math.inf
+
+    ADAPT_FRACTION = 0.1
+    """A time step starting with a distance below this fraction of ``dhat`` doubles an adaptive ``kappa``."""
+    KAPPA_GROWTH = 100.0
+    """An adaptive ``kappa`` grows to at most this many times its initial value."""
 
     # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
@@ -161,6 +171,7 @@ class SelfContact(EnergyTerm):
             weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
             # -b'(D) 2 d at d = dhat / 2 is 4.33 kappa dhat^3 (D = d^2, Dhat = dhat^2)
             self.stiffness = 10 * weight / (4.33 * self.dhat ** 3)
+            self._kappa0, self._last_min = self.stiffness, math.inf
 
     def _mesh(self) -> tuple[Tensor, Tensor]:
         if self.faces is None or self.edges is None:
@@ -265,8 +276,20 @@ class SelfContact(EnergyTerm):
             lam = lam * mollifier(X.detach(), eps)
         return w, n, lam
 
+    def adapt_stiffness(self, x: Tensor) -> None:
+        """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
+        if self._kappa0 is None or self.faces is None or self.stiffness is None:
+            return
+        d, _ = self.min_distance(x.detach())
+        if d < self.ADAPT_FRACTION * self.dhat and d <= self._last_min:
+            self.stiffness = min(2 * self.stiffness, self.KAPPA_GROWTH * self._kappa0)
+        self._last_min = d
+
     def begin_step(self, ctx: StepContext) -> None:
-        if not self.friction > 0 or self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
+        if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
+            return
+        self.adapt_stiffness(ctx.x_prev)
+        if not self.friction > 0:
             return
         x_prev = ctx.x_prev.detach()
         xa = self._points(x_prev).detach()
