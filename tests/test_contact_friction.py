@@ -157,9 +157,10 @@ def test_a_cloth_on_an_inclined_body_sticks_below_the_friction_angle(body):
 @pytest.mark.parametrize("body", ["mesh", "layer"])
 def test_a_cloth_on_an_inclined_body_slides_with_the_coulomb_acceleration(body):
     mu, angle = 0.5, math.radians(35.0)
-    v = incline(35.0, mu, body, steps=30)
+    v = incline(35.0, mu, body, steps=22)
     expected = 9.81 * (math.sin(angle) - mu * math.cos(angle))
-    measured = (v[-1] - v[14]) / (0.01 * (len(v) - 15))
+    measured = (v[-1] - v[9]) / (0.01 * (len(v) - 10))
     assert math.isclose(measured, expected, rel_tol=0.02), (measured, expected)
-    frictionless = incline(35.0, 0.0, body, steps=12)
-    assert math.isclose((frictionless[-1] - frictionless[5]) / 0.06, 9.81 * math.sin(angle), rel_tol=0.02)
+    frictionless = incline(35.0, 0.0, body, steps=10)
+    measured = (frictionless[-1] - frictionless[4]) / (0.01 * (len(frictionless) - 5))
+    assert math.isclose(measured, 9.81 * math.sin(angle), rel_tol=0.02), measured
