@@ -162,8 +162,8 @@ def build_collider(spec):
         if spec.shape == "mannequin":
             vertices, faces = procedural.mannequin(dtype=torch.float64)
         else:
-            from ..mesh import load
-            from .schema import mesh_file
+            from ..mesh import load  # pyright: ignore[reportAttributeAccessIssue]
+
             vertices, faces = load(mesh_file(spec.path))
             vertices = vertices.to(torch.float64)
         vertices = vertices + torch.tensor(spec.offset, dtype=vertices.dtype)

@@ -332,23 +332,23 @@ class _Potential:
             self.linear_seconds += time.perf_counter() - t0
             return out
 
+        def clamped(after_exact: bool) -> tuple[np.ndarray, int]:
+            # the clamped Hessian's direction (positive semi-definite elements plus the inertia: definite); after
+            # an indefinite exact one the next direction skips the exact attempt (a buckle lasts some iterations)
+            res = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
+            self.linear_method = f"{res.method}/clamp"
+            self.skip_exact = after_exact
+            return res.p, res.shifts + int(after_exact)
+
         if clamp_if_indefinite and self.skip_exact:
-            # the exact Hessian was indefinite at the last iterate: its neighbour's is too, as a rule (a buckle
-            # takes several iterations), so one direction is the clamped one's without the exact attempt
-            self.skip_exact = False
-            clamped = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
             self.positive_definite, self.negative_curvature = None, None
-            self.linear_method = f"{clamped.method}/clamp"
-            return clamped.p, clamped.shifts
+            return clamped(after_exact=False)
         res = solve(self.free_hessian(x), indefinite_stop=clamp_if_indefinite)
         self.positive_definite, self.negative_curvature, self.linear_method = res.positive_definite, None, res.method
         if res.positive_definite is False and clamp_if_indefinite:
-            # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction
-            # (positive semi-definite elements plus the inertia: definite), not a Levenberg-shifted exact one
-            clamped = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
-            self.linear_method = f"{clamped.method}/clamp"
-            self.skip_exact = True
-            return clamped.p, clamped.shifts + 1
+            # an indefinite exact Hessian in a time step (an impact, a buckle): the clamped one's direction, not a
+            # Levenberg-shifted exact one
+            return clamped(after_exact=True)
         return res.p, res.shifts
 
     def cg_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float) -> tuple[np.ndarray, int]:
