@@ -156,7 +156,7 @@ def test_auto_gives_a_damped_garment_on_a_collider_a_long_first_attempt():
     """continuation="auto" with the damping and a collider: the first attempt may take 4 max_iters iterations
     (newton._DAMPED_FIRST_FACTOR), so a tube that the damped Newton finishes in more than max_iters iterations
     converges in that one solve, to the equilibrium a long damped run reaches; without a collider (the
-    cantilever) the first attempt is cut at min(max_iters, 20) as before and the homotopy follows."""
+    cantilever) the first attempt is cut at min(max_iters, 40) as before and the homotopy follows."""
     model, rest = _tube_on_capsule()
     _, long_run = tb.solve_static(model, rest, continuation=False, max_iters=150)
     assert long_run.converged and long_run.iterations > 10, long_run.message
@@ -165,7 +165,7 @@ def test_auto_gives_a_damped_garment_on_a_collider_a_long_first_attempt():
     assert info.converged and info.solves == 1 and info.phase == "newton", info.message
     assert info.iterations == long_run.iterations and info.energy == long_run.energy
     _, cut = tb.solve_static(model, rest, max_iters=max_iters, damping=False)
-    assert cut.solves > 1  # undamped: the 20-iteration rule, then the homotopy
+    assert cut.solves > 1  # undamped: the 40-iteration rule, then the homotopy
     beam, beam_rest, _ = cantilever(11, 3)
     _, first = tb.solve_static(beam, beam_rest, max_iters=1, continuation=False)
     _, auto = tb.solve_static(beam, beam_rest, max_iters=1)

@@ -885,7 +885,7 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
       size, retrying Newton every few steps (at most ``max_relax_steps`` steps);
     * ``"auto"`` (default, also ``True``): a first Newton solve of at most ``4 max_iters`` iterations with
       ``damping`` and a collider (the damping bounds the soft modes of a garment on a body itself, where the
-      homotopy's softened membrane sags it into other contact states), else ``min(max_iters, 20)`` continued up
+      homotopy's softened membrane sags it into other contact states), else ``min(max_iters, 40)`` continued up
       to ``max_iters`` when it is converging (its last residual its lowest, a
       tenth of the lowest before its last 5 iterations and 1e-3 of its largest: softening the membrane
       there could lead to another minimum); if it fails, ``"membrane"`` from its best iterate when the model has a membrane
@@ -955,9 +955,14 @@ def _done(x: Tensor, info: SolveInfo, phase: str, ctl: Controls) -> tuple[Tensor
     return x, info
 
 
-_AUTO_FIRST_ITERS = 20
+_AUTO_FIRST_ITERS = 40
 """Newton iterations of the first attempt of ``continuation="auto"`` (undamped, or without a collider) before the
-homotopy takes over (unless the attempt is converging: :func:`_converging`)."""
+homotopy takes over (unless the attempt is converging: :func:`_converging`).  40, not 20: the damped Newton finishes
+most soft strips of the solver sweep in 25-40 iterations, and a homotopy started earlier can leave the basin of the
+equilibrium Newton from the rest state reaches (on an AMD Zen 4 build, Y t = 1e2 N/m, t = 1 mm, 16x4, exact/cg:
+the softened membrane led to another minimum, 7% higher in energy).  Over the 288 sweep solves: 11,520 iterations
+in all and at most 113 in one, against 15,478 and 209 with 20 (benchmarks/results/solver_sweep_amd_1thread.txt);
+the paper beams reach the same tips in about as many iterations in all."""
 _DAMPED_FIRST_FACTOR = 4
 """The first attempt of a damped ``continuation="auto"`` with a collider takes at most this many times ``max_iters``
 iterations (benchmarks/results/garments_penalty_1thread.txt: the garments of benchmarks/garments.py take 50-476 Newton
