@@ -21,6 +21,8 @@ from ..ops.membrane import (
     deformation_gradient,
     eigensystem,
     rest_shape_matrices,
+    stvk_blocks,
+    stvk_hvp_stress,
 )
 from ..ops.projection import project_eigenvalues
 from ..options import Projection, projection_argument
@@ -126,6 +128,16 @@ class MembraneEnergy(nn.Module):
         fn.check_values(self.model, "Hessian", l, F, N)
         return project_eigenvalues(l, projection) * coef[..., None], Q, D, v
 
+    def _closed_stvk(self, projection) -> bool:
+        """Whether an unprojected StVK result takes the closed form (:func:`~torchbend.ops.membrane.stvk_blocks`),
+        about 3x faster than the eigensystem's ``Q diag(l) Q^T`` and equal to it to round-off."""
+        return self.model is MembraneModel.STVK and Projection.parse(
+            projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS) is Projection.NONE
+
+    def _stvk_args(self, x: Tensor, op: str, backend):
+        D, coef, mu, lam = self._args(x, op, backend)
+        return deformation_gradient(x, self.faces, D), D, coef, mu, lam
+
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
         """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
         ``(..., T, 6)`` and orthonormal eigenvectors ``(..., T, 6, 6)`` (columns) with ``Q diag(l) Q^T =
@@ -143,6 +155,11 @@ class MembraneEnergy(nn.Module):
         ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first
         (``projection``; ``project=``: its deprecated alias)."""
         projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
+        if self._closed_stvk(projection):  # StVK unprojected: the blocks in closed form, no eigensystem
+            F, D, coef, mu, lam = self._stvk_args(x, "element_hessians", backend)
+            H = stvk_blocks(F, D, mu, lam) * coef[..., None, None]
+            fn.check_values(self.model, "Hessian", H, F)
+            return H
         l, Q, D, _ = self._eigen(x, "element_hessians", projection, backend)
         # z_k = B^T q_k: (Q_k D^T)^T as a 9-vector over (vertex, axis)
         Qm = Q.transpose(-1, -2).unflatten(-1, (3, 2))  # (..., T, 6 modes, 3, 2)
@@ -153,6 +170,12 @@ class MembraneEnergy(nn.Module):
         """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected:
         ``projection``; ``project=``: its deprecated alias)."""
         projection = projection_argument(projection, project, "MembraneEnergy.hvp")
+        if self._closed_stvk(projection):
+            F, D, coef, mu, lam = self._stvk_args(x, "hvp", backend)
+            v = check_direction(v, x, self.check_finite)
+            dP = stvk_hvp_stress(F, deformation_gradient(v, self.faces, D), mu, lam) * coef[..., None, None]
+            fn.check_values(self.model, "Hessian-vector product", dP, F)
+            return fn.to_vertices(dP, D, self.faces, x.shape[-2])
         l, Q, D, vc = self._eigen(x, "hvp", projection, backend, v)
         assert vc is not None  # _eigen returns the checked direction when given one
         dF = deformation_gradient(vc, self.faces, D).flatten(-2)

@@ -412,6 +412,43 @@ _UNDEFINED_AT_COLLAPSE = {
 }
 
 
+def stvk_blocks(F: Tensor, D: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
+    """Unprojected StVK element Hessians ``d^2 Psi / dx^2`` per unit ``A t``: ``(..., T, 9, 9)`` (flat index
+    ``3 k + i``: vertex ``k``, axis ``i``) of ``F (..., T, 3, 2)`` and ``D (T, 3, 2)``, in closed form without an
+    eigensystem.  With ``S = 2 mu G + lam tr(G) I``, ``G = (F^T F - I)/2`` and ``t = D F^T (3 vertices x 3
+    axes)``: ``H[k i, l j] = (D S D^T)_kl delta_ij + mu (D D^T)_kl (F F^T)_ij + mu t_kj t_li + lam t_ki t_lj``
+    (the second variation ``dF : dF S + 2 mu |sym(F^T dF)|^2 + lam tr(F^T dF)^2``).  The eigensystem's
+    ``Q diag(l) Q^T`` pulled back by ``D`` equals it to round-off (tests); ``mu``, ``lam`` broadcast over the
+    batch dimensions (``(...,)`` per sample)."""
+    m3, l3 = mu[..., None, None, None], lam[..., None, None, None]  # over (T, 2, 2) and (T, 3, 3)
+    eye = torch.eye(2, dtype=F.dtype, device=F.device)
+    G = 0.5 * (F.transpose(-1, -2) @ F - eye)  # (..., T, 2, 2)
+    S = 2 * m3 * G + (l3 * (G[..., 0, 0] + G[..., 1, 1])[..., None, None]) * eye
+    A = D @ S @ D.transpose(-1, -2)  # (..., T, 3, 3) over vertices
+    B = m3 * (D @ D.transpose(-1, -2))  # mu D D^T over vertices
+    FF = F @ F.transpose(-1, -2)  # (..., T, 3, 3) over axes
+    t = D @ F.transpose(-1, -2)  # (..., T, 3 vertices, 3 axes)
+    H = torch.mul(B[..., :, None, :, None], FF[..., None, :, None, :])  # (..., T, k, i, l, j)
+    H.addcmul_((m3 * t)[..., :, None, None, :], t.transpose(-1, -2)[..., None, :, :, None])
+    H.addcmul_((l3 * t)[..., :, :, None, None], t[..., None, None, :, :])
+    H.diagonal(dim1=-3, dim2=-1).add_(A[..., None])  # (D S D^T)_kl on i = j
+    return H.flatten(-4, -3).flatten(-2)
+
+
+def stvk_hvp_stress(F: Tensor, dF: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
+    """``dP = dF S + F dS`` of StVK (``S = 2 mu G + lam tr(G) I``, ``dS = 2 mu sym(F^T dF) + lam tr(F^T dF) I``):
+    the unprojected second variation of ``Psi`` applied to ``dF``, ``(..., T, 3, 2)``, without an eigensystem."""
+    mu, lam = mu[..., None, None, None], lam[..., None, None, None]
+    eye = torch.eye(2, dtype=F.dtype, device=F.device)
+    G = 0.5 * (F.transpose(-1, -2) @ F - eye)
+    M = F.transpose(-1, -2) @ dF
+    trG = (G[..., 0, 0] + G[..., 1, 1])[..., None, None]
+    trM = (M[..., 0, 0] + M[..., 1, 1])[..., None, None]
+    S = 2 * mu * G + lam * trG * eye
+    dS = mu * (M + M.transpose(-1, -2)) + lam * trM * eye
+    return dF @ S + F @ dS
+
+
 def _faces_text(bad: Tensor) -> tuple[list[int], str]:
     """Face indices where ``bad (..., T)`` holds anywhere in the batch, and their text."""
     idx = torch.nonzero(bad.reshape(-1, bad.shape[-1]).any(0)).reshape(-1)
