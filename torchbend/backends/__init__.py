@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
+from .._torch_compat import assume_constant_result
 from ..options import Backend
 from . import native
 from ._table import DIFFERENTIABLE, ENTRY_POINTS, ONE_MESH
@@ -48,7 +49,7 @@ def use_backend(backend) -> Iterator[None]:
         _auto.reset(token)
 
 
-@torch.compiler.assume_constant_result
+@assume_constant_result
 def _auto_value() -> str:
     """What ``"auto"`` means here (:func:`use_backend`); a constant for ``torch.compile`` (a compiled
     function keeps the choice it was traced with)."""
@@ -90,7 +91,7 @@ _wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[re
 compilation)."""
 
 
-@torch.compiler.assume_constant_result
+@assume_constant_result
 def _unavailable(device_type: str) -> str | None:
     """Why the compiled kernels of ``device_type`` cannot be loaded (builds them on first use; a constant
     for ``torch.compile``, which does not trace the build)."""
