@@ -12,8 +12,9 @@ build requirement: pip's isolated build environment would download a multi-GB CU
   ``=x86-64-v3``.
 - ``torchbend._cuda``: ``csrc/bending_cuda.cu`` compiled by ``nvcc`` (SASS for sm_80 and sm_90 and PTX of
   sm_90, or ``TORCHBEND_CUDA_ARCH="80;90"``), linked with the torch binding ``csrc/cuda_binding.cpp`` and
-  cudart.  Built where nvcc is found (``TORCHBEND_NVCC``, ``CUDA_HOME``, the ``PATH``); it needs no GPU
-  and no CUDA build of torch.
+  cudart.  Built by default where the installed torch is a CUDA build and nvcc is found (``TORCHBEND_NVCC``,
+  ``CUDA_HOME``, the ``PATH``); ``TORCHBEND_BUILD_CUDA=1`` builds it with any torch (it needs no GPU and no CUDA
+  build of torch: CI compiles and links it that way), so a CPU-only install does not pay its compile.
 
 ``TORCHBEND_BUILD_NATIVE`` / ``TORCHBEND_BUILD_CUDA``: ``0`` skips the extension, ``1`` makes its failure
 fail the install (CI); unset, a failure prints a warning and the install goes on without it: the package
@@ -239,6 +240,13 @@ def _extensions_and_cmdclass() -> tuple[list, dict]:
             extra_compile_args=[*COMMON_CFLAGS, *(f for f in cfg.NATIVE_CFLAGS if not f.startswith("-march=")),
                                 *cfg.cpu_arch_flags()],
             extra_link_args=list(cfg.NATIVE_LDFLAGS), optional=native_mode != "required"))
+    if cuda_mode == "auto" and torch.version.cuda is None:
+        cuda_mode = "off"
+        _say("the installed torch is a CPU build: the CUDA kernels are not built (TORCHBEND_BUILD_CUDA=1 builds "
+             "them anyway, about 1-3 minutes more)")
+    if native_mode != "off":
+        _say("compiling the C++ CPU kernels (torchbend._native): about 1-4 minutes on 2 cores, once; a later install "
+             "of the same sources reuses them")
     nvcc = cfg.find_nvcc() if cuda_mode != "off" else None
     if cuda_mode != "off":
         if nvcc is None and cuda_mode == "required":

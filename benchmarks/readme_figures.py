@@ -15,7 +15,7 @@ that no unmarked time or accuracy figure is left in README.md's prose.
 Measurements (each a fresh subprocess, as a newcomer runs it, under ``timeout``):
 
 - ``compile``: ``pip wheel --no-build-isolation --no-deps`` of a copy of the tracked sources (the build
-  ``pip install --no-build-isolation -e .`` runs: both extensions where nvcc is found), wall and CPU
+  ``pip install --no-build-isolation -e .`` runs: the CUDA one too where torch is a CUDA build), wall and CPU
   time, then the same again (the compiled modules reused), then the first call of the built package
   (the prebuilt module only loaded).  The wheel, unpacked, is the package the runs below import.
 - ``jit``: the first call of the sources' package with an empty ``TORCH_EXTENSIONS_DIR`` (the compile on
@@ -49,7 +49,7 @@ README = os.path.join(ROOT, "README.md")
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures.json")
 QUICK_RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures_quick.json")
 MARKER = re.compile(r"<!-- fig:([A-Za-z0-9_]+) -->(.*?)<!-- /fig -->", re.S)
-MEASUREMENTS = ("jit", "compile", "quickstart", "tests", "robot_fold", "robot_drape", "beams")
+MEASUREMENTS = ("jit", "compile", "import", "quickstart", "tests", "robot_fold", "robot_drape", "beams")
 BEAM_RESOLUTIONS = ((61, 6), (131, 6), (196, 7))
 NOTE = ("the project's shared 2-core CPU machine: other engineers' jobs ran at the same time (see the load "
         "averages of each measurement); times vary with that load")
@@ -191,6 +191,20 @@ def measure_jit(ctx: Context) -> dict:
     if info["source"] != "jit":
         raise RuntimeError(f"expected a JIT build, got {info}")
     return {"runs": [record(r)], "figures": {"jit_s": seconds(info["seconds"])}, "values": {"jit_s": info["seconds"]}}
+
+
+def measure_import(ctx: Context) -> dict:
+    """``import torchbend`` after ``import torch``: torchbend's own cumulative time under ``python -X importtime``
+    (the sources' package), the fastest of three fresh interpreters (issue target: at most 1 s)."""
+    runs, times = [], []
+    for _ in range(3):
+        r = checked(run([ctx.python, "-X", "importtime", "-c", "import torch, torchbend"], env=ctx.source_env,
+                        timeout=300, cwd=ctx.scratch), "import")
+        rows = [line.split("|") for line in r["stderr"].splitlines() if line.startswith("import time:")]
+        times.extend(int(row[1]) * 1e-6 for row in rows if len(row) == 3 and row[2].strip() == "torchbend")
+        runs.append(record(r))
+    best = min(times)
+    return {"runs": runs, "figures": {"import_s": f"{best:.2f} s"}, "values": {"import_s": times}}
 
 
 def train_run(ctx: Context, script: str, quick_steps: int, timeout: float, what: str) -> tuple[dict, dict]:

@@ -266,5 +266,49 @@ def test_save_obj_round_trip_and_reading_without_meshio(tmp_path, monkeypatch):
     assert torch.equal(f, faces)
     with open(path) as fh:
         assert fh.readline() == "# a sheet\n"
-    with pytest.raises(ImportError, match=r"needs meshio \(pip install meshio"):
+    with pytest.raises(ImportError, match=r"needs the 'meshio' package: pip install 'torchbend\[io\]'"):
         tb.mesh.load(write(tmp_path / "sheet.ply", "ply\n"))
+
+
+def test_corner_uvs_survive_a_welded_seam_and_round_trip(tmp_path):
+    """A tube cut open along a seam (two vertices per seam point, UVs u = 0 and u = 1): load(uvs=True) welds the
+    3-D vertices and keeps each face corner's own UV; save_obj writes them back per corner and a second load
+    gives the same mesh and UVs.  Meshes without vt corners, and non-OBJ files, refuse uvs=True."""
+    n, m = 8, 3
+    ring = torch.arange(n + 1, dtype=torch.float64) / n  # u = 0 .. 1: the last column repeats the first in 3-D
+    u, h = torch.meshgrid(ring, torch.arange(m, dtype=torch.float64) / (m - 1), indexing="ij")
+    angle = 2 * torch.pi * u.reshape(-1)
+    pos = torch.stack((torch.cos(angle), torch.sin(angle), h.reshape(-1)), -1)
+    pos[-m:] = pos[:m]  # exactly the same 3-D points on both sides of the seam
+    idx = torch.arange((n + 1) * m).reshape(n + 1, m)
+    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[1:, :-1].reshape(-1), idx[1:, 1:].reshape(-1), idx[:-1, 1:].reshape(-1)
+    faces = torch.cat((torch.stack((a, b, c), -1), torch.stack((a, c, d), -1)))
+    uv_vertex = torch.stack((u.reshape(-1), h.reshape(-1)), -1)
+    path = tmp_path / "tube.obj"
+    tb.mesh.save_obj(path, pos, faces, uv_vertex)  # per-vertex UVs: the seam's vertices are distinct in the file
+    x, f, uv = tb.mesh.load(path, uvs=True)
+    assert len(x) == n * m and len(f) == len(faces)  # welded: one vertex per seam point
+    assert torch.allclose(uv, uv_vertex[faces], atol=1e-9)  # the corner UVs of the file, face by face
+    assert float(uv[..., 0].max()) == 1.0 and float(uv[..., 0].min()) == 0.0  # both sides of the seam kept
+    out = tmp_path / "tube_corners.obj"
+    tb.mesh.save(out, x, f, uv)
+    x2, f2, uv2, report = tb.mesh.load(out, uvs=True, report=True)
+    assert torch.equal(f2, f) and torch.allclose(x2, x, atol=1e-8) and torch.allclose(uv2, uv, atol=1e-9)
+    assert report.vertices == n * m
+    tb.mesh.save_obj(tmp_path / "plain.obj", x, f)
+    with pytest.raises(ValueError, match="has no texture coordinate index"):
+        tb.mesh.load(tmp_path / "plain.obj", uvs=True)
+    with pytest.raises(ValueError, match=r"uvs must have shape"):
+        tb.mesh.save_obj(tmp_path / "bad.obj", x, f, uv[:3])
+
+
+def test_save_ply_through_meshio(tmp_path):
+    pytest.importorskip("meshio")
+    x, f = tb.scenes.grid(4, 3, dtype=torch.float64)
+    tb.mesh.save(tmp_path / "grid.ply", x, f)
+    x2, f2 = tb.mesh.load(tmp_path / "grid.ply")
+    assert torch.equal(f2, f) and torch.allclose(x2, x)
+    with pytest.raises(ValueError, match="OBJ files only"):
+        tb.mesh.save(tmp_path / "grid.ply", x, f, uvs=torch.zeros(len(x), 2))
+    with pytest.raises(ValueError, match="cannot write"):
+        tb.mesh.save(tmp_path / "grid.unknownformat", x, f)

@@ -7,6 +7,8 @@ import operator
 import torch
 from torch import Tensor
 
+from ._torch_compat import is_functorch_wrapped
+
 __all__ = [
     "is_traced",
     "check_positions",
@@ -24,7 +26,7 @@ def is_traced(t: Tensor) -> bool:
     data-dependent control flow are skipped there; the compiled operators check inside)."""
     if torch.compiler.is_compiling():
         return True
-    return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))  # pyright: ignore[reportAttributeAccessIssue]
+    return bool(is_functorch_wrapped(t))
 
 
 def check_positions(x, vertex_count: int, name: str = "x", check_finite: bool = True) -> Tensor:

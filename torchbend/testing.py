@@ -2,7 +2,7 @@
 torchbend) and a timing helper.
 
 Used by the tests, the demo and the benchmarks as the independent reference: the bend angle is
-the SPEC's ``atan2`` formula written with ordinary tensor operations, and every derivative of it
+the defining ``atan2`` formula of the angle written with ordinary tensor operations, and every derivative of it
 comes from PyTorch's autograd (or ``torch.func``), never from torchbend's closed forms.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ __all__ = ["plain_hinge_angles", "plain_bending_energy", "autograd_gradient", "a
 
 
 def plain_hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
-    """``theta: (..., H)`` of ``x: (..., V, 3)`` by the SPEC formula, autograd-differentiable."""
+    """``theta: (..., H)`` of ``x: (..., V, 3)`` by the defining atan2 formula, autograd-differentiable."""
     x0, x1, x2, x3 = (x[..., hinges[:, i], :] for i in range(4))
     e = x1 - x0
     nA = torch.linalg.cross(e, x2 - x0, dim=-1)

@@ -34,6 +34,7 @@ from pydantic import Field, model_validator
 from torch import nn
 
 import torchbend as tb
+from torchbend._extras import require
 from torchbend.scenes import cli
 from torchbend.scenes import config as sc
 
@@ -449,7 +450,7 @@ def _check_pins(physics: tc.ClothPhysics, loss: str) -> torch.Tensor | None:
 def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     """The run of :func:`main` (parsed options ``a``, the validated ``config``; its plain-dict form is the
     checkpoint's record)."""
-    from torch.utils.tensorboard import SummaryWriter
+    SummaryWriter = require("torch.utils.tensorboard", "TensorBoard logs").SummaryWriter
     from tqdm import tqdm
 
     cfg = config.model_dump(mode="json")

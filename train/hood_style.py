@@ -46,6 +46,7 @@ from pydantic import AfterValidator, BeforeValidator, Field
 from torch import nn
 
 import torchbend as tb
+from torchbend._extras import require
 from torchbend.scenes import cli
 from torchbend.scenes import config as sc
 
@@ -264,7 +265,7 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
     """Train; ``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's cloth (grid or ``mesh``
     section; placed as given, the body moves about the origin).  Returns ``{"losses", "terms",
     "start", "steps"}``."""
-    from torch.utils.tensorboard import SummaryWriter
+    SummaryWriter = require("torch.utils.tensorboard", "TensorBoard logs").SummaryWriter
     from tqdm import tqdm
 
     a = parse_args(argv)

@@ -23,6 +23,7 @@ import torch
 from pydantic import Field
 
 import torchbend as tb
+from torchbend._extras import require
 from torchbend.scenes import cli
 from torchbend.scenes import config as sc
 
@@ -143,7 +144,7 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> dict:
-    from torch.utils.tensorboard import SummaryWriter
+    SummaryWriter = require("torch.utils.tensorboard", "TensorBoard logs").SummaryWriter
     from tqdm import tqdm
 
     a = parse_args(argv)

@@ -27,6 +27,7 @@ from drape_net import DrapeNet, intra_op_threads
 from pydantic import Field
 
 import torchbend as tb
+from torchbend._extras import require
 from torchbend.robot import LinkPins, Robot, RobotScene
 from torchbend.scenes import cli
 from torchbend.scenes import config as sc
@@ -135,7 +136,7 @@ def main(argv=None) -> dict:
 def train(a: argparse.Namespace, config: Config, device: torch.device) -> dict:
     """The run of :func:`main` (parsed options ``a``, the validated ``config``; its plain-dict form is the
     checkpoint's record)."""
-    from torch.utils.tensorboard import SummaryWriter
+    SummaryWriter = require("torch.utils.tensorboard", "TensorBoard logs").SummaryWriter
     from tqdm import tqdm
 
     cfg = config.model_dump(mode="json")

@@ -19,9 +19,8 @@ from collections.abc import Iterator
 
 import torch
 from torch import Tensor
-from torch.autograd import forward_ad
 
-from .._torch_compat import assume_constant_result
+from .._torch_compat import assume_constant_result, forward_ad_level, is_functorch_wrapped
 from ..options import Backend
 from . import native
 from ._table import DIFFERENTIABLE, ENTRY_POINTS, ONE_MESH
@@ -73,7 +72,7 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
         batched = batched or t.ndim > 1
     if wrapped:
         return "the inputs are traced by a torch.func transform"
-    if not compiling and forward_ad._current_level >= 0:
+    if not compiling and forward_ad_level() >= 0:
         return "forward-mode AD is active (the eager Functions define jvp)"
     if grad and op not in DIFFERENTIABLE and torch.is_grad_enabled():
         return "an autograd graph is being recorded (the compiled kernels are not differentiable)"
@@ -86,7 +85,7 @@ def native_unavailable_reason(op: str, x: Tensor, *params: Tensor) -> str | None
     return _unavailable(device)
 
 
-_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[reportAttributeAccessIssue]
+_wrapped = is_functorch_wrapped
 """Whether a tensor is wrapped by a ``torch.func`` transform (:func:`torchbend._checks.is_traced` outside
 compilation)."""
 

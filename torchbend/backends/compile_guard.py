@@ -17,6 +17,8 @@ import sys
 import torch
 from torch import Tensor
 
+from .._torch_compat import current_graph_task_id, graph_task_keeps_graph
+
 __all__ = ["CompiledDoubleBackwardError", "compiled_backward_guard"]
 
 MESSAGE = (
@@ -49,7 +51,7 @@ def _inside_compiled_double_backward() -> bool:
 
 @torch.library.custom_op("torchbend::compiled_backward_guard", mutates_args=())
 def _guard(g: Tensor) -> Tensor:
-    if torch._C._current_graph_task_id() != -1 and torch._C._autograd._get_current_graph_task_keep_graph() and (  # pyright: ignore[reportAttributeAccessIssue]
+    if current_graph_task_id() != -1 and graph_task_keeps_graph() and (
             torch.is_grad_enabled() or _inside_compiled_double_backward()):
         raise CompiledDoubleBackwardError(MESSAGE)
     return g.clone()

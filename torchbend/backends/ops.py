@@ -42,6 +42,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .._torch_compat import dispatch_stack_len, is_functorch_wrapped, torch_function_mode_enabled
 from . import kernels, native
 from ._table import MODEL_CODE, OPERATORS, SCHEMAS
 
@@ -114,7 +115,7 @@ def _operator(fake):
     return register
 
 
-_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # pyright: ignore[reportAttributeAccessIssue]
+_wrapped = is_functorch_wrapped
 
 
 def run(name: str, x: Tensor, *args):
@@ -123,8 +124,8 @@ def run(name: str, x: Tensor, *args):
     called directly: the dispatcher round trip into a Python kernel costs a few microseconds a call, a tenth
     of the work on a thousand hinges.  Everything that traces (``torch.compile``, ``torch.export``, ``make_fx``,
     fake tensors) sees the operator."""
-    if (not torch.compiler.is_compiling() and type(x) is Tensor and torch._C._len_torch_dispatch_stack() == 0
-            and not torch._C._is_torch_function_mode_enabled() and not _wrapped(x)):
+    if (not torch.compiler.is_compiling() and type(x) is Tensor and dispatch_stack_len() == 0
+            and not torch_function_mode_enabled() and not _wrapped(x)):
         return _KERNELS[name](x, *args)
     return getattr(torch.ops.torchbend, name)(x, *args)
 

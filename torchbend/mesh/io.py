@@ -27,9 +27,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._extras import require
 from .topology import _one_indexed_message
 
-__all__ = ["MeshReport", "asset_path", "clean", "load", "save_obj"]
+__all__ = ["MeshReport", "asset_path", "clean", "load", "save", "save_obj"]
 
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
 
@@ -126,8 +127,10 @@ def _fan(poly: list[int]) -> list[tuple[int, int, int]]:
     return [(poly[0], poly[k], poly[k + 1]) for k in range(1, len(poly) - 1)]
 
 
-def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray, int]:
-    """``(points (N, 3) float64, triangles (F, 3) int64 0-indexed, polygons fan-triangulated)`` of an OBJ file.
+def _read_obj(path: str, corner_uvs: list | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(points (N, 3) float64, triangles (F, 3) int64 0-indexed, polygons fan-triangulated)`` of an OBJ file;
+    with a list ``corner_uvs``, the texture coordinates of each triangle's corners are appended to it as one
+    ``(F, 3, 2)`` array (ValueError naming the line of a corner without a ``vt`` index).
 
     Reads ``v`` (extra components such as ``w`` or vertex colours ignored) and ``f`` with any of the
     ``v``, ``v/vt``, ``v//vn``, ``v/vt/vn`` corner forms, 1-based or negative (relative) indices and
@@ -135,6 +138,8 @@ def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray, int]:
     is ignored."""
     points: list[list[float]] = []
     tris: list[tuple[int, int, int]] = []
+    texcoords: list[list[float]] = []
+    tri_uv: list[tuple[int, int, int]] = []
     n_poly = 0
     try:
         with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a byte-order mark is not text
@@ -152,32 +157,56 @@ def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray, int]:
                 raise ValueError(f"{path}:{lineno}: bad vertex line {line.strip()!r}") from None
             if len(points[-1]) != 3:
                 raise ValueError(f"{path}:{lineno}: a vertex needs 3 coordinates, got {line.strip()!r}")
+        elif tok[0] == "vt" and corner_uvs is not None:
+            try:
+                texcoords.append([float(t) for t in tok[1:3]] + [0.0] * (3 - len(tok)))
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: bad texture coordinate line {line.strip()!r}") from None
         elif tok[0] == "f":
             n = len(points)
-            poly = []
-            for t in tok[1:]:
-                try:
-                    i = int(t.split("/", 1)[0])
-                except ValueError:
-                    raise ValueError(f"{path}:{lineno}: bad face corner {t!r} in {line.strip()!r}") from None
-                j = i - 1 if i > 0 else n + i  # OBJ indices are 1-based; negative ones count back from here
-                if i == 0 or not 0 <= j < n:
-                    raise ValueError(f"{path}:{lineno}: face index {i} refers to no vertex read so far ({n} read)")
-                poly.append(j)
+            if corner_uvs is not None:
+                tri_uv.extend(_fan([_uv_index(t, len(texcoords), path, lineno, line) for t in tok[1:]]))
+            poly = [_vertex_index(t, n, path, lineno, line) for t in tok[1:]]
             if len(poly) < 3:
                 raise ValueError(f"{path}:{lineno}: a face needs at least 3 corners, got {line.strip()!r}")
             n_poly += len(poly) > 3
             tris.extend(_fan(poly))
+    if corner_uvs is not None:
+        uv = np.asarray(texcoords, dtype=np.float64).reshape(-1, 2)
+        corner_uvs.append(uv[np.asarray(tri_uv, dtype=np.int64).reshape(-1, 3)])
     return np.asarray(points, dtype=np.float64).reshape(-1, 3), np.asarray(tris, dtype=np.int64).reshape(-1, 3), n_poly
+
+
+def _vertex_index(corner: str, n: int, path: str, lineno: int, line: str) -> int:
+    """The 0-based vertex index of an OBJ face corner ``v[/vt[/vn]]`` (``n`` vertices read so far): OBJ indices are
+    1-based, negative ones count back from the last vertex read."""
+    try:
+        i = int(corner.split("/", 1)[0])
+    except ValueError:
+        raise ValueError(f"{path}:{lineno}: bad face corner {corner!r} in {line.strip()!r}") from None
+    j = i - 1 if i > 0 else n + i
+    if i == 0 or not 0 <= j < n:
+        raise ValueError(f"{path}:{lineno}: face index {i} refers to no vertex read so far ({n} read)")
+    return j
+
+
+def _uv_index(corner: str, n: int, path: str, lineno: int, line: str) -> int:
+    """The 0-based ``vt`` index of an OBJ face corner ``v/vt[/vn]`` (``n`` texture coordinates read so far)."""
+    parts = corner.split("/")
+    try:
+        i = int(parts[1])
+    except (IndexError, ValueError):
+        raise ValueError(f"{path}:{lineno}: face corner {corner!r} has no texture coordinate index (uvs=True needs "
+                         f"v/vt corners): {line.strip()!r}") from None
+    j = i - 1 if i > 0 else n + i
+    if i == 0 or not 0 <= j < n:
+        raise ValueError(f"{path}:{lineno}: texture coordinate index {i} refers to no vt read so far ({n} read)")
+    return j
 
 
 def _read_meshio(path: str) -> tuple[np.ndarray, np.ndarray, int]:
     """``(points (N, 3), triangles (F, 3), polygons fan-triangulated)`` of any file meshio reads."""
-    try:
-        import meshio
-    except ImportError:
-        raise ImportError(f"reading {path} needs meshio (pip install meshio, or torchbend[io]); "
-                          ".obj files are read without it") from None
+    meshio = require("meshio", f"reading {path} (.obj files are read without it)")
     out = StringIO()
     try:  # meshio prints its reasons and, for a file it cannot parse, calls sys.exit
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
@@ -238,15 +267,19 @@ Cleaned = tuple[Tensor, Tensor] | tuple[Tensor, Tensor, MeshReport]
 
 @overload
 def load(path, *, weld_tol: float | None = ..., dtype=..., device=...,
-         report: Literal[False] = ...) -> tuple[Tensor, Tensor]: ...
+         report: Literal[False] = ..., uvs: Literal[False] = ...) -> tuple[Tensor, Tensor]: ...
 @overload
 def load(path, *, weld_tol: float | None = ..., dtype=..., device=...,
-         report: Literal[True]) -> tuple[Tensor, Tensor, MeshReport]: ...
+         report: Literal[True], uvs: Literal[False] = ...) -> tuple[Tensor, Tensor, MeshReport]: ...
 @overload
-def load(path, *, weld_tol: float | None = ..., dtype=..., device=..., report: bool = ...) -> Cleaned: ...
+def load(path, *, weld_tol: float | None = ..., dtype=..., device=..., report: bool = ...,
+         uvs: Literal[True]) -> tuple: ...
+@overload
+def load(path, *, weld_tol: float | None = ..., dtype=..., device=..., report: bool = ..., uvs: bool = ...) -> tuple: ...
 
 
-def load(path, *, weld_tol: float | None = 1e-6, dtype=torch.float64, device=None, report: bool = False) -> Cleaned:
+def load(path, *, weld_tol: float | None = 1e-6, dtype=torch.float64, device=None, report: bool = False,
+         uvs: bool = False) -> tuple:
     """Read a triangle mesh and :func:`clean` it.
 
     Args:
@@ -257,10 +290,14 @@ def load(path, *, weld_tol: float | None = 1e-6, dtype=torch.float64, device=Non
             ``None`` or ``0`` keeps every vertex.
         dtype, device: of the returned positions (faces are ``int64`` on ``device``).
         report: also return a :class:`MeshReport`.
+        uvs: also return the texture (pattern) coordinates of each face corner, ``(F, 3, 2)`` in ``dtype``: per
+            corner, so that a UV seam survives the welding of its 3-D vertices (OBJ files with ``v/vt`` corners;
+            :func:`save_obj` writes them back).
 
     Returns:
         ``positions (V, 3)`` [file units, m for the energies], ``faces (F, 3)`` int64 0-indexed, counter-clockwise
-        as in the file, and with ``report=True`` the :class:`MeshReport`.
+        as in the file, with ``uvs=True`` the corner UVs ``(F, 3, 2)``, and with ``report=True`` the
+        :class:`MeshReport` (last).
 
     Raises ``ValueError`` naming the path for a missing or unreadable file, bad indices or no triangles.
     Warns (``UserWarning``) when unused vertices or degenerate faces are dropped.
@@ -268,12 +305,19 @@ def load(path, *, weld_tol: float | None = 1e-6, dtype=torch.float64, device=Non
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ValueError(f"mesh file not found: {path}")
-    reader = _read_obj if path.lower().endswith(".obj") else _read_meshio
-    points, tris, n_poly = reader(path)
+    corner_uvs: list = []
+    if uvs and not path.lower().endswith(".obj"):
+        raise ValueError(f"uvs=True reads the texture coordinates of OBJ files; {path} is not one")
+    points, tris, n_poly = _read_obj(path, corner_uvs if uvs else None) if path.lower().endswith(".obj") else _read_meshio(path)
     if len(tris) == 0:
         raise ValueError(f"{path} holds no triangles or polygons ({len(points)} vertices)")
     positions = torch.as_tensor(points, dtype=dtype, device=device)
-    return _clean(positions, tris, weld_tol, report, source=path, polygons=n_poly)
+    kept: list = []
+    out = _clean(positions, tris, weld_tol, report, source=path, polygons=n_poly, kept=kept)
+    if not uvs:
+        return out
+    uv = torch.as_tensor(corner_uvs[0][kept[0]], dtype=dtype, device=device)
+    return (*out[:2], uv, *out[2:])
 
 
 @overload
@@ -311,7 +355,8 @@ def clean(positions, faces, *, weld_tol: float | None = 1e-6, report: bool = Fal
 
 
 def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str | None = None,
-           polygons: int = 0) -> Cleaned:
+           polygons: int = 0, kept: list | None = None) -> Cleaned:
+    """:func:`clean`; ``kept``: a list to which the mask of the input faces that remain is appended."""
     where = f"{source}: " if source is not None else ""
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"{where}positions must have shape (V, 3), got {tuple(pos.shape)}")
@@ -352,6 +397,8 @@ def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str 
 
     # 2. degenerate faces
     degenerate = (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2]) | (F[:, 2] == F[:, 0])
+    if kept is not None:
+        kept.append(~degenerate)
     n_degenerate = int(degenerate.sum())
     if n_degenerate:
         F = F[~degenerate]
@@ -411,11 +458,14 @@ def _analyse_edges(F: np.ndarray, V: int, report: MeshReport) -> None:
 
 
 def save_obj(path, positions, faces, uvs=None, *, header: str | None = None) -> None:
-    """Write a Wavefront OBJ file: ``v`` lines (9 significant digits), ``vt`` lines when ``uvs`` is given
-    (one per vertex, faces written ``f a/a b/b c/c``), 1-indexed faces.
+    """Write a Wavefront OBJ file: ``v`` lines (9 significant digits), ``vt`` lines when ``uvs`` is given,
+    1-indexed faces.
 
     Args:
-        positions: ``(V, 3)`` [m]; faces: ``(F, 3)`` 0-indexed; uvs: ``(V, 2)`` texture/pattern coordinates.
+        positions: ``(V, 3)`` [m]; faces: ``(F, 3)`` 0-indexed.
+        uvs: texture/pattern coordinates, either ``(V, 2)`` (one per vertex, faces written ``f a/a b/b c/c``) or
+            ``(F, 3, 2)`` (one per face corner, as :func:`load` with ``uvs=True`` returns them, so that seams
+            survive: ``vt`` lines in corner order, faces written ``f a/k b/k+1 c/k+2``).
         header: comment lines written first (``# `` is prepended to each).
     """
     P = np.asarray(torch.as_tensor(positions).detach().cpu(), dtype=np.float64)
@@ -428,11 +478,42 @@ def save_obj(path, positions, faces, uvs=None, *, header: str | None = None) -> 
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in P]
     if uvs is not None:
         T = np.asarray(torch.as_tensor(uvs).detach().cpu(), dtype=np.float64)
-        if T.shape != (len(P), 2):
-            raise ValueError(f"uvs must have shape ({len(P)}, 2), got {T.shape}")
-        lines += [f"vt {u:.9g} {v:.9g}" for u, v in T]
-        lines += ["f " + " ".join(f"{i}/{i}" for i in f) for f in (Fa + 1).tolist()]
+        if T.shape == (len(Fa), 3, 2):
+            lines += [f"vt {u:.9g} {v:.9g}" for u, v in T.reshape(-1, 2)]
+            corners = np.arange(1, 3 * len(Fa) + 1).reshape(-1, 3)
+            lines += ["f " + " ".join(f"{i}/{k}" for i, k in zip(f, c)) for f, c in zip((Fa + 1).tolist(), corners.tolist())]
+        elif T.shape == (len(P), 2):
+            lines += [f"vt {u:.9g} {v:.9g}" for u, v in T]
+            lines += ["f " + " ".join(f"{i}/{i}" for i in f) for f in (Fa + 1).tolist()]
+        else:
+            raise ValueError(f"uvs must have shape ({len(P)}, 2) (per vertex) or ({len(Fa)}, 3, 2) (per face corner), "
+                             f"got {T.shape}")
     else:
         lines += ["f " + " ".join(str(i) for i in f) for f in (Fa + 1).tolist()]
     with open(os.fspath(path), "w", encoding="utf-8", newline="\n") as fh:
         fh.write("\n".join(lines) + "\n")
+
+
+def save(path, positions, faces, uvs=None, *, header: str | None = None) -> None:
+    """Write a triangle mesh in the format its extension names: ``.obj`` by :func:`save_obj` (no dependency, with
+    ``uvs`` and ``header``), any other format meshio writes (``.ply``, ``.stl``, ``.off``, ``.vtk``, ...) through
+    meshio (the ``io`` extra; ``uvs`` and ``header`` are OBJ's only).  ``positions (V, 3)``, ``faces (F, 3)``
+    0-indexed.  For an animation, write one file per saved step (``frame_0001.ply``, ...), as the scene runner
+    does with OBJ."""
+    path = os.fspath(path)
+    if path.lower().endswith(".obj"):
+        save_obj(path, positions, faces, uvs, header=header)
+        return
+    if uvs is not None or header is not None:
+        raise ValueError(f"uvs and header are written to OBJ files only, not to {path}")
+    P = np.asarray(torch.as_tensor(positions).detach().cpu(), dtype=np.float64)
+    Fa = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"positions must have shape (V, 3), got {P.shape}")
+    if Fa.ndim != 2 or Fa.shape[1] != 3 or (Fa.size and (Fa.min() < 0 or Fa.max() >= len(P))):
+        raise ValueError(f"faces must have shape (F, 3) with indices in [0, {len(P)})")
+    meshio = require("meshio", f"writing {path} (.obj files are written without it)")
+    try:
+        meshio.write_points_cells(path, P, [("triangle", Fa)])
+    except Exception as e:  # meshio's unknown-format and writer errors
+        raise ValueError(f"cannot write {path}: {type(e).__name__}: {e}") from None

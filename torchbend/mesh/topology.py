@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_positions
+from .._torch_compat import parse_to
 
 __all__ = ["HingeTopology", "lumped_areas", "mesh_and_rest"]
 
@@ -206,7 +207,7 @@ class HingeTopology:
 
         A dtype in the arguments is ignored: index tensors stay ``int64`` (as ``nn.Module.to`` casts
         only floating point tensors), so ``topo.to(torch.float32)`` is a copy."""
-        device = torch._C._nn._parse_to(*args, **kwargs)[0]  # pyright: ignore[reportAttributeAccessIssue]
+        device = parse_to(*args, **kwargs)[0]
         return dataclasses.replace(self, **{
             f.name: getattr(self, f.name).to(device)
             for f in dataclasses.fields(self)

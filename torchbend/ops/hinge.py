@@ -1,6 +1,6 @@
 """Pure per-hinge geometry kernels: the bend angle, its gradient and its Hessian.
 
-Everything here works on gathered stencils ``x4: (..., H, 4, 3)`` (the SPEC's order
+Everything here works on gathered stencils ``x4: (..., H, 4, 3)`` (the stencil order of :mod:`torchbend.mesh.topology`
 ``(x0, x1, x2, x3)``: hinge edge ``x0 -> x1``, wing of triangle A, wing of triangle B, see
 :mod:`torchbend.topology`) and returns per-hinge quantities; scatter-adding them to vertices
 happens outside (:mod:`torchbend.ops.stencil`).  No autograd is used or required: these are the
@@ -60,7 +60,7 @@ u x w``).  Where the digits went before (float64, against a 40-digit reference, 
   went from median 1.4 / max 3.8 ulps to 1.1 / 2.9 on well-shaped hinges, from 1.6 / 12.4 to 1.3 / 4.6
   on random ones (autograd: 1.9 / 3.5 and 1.9 / 5.5; benchmarks/results/accuracy_after.txt).
 
-``theta`` itself keeps the SPEC formula with ``nA = e x (x2 - x0)``, ``nB = (x3 - x0) x e``
+``theta`` itself keeps the defining formula with ``nA = e x (x2 - x0)``, ``nB = (x3 - x0) x e``
 (:func:`hinge_angle_soa`, and the compiled ``hinge_psi``), so that angles at the rest state vanish bit for
 bit; on needles its error (~100 eps, max 14000) still limits the energy and its derivatives (from the
 shortest-edge normals it would be ~0.3 eps: the same change in ``hinge_angle_soa`` and ``hinge_psi``).
@@ -295,7 +295,7 @@ def hinge_angle_gradient_hvp_soa(xs, vs=None):
 
     ``grad`` and ``Hv`` are 4-tuples (per stencil vertex) of component triples ``(..., H)``."""
     hA, hB, _, _ = _halves(xs)
-    # the SPEC formula as hinge_angle_soa evaluates it, so that angles at the rest state vanish bit for bit
+    # the defining formula as hinge_angle_soa evaluates it, so that angles at the rest state vanish bit for bit
     # (scaled, float32 in float64: _stencil_theta); the half-hinge normals N are formed differently
     theta = _stencil_theta(xs)
     grad = _gradient(hA, hB)

@@ -8,6 +8,8 @@ import xml.etree.ElementTree as ET
 import torch
 from torch import Tensor
 
+from .._extras import require
+
 __all__ = ["Robot", "asset_path"]
 
 _ASSETS = os.path.join(os.path.dirname(__file__), "assets")
@@ -108,7 +110,7 @@ def _validate_urdf(text: str, where: str) -> None:
 
 def _float64_chain(text: str, device):
     """pytorch-kinematics chain with float64 joint offsets and axes (its URDF reader rounds to float32)."""
-    import pytorch_kinematics as pk
+    pk = require("pytorch_kinematics", "robot scenes (URDF kinematics)")
     import pytorch_kinematics.transforms as tf
     from pytorch_kinematics.urdf_parser_py.urdf import URDF
 
@@ -151,6 +153,8 @@ class Robot:
         _validate_urdf(text, where)
         try:
             chain = _float64_chain(text, device or "cpu")
+        except ImportError:
+            raise  # the robot extra is missing: the error says so
         except Exception as e:  # the parser's errors are not ValueErrors
             raise ValueError(f"malformed URDF ({where}): {type(e).__name__}: {e}") from None
         self.chain = chain.to(dtype=dtype, device=device or "cpu")

@@ -16,7 +16,13 @@ from __future__ import annotations
 import os
 from typing import Any, TypeVar, cast
 
-from pydantic import BaseModel
+from .._extras import missing_extra
+
+try:
+    from pydantic import BaseModel
+except ModuleNotFoundError as _err:
+    raise missing_extra(_err, "torchbend.scenes (configs)") from None
+
 
 from .builders import (
     RobotConfig,

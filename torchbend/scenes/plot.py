@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .._extras import require
 from ..energies import Capsule, Plane, Sphere
 
 __all__ = ["snapshot", "draw_mesh", "draw_colliders"]
@@ -101,8 +102,7 @@ def snapshot(path: str, panels, *, titles=None, size: float = 5.0, dpi: int = 10
     ``meshes`` a list of ``(x (V, 3), faces (F, 3))`` and ``colliders`` torchbend colliders.
     ``views``: one row of panels per entry, ``(elevation, azimuth)`` [degrees] or ``None``
     (matplotlib's default view); ``alpha``: the meshes' opacity (below 1 shows colliders behind them)."""
-    import matplotlib
-
+    matplotlib = require("matplotlib", "plotting")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

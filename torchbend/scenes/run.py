@@ -60,6 +60,7 @@ import time
 
 import torch
 
+from .._extras import require
 from ..robot import trajectory
 from ..sim import ClothState, implicit_euler_step, solve_static
 from . import cli
@@ -83,7 +84,7 @@ LINEAR_LOAD = 1e-4  # load fraction of the small-load (linear response) solve of
 
 
 def _write_obj(path: str, x: torch.Tensor, faces: torch.Tensor) -> None:
-    import meshio
+    meshio = require("meshio", "writing scene frames")
 
     meshio.write_points_cells(path, x.detach().cpu().numpy(), [("triangle", faces.cpu().numpy())])
 
@@ -114,7 +115,7 @@ def run_config(cfg, out_dir: str, *, steps: int | None = None, resolution: tuple
 
 
 def _run_dynamic(cfg: SceneConfig, out_dir, stats, steps, resolution, progress, device, resume, name) -> None:
-    from tqdm import tqdm
+    tqdm = require("tqdm", "the scene runner's progress bar").tqdm
 
     sol, kind = cfg.solver, cfg.scene.kind
     ckpt = os.path.join(out_dir, "checkpoint.pt")

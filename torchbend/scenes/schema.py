@@ -10,17 +10,22 @@ import warnings
 from collections.abc import Mapping
 from typing import Annotated, Literal, Optional, TypeVar, Union
 
-from pydantic import (
-    BaseModel,
-    BeforeValidator,
-    ConfigDict,
-    Discriminator,
-    Field,
-    Tag,
-    ValidationError,
-    field_validator,
-    model_validator,
-)
+from .._extras import missing_extra
+
+try:
+    from pydantic import (
+        BaseModel,
+        BeforeValidator,
+        ConfigDict,
+        Discriminator,
+        Field,
+        Tag,
+        ValidationError,
+        field_validator,
+        model_validator,
+    )
+except ModuleNotFoundError as _err:
+    raise missing_extra(_err, "torchbend.scenes (configs)") from None
 
 from ..energies.contact import ContactLaw, contact_law
 from ..ops.membrane import MembraneModel

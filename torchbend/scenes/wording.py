@@ -9,7 +9,12 @@ import types
 from collections.abc import Mapping
 from typing import Annotated, Any, TypeGuard, Union, get_args, get_origin
 
-from pydantic import BaseModel, Tag
+from .._extras import missing_extra
+
+try:
+    from pydantic import BaseModel, Tag
+except ModuleNotFoundError as _err:
+    raise missing_extra(_err, "torchbend.scenes (configs)") from None
 
 __all__ = ["ConfigError", "short_repr", "one_line", "describe", "QUOTE_LIMIT", "MESSAGE_LIMIT", "MAX_ERRORS"]
 
