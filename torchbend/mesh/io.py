@@ -457,6 +457,17 @@ def _analyse_edges(F: np.ndarray, V: int, report: MeshReport) -> None:
 # ---------------------------------------------------------------------------------------------------- writing
 
 
+def _mesh_arrays(positions, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``(positions (V, 3) float64, faces (F, 3) int64)`` as NumPy arrays, checked (ValueError naming the bad one)."""
+    P = np.asarray(torch.as_tensor(positions).detach().cpu(), dtype=np.float64)
+    Fa = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"positions must have shape (V, 3), got {P.shape}")
+    if Fa.ndim != 2 or Fa.shape[1] != 3 or (Fa.size and (Fa.min() < 0 or Fa.max() >= len(P))):
+        raise ValueError(f"faces must have shape (F, 3) with indices in [0, {len(P)})")
+    return P, Fa
+
+
 def save_obj(path, positions, faces, uvs=None, *, header: str | None = None) -> None:
     """Write a Wavefront OBJ file: ``v`` lines (9 significant digits), ``vt`` lines when ``uvs`` is given,
     1-indexed faces.
@@ -468,12 +479,7 @@ def save_obj(path, positions, faces, uvs=None, *, header: str | None = None) -> 
             survive: ``vt`` lines in corner order, faces written ``f a/k b/k+1 c/k+2``).
         header: comment lines written first (``# `` is prepended to each).
     """
-    P = np.asarray(torch.as_tensor(positions).detach().cpu(), dtype=np.float64)
-    Fa = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"positions must have shape (V, 3), got {P.shape}")
-    if Fa.ndim != 2 or Fa.shape[1] != 3 or (Fa.size and (Fa.min() < 0 or Fa.max() >= len(P))):
-        raise ValueError(f"faces must have shape (F, 3) with indices in [0, {len(P)})")
+    P, Fa = _mesh_arrays(positions, faces)
     lines = [f"# {h}" for h in header.splitlines()] if header else []
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in P]
     if uvs is not None:
@@ -506,12 +512,7 @@ def save(path, positions, faces, uvs=None, *, header: str | None = None) -> None
         return
     if uvs is not None or header is not None:
         raise ValueError(f"uvs and header are written to OBJ files only, not to {path}")
-    P = np.asarray(torch.as_tensor(positions).detach().cpu(), dtype=np.float64)
-    Fa = np.asarray(torch.as_tensor(faces).detach().cpu(), dtype=np.int64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"positions must have shape (V, 3), got {P.shape}")
-    if Fa.ndim != 2 or Fa.shape[1] != 3 or (Fa.size and (Fa.min() < 0 or Fa.max() >= len(P))):
-        raise ValueError(f"faces must have shape (F, 3) with indices in [0, {len(P)})")
+    P, Fa = _mesh_arrays(positions, faces)
     meshio = require("meshio", f"writing {path} (.obj files are written without it)")
     try:
         meshio.write_points_cells(path, P, [("triangle", Fa)])

@@ -29,6 +29,7 @@ from ..energies.sparse import to_scipy
 from ..losses.cloth_loss import ClothLoss
 from ..mesh.topology import lumped_areas, mesh_and_rest
 from ..options import Projection
+from .linearized import LinearizedHessian
 from .terms import (
     BendingTerm,
     ColliderTerm,
@@ -132,6 +133,15 @@ class TermSum:
             else:
                 H = H + to_scipy(as_csr(t.hessian(x, ctx, projection)))
         return H.tocsr()
+
+    def linearize(self, x: Tensor, projection: Projection | str = "exact", ctx: StepContext | None = None, *,
+                  contact=None) -> LinearizedHessian:
+        """The Hessian at ``x (V, 3)`` evaluated, projected (``projection``, ``contact`` as ``option`` and
+        ``contact`` of :meth:`hessian`) and assembled once, as an operator applied at the cost of a sparse matvec
+        (:class:`~torchbend.sim.linearized.LinearizedHessian`: ``op @ v``, ``op.as_linear_operator()``); pinned
+        vertices are known to it (``op.free``)."""
+        H = self.hessian(x, Projection.parse(projection), ctx, contact=contact)
+        return LinearizedHessian(H, self.vertex_count, getattr(self, "pinned", None))
 
     def contact_blocks(self, x: Tensor, project) -> Tensor:
         """The contact terms' per-vertex 3x3 Hessian blocks ``(V, 3, 3)`` [N/m] summed (zeros without
