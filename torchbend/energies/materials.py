@@ -12,28 +12,29 @@ From a material (Young's modulus ``Y`` [Pa], thickness ``t`` [m], Poisson ratio 
 
 HOOD and SNUG (Grigorev et al. 2023; Santesteban et al. 2022)
 --------------------------------------------------------------
-Their losses are written here as we assume them (from the papers and the public code as we read it;
-check them against the version you use: the tests implement exactly these formulas as plain
-autograd references and check that our energies with the converted parameters equal them):
+Compared formula by formula with HOOD's public code (``criterions/postcvpr``); the terms that are HOOD's
+formulas exactly are in :mod:`torchbend.losses.hood`:
 
-* bending, per hinge with rest weights (flat rest shape, ``A`` rest triangle areas, ``e`` the hinge
-  edge)::
-
-      E_h = bending_coeff * |e|^2 / (4 (A_A + A_B)) * theta^2 / 2  =  bending_coeff |e|^2 theta^2 / (8 (A_A + A_B))
-
-  Ours is ``3 k |e|^2 theta^2 / (A_A + A_B)``: the two are equal for ``bending_coeff = 24 k``
-  (:func:`hood_bending_coeff`, :func:`bending_stiffness_from_hood`).  (HOOD evaluates ``|e|`` on the
-  prediction; torchbend on the rest shape, as Discrete Shells do: the two agree to first order in the
-  edge strain.)  SNUG's material code (as we read it) sets ``bending_coeff = Y t^3 / (12 (1 - nu^2)) = D``; with that definition
-  the same material's bending energy is 12 times smaller in their loss than in ours
-  (``k = D / 2``): keep this in mind when comparing stiffnesses of a "material" across codes.
+* bending: HOOD's per-hinge energy is ``bending_coeff * l^2 / (4 (A_A + A_B)) * theta^2 / 2`` with ``l`` the
+  *current* edge length and ``theta`` measured from flat; torchbend's is ``3 k |e|^2 (theta - theta_rest)^2 /
+  (A_A + A_B)`` with the *rest* length and rest angles.  At rest lengths and zero rest angles the two are
+  equal for ``bending_coeff = 24 k`` (:func:`hood_bending_coeff`, :func:`bending_stiffness_from_hood`); on a
+  stretched garment they differ by ``(|e| / |e_rest|)^2`` per hinge, on a curved one by the rest angles.
+  :class:`torchbend.losses.hood.Bending` is HOOD's formula itself.  The materials HOOD and SNUG use have
+  ``bending_coeff = 50 D`` with ``D = Y t^3 / (12 (1 - nu^2))`` (HOOD's default 3.9626e-5 N m is ``50 D`` of its
+  default material; SNUG's ``bending_multiplier`` is 50), while :func:`stiffness_from_material` gives
+  ``k = D / 2``: for the same ``Y``, ``t``, ``nu`` HOOD's cloth is ``50 / 12 = 4.17`` times stiffer in
+  bending (:mod:`torchbend.losses.hood.material`).
 * stretch, Saint Venant-Kirchhoff per triangle with Green strain ``G = (F^T F - I) / 2``::
 
       E_T = A_T t (lame_mu |G|_F^2 + lame_lambda / 2 tr(G)^2)
 
   with plane-stress ``lame_mu``, ``lame_lambda`` [Pa] (e.g. HOOD's default material ``lame_mu = 23600``,
   ``lame_lambda = 44400``, ``Y = 7e4`` Pa, ``nu = 0.485``, ``t = 4.7e-4`` m): this is our ``stvk``
-  membrane with ``(young, poisson) = material_from_lame(lame_mu, lame_lambda)`` and the same thickness.
+  membrane with ``(young, poisson) = material_from_lame(lame_mu, lame_lambda)`` and the same thickness
+  when ``lame_lambda < 2 lame_mu`` (a Poisson ratio below 1/2); HOOD samples ``lame_mu`` and ``lame_lambda``
+  independently, and about a third of its draws lie beyond: :class:`torchbend.losses.hood.Stretching` takes
+  the Lame parameters directly (stable for ``lame_lambda > -lame_mu``).
   (A code that stores ``lame_mu t``, ``lame_lambda t`` per unit area takes ``thickness = 1``.)
 * mass: their ``density`` is areal [kg/m^2] (HOOD: 0.20022 = 426 kg/m^3 x 4.7e-4 m), as ours.
 

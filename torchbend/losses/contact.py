@@ -1,5 +1,5 @@
 r"""Body contact as a loss: a one-sided penalty against a body mesh, the project's colliders and
-per-sample spheres, as in HOOD and SNUG.
+per-sample spheres, in torchbend's convention (SNUG's nearest-vertex variant for a body mesh).
 
 For cloth positions ``x (B, V, 3)`` [m] and every contact source::
 

@@ -1,6 +1,8 @@
 r"""Elastic loss terms with per-sample materials: stretch (membrane) and bending.
 
-Both wrap the package's energies (closed-form gradients, analytic double backward) and are linear in
+Both keep torchbend's conventions (Young's modulus and a Poisson ratio; Discrete Shells bending with rest
+lengths and rest angles); HOOD's formulas themselves are :mod:`torchbend.losses.hood`.  Both wrap the
+package's energies (closed-form gradients, analytic double backward) and are linear in
 their material parameters, which makes per-sample materials exact and cheap:
 
 * :class:`Stretch`: ``E = sum_T A_T t Psi(F_T; mu, lam)`` (:class:`~torchbend.MembraneEnergy`) with
