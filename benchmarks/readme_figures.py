@@ -24,6 +24,8 @@ Measurements (each a fresh subprocess, as a newcomer runs it, under ``timeout``)
 - ``tests``: ``python -m pytest -q``, wall time and counts.
 - ``robot_fold``: ``python -m torchbend.scenes configs/robot_fold.yaml``.
 - ``robot_drape``: ``python train/robot_drape.py``: time and its held-out comparison with Newton.
+- ``hood``: ``python benchmarks/bm_hood.py --vertices 10000 --batch 1``: HOOD's whole loss, forward + backward,
+  torchbend.losses.hood against its plain PyTorch transcription (one thread).
 - ``beams``: ``python -m torchbend.scenes configs/beams.yaml`` at the paper's three resolutions: the
   linear/Kirchhoff ratio and the Newton iterations of the softest beam.
 """
@@ -49,7 +51,7 @@ README = os.path.join(ROOT, "README.md")
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures.json")
 QUICK_RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures_quick.json")
 MARKER = re.compile(r"<!-- fig:([A-Za-z0-9_]+) -->(.*?)<!-- /fig -->", re.S)
-MEASUREMENTS = ("jit", "compile", "import", "quickstart", "tests", "robot_fold", "robot_drape", "beams")
+MEASUREMENTS = ("jit", "compile", "import", "quickstart", "tests", "robot_fold", "robot_drape", "beams", "hood")
 BEAM_RESOLUTIONS = ((61, 6), (131, 6), (196, 7))
 NOTE = ("the project's shared 2-core CPU machine: other engineers' jobs ran at the same time (see the load "
         "averages of each measurement); times vary with that load")
@@ -205,6 +207,18 @@ def measure_import(ctx: Context) -> dict:
         runs.append(record(r))
     best = min(times)
     return {"runs": runs, "figures": {"import_s": f"{best:.2f} s"}, "values": {"import_s": times}}
+
+
+def measure_hood(ctx: Context) -> dict:
+    """The ``total`` row of ``benchmarks/bm_hood.py`` at 10k vertices, batch 1 (2k with ``--quick``)."""
+    cmd = [ctx.python, "benchmarks/bm_hood.py", "--vertices", "2000" if ctx.quick else "10000", "--batch", "1",
+           "--budget", "0.2" if ctx.quick else "1.0"]
+    r = checked(run(cmd, env=ctx.source_env, timeout=1200), "hood loss")
+    rows = [line.split() for line in r["stdout"].splitlines() if line.strip().startswith("total")]
+    ours, plain = float(rows[-1][1]) * 1e-3, float(rows[-1][2]) * 1e-3
+    return {"runs": [record(r, table=r["stdout"].strip().splitlines()[-10:])],
+            "figures": {"hood_ms": milliseconds(ours), "hood_plain_s": seconds(plain)},
+            "values": {"torchbend_s": ours, "plain_s": plain}}
 
 
 def train_run(ctx: Context, script: str, quick_steps: int, timeout: float, what: str) -> tuple[dict, dict]:

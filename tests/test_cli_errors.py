@@ -271,7 +271,7 @@ def _cases(p: dict) -> list:
         # hood_style
         ("hood-steps-0", ["hood_style", "--steps", "0"], ["--steps"]),
         ("hood-set-subdivisions-huge", ["hood_style", "--set", "body.subdivisions=30"], ["body.subdivisions"]),
-        ("hood-set-network-huge", ["hood_style", "--set", "model.hidden=1000000", "--set", "mesh.nx=3", *out],
+        ("hood-set-network-huge", ["hood_style", "--set", "model.hidden=1000000", "--set", "mesh={type: grid, nx: 3}", *out],
          ["parameters"]),
         ("hood-list-config", ["hood_style", "--config", p["list"]], ["mapping"]),
         ("hood-missing-mesh", ["hood_style", "--set", "mesh=/no/such/garment.obj"], ["mesh.path", "/no/such/garment.obj"]),

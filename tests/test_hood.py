@@ -228,3 +228,14 @@ def test_float32_follows_input():
     for name, term in _terms(s, mats).items():
         v = term(s["x"], **_inputs(name, s))
         assert v.dtype == torch.float32 and bool(torch.isfinite(v).all()), name
+
+
+def test_criteria_is_hoods_batch_mean():
+    s, mats = _scene(), _materials(3)
+    loss = hood.criteria(s["faces"], s["rest"], s["body_faces"], density=mats["density"], lame_mu=mats["lame_mu"],
+                         lame_lambda=mats["lame_lambda"], bending_coeff=mats["bending_coeff"])
+    total, parts = loss(s["x"], x_curr=s["x_curr"], x_prev=s["x_prev"], body_prev=s["body_prev"],
+                        body_curr=s["body_curr"], body_next=s["body_next"], iteration=0)
+    ref = _reference(s, mats, s["x"])
+    assert set(parts) == set(TERMS)
+    torch.testing.assert_close(total, torch.stack([ref[n] for n in TERMS]).sum(0).mean(), rtol=1e-12, atol=0)

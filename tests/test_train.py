@@ -196,19 +196,20 @@ def test_robot_drape_training_conditioned_on_joint_angles(tmp_path):
 def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    cfg = {"mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]}, "body": {"subdivisions": 1},
-           "model": {"hidden": 16, "layers": 2},
+    cfg = {"convention": "torchbend", "mesh": {"nx": 5, "size": [0.8, 0.8], "offset": [-0.4, -0.4, 0.32]},
+           "body": {"subdivisions": 1}, "model": {"hidden": 16, "layers": 2}, "eval": {"every": 2, "sequences": 1},
            "train": {"batch": 2, "rollout": 3, "log_every": 2, "checkpoint_every": 2}}
     path = tmp_path / "hood.yaml"
     path.write_text(yaml.safe_dump(cfg))
     out = str(tmp_path / "run")
     r = hood_style.main(["--config", str(path), "--out", out, "--steps", "4", "--seed", "1", "--no-progress"])
-    assert set(r["terms"]) == set(hood_style.TERMS) and all(len(v) == 4 for v in r["terms"].values())
+    terms = hood_style.TERMS["torchbend"]
+    assert set(r["terms"]) == set(terms) and all(len(v) == 4 for v in r["terms"].values())
     assert all(math.isfinite(v) for v in r["losses"]) and all(math.isfinite(v) for vs in r["terms"].values() for v in vs)
     acc = EventAccumulator(os.path.join(out, "tb"))
     acc.Reload()
-    assert {f"loss/{name}" for name in hood_style.TERMS} | {"loss/total"} <= set(acc.Tags()["scalars"])
-    for name in hood_style.TERMS:  # the logged values are the per-term values of the run (unweighted, J)
+    assert {f"loss/{name}" for name in terms} | {"loss/total"} <= set(acc.Tags()["scalars"])
+    for name in terms:  # the logged values are the per-term values of the run (unweighted, J)
         logged = {e.step: e.value for e in acc.Scalars(f"loss/{name}")}
         assert set(logged) == {2, 4}
         assert all(math.isclose(logged[s], r["terms"][name][s - 1], rel_tol=1e-6, abs_tol=1e-30) for s in logged)
@@ -236,13 +237,14 @@ def test_hood_style_training_logs_every_term_to_tensorboard(tmp_path):
 def test_hood_style_trains_on_the_shipped_garment_from_its_config(tmp_path):
     skirt = tb.mesh.asset_path("skirt.obj")
     rest, faces = tb.mesh.load(skirt)
-    cfg = {"mesh": {"type": "file", "path": skirt, "offset": [0.0, 0.0, 0.65]}, "body": {"subdivisions": 1},
-           "model": {"hidden": 8, "layers": 1}, "train": {"batch": 2, "rollout": 2, "log_every": 1}}
+    cfg = {"convention": "torchbend", "mesh": {"type": "file", "path": skirt, "offset": [0.0, 0.0, 0.65]},
+           "body": {"subdivisions": 1}, "model": {"hidden": 8, "layers": 1}, "eval": {"sequences": 1},
+           "train": {"batch": 2, "rollout": 2, "log_every": 1}}
     path = tmp_path / "skirt.yaml"
     path.write_text(yaml.safe_dump(cfg))
     out = str(tmp_path / "run")
     r = hood_style.main(["--config", str(path), "--out", out, "--steps", "2", "--no-progress"])
-    assert all(math.isfinite(v) for v in r["losses"]) and set(r["terms"]) == set(hood_style.TERMS)
+    assert all(math.isfinite(v) for v in r["losses"]) and set(r["terms"]) == set(hood_style.TERMS["torchbend"])
     ck = torch.load(os.path.join(out, "checkpoint.pt"), weights_only=True)
     assert ck["model"]["net.2.weight"].shape == (3 * len(rest) + 3, 8)  # one output per welded skirt vertex
     assert ck["config"]["mesh"]["path"] == skirt
@@ -256,6 +258,30 @@ def test_hood_style_trains_on_the_shipped_garment_from_its_config(tmp_path):
     path.write_text(yaml.safe_dump({"mesh": {"type": "file", "path": skirt, "pin": [0]}}))
     with pytest.raises(ValueError, match="'mesh.pin': hood_style pins no vertices"):
         hood_style.cloth_mesh(load_config(str(path), hood_style.Config), torch.float64)
+
+
+def test_hood_style_default_is_hoods_convention(tmp_path):
+    """The default config: HOOD's six criteria on the shipped skirt (y-up) over the walking mannequin, a held-out
+    evaluation before and after training (loss, residual, angles, meshes) and its picture."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = str(tmp_path / "run")
+    r = hood_style.main(["--out", out, "--steps", "3", "--no-progress", "--set", "model={hidden: 8, layers: 1}",
+                         "--set", "train={batch: 2, rollout: 2, log_every: 1}", "--set", "eval.sequences=2"])
+    assert set(r["terms"]) == set(hood_style.TERMS["hood"]) and set(r["eval"]) == {0, 3}
+    assert all(math.isfinite(v) for vs in r["terms"].values() for v in vs)
+    assert min(r["terms"]["collision"]) >= 0 and min(r["terms"]["stretching"]) >= 0
+    acc = EventAccumulator(os.path.join(out, "tb"))
+    acc.Reload()
+    scalars = set(acc.Tags()["scalars"])
+    assert {"eval/loss", "eval/residual_rms", "eval/mean_abs_theta_minus_rest"} <= scalars
+    assert all(math.isfinite(e.value) and e.value >= 0 for e in acc.Scalars("eval/residual_rms"))
+    assert os.path.getsize(os.path.join(out, "eval.png")) > 1000
+    cfg = load_config(hood_style.CONFIG, hood_style.Config)
+    rest, _ = hood_style.cloth_mesh(cfg, torch.float64)
+    assert float(rest[:, 1].max() - rest[:, 1].min()) == pytest.approx(0.4)  # y-up: the skirt hangs along y
+    seq = hood_style.Sequences(cfg, 64, torch.Generator().manual_seed(0), torch.float64, "cpu")
+    assert float((seq.lame_lambda >= 2 * seq.lame_mu).double().mean()) > 0.1  # HOOD's independent draws
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")

@@ -5,8 +5,8 @@ ones before it: ``mesh`` (topology, packing, procedural meshes, mesh files: ``tb
 ``ops`` (pure per-element kernels) -> ``backends`` (eager or compiled, decided in one function) ->
 ``energies`` (bending, membrane, colliders) -> ``sim`` (cloth model, Newton solvers, adjoint) -> ``robot`` -> ``scenes``
 (YAML configs and their runner); ``losses`` (physics losses as modules for training: gravity,
-inertia, pinning, contact, stretch, bending, ``ClothLoss``) stands beside ``sim`` and imports only
-``mesh``, ``ops`` and ``energies``.  ``options`` (the option enums) and ``testing`` (plain autograd
+inertia, pinning, contact, stretch, bending, ``ClothLoss``; HOOD's criteria in ``losses.hood``) stands beside ``sim`` and imports only
+``mesh``, ``ops``, ``backends`` and ``energies``.  ``options`` (the option enums) and ``testing`` (plain autograd
 references) stand beside the chain.
 """
 from importlib.metadata import PackageNotFoundError, version

@@ -19,6 +19,9 @@ rest angles (Discrete Shells), their stretch takes Young's modulus and a Poisson
 body contact is SNUG's nearest-vertex variant.  ``torchbend.testing.hood_reference_loss`` is a plain
 PyTorch transcription of these formulas (the tests' reference and the benchmark's baseline).
 """
+from torch import Tensor
+
+from ..cloth_loss import ClothLoss
 from .body import Collision, Friction
 from .elastic import DEFAULT_MATERIAL, Bending, Stretching
 from .mass import FIRST_STEP_DT, REGULAR_DT, Gravity, Inertia
@@ -32,6 +35,27 @@ from .material import (
     stiffness_from_bending_coeff,
 )
 
-__all__ = ["BENDING_MULTIPLIER", "Bending", "Collision", "DEFAULT_MATERIAL", "FIRST_STEP_DT", "Friction", "Gravity",
+__all__ = ["criteria", "BENDING_MULTIPLIER", "Bending", "Collision", "DEFAULT_MATERIAL", "FIRST_STEP_DT", "Friction", "Gravity",
            "HOOD_RANGES", "Inertia", "REGULAR_DT", "Stretching", "bending_coeff_from_material", "flexural_rigidity",
            "lame_from_material", "sample_materials", "stiffness_from_bending_coeff"]
+
+
+def criteria(faces, rest: Tensor, body_faces, *, density: float | Tensor = DEFAULT_MATERIAL["density"],
+             lame_mu: float | Tensor = DEFAULT_MATERIAL["lame_mu"],
+             lame_lambda: float | Tensor = DEFAULT_MATERIAL["lame_lambda"],
+             bending_coeff: float | Tensor = DEFAULT_MATERIAL["bending_coeff"],
+             thickness: float = DEFAULT_MATERIAL["thickness"], dt: float | Tensor = REGULAR_DT, eps: float = 2e-3,
+             collision_weight: tuple[float, float] = (5e3, 5e5), friction: float = 0.5, radius: float = 3e-3,
+             gravity_axis: int = 1) -> ClothLoss:
+    """HOOD's six criteria as one :class:`~torchbend.ClothLoss` (``reduction="mean"``: HOOD's batch average),
+    terms named ``stretching``, ``bending``, ``inertia``, ``gravity``, ``collision``, ``friction``, with HOOD's
+    defaults.  Call it as ``loss(x, x_curr=..., x_prev=..., body_prev=..., body_curr=..., body_next=...,
+    iteration=...)`` (per-sample materials as keywords too); it returns ``(total, {name: value})``."""
+    terms = {"stretching": Stretching(faces, rest, lame_mu=lame_mu, lame_lambda=lame_lambda, thickness=thickness),
+             "bending": Bending(faces, rest, bending_coeff=bending_coeff),
+             "inertia": Inertia(faces, rest, density=density, dt=dt),
+             "gravity": Gravity(faces, rest, density=density, axis=gravity_axis),
+             "collision": Collision(body_faces, eps=eps, weight_start=collision_weight[0],
+                                    weight_max=collision_weight[1]),
+             "friction": Friction(faces, rest, body_faces, density=density, mu=friction, radius=radius)}
+    return ClothLoss(terms)

@@ -30,6 +30,8 @@ as HOOD does, or the body at the cloth's instants to align them.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -143,8 +145,9 @@ class Friction(_BodyTerm):
         body_prev, body_curr = self._body(body_prev, "body_prev", x), self._body(body_curr, "body_curr", x)
         f = self.body_faces
         c_prev, c_curr = face_centroids(body_prev, f), face_centroids(body_curr, f)
-        r2_prev, j = nearest(x_curr, c_prev.detach())
-        r2_curr, k = nearest(x, c_curr.detach())
+        reach = math.sqrt(self.radius)  # only vertices within it count: a bounded search (the same value)
+        r2_prev, j = nearest(x_curr, c_prev.detach(), reach)
+        r2_curr, k = nearest(x, c_curr.detach(), reach)
         n = 0.5 * (take(face_normals(body_prev, f), j) + take(face_normals(body_curr, f), k))
         delta = x - (x_curr + take(c_curr, j) - take(c_prev, j))
         t = delta - (delta * n).sum(-1, keepdim=True) * n

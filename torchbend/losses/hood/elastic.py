@@ -56,51 +56,60 @@ def _rest_frames(rest: Tensor, faces: Tensor) -> Tensor:
 
 
 def _strain(x: Tensor, faces: Tensor, Dinv: Tensor):
-    """Columns ``f0, f1`` of ``F`` and the Green strain ``(g00, g01, g11)`` per triangle."""
-    x0 = x[..., faces[:, 0], :]
-    e1, e2 = x[..., faces[:, 1], :] - x0, x[..., faces[:, 2], :] - x0
-    f0 = e1 * Dinv[:, 0, 0, None] + e2 * Dinv[:, 1, 0, None]
-    f1 = e1 * Dinv[:, 0, 1, None] + e2 * Dinv[:, 1, 1, None]
-    g00 = 0.5 * ((f0 * f0).sum(-1) - 1)
-    g01 = 0.5 * (f0 * f1).sum(-1)
-    g11 = 0.5 * ((f1 * f1).sum(-1) - 1)
+    """Columns ``f0, f1`` ``(N, 3, F)`` of ``F`` and the Green strain ``(g00, g01, g11)`` ``(N, F)`` per triangle
+    of ``x (..., V, 3)``, in components-first layout (contiguous rows: vectorised sums over the 3 components)."""
+    xs = x.reshape(-1, *x.shape[-2:]).transpose(1, 2)  # (N, 3, V)
+    x0 = xs.index_select(2, faces[:, 0])
+    e1, e2 = xs.index_select(2, faces[:, 1]) - x0, xs.index_select(2, faces[:, 2]) - x0
+    f0 = torch.addcmul(e1 * Dinv[:, 0, 0], e2, Dinv[:, 1, 0])
+    f1 = torch.addcmul(e1 * Dinv[:, 0, 1], e2, Dinv[:, 1, 1])
+    g00 = 0.5 * ((f0 * f0).sum(1) - 1)
+    g01 = 0.5 * (f0 * f1).sum(1)
+    g11 = 0.5 * ((f1 * f1).sum(1) - 1)
     return f0, f1, g00, g01, g11
 
 
-def _parts_gradient(x: Tensor, faces: Tensor, Dinv: Tensor, area: Tensor, gmu: Tensor, glam: Tensor) -> Tensor:
-    """``gmu dE_mu/dx + glam dE_lam/dx`` (``E_mu = sum A |G|^2``, ``E_lam = sum A tr(G)^2 / 2``), ``x``'s shape."""
-    f0, f1, g00, g01, g11 = _strain(x, faces, Dinv)
-    gm = (2 * gmu)[..., None] * area if gmu.ndim else 2 * gmu * area
-    gl = glam[..., None] * area if glam.ndim else glam * area
+def _parts_gradient(x: Tensor, strain, faces: Tensor, corners: Tensor, Dinv: Tensor, area: Tensor, gmu: Tensor,
+                    glam: Tensor) -> Tensor:
+    """``gmu dE_mu/dx + glam dE_lam/dx`` (``E_mu = sum A |G|^2``, ``E_lam = sum A tr(G)^2 / 2``), ``x``'s shape;
+    ``corners``: ``faces[:, (1, 2, 0)]`` flattened column by column (the scatter's indices)."""
+    f0, f1, g00, g01, g11 = strain
+    gm = (2 * gmu).reshape(-1, 1) * area  # (N, F)
+    gl = glam.reshape(-1, 1) * area
     tr = gl * (g00 + g11)
-    s00, s01, s11 = (gm * g00 + tr)[..., None], (gm * g01)[..., None], (gm * g11 + tr)[..., None]
+    s00, s01, s11 = (gm * g00 + tr)[:, None], (gm * g01)[:, None], (gm * g11 + tr)[:, None]
     p0, p1 = f0 * s00 + f1 * s01, f0 * s01 + f1 * s11  # P = F S
-    d1 = p0 * Dinv[:, 0, 0, None] + p1 * Dinv[:, 0, 1, None]  # dE/dDs = P D_m^-T
-    d2 = p0 * Dinv[:, 1, 0, None] + p1 * Dinv[:, 1, 1, None]
-    g = torch.zeros_like(x)
-    g = g.index_add(-2, faces[:, 1], d1).index_add(-2, faces[:, 2], d2)
-    return g.index_add(-2, faces[:, 0], -(d1 + d2))
+    d1 = torch.addcmul(p0 * Dinv[:, 0, 0], p1, Dinv[:, 0, 1])  # dE/dDs = P D_m^-T
+    d2 = torch.addcmul(p0 * Dinv[:, 1, 0], p1, Dinv[:, 1, 1])
+    g = f0.new_zeros(f0.shape[0], 3, x.shape[-2]).index_add(2, corners, torch.cat([d1, d2, -(d1 + d2)], dim=2))
+    return g.transpose(1, 2).reshape(x.shape)
 
 
 class _StVKParts(torch.autograd.Function):
-    """``(E_mu, E_lam)`` per sample; the backward is the closed form (differentiable: recomputed from ``x``)."""
+    """``(E_mu, E_lam)`` per sample; the backward is the closed form (recomputed from ``x`` where a graph of it
+    is recorded, so that it is differentiable again)."""
 
     @staticmethod
-    def forward(x, faces, Dinv, area):
-        _, _, g00, g01, g11 = _strain(x, faces, Dinv)
+    def forward(x, faces, corners, Dinv, area):
+        strain = _strain(x, faces, Dinv)
+        _, _, g00, g01, g11 = strain
         e_mu = (area * (g00 * g00 + 2 * g01 * g01 + g11 * g11)).sum(-1)
         tr = g00 + g11
-        return e_mu, (0.5 * area * tr * tr).sum(-1)
+        e_lam = (0.5 * area * tr * tr).sum(-1)
+        return e_mu.reshape(x.shape[:-2]), e_lam.reshape(x.shape[:-2]), strain
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        x, faces, Dinv, area = inputs
-        ctx.save_for_backward(x, faces, Dinv, area)
+        x, faces, corners, Dinv, area = inputs
+        ctx.save_for_backward(x, faces, corners, Dinv, area, *output[2])
+        ctx.mark_non_differentiable(*output[2])
 
     @staticmethod
-    def backward(ctx, gmu, glam):
-        x, faces, Dinv, area = ctx.saved_tensors
-        return _parts_gradient(x, faces, Dinv, area, gmu, glam), None, None, None
+    def backward(ctx, gmu, glam, *_):
+        x, faces, corners, Dinv, area, *strain = ctx.saved_tensors
+        if torch.is_grad_enabled():  # a double backward: the gradient as a function of x
+            strain = _strain(x, faces, Dinv)
+        return _parts_gradient(x, strain, faces, corners, Dinv, area, gmu, glam), None, None, None, None
 
 
 class Stretching(HoodTerm):
@@ -116,7 +125,8 @@ class Stretching(HoodTerm):
     """
 
     inputs = ("lame_mu", "lame_lambda")
-    Dinv: Tensor
+    Dinv: Tensor  # (F, 2, 2) D_m^-1
+    corners: Tensor  # (3F,) faces[:, (1, 2, 0)] column by column
 
     def __init__(self, faces, rest: Tensor, *, lame_mu: float | Tensor = DEFAULT_MATERIAL["lame_mu"],
                  lame_lambda: float | Tensor = DEFAULT_MATERIAL["lame_lambda"],
@@ -124,6 +134,7 @@ class Stretching(HoodTerm):
         super().__init__()
         rest = self._set_mesh(faces, rest)
         self.register_buffer("Dinv", _rest_frames(rest, self.faces).to(rest.dtype))
+        self.register_buffer("corners", self.faces[:, [1, 2, 0]].T.reshape(-1).contiguous())
         self._set_material("lame_mu", lame_mu)
         self._set_material("lame_lambda", lame_lambda, positive=None)
         self.thickness = positive(thickness, f"{self.term_name}: thickness")
@@ -137,7 +148,8 @@ class Stretching(HoodTerm):
         if bool((lam.detach() <= -mu.detach()).any()):
             raise ValueError(f"{name}: lame_lambda must exceed -lame_mu (2-D stability), got lame_mu "
                              f"{mu.detach().tolist()} and lame_lambda {lam.detach().tolist()}")
-        e_mu, e_lam = _StVKParts.apply(x, self.faces, self.Dinv.to(x.dtype), self.face_areas.to(x.dtype))
+        e_mu, e_lam, _ = _StVKParts.apply(x, self.faces, self.corners, self.Dinv.to(x.dtype),
+                                          self.face_areas.to(x.dtype))
         return self.thickness * (mu * e_mu + lam * e_lam)
 
     def extra_repr(self) -> str:
