@@ -239,3 +239,21 @@ def test_criteria_is_hoods_batch_mean():
     ref = _reference(s, mats, s["x"])
     assert set(parts) == set(TERMS)
     torch.testing.assert_close(total, torch.stack([ref[n] for n in TERMS]).sum(0).mean(), rtol=1e-12, atol=0)
+
+
+def test_nearest_kdtree_equals_brute_force():
+    """The CPU's k-d tree and the brute-force blocks the GPU runs find the same centroids and distances (also
+    with the bound friction uses, where the points beyond it only need to be marked)."""
+    from torchbend.losses.hood._common import nearest
+
+    g = torch.Generator().manual_seed(7)
+    points, targets = torch.rand(2, 500, 3, generator=g, dtype=torch.float64), torch.rand(2, 300, 3, generator=g,
+                                                                                        dtype=torch.float64)
+    d_tree, i_tree = nearest(points, targets, method="kdtree")
+    d_brute, i_brute = nearest(points, targets, method="brute")
+    assert torch.equal(i_tree, i_brute)
+    torch.testing.assert_close(d_tree, d_brute, rtol=1e-12, atol=1e-15)
+    d_b, i_b = nearest(points, targets, bound=0.05, method="kdtree")
+    inside = d_brute < 0.05**2
+    assert bool(inside.any()) and bool((~inside).any())
+    assert torch.equal(i_b[inside], i_brute[inside]) and bool(torch.isinf(d_b[~inside]).all())

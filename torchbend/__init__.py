@@ -1,6 +1,6 @@
 """torchbend: discrete hinge bending energies with exact closed-form derivatives for PyTorch.
 
-The one public import path (SPEC sec. 2).  The package is layered, each layer importing only the
+The one public import path.  The package is layered, each layer importing only the
 ones before it: ``mesh`` (topology, packing, procedural meshes, mesh files: ``tb.mesh.load``) ->
 ``ops`` (pure per-element kernels) -> ``backends`` (eager or compiled, decided in one function) ->
 ``energies`` (bending, membrane, colliders) -> ``sim`` (cloth model, Newton solvers, adjoint) -> ``robot`` -> ``scenes``

@@ -41,7 +41,7 @@ def _phi(model: str, t: Tensor) -> Tensor:
 
 def _term(model: str, theta: Tensor, ref) -> Tensor:
     """``(phi(theta') - phi(ref))^2`` with ``theta' = ref + wrap(theta - ref)`` for quadratic and sin
-    (SPEC sec. 1, continuity through +-pi), ``theta`` for tan."""
+    (continuity through +-pi, as :func:`torchbend.ops.psi.phi_difference`), ``theta`` for tan."""
     if model != "tan":
         d = theta - ref
         theta = ref + (d - 2.0 * torch.pi * torch.ceil((d - torch.pi) / (2.0 * torch.pi)).detach())

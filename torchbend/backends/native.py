@@ -3,7 +3,7 @@ r"""Compiled CPU kernels for the per-hinge 12x12 bending Hessians and their spar
 The eager-PyTorch path (:func:`torchbend.ops.hinge.hinge_energy_hessian_soa`) is a chain of some
 hundred elementwise passes over per-hinge arrays; it is memory bound.  This module compiles the whole
 computation into one pass over hinges: gather the stencil from the positions, the bend angle (the
-SPEC's ``atan2`` formula), ``psi'`` and ``psi''`` of the three models with the optional viscous term
+``atan2`` formula of :func:`torchbend.hinge_angles`), ``psi'`` and ``psi''`` of the three models with the optional viscous term
 (:func:`torchbend.ops.psi.psi_theta_derivatives`), and the closed-form block (the half-hinge factors of
 the tech report, sec. 6, and ``H = Y + Y^T`` with the B terms, see :mod:`torchbend.ops.hinge`).
 Hinges are processed in tiles of 8 with every quantity stored per lane, so the compiler vectorizes

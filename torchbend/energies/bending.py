@@ -51,7 +51,7 @@ __all__ = ["BendingEnergy", "hinge_angles"]
 def hinge_angles(x: Tensor, topo: HingeTopology) -> Tensor:
     """Signed bend angles ``theta: (..., H)`` [rad] in (-pi, pi] of positions ``x: (..., V, 3)``.
 
-    ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (SPEC sec. 1): exactly 0 for a flat hinge,
+    ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (stencils of :mod:`torchbend.mesh.topology`): exactly 0 for a flat hinge,
     positive where the surface bends away from its normals.  ``x`` must be finite.
     """
     if not isinstance(topo, HingeTopology):

@@ -1,6 +1,6 @@
 """Mesh topology for hinge energies: the one place where the hinge convention is defined.
 
-Hinge stencil (SPEC sec. 1).  A hinge is an interior edge with its two triangles, stored as four
+Hinge stencil.  A hinge is an interior edge with its two triangles, stored as four
 vertex indices ``(i0, i1, i2, i3)``::
 
           x2

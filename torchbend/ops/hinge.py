@@ -229,7 +229,7 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
 
 
 def _theta(e: Vec, nA: Vec, nB: Vec, ee: Tensor | None = None) -> Tensor:
-    """SPEC: ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (``ee = e . e`` if already computed)."""
+    """The defining formula ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (``ee = e . e`` if already computed)."""
     elen = (_dot(e, e) if ee is None else ee).sqrt()
     pos = (elen > 0).to(elen.dtype)
     inv = pos / (elen + (1.0 - pos))  # 1/|e|, 0 for a collapsed edge (arithmetic: torch.where is slow)

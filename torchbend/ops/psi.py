@@ -1,6 +1,7 @@
 """Bending models ``phi(theta)`` and the per-hinge scalar energy ``psi`` with its derivatives.
 
-Per hinge (SPEC sec. 1, Tamstorf & Grinspun 2013 eq. (8) and the viscous term of sec. 5)::
+Per hinge (Tamstorf & Grinspun 2013 eq. (8) and the viscous term of sec. 5; ``theta`` as
+:func:`torchbend.hinge_angles` defines it, on the stencils of :mod:`torchbend.mesh.topology`)::
 
     psi = a * [ k (phi(theta) - phi(theta_rest))^2 + c (phi(theta) - phi(theta_prev))^2 ]
 
@@ -29,7 +30,7 @@ __all__ = ["BendingModel", "phi", "phi_difference", "half_angle_sincos", "check_
 
 
 class BendingModel(Option):
-    """The curvature measure ``phi(theta)`` (SPEC sec. 1)."""
+    """The curvature measure ``phi(theta)`` (:class:`BendingModel`)."""
 
     __label__ = "bending model"
 
@@ -88,7 +89,8 @@ _PI_SPLIT = {
 
 
 def phi_difference(model: BendingModel, theta: Tensor, ref) -> tuple[Tensor, Tensor, Tensor]:
-    """``(phi(theta') - phi(ref), phi'(theta'), phi''(theta'))`` on the branch nearest ``ref`` (SPEC sec. 1).
+    """``(phi(theta') - phi(ref), phi'(theta'), phi''(theta'))`` on the branch nearest ``ref`` (continuous
+    through +-pi for the quadratic and sin models).
 
     ``theta' = ref + wrap(theta - ref)`` (``wrap`` into (-pi, pi]) for ``quadratic`` and ``sin``, so that
     their energies are continuous where a hinge turns through +-pi; ``theta' = theta`` for ``tan``

@@ -66,8 +66,8 @@ def face_normals(p: Tensor, faces: Tensor) -> Tensor:
     return n / torch.linalg.vector_norm(n, dim=-1, keepdim=True).clamp_min(torch.finfo(p.dtype).tiny)
 
 
-def _nearest_one(points: Tensor, targets: Tensor, bound: float | None) -> tuple[Tensor, Tensor]:
-    if points.is_cpu:
+def _nearest_one(points: Tensor, targets: Tensor, bound: float | None, method: str) -> tuple[Tensor, Tensor]:
+    if method == "kdtree":
         from scipy.spatial import KDTree
 
         tree = KDTree(targets.detach().to(torch.float64).numpy(), leafsize=24, balanced_tree=False,
@@ -87,16 +87,19 @@ def _nearest_one(points: Tensor, targets: Tensor, bound: float | None) -> tuple[
     return torch.cat(d2), torch.cat(idx)
 
 
-def nearest(points: Tensor, targets: Tensor, bound: float | None = None) -> tuple[Tensor, Tensor]:
+def nearest(points: Tensor, targets: Tensor, bound: float | None = None, method: str | None = None) -> tuple[Tensor, Tensor]:
     """Squared distance and index of the nearest of ``targets (..., M, 3)`` to each of ``points (..., N, 3)``
     (batch dimensions broadcast; no gradient: a piecewise-constant choice).  A k-d tree (SciPy) on the CPU,
     blocks of a brute-force distance matrix elsewhere: the same answer as HOOD's ``knn_points`` up to ties.
     ``bound`` [m]: points farther than it from every target may get ``inf`` and index 0 (a faster search
-    where only the points within the bound matter)."""
+    where only the points within the bound matter).  ``method``: ``"kdtree"`` or ``"brute"`` (default: by device)."""
+    method = method or ("kdtree" if points.is_cpu else "brute")
+    if method not in ("kdtree", "brute"):
+        raise ValueError(f"nearest: method must be 'kdtree' or 'brute', got {method!r}")
     batch = torch.broadcast_shapes(points.shape[:-2], targets.shape[:-2])
     p = points.expand(*batch, *points.shape[-2:]).reshape(-1, *points.shape[-2:])
     t = targets.expand(*batch, *targets.shape[-2:]).reshape(-1, *targets.shape[-2:])
-    out = [_nearest_one(p[b], t[b], bound) for b in range(p.shape[0])]
+    out = [_nearest_one(p[b], t[b], bound, method) for b in range(p.shape[0])]
     d2 = torch.stack([o[0] for o in out]).reshape(*batch, points.shape[-2]).to(points.device)
     idx = torch.stack([o[1] for o in out]).reshape(*batch, points.shape[-2]).to(points.device)
     return d2, idx
