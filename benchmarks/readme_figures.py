@@ -1,4 +1,4 @@
-"""Measure every time and accuracy figure that README.md quotes, record them, and rewrite them there.
+"""Measure every time and accuracy figure that README.md and the docs quote, record them, and rewrite them there.
 
     python benchmarks/readme_figures.py                  # measure everything (about 10 min on 2 cores)
     python benchmarks/readme_figures.py --only tests,robot_drape   # re-measure some, keep the others
@@ -6,7 +6,7 @@
     python benchmarks/readme_figures.py --quick          # reduced runs that check this script: writes
                                                          # readme_figures_quick.json, leaves README.md alone
 
-README.md shows each figure between markers, ``<!-- fig:NAME -->47 s<!-- /fig -->``; the text between
+README.md (and every page of docs/) shows each figure between markers, ``<!-- fig:NAME -->47 s<!-- /fig -->``; the text between
 them is ``figures[NAME]`` of ``benchmarks/results/readme_figures.json``, which also records the machine
 (CPU, cores, load averages before and after each measurement, versions, commit) and each measurement's
 command and raw numbers.  ``tests/test_readme_figures.py`` checks that README.md and the JSON agree and
@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import glob
 import json
 import math
 import os
@@ -50,6 +51,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 README = os.path.join(ROOT, "README.md")
 RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures.json")
 QUICK_RESULTS = os.path.join(ROOT, "benchmarks", "results", "readme_figures_quick.json")
+
+
+def documents() -> list[str]:
+    """README.md and the guides and pages of ``docs/``: the files whose figures this script measures and rewrites."""
+    return [README] + sorted(glob.glob(os.path.join(ROOT, "docs", "**", "*.md"), recursive=True))
+
+
 MARKER = re.compile(r"<!-- fig:([A-Za-z0-9_]+) -->(.*?)<!-- /fig -->", re.S)
 MEASUREMENTS = ("jit", "compile", "import", "quickstart", "tests", "robot_fold", "robot_drape", "beams", "hood")
 BEAM_RESOLUTIONS = ((61, 6), (131, 6), (196, 7))
@@ -387,15 +395,17 @@ def main(argv=None) -> None:
         print(f"readme_figures: wrote {os.path.relpath(path, ROOT)}", file=sys.stderr)
     if a.quick:
         return
-    with open(README, encoding="utf-8") as f:
-        text = f.read()
-    new = rewrite(text, results.get("figures", {}))
-    if new != text:
-        with open(README, "w", encoding="utf-8") as f:
-            f.write(new)
-        print("readme_figures: README.md updated", file=sys.stderr)
-    else:
-        print("readme_figures: README.md already matches", file=sys.stderr)
+    for path in documents():
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+        new = rewrite(text, results.get("figures", {}))
+        name = os.path.relpath(path, ROOT)
+        if new != text:
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(new)
+            print(f"readme_figures: {name} updated", file=sys.stderr)
+        else:
+            print(f"readme_figures: {name} already matches", file=sys.stderr)
     check = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_readme_figures.py"],
                            cwd=ROOT, capture_output=True, text=True)
     if check.returncode != 0:

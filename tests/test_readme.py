@@ -1,4 +1,6 @@
-"""Every ```python block of README.md runs as written, in order, in one namespace."""
+"""Every ```python block of README.md runs as written, in order, in one namespace; so does every page of docs/
+(each page in a namespace of its own).  The shell commands of both name existing scripts and options."""
+import glob
 import os
 import re
 import traceback
@@ -7,6 +9,8 @@ import pytest
 import torch
 
 README = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "README.md")
+PAGES = sorted(glob.glob(os.path.join(os.path.dirname(README), "docs", "**", "*.md"), recursive=True))
+"""The pages of docs/ (guides, API reference stubs)."""
 
 
 def python_blocks(text: str) -> list[str]:
@@ -15,19 +19,33 @@ def python_blocks(text: str) -> list[str]:
 
 
 def test_readme_has_python_blocks():
-    blocks = python_blocks(open(README, encoding="utf-8").read())
-    assert len(blocks) >= 5
+    blocks = [b for path in [README, *PAGES] for b in python_blocks(open(path, encoding="utf-8").read())]
+    assert len(blocks) >= 10 and python_blocks(open(README, encoding="utf-8").read())
+
+
+def _run_blocks(path: str) -> None:
+    blocks = python_blocks(open(path, encoding="utf-8").read())
+    torch.manual_seed(0)
+    namespace: dict = {"__name__": "__readme__"}
+    name = os.path.relpath(path, os.path.dirname(README))
+    for i, block in enumerate(blocks):
+        try:
+            exec(compile(block, f"{name} python block {i}", "exec"), namespace)
+        except Exception:
+            pytest.fail(f"{name} python block {i} failed:\n{block}\n{traceback.format_exc()}", pytrace=False)
 
 
 def test_readme_python_blocks_run_in_order():
-    blocks = python_blocks(open(README, encoding="utf-8").read())
-    torch.manual_seed(0)
-    namespace: dict = {"__name__": "__readme__"}
-    for i, block in enumerate(blocks):
-        try:
-            exec(compile(block, f"README.md python block {i}", "exec"), namespace)
-        except Exception:
-            pytest.fail(f"README.md python block {i} failed:\n{block}\n{traceback.format_exc()}", pytrace=False)
+    _run_blocks(README)
+
+
+def test_docs_have_pages():
+    assert len(PAGES) >= 10 and any(p.endswith(os.path.join("guides", "solver.md")) for p in PAGES)
+
+
+@pytest.mark.parametrize("page", [os.path.relpath(p, os.path.dirname(README)) for p in PAGES])
+def test_docs_python_blocks_run_in_order(page):
+    _run_blocks(os.path.join(os.path.dirname(README), page))
 
 
 # ------------------------------------------------------------------------------ shell commands
@@ -93,14 +111,19 @@ def _check_pip(words: list[str]) -> None:
         assert "-e" in words or "." in words
 
 
+def _all_text() -> str:
+    return "\n".join(open(p, encoding="utf-8").read() for p in [README, *PAGES])
+
+
 def test_readme_code_blocks_are_python_or_bash():
     # the two kinds the tests run or check; a new kind needs a check here
-    fences = re.findall(r"^```(\w*)[ \t]*$", open(README, encoding="utf-8").read(), flags=re.M)
-    assert set(fences[0::2]) <= {"python", "bash"} and not any(fences[1::2]), fences
+    for path in [README, *PAGES]:
+        fences = re.findall(r"^```(\w*)[ \t]*$", open(path, encoding="utf-8").read(), flags=re.M)
+        assert set(fences[0::2]) <= {"python", "bash"} and not any(fences[1::2]), (path, fences)
 
 
 def test_readme_shell_commands_name_existing_scripts_and_options():
-    commands = bash_commands(open(README, encoding="utf-8").read())
+    commands = bash_commands(_all_text())
     assert len(commands) >= 8
     for words in commands:
         _check_files(words)
@@ -123,7 +146,7 @@ def test_readme_shell_commands_name_existing_scripts_and_options():
 def test_readme_inline_commands_name_existing_files_and_modules():
     import importlib.util
 
-    text = open(README, encoding="utf-8").read()
+    text = _all_text()
     for cmd in re.findall(r"`(python [^`]+)`", text):
         words = cmd.split()
         if words[1] == "-m":

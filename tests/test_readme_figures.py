@@ -1,4 +1,4 @@
-"""README.md's time and accuracy figures are the ones benchmarks/readme_figures.py measured.
+"""The time and accuracy figures of README.md and docs/ are the ones benchmarks/readme_figures.py measured.
 
 Each figure sits between ``<!-- fig:NAME -->`` and ``<!-- /fig -->`` and must equal ``figures[NAME]``
 of ``benchmarks/results/readme_figures.json`` (a hand edit of either is caught); a number with a unit of
@@ -31,8 +31,12 @@ MEASURE = re.compile(r"(?:about |~)?\b\d+(?:\.\d+)?(?:[eE][+-]?\d+)?\s?(?:s|ms|u
 
 
 def _readme() -> str:
-    with open(README, encoding="utf-8") as f:
-        return f.read()
+    """README.md and the pages of docs/ (figures may sit in either), one text."""
+    texts = []
+    for path in figures_script.documents():
+        with open(path, encoding="utf-8") as f:
+            texts.append(f.read())
+    return "\n".join(texts)
 
 
 def _recorded() -> dict:
