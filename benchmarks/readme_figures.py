@@ -158,7 +158,7 @@ class Context:
 
 
 FIRST_CALL = ("import json, time; t = time.perf_counter(); import torch, torchbend as tb; "
-              "x, f = tb.scenes.grid(5, 5, dtype=torch.float64); tb.BendingEnergy(f, x)(x); "
+              "x, f = tb.scenes.grid(5, 5, dtype=torch.float64); tb.BendingEnergy(f, x, stiffness=1.0)(x); "
               "from torchbend.backends import native; print(json.dumps({**native.build_info(), "
               "'first_call': time.perf_counter() - t, 'file': tb.__file__}))")
 

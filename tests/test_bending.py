@@ -126,7 +126,7 @@ def _check_first_and_second_derivatives(bend, args, forward_ad=False):
 def test_gradcheck_gradgradcheck_positions_stiffness_rest(model, damped):
     """In x, stiffness and rest angles (forward mode too), and with the viscous term in c and theta_prev."""
     rest, faces = tb.scenes.random_curved_sheet(3, 3, amplitude=0.4, seed=2 if damped else 1, dtype=F64)
-    bend = BendingEnergy(faces, rest, model=model)
+    bend = BendingEnergy(faces, rest, model=model, stiffness=1.0)
     H = bend.hinge_count
     x = (rest + 0.05 * torch.randn_like(rest)).requires_grad_()
     k = (0.5 + torch.rand(H, dtype=F64)).requires_grad_()
@@ -240,7 +240,7 @@ def test_single_hinge_null_space_of_theta_hessian(theta):
         t[:, j] = 1
         assert (Hth @ t.reshape(-1)).norm() < 1e-13 * norm
     # the full energy Hessian shares the null space (gradient is orthogonal to it)
-    bend = BendingEnergy(faces, tb.scenes.single_hinge(0.2, dtype=F64)[0], model="tan")
+    bend = BendingEnergy(faces, tb.scenes.single_hinge(0.2, dtype=F64)[0], model="tan", stiffness=1.0)
     assert bend.hvp(x, scaling).norm() < 1e-12 * bend.hvp(x, torch.randn_like(x)).norm()
 
 
@@ -282,7 +282,7 @@ def test_flat_hinge_exact_zero_gradient_and_finite_hvp():
     x, faces = tb.scenes.grid(5, 5, dtype=F64)
     v = torch.randn_like(x)
     for model in MODELS:
-        bend = BendingEnergy(faces, x, model=model)
+        bend = BendingEnergy(faces, x, model=model, stiffness=1.0)
         assert torch.equal(bend.gradient(x), torch.zeros_like(x))
         hv = bend.hvp(x, v)
         assert torch.isfinite(hv).all()
@@ -294,7 +294,7 @@ def test_flat_hinge_exact_zero_gradient_and_finite_hvp():
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_tan_finite_near_pi_and_error_at_fold(sign):
     rest, faces = tb.scenes.single_hinge(0.0, dtype=F64)
-    bend = BendingEnergy(faces, rest, model="tan")
+    bend = BendingEnergy(faces, rest, model="tan", stiffness=1.0)
     x, _ = tb.scenes.single_hinge(sign * (math.pi - 1e-6), dtype=F64)
     v = torch.randn_like(x)
     for out in (bend(x), bend.gradient(x), bend.hvp(x, v)):
@@ -304,12 +304,12 @@ def test_tan_finite_near_pi_and_error_at_fold(sign):
     with pytest.raises(ValueError, match="folded through"):
         bend(folded)
     # the other models stay finite at the fold
-    assert torch.isfinite(BendingEnergy(faces, rest, model="sin").gradient(folded)).all()
+    assert torch.isfinite(BendingEnergy(faces, rest, model="sin", stiffness=1.0).gradient(folded)).all()
 
 
 def test_sliver_and_degenerate_deformed_triangles_are_finite():
     rest, faces = tb.scenes.random_curved_sheet(4, 4, seed=4, dtype=F64)
-    bend = BendingEnergy(faces, rest, model="tan")
+    bend = BendingEnergy(faces, rest, model="tan", stiffness=1.0)
     x = rest.clone()
     x[5] = x[6]  # collapse an edge: zero-area triangles in the deformed state
     v = torch.randn_like(x)
@@ -318,7 +318,7 @@ def test_sliver_and_degenerate_deformed_triangles_are_finite():
     # a sliver (aspect ratio ~ 1e-7) in the rest shape is valid and accurate
     xs, fs = tb.scenes.single_hinge(0.0, dtype=F64)
     xs[2, 1] = 1e-7
-    b = BendingEnergy(fs, xs, model="quadratic")
+    b = BendingEnergy(fs, xs, model="quadratic", stiffness=1.0)
     y = xs + 1e-9 * torch.randn_like(xs)
     y_ref = y.clone().requires_grad_()
     g_ref = torch.autograd.grad(
@@ -397,7 +397,7 @@ def test_packed_meshes_give_per_mesh_energies():
 @pytest.fixture
 def small():
     rest, faces = tb.scenes.random_curved_sheet(3, 3, seed=0, dtype=F64)
-    return rest, faces, BendingEnergy(faces, rest, model="tan", damping=0.1)
+    return rest, faces, BendingEnergy(faces, rest, model="tan", damping=0.1, stiffness=1.0)
 
 
 def test_bad_positions(small):
@@ -422,7 +422,7 @@ def test_bad_positions(small):
     with pytest.raises(ValueError, match="v must have shape"):
         bend.hvp(rest, rest[:-1])
     # the finite check can be switched off for speed
-    fast = BendingEnergy(faces, rest, check_finite=False)
+    fast = BendingEnergy(faces, rest, check_finite=False, stiffness=1.0)
     fast(bad)
 
 
@@ -433,26 +433,26 @@ def test_bad_rest_shape_and_parameters(small):
     degenerate = rest.clone()
     degenerate[i1] = degenerate[i0]  # collapse the edge of hinge 2
     with pytest.raises(ValueError, match=rf"zero-length edges \[\({i0}, {i1}\)\] \(hinge index .*: \[2\]\)"):
-        BendingEnergy(faces, degenerate)
+        BendingEnergy(faces, degenerate, stiffness=1.0)
     collinear = rest.clone()
     f0 = faces[0]
     collinear[f0[2]] = 0.5 * (collinear[f0[0]] + collinear[f0[1]])
     with pytest.raises(ValueError, match=r"zero-area.*faces \[.*0"):
-        BendingEnergy(faces, collinear)
+        BendingEnergy(faces, collinear, stiffness=1.0)
     with pytest.raises(ValueError, match="unknown bending model 'cubic'"):
-        BendingEnergy(faces, rest, model="cubic")
+        BendingEnergy(faces, rest, model="cubic", stiffness=1.0)
     with pytest.raises(ValueError, match="stiffness must be non-negative"):
         BendingEnergy(faces, rest, stiffness=-1.0)
     with pytest.raises(ValueError, match=r"stiffness must be a scalar or have shape \(8,\)"):
         BendingEnergy(faces, rest, stiffness=torch.ones(3))
     with pytest.raises(ValueError, match="rest_angles must be finite"):
-        BendingEnergy(faces, rest, rest_angles=float("nan"))
+        BendingEnergy(faces, rest, rest_angles=float("nan"), stiffness=1.0)
     with pytest.raises(ValueError, match=r"\|theta\| < pi"):
-        BendingEnergy(faces, rest, model="tan", rest_angles=math.pi)
+        BendingEnergy(faces, rest, model="tan", rest_angles=math.pi, stiffness=1.0)
     with pytest.raises(ValueError, match=r"face 3 = \[2, 5, 4\] has index 5 >= V = 5"):
-        BendingEnergy(faces, rest[:5])  # too few rest positions: the first face that reaches past them
+        BendingEnergy(faces, rest[:5], stiffness=1.0)  # too few rest positions: the first face that reaches past them
     with pytest.raises(ValueError, match=r"rest_positions must have shape \(\.\.\., 9, 3\)"):
-        BendingEnergy(faces, rest[:5, :2])
+        BendingEnergy(faces, rest[:5, :2], stiffness=1.0)
 
 
 def test_bad_damping_arguments(small):
@@ -465,7 +465,7 @@ def test_bad_damping_arguments(small):
     with pytest.raises(ValueError, match=r"theta_prev must have shape \(\.\.\., 8\)"):
         bend(rest, theta_prev=prev[:-1], dt=0.1)
     with pytest.raises(ValueError, match="no damping"):
-        BendingEnergy(faces, rest)(rest, theta_prev=prev, dt=0.1)
+        BendingEnergy(faces, rest, stiffness=1.0)(rest, theta_prev=prev, dt=0.1)
 
 
 def test_stiffness_from_material():
@@ -474,3 +474,9 @@ def test_stiffness_from_material():
     for args, match in [((-1, 1e-3, 0.3), "young"), ((1e6, 0.0, 0.3), "thickness"), ((1e6, 1e-3, 0.7), "poisson")]:
         with pytest.raises(ValueError, match=match):
             tb.stiffness_from_material(*args)
+
+
+def test_stiffness_is_required():
+    rest, faces = tb.scenes.grid(3, 3, dtype=F64)
+    with pytest.raises(TypeError, match=r"stiffness is required.*\[N m\].*stiffness_from_material"):
+        BendingEnergy(faces, rest, model="tan")

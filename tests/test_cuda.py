@@ -64,7 +64,7 @@ def test_cuda_fold_raises():
     rest, faces = tb.scenes.single_hinge(0.0, dtype=torch.float64)
     x = rest.clone()
     x[3] = torch.tensor([0.3, 0.8, 0.0], dtype=torch.float64)
-    bend = tb.BendingEnergy(faces, rest, model="tan").cuda()
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1.0).cuda()
     p, _ = bend._bind(x.cuda(), "eager")
     with pytest.raises(ValueError, match="folded through"):
         cuda.bending_energy(x.cuda(), bend.hinges, p.a, p.k, p.rest, p.c, p.prev, bend.model)
@@ -80,7 +80,7 @@ def test_cuda_default_path_matches_eager_through_autograd(model):
     gen = torch.Generator().manual_seed(1)
     x = (v.double() + 0.05 * torch.randn(v.shape, dtype=torch.float64, generator=gen)).cuda()
     d = torch.randn(x.shape, dtype=torch.float64, generator=gen).cuda()
-    bend = tb.BendingEnergy(f, v.double(), model=model).cuda()
+    bend = tb.BendingEnergy(f, v.double(), model=model, stiffness=1.0).cuda()
     assert tb.select_backend("energy", "auto", x) is tb.Backend.NATIVE
 
     def second(backend):

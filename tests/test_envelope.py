@@ -226,11 +226,11 @@ def _models_listed(message: str, names) -> bool:
 def test_unknown_bending_model_names_the_choices(mesh):
     rest, faces = mesh
     choices = ("quadratic", "tan", "sin")
-    calls = [lambda: tb.BendingEnergy(faces, rest, model="tangent"),
+    calls = [lambda: tb.BendingEnergy(faces, rest, model="tangent", stiffness=1.0),
              lambda: L.Bending(faces, rest, 1.0, model="tangent"),
              lambda: _bending_fn.energy_function("tangent"),
              lambda: _bending_fn.gradient_function("tangent")]
-    bend = tb.BendingEnergy(faces, rest)
+    bend = tb.BendingEnergy(faces, rest, stiffness=1.0)
     ones = torch.ones((), dtype=F64)
     for raw in (_bending_fn.bending_energy_raw, _bending_fn.bending_gradient_raw):
         calls.append(lambda raw=raw: raw(rest, bend.hinges, bend.weights, ones, bend.rest_angles, model="tangent"))
@@ -245,7 +245,7 @@ def test_unknown_bending_model_names_the_choices(mesh):
 def test_bending_raw_entries_take_model_names(mesh):
     """The functional entries take a model's name as well as the enum (same values)."""
     rest, faces = mesh
-    bend = tb.BendingEnergy(faces, rest, model="sin", backend="eager")
+    bend = tb.BendingEnergy(faces, rest, model="sin", backend="eager", stiffness=1.0)
     x = rest + 0.01 * torch.randn_like(rest)
     ones = torch.ones((), dtype=F64)
     args = (x, bend.hinges, bend.weights, ones, bend.rest_angles)

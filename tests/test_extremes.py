@@ -48,7 +48,7 @@ def _folded(dtype):
 @pytest.mark.parametrize("entry", ENTRIES)
 def test_folded_tan_hinge_raises_in_every_entry_point(entry, dtype, backend):
     faces, rest, x = _folded(dtype)
-    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend)
+    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend, stiffness=1.0)
     assert float(tb.hinge_angles(x, bend.topology).abs()) == pytest.approx(math.pi)
     with pytest.raises(ValueError, match=r"hinges \[0\] have folded through"):
         _call(bend, x, entry)
@@ -60,7 +60,7 @@ def test_float32_hinge_just_inside_the_barrier_is_refused_consistently(entry, ba
     """pi - 1e-10 rounds to float32's pi (> pi): every entry point raises, none returns sign-flipped values."""
     rest, faces = tb.scenes.single_hinge(0.0, dtype=torch.float32)
     x, _ = tb.scenes.single_hinge(math.pi - 1e-10, dtype=torch.float32)
-    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend)
+    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend, stiffness=1.0)
     with pytest.raises(ValueError, match="folded through"):
         _call(bend, x, entry)
 
@@ -71,9 +71,9 @@ def test_tan_just_inside_the_barrier_is_finite_and_correct(dtype, backend):
     delta = 1e-6 if dtype == torch.float64 else 1e-3
     rest, faces = tb.scenes.single_hinge(0.0, dtype=dtype)
     x, _ = tb.scenes.single_hinge(math.pi - delta, dtype=dtype)
-    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend)
+    bend = tb.BendingEnergy(faces, rest, model="tan", backend=backend, stiffness=1.0)
     xd = x.double()
-    ref = tb.BendingEnergy(faces, rest.double(), model="tan", backend="eager")
+    ref = tb.BendingEnergy(faces, rest.double(), model="tan", backend="eager", stiffness=1.0)
     g, g_ref = bend.gradient(x), ref.gradient(xd)
     Hb, Hb_ref = bend.hinge_hessians(x), ref.hinge_hessians(xd)
     tol = 1e-9 if dtype == torch.float64 else 2e-2  # float32 carries the rounding of the inputs near pi
@@ -174,7 +174,7 @@ def test_viscous_term_continuous_through_pi(model):
 def test_tan_is_not_unwrapped():
     """tan keeps theta: its energy near -pi with a rest angle near pi is huge (the barrier), not small."""
     rest, faces = _turning(math.pi - 0.1)
-    bend = tb.BendingEnergy(faces, rest, model="tan")
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1.0)
     x, _ = _turning(-math.pi + 0.1)
     assert float(bend(x)) > 100.0
 
@@ -184,7 +184,7 @@ def test_tan_is_not_unwrapped():
 @pytest.mark.parametrize("kw", [{}, {"assembly": "hinge"}, {"projection": "clamp"}, {"projection": "gauss_newton"}])
 def test_mesh_without_hinges_gives_zero_hessian(kw, backend):
     x, faces = tb.scenes.single_hinge(0.3, dtype=torch.float64)
-    bend = tb.BendingEnergy(faces[:1], x[:3], backend=backend)
+    bend = tb.BendingEnergy(faces[:1], x[:3], backend=backend, stiffness=1.0)
     assert bend.hinge_count == 0
     H = bend.hessian(x[:3], **kw)
     assert H.shape == (9, 9) and H.layout == torch.sparse_csr
@@ -199,7 +199,7 @@ def test_face_index_out_of_range_names_the_face(cls):
     faces = torch.tensor([[0, 1, 2], [1, 0, 9]])
     with pytest.raises(ValueError, match=r"face 1 = \[1, 0, 9\] has index 9 >= V = 4"):
         if cls == "bending":
-            tb.BendingEnergy(faces, x)
+            tb.BendingEnergy(faces, x, stiffness=1.0)
         else:
             tb.MembraneEnergy(faces, x, young=1e3, poisson=0.3, thickness=1e-3)
 
@@ -207,7 +207,7 @@ def test_face_index_out_of_range_names_the_face(cls):
 def test_unused_vertices_are_allowed():
     x, faces = tb.scenes.single_hinge(0.3, dtype=torch.float64)
     x5 = torch.cat((x, torch.zeros(1, 3, dtype=x.dtype)))
-    bend = tb.BendingEnergy(faces, x5)
+    bend = tb.BendingEnergy(faces, x5, stiffness=1.0)
     assert bend.vertex_count == 5 and float(bend.gradient(x5)[4].abs().max()) == 0.0
 
 
@@ -219,8 +219,8 @@ def test_float32_degeneracy_tests_are_relative_to_the_mesh(scale):
     rest = (v.double() * scale)
     x = rest.clone()
     x[5, 2] += 0.2 * scale
-    b64 = tb.BendingEnergy(f, rest, model="quadratic")
-    b32 = tb.BendingEnergy(f, rest.float(), model="quadratic")
+    b64 = tb.BendingEnergy(f, rest, model="quadratic", stiffness=1.0)
+    b32 = tb.BendingEnergy(f, rest.float(), model="quadratic", stiffness=1.0)
     assert torch.allclose(b32.weights.double(), b64.weights, rtol=1e-6)
     assert float(b32(x.float())) == pytest.approx(float(b64(x)), rel=1e-4)
     g32, g64 = b32.gradient(x.float()).double(), b64.gradient(x)
@@ -232,4 +232,4 @@ def test_zero_length_rest_edge_is_still_an_error():
     v = v.double()
     v[1] = v[0]
     with pytest.raises(ValueError, match=r"zero-length edges \[\(0, 1\)\]"):
-        tb.BendingEnergy(f, v)
+        tb.BendingEnergy(f, v, stiffness=1.0)

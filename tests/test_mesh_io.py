@@ -200,18 +200,18 @@ def test_one_indexed_faces_and_unused_vertices_get_clear_messages():
     with pytest.raises(ValueError, match=msg):
         tb.HingeTopology.from_faces(faces + 1, vertex_count=16)
     with pytest.raises(ValueError, match=msg):
-        tb.BendingEnergy(faces + 1, rest)
+        tb.BendingEnergy(faces + 1, rest, stiffness=1.0)
     with pytest.raises(ValueError, match=msg):  # topology built without V: index 0 unused, V = 17
-        tb.BendingEnergy(tb.HingeTopology.from_faces(faces + 1), rest)
+        tb.BendingEnergy(tb.HingeTopology.from_faces(faces + 1), rest, stiffness=1.0)
     with pytest.raises(ValueError, match=msg):
         tb.mesh.clean(rest, faces + 1)
     # unused vertices: accepted by HingeTopology (no hinge) when V is known ...
     extra = torch.cat([rest, rest[:1] + 5])
-    bend = tb.BendingEnergy(faces, extra)
+    bend = tb.BendingEnergy(faces, extra, stiffness=1.0)
     assert bend.topology.vertex_count == 17 and torch.equal(bend(extra), torch.zeros((), dtype=torch.float64))
     # ... and named when the topology was built for fewer vertices than the positions
     with pytest.raises(ValueError, match="vertex 16 is used by no face; tb.mesh.clean drops unused vertices"):
-        tb.BendingEnergy(tb.HingeTopology.from_faces(faces), extra)
+        tb.BendingEnergy(tb.HingeTopology.from_faces(faces), extra, stiffness=1.0)
 
 
 def test_shipped_skirt_welds_to_a_tube():
@@ -221,7 +221,7 @@ def test_shipped_skirt_welds_to_a_tube():
     assert (report.vertices, report.faces) == (n_around * n_along, 2 * n_around * (n_along - 1))
     assert report.ok and report.boundary_loop_count == 2 and report.boundary_edge_count == 2 * n_around
     assert report.vertices - report.edge_count + report.faces == 0  # Euler characteristic of a tube
-    bend = tb.BendingEnergy(f, x)
+    bend = tb.BendingEnergy(f, x, stiffness=1.0)
     assert bend.topology.hinge_count == report.hinge_count == report.edge_count - 2 * n_around
     assert float(bend(x)) == 0.0 and math.isfinite(float(bend(bent(x))))
     waist = x[:, 2] == 0

@@ -172,13 +172,13 @@ def test_native_batched_theta_prev_and_nonfinite_positions(kernel):
 def test_native_backend_option_per_module_and_call(kernel, sheet):
     """backend="native" runs the kernel or says why it cannot; "eager" never runs it."""
     rest, faces, x = sheet
-    bend = tb.BendingEnergy(faces, rest, model="tan", backend="native")
+    bend = tb.BendingEnergy(faces, rest, model="tan", backend="native", stiffness=1.0)
     with pytest.raises(ValueError, match="autograd graph"):
         bend.hinge_hessians(x.clone().requires_grad_())
     assert rel(bend.hinge_hessians(x), bend.hinge_hessians(x, backend="eager")) <= SAME_FORMULA
     assert bend(x).shape == ()  # no compiled energy yet: eager, whatever is asked
     with pytest.raises(ValueError, match="unknown backend"):
-        tb.BendingEnergy(faces, rest, backend="cuda")
+        tb.BendingEnergy(faces, rest, backend="cuda", stiffness=1.0)
 
 
 @pytest.mark.parametrize("mesh", MESHES)
@@ -357,7 +357,7 @@ def test_large_outputs_reuse_released_memory(kernel):
 
 def _check_output_cache_reuse():
     rest, faces = tb.scenes.random_curved_sheet(40, 40, amplitude=0.3, seed=3, dtype=F64)
-    bend = tb.BendingEnergy(faces, rest, model="tan")
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1.0)
     assert bend.hinge_count * 144 * 8 >= 4 << 20
     gen = torch.Generator().manual_seed(4)
     x1, x2 = (rest + 0.01 * torch.randn(rest.shape, generator=gen, dtype=F64) for _ in range(2))

@@ -32,7 +32,7 @@ class Case:
 
     def __init__(self, n=6, shuffled=False, batch=()):
         rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.3, seed=3, dtype=F64)
-        bend = tb.BendingEnergy(faces, rest, model="tan")
+        bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1.0)
         self.topo = bend.topology
         h = bend.hinges
         if shuffled:

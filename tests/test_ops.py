@@ -90,7 +90,7 @@ def _grad(t: torch.Tensor) -> torch.Tensor:
 def _setup(model, dtype, damped, batch, learn=False, packed=False):
     rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=3, dtype=F64)
     gen = torch.Generator().manual_seed(7)
-    kw: dict = dict(model=model, damping=0.3 if damped else None)
+    kw: dict = dict(model=model, damping=0.3 if damped else None, stiffness=1.0)
     if packed:
         rest2, faces2 = tb.scenes.random_curved_sheet(4, 4, amplitude=0.2, seed=5, dtype=F64)
         meshes = tb.pack_meshes([(rest, faces), (rest2, faces2)])
@@ -372,7 +372,7 @@ def test_checks_stay_on_inside_compiled_code(fresh_dynamo):
     rest, faces = tb.scenes.single_hinge(0.0, dtype=F64)
     folded = rest.clone()
     folded[3] = torch.tensor([0.3, 0.8, 0.0], dtype=F64)
-    hinge = BendingEnergy(faces, rest, model="tan")
+    hinge = BendingEnergy(faces, rest, model="tan", stiffness=1.0)
     compiled = torch.compile(hinge, fullgraph=True)
     compiled(rest)
     for f in (hinge, compiled):
@@ -382,7 +382,7 @@ def test_checks_stay_on_inside_compiled_code(fresh_dynamo):
 
 def test_unsupported_dtype_falls_back_with_one_warning():
     rest, faces = tb.scenes.random_curved_sheet(4, 4, amplitude=0.3, seed=3, dtype=F64)
-    bend = BendingEnergy(faces, rest, model="quadratic").to(torch.bfloat16)
+    bend = BendingEnergy(faces, rest, model="quadratic", stiffness=1.0).to(torch.bfloat16)
     x = rest.to(torch.bfloat16)
     tb.backends._warned.clear()
     with pytest.warns(RuntimeWarning, match="energy runs on the eager path: the compiled kernels take float32"):
@@ -402,7 +402,7 @@ def test_checks_inside_the_kernels(dtype):
     rest, faces = tb.scenes.random_curved_sheet(5, 4, amplitude=0.3, seed=3, dtype=F64)
     rest = torch.cat([rest, torch.zeros(1, 3, dtype=F64)])  # a vertex in no face
     V = rest.shape[0]
-    bend = BendingEnergy(faces, rest, model="tan").to(dtype)
+    bend = BendingEnergy(faces, rest, model="tan", stiffness=1.0).to(dtype)
     x = rest.to(dtype).expand(2, V, 3).clone()
     assert tb.backends.select_backend("energy", "auto", x) is tb.Backend.NATIVE
     for vert in (3, V - 1):

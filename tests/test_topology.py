@@ -74,7 +74,7 @@ def test_to_after_hessian_keeps_index_dtype_and_is_an_immutable_value():
     """Nothing is cached on the topology (the CSR pattern lives on the energy), so .to() works after a
     Hessian was built; a dtype argument leaves the int64 index tensors alone (as nn.Module.to)."""
     rest, F = tb.scenes.random_curved_sheet(4, 4, dtype=torch.float64)
-    bend = tb.BendingEnergy(F, rest, model="quadratic")
+    bend = tb.BendingEnergy(F, rest, model="quadratic", stiffness=1.0)
     bend.hessian(rest + 0.01)
     topo = bend.topology
     for args in ((torch.float32,), ("cpu",), ("cpu", torch.float64), ()):

@@ -57,7 +57,7 @@ def _like(out: torch.Tensor, ref: torch.Tensor, dtype: torch.dtype) -> None:
 
 
 def _bending(faces, rest, model, backend, dtype, **kw) -> tb.BendingEnergy:
-    return tb.BendingEnergy(faces, rest.to(dtype), model=model, backend=backend, **kw)
+    return tb.BendingEnergy(faces, rest.to(dtype), model=model, backend=backend, **{"stiffness": 1.0, **kw})
 
 
 @pytest.fixture
@@ -130,7 +130,7 @@ def test_bending_viscous_and_packed(mesh, backend):
     v1, f1 = tb.scenes.grid(3, 3, dtype=torch.float64)
     v2, f2 = tb.scenes.icosphere(1, radius=0.5, dtype=torch.float64)
     packed = tb.pack_meshes([(v1, f1), (v2, f2)])
-    pb = tb.BendingEnergy.packed(packed, model="tan", backend=backend)
+    pb = tb.BendingEnergy.packed(packed, model="tan", backend=backend, stiffness=1.0)
     xp = packed.verts + 0.01 * torch.randn_like(packed.verts)
     E0 = pb(xp.expand(0, -1, -1).clone())
     assert E0.shape == (0, 2) and E0.dtype == torch.float64
@@ -142,7 +142,7 @@ def test_bending_without_hinges(backend):
     empty batch or not."""
     faces = torch.tensor([[0, 1, 2]])
     rest = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)
-    bend = tb.BendingEnergy(faces, rest, backend=backend)
+    bend = tb.BendingEnergy(faces, rest, backend=backend, stiffness=1.0)
     for B in (0, 2):
         x = rest + 0.1 * torch.randn(B, 3, 3, dtype=torch.float64)
         assert bend(x).shape == (B,) and bool((bend(x) == 0).all())
@@ -210,7 +210,7 @@ def _loss_terms(faces, rest):
         "pin": L.Pinning([0, 1], 10.0, rest[:2]),
         "spheres": L.BodyContact(stiffness=1e3, colliders=[tb.Sphere(center=(0.0, 0.0, -1.0), radius=0.5)]),
         "body_contact": L.BodyContact(stiffness=1e3, body_faces=bf),
-        "energy": tb.BendingEnergy(faces, rest),
+        "energy": tb.BendingEnergy(faces, rest, stiffness=1.0),
     }, bx
 
 

@@ -75,9 +75,12 @@ class HingeModule(nn.Module):
     _inc_idx: Tensor  # (4H,)
 
     def __init__(self, faces, rest_positions: Tensor, *, model: str | BendingModel = "tan",
-                 stiffness: float | Tensor = 1.0, rest_angles: float | Tensor | None = None,
+                 stiffness: float | Tensor | None = None, rest_angles: float | Tensor | None = None,
                  damping: float | Tensor | None = None, check_finite: bool = True, backend: str | Backend = "auto"):
         super().__init__()
+        if stiffness is None:
+            raise TypeError(f"{type(self).__name__}: stiffness is required: the bending stiffness k [N m], scalar or (H,), "
+                            "e.g. tb.stiffness_from_material(young, thickness, poisson) (cloth: about 1e-6 to 1e-4 N m)")
         topo, rest_positions = mesh_and_rest(faces, rest_positions)
         self.model = BendingModel.parse(model)
         self.backend = Backend.parse(backend)
@@ -186,7 +189,8 @@ class BendingEnergy(HingeModule):
         faces: ``(F, 3)`` int triangle vertex indices, consistently oriented (or a :class:`HingeTopology`).
         rest_positions: ``(V, 3)`` float rest positions [m]; defines ``a_h`` and the default rest angles.
         model: ``"quadratic" | "tan" | "sin"`` (:class:`BendingModel`), keyword.
-        stiffness: ``k`` [N m], scalar or ``(H,)``; may be an ``nn.Parameter`` (then learnable).
+        stiffness: ``k`` [N m], scalar or ``(H,)``, required (:func:`~torchbend.stiffness_from_material`: a cloth
+            is about 1e-6 to 1e-4 N m); may be an ``nn.Parameter`` (then learnable).
         rest_angles: ``(H,)`` [rad]; defaults to the angles of ``rest_positions``.  Pass an
             ``nn.Parameter`` to learn them.
         damping: viscous coefficient ``k_d`` [N m s] (scalar or ``(H,)``) or ``None`` (no term).

@@ -174,7 +174,7 @@ class Bending(HoodTerm):
         super().__init__()
         rest = self._set_mesh(faces, rest)
         self._set_material("bending_coeff", bending_coeff, positive=False)
-        self.hinge = BendingEnergy(self._topology, rest, model="quadratic")
+        self.hinge = BendingEnergy(self._topology, rest, model="quadratic", stiffness=1.0)
         pair = self._topology.hinge_faces.to(rest.device)
         self.register_buffer("scale", (1 / (8 * self.face_areas[pair].sum(-1).to(torch.float64))).to(rest.dtype))
 
