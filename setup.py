@@ -130,6 +130,10 @@ class _BuildMixin:
         if self.use_ninja and len(self.extensions) > 1:  # the non-ninja compile patches shared compiler state
             self.parallel = len(self.extensions)
         t0 = time.perf_counter()
+        todo = [e.name for e in self.extensions if e.name not in self._reuse]
+        if todo:  # (pip shows these lines with -v)
+            _say(f"compiling {', '.join(todo)}: a few minutes on 2 cores (the C++ kernels; the CUDA ones take about "
+                 "1.5 min more); a later install of the same sources reuses them")
         super().build_extensions()
         _say(f"extensions built in {time.perf_counter() - t0:.1f} s")
 

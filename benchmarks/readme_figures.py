@@ -101,9 +101,40 @@ def machine() -> dict:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
                            text=True).stdout.strip()
-    return {"cpu": cpu, "cores": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+    return {"cpu": cpu, "vector_extensions": vector_extensions(), "cores": os.cpu_count(), "platform": platform.platform(),
+            "python": platform.python_version(),
             "torch": torch.__version__, "commit": commit + (" (with uncommitted changes)" if dirty else ""),
             "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "note": NOTE}
+
+
+VECTOR_FLAGS = {"avx2": "AVX2", "fma": "FMA", "avx512f": "AVX-512", "amx_tile": "AMX", "asimd": "NEON", "sve": "SVE"}
+"""The /proc/cpuinfo flags that name the vector instruction sets the kernels are built for, and their names."""
+
+
+def vector_extensions() -> list[str]:
+    """The vector instruction sets of this CPU (:data:`VECTOR_FLAGS`; empty where /proc/cpuinfo is missing)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((set(line.split(":", 1)[1].split()) for line in f if line.startswith(("flags", "Features"))), set())
+    except OSError:
+        flags = set()
+    return [name for flag, name in VECTOR_FLAGS.items() if flag in flags]
+
+
+def machine_figure(results: dict) -> str:
+    """Where the figures were measured: each CPU (model and vector extensions) with the measurements run on it."""
+    groups: dict[str, list[str]] = {}
+    for name in MEASUREMENTS:
+        m = results.get("measurements", {}).get(name)
+        if m is None:
+            continue
+        cpu = m.get("machine") or {"cpu": "an unrecorded CPU"}
+        exts = cpu.get("vector_extensions")
+        label = cpu["cpu"] + (f" ({', '.join(exts)})" if exts else "")
+        groups.setdefault(label, []).append(name)
+    if len(groups) == 1:
+        return f"a 2-core {next(iter(groups))}"
+    return "; ".join(f"{label} for {listing(names)}" for label, names in groups.items())
 
 
 def load() -> list[float]:
@@ -343,6 +374,7 @@ def combined_figures(results: dict) -> dict[str, str]:
     for name in MEASUREMENTS:
         figures.update(results.get("measurements", {}).get(name, {}).get("figures", {}))
     m = results.get("measurements", {})
+    figures["machine"] = machine_figure(results)
     if "compile" in m and "quickstart" in m:
         figures["install_and_quickstart_s"] = seconds(m["compile"]["values"]["compile_s"] + m["quickstart"]["values"]["wall_s"])
     return figures
@@ -380,7 +412,9 @@ def main(argv=None) -> None:
                 m = globals()[f"measure_{name}"](ctx)
                 if name not in names:
                     continue
-                results["measurements"][name] = {**m, "measured": results["machine"]["date"], "quick": a.quick}
+                mach = {k: results["machine"][k] for k in ("cpu", "vector_extensions", "cores")}
+                results["measurements"][name] = {**m, "measured": results["machine"]["date"], "machine": mach,
+                                                 "quick": a.quick}
                 print(f"readme_figures: {name}: {m['figures']} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
         finally:
             if a.keep:

@@ -257,3 +257,17 @@ def test_nearest_kdtree_equals_brute_force():
     inside = d_brute < 0.05**2
     assert bool(inside.any()) and bool((~inside).any())
     assert torch.equal(i_b[inside], i_brute[inside]) and bool(torch.isinf(d_b[~inside]).all())
+
+
+def test_signatures_of_the_issue_and_hoods_names():
+    """``Stretching(faces, rest, mu, lam, thickness)`` and ``Bending(faces, rest, bending_coeff)`` positionally, HOOD's
+    ``lame_mu``/``lame_lambda`` as keywords (at construction and per call), not both."""
+    x0, faces = grid(3, 3, dtype=torch.float64)
+    x = x0 * 1.02
+    a = hood.Stretching(faces, x0, 2e4, 5e4, 1e-3)(x)
+    b = hood.Stretching(faces, x0, lame_mu=2e4, lame_lambda=5e4, thickness=1e-3)(x)
+    c = hood.Stretching(faces, x0, thickness=1e-3)(x, mu=2e4, lam=5e4)
+    assert float(a) > 0 and float(a) == float(b) == float(c)
+    assert float(hood.Bending(faces, x0, 2e-5)(x)) == float(hood.Bending(faces, x0, bending_coeff=2e-5)(x))
+    with pytest.raises(ValueError, match="mu or lame_mu, not both"):
+        hood.Stretching(faces, x0, mu=1e4, lame_mu=1e4)

@@ -59,6 +59,9 @@ def test_readme_figures_equal_the_recorded_measurements():
     assert not any(m.get("quick") for m in recorded["measurements"].values())
     assert set(recorded["measurements"]) == set(figures_script.MEASUREMENTS)
     assert recorded["machine"]["cores"] and recorded["machine"]["cpu"] and recorded["machine"]["note"]
+    # each measurement names the CPU it ran on (model and vector extensions), which README.md quotes
+    assert all(m.get("machine", {}).get("cpu") and "vector_extensions" in m["machine"]
+               for m in recorded["measurements"].values())
 
 
 def test_rewriting_the_readme_from_the_json_changes_nothing():

@@ -229,7 +229,8 @@ def _ray_ball(p: Tensor, dx: Tensor, rho: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class Sphere(Collider):
-    """Solid sphere ``|x - center| <= radius`` [m]."""
+    """Solid sphere ``|x - center| <= radius``: ``center`` a 3-vector [m], ``radius`` [m]; acts on cloth positions
+    ``(..., V, 3)`` [m] (the contact law and its parameters: :class:`Collider`)."""
 
     center: tuple = (0.0, 0.0, 0.0)
     radius: float = 1.0
@@ -248,7 +249,8 @@ class Sphere(Collider):
 
 @dataclass(frozen=True)
 class Plane(Collider):
-    """Half-space below the plane through ``point`` with outward ``normal`` (normalised)."""
+    """Half-space below the plane through ``point`` (a 3-vector [m]) with outward ``normal`` (a 3-vector,
+    normalised); acts on cloth positions ``(..., V, 3)`` [m] (the contact law: :class:`Collider`)."""
 
     point: tuple = (0.0, 0.0, 0.0)
     normal: tuple = (0.0, 0.0, 1.0)
@@ -278,7 +280,8 @@ class Plane(Collider):
 
 @dataclass(frozen=True)
 class Capsule(Collider):
-    """Solid capsule: points within ``radius`` [m] of the segment ``a -> b`` [m]."""
+    """Solid capsule: points within ``radius`` [m] of the segment ``a -> b`` (3-vectors [m]); acts on cloth
+    positions ``(..., V, 3)`` [m] (the contact law: :class:`Collider`)."""
 
     a: tuple = (0.0, 0.0, 0.0)
     b: tuple = (1.0, 0.0, 0.0)

@@ -168,7 +168,8 @@ class HessianPattern(StencilPattern):
 
 
 def to_scipy(H: Tensor):
-    """A torch sparse CSR matrix as ``scipy.sparse.csr_matrix`` (float64 or float32, on the CPU)."""
+    """A torch sparse CSR matrix (e.g. a Hessian ``(3V, 3V)`` [N/m]) as ``scipy.sparse.csr_matrix`` of the same
+    shape and units (float64 or float32, on the CPU)."""
     import scipy.sparse as sp
 
     if H.layout != torch.sparse_csr:

@@ -99,7 +99,9 @@ def sparse_from_vertex_blocks(blocks: Tensor) -> Tensor:
 
 
 class EnergyTerm:
-    """A term of the potential (module docstring).  Subclass it and define :meth:`energy`, and for the
+    """A term of the potential over positions ``x (V, 3)`` [m] (module docstring): :meth:`energy` [J],
+    :meth:`gradient` ``(V, 3)`` [N], :meth:`hvp` ``(V, 3)`` [N], :meth:`hessian` a ``(3V, 3V)`` sparse matrix
+    [N/m].  Subclass it and define :meth:`energy`, and for the
     solvers' exact second-order steps :meth:`hessian` or :meth:`vertex_blocks`; the other methods have
     defaults (autograd for the derivatives)."""
 

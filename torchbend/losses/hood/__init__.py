@@ -47,7 +47,9 @@ def criteria(faces, rest: Tensor, body_faces, *, density: float | Tensor = DEFAU
              thickness: float = DEFAULT_MATERIAL["thickness"], dt: float | Tensor = REGULAR_DT, eps: float = 2e-3,
              collision_weight: tuple[float, float] = (5e3, 5e5), friction: float = 0.5, radius: float = 3e-3,
              gravity_axis: int = 1) -> ClothLoss:
-    """HOOD's six criteria as one :class:`~torchbend.ClothLoss` (``reduction="mean"``: HOOD's batch average),
+    """HOOD's six criteria as one :class:`~torchbend.ClothLoss` over positions ``x (B, V, 3)`` [m] (``faces
+    (F, 3)``, ``rest (V, 3)`` [m], ``body_faces (Fb, 3)``; materials in HOOD's units, floats or ``(B,)``),
+    returning the batch mean [J] (``reduction="mean"``: HOOD's batch average),
     terms named ``stretching``, ``bending``, ``inertia``, ``gravity``, ``collision``, ``friction``, with HOOD's
     defaults.  Call it as ``loss(x, x_curr=..., x_prev=..., body_prev=..., body_curr=..., body_next=...,
     iteration=...)`` (per-sample materials as keywords too); it returns ``(total, {name: value})``."""

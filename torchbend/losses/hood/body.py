@@ -81,7 +81,7 @@ class Collision(_BodyTerm):
 
     inputs = ("x_curr", "body_curr", "body_next", "iteration")
 
-    def __init__(self, body_faces, *, eps: float = 2e-3, weight_start: float = 5e3, weight_max: float = 5e5,
+    def __init__(self, body_faces, eps: float = 2e-3, weight_start: float = 5e3, weight_max: float = 5e5,
                  start_rampup_iteration: int = 50000, n_rampup_iterations: int = 100000):
         super().__init__()
         self.register_buffer("body_faces", _body_faces(body_faces, self.term_name))
@@ -128,7 +128,7 @@ class Friction(_BodyTerm):
 
     inputs = ("x_curr", "body_prev", "body_curr", "density")
 
-    def __init__(self, faces, rest: Tensor, body_faces, *, density: float | Tensor = 0.20022, mu: float = 0.5, radius: float = 3e-3,
+    def __init__(self, faces, rest: Tensor, body_faces, density: float | Tensor = 0.20022, mu: float = 0.5, radius: float = 3e-3,
                  g: float = 9.81, floor_normal=(0.0, 0.0, 1.0)):
         super().__init__()
         self._set_mesh(faces, rest)

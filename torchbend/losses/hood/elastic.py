@@ -112,26 +112,39 @@ class _StVKParts(torch.autograd.Function):
         return _parts_gradient(x, strain, faces, corners, Dinv, area, gmu, glam), None, None, None, None
 
 
+def _alias(term: str, name: str, value, hood_name: str, hood_value):
+    """One of two names of a parameter (``mu`` or HOOD's ``lame_mu``); both given is a ``ValueError``."""
+    if value is not None and hood_value is not None:
+        raise ValueError(f"{term}: give {name} or {hood_name}, not both")
+    return hood_value if value is None else value
+
+
 class Stretching(HoodTerm):
     """HOOD's stretching criterion (module docstring) [J], Lame parameters given directly.
 
     Args:
         faces: ``(F, 3)`` int triangles; rest: ``(V, 3)`` rest positions [m] (HOOD's rest garment).
-        lame_mu: ``mu`` [Pa] (> 0); lame_lambda: ``lambda`` [Pa] (> -mu: the 2-D stability condition; no
-            upper bound, unlike a Poisson ratio below 1/2): floats or ``(B,)`` tensors (per sample).
+        mu: HOOD's ``lame_mu`` [Pa] (> 0); lam: ``lame_lambda`` [Pa] (> -mu: the 2-D stability condition; no
+            upper bound, unlike a Poisson ratio below 1/2): floats or ``(B,)`` tensors (per sample); HOOD's
+            names ``lame_mu=``, ``lame_lambda=`` are accepted too.  Defaults: HOOD's material.
         thickness: ``t`` [m], HOOD's 4.7e-4.
 
-    ``forward(x, *, lame_mu=None, lame_lambda=None)``: ``x (B, V, 3)`` or ``(V, 3)`` -> ``(B,)`` or ``()``.
+    ``forward(x, *, mu=None, lam=None)`` (or ``lame_mu=``, ``lame_lambda=``): ``x (B, V, 3)`` or ``(V, 3)`` [m] ->
+    ``(B,)`` or ``()`` [J].
     """
 
-    inputs = ("lame_mu", "lame_lambda")
+    inputs = ("mu", "lam", "lame_mu", "lame_lambda")
     Dinv: Tensor  # (F, 2, 2) D_m^-1
     corners: Tensor  # (3F,) faces[:, (1, 2, 0)] column by column
 
-    def __init__(self, faces, rest: Tensor, *, lame_mu: float | Tensor = DEFAULT_MATERIAL["lame_mu"],
-                 lame_lambda: float | Tensor = DEFAULT_MATERIAL["lame_lambda"],
-                 thickness: float = DEFAULT_MATERIAL["thickness"]):
+    def __init__(self, faces, rest: Tensor, mu: float | Tensor | None = None, lam: float | Tensor | None = None,
+                 thickness: float = DEFAULT_MATERIAL["thickness"], *, lame_mu: float | Tensor | None = None,
+                 lame_lambda: float | Tensor | None = None):
         super().__init__()
+        mu, lam = _alias(self.term_name, "mu", mu, "lame_mu", lame_mu), _alias(self.term_name, "lam", lam, "lame_lambda",
+                                                                              lame_lambda)
+        lame_mu = DEFAULT_MATERIAL["lame_mu"] if mu is None else mu
+        lame_lambda = DEFAULT_MATERIAL["lame_lambda"] if lam is None else lam
         rest = self._set_mesh(faces, rest)
         self.register_buffer("Dinv", _rest_frames(rest, self.faces).to(rest.dtype))
         self.register_buffer("corners", self.faces[:, [1, 2, 0]].T.reshape(-1).contiguous())
@@ -139,9 +152,11 @@ class Stretching(HoodTerm):
         self._set_material("lame_lambda", lame_lambda, positive=None)
         self.thickness = positive(thickness, f"{self.term_name}: thickness")
 
-    def forward(self, x: Tensor, *, lame_mu=None, lame_lambda=None) -> Tensor:
+    def forward(self, x: Tensor, *, mu=None, lam=None, lame_mu=None, lame_lambda=None) -> Tensor:
         x = self._positions(x, self.vertex_count, self.faces.device)
         name = self.term_name
+        lame_mu, lame_lambda = _alias(name, "mu", mu, "lame_mu", lame_mu), _alias(name, "lam", lam, "lame_lambda",
+                                                                                  lame_lambda)
         mu = per_sample(self.lame_mu if lame_mu is None else lame_mu, "lame_mu", x, name, positive=True)
         lam = per_sample(self.lame_lambda if lame_lambda is None else lame_lambda, "lame_lambda", x, name,
                          positive=None)
@@ -170,7 +185,7 @@ class Bending(HoodTerm):
     inputs = ("bending_coeff",)
     scale: Tensor  # (H,) 1 / (8 (A0 + A1))
 
-    def __init__(self, faces, rest: Tensor, *, bending_coeff: float | Tensor = DEFAULT_MATERIAL["bending_coeff"]):
+    def __init__(self, faces, rest: Tensor, bending_coeff: float | Tensor = DEFAULT_MATERIAL["bending_coeff"]):
         super().__init__()
         rest = self._set_mesh(faces, rest)
         self._set_material("bending_coeff", bending_coeff, positive=False)

@@ -38,7 +38,7 @@ class Inertia(HoodTerm):
 
     inputs = ("x_curr", "x_prev", "dt", "density", "first_step")
 
-    def __init__(self, faces, rest: Tensor, *, density: float | Tensor = 0.20022, dt: float | Tensor = REGULAR_DT):
+    def __init__(self, faces, rest: Tensor, density: float | Tensor = 0.20022, dt: float | Tensor = REGULAR_DT):
         super().__init__()
         self._set_mesh(faces, rest)
         self._set_material("density", density)
@@ -74,7 +74,7 @@ class Gravity(HoodTerm):
 
     inputs = ("density",)
 
-    def __init__(self, faces, rest: Tensor, *, density: float | Tensor = 0.20022, g: float = 9.81, axis: int = 1):
+    def __init__(self, faces, rest: Tensor, density: float | Tensor = 0.20022, g: float = 9.81, axis: int = 1):
         super().__init__()
         self._set_mesh(faces, rest)
         self._set_material("density", density)

@@ -73,7 +73,7 @@ def lame_from_material(young: float, poisson: float) -> tuple[float, float]:
 def sample_materials(batch: int, *, generator: torch.Generator | None = None, ranges: dict | None = None,
                      dtype: torch.dtype = torch.float64, device=None) -> dict[str, Tensor]:
     """``batch`` materials drawn as HOOD draws them (module docstring): a dict of ``(batch,)`` tensors
-    ``density``, ``lame_mu``, ``lame_lambda``, ``bending_coeff`` and their normalised values in [0, 1]
+    ``density`` [kg/m^2], ``lame_mu``, ``lame_lambda`` [Pa], ``bending_coeff`` [N m] and their normalised values in [0, 1]
     (``<name>_input``: relative position in the range, in log space for the log-uniform ones)."""
     if int(batch) <= 0:
         raise ValueError(f"batch must be positive, got {batch!r}")
