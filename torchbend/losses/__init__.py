@@ -14,7 +14,8 @@ from .cloth_loss import ClothLoss, energy_scale
 from .contact import BodyContact, vertex_normals
 from .elastic import Bending, Stretch
 from .inertial import Gravity, Inertia, Pinning
+from .self_contact import SelfRepulsion
 
-__all__ = ["Bending", "BodyContact", "ClothLoss", "Gravity", "Inertia", "LossTerm", "Pinning", "hood", "Stretch",
+__all__ = ["Bending", "BodyContact", "ClothLoss", "Gravity", "Inertia", "LossTerm", "Pinning", "SelfRepulsion", "hood", "Stretch",
            "bending_stiffness_from_hood", "energy_scale", "hood_bending_coeff", "material_from_lame",
            "vertex_normals"]
