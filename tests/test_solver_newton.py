@@ -309,6 +309,22 @@ def test_smallest_eigenpair_matches_a_dense_solver(shift):
         assert 0 < curvature_tolerance(A) < 1e-10
 
 
+def test_smallest_eigenpair_beyond_a_cluster_near_zero():
+    """A negative eigenvalue far below many small positive ones (a soft strip's near-null modes): Lanczos
+    about the shift finds only the cluster, the inertia count says an eigenvalue lies below it, and the
+    bracketing must reach it (it once returned the cluster's smallest, and a saddle was called a minimum)."""
+    rng = np.random.default_rng(11)
+    n = 300
+    w = np.concatenate([[-21.9], rng.uniform(1e-4, 1e-2, size=40), rng.uniform(1e2, 1e4, size=n - 41)])
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A = sp.csr_matrix((Q * w) @ Q.T)
+    found = smallest_eigenpair(A)
+    assert found is not None
+    lam, v = found
+    assert abs(lam - (-21.9)) <= 1e-10 * 1e4
+    assert np.linalg.norm(A @ v - lam * v) <= 1e-8 * 1e4
+
+
 def test_smallest_eigenpair_does_not_depend_on_earlier_calls():
     """The eigenvector (the direction of a negative-curvature step) is the same whatever ran before it in the
     process: the Lanczos start vector is fixed (ARPACK's default comes from a generator whose state persists)."""

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._arrays import sorted_unique
 from ..mesh.topology import HingeTopology
 
 __all__ = ["StencilPattern", "HessianPattern", "to_scipy"]
@@ -40,7 +41,7 @@ class StencilPattern:
         m = elements.shape[1]
         ei = np.repeat(elements, m, axis=1).reshape(-1).astype(np.int64)
         ej = np.tile(elements, (1, m)).reshape(-1).astype(np.int64)
-        keys = np.unique(ei * V + ej)
+        keys = sorted_unique(ei * V + ej)
         bi, bj = keys // V, keys % V
         deg = np.bincount(bi, minlength=V)  # blocks per block row
         first = np.concatenate([[0], np.cumsum(deg)])

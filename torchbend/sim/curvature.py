@@ -14,7 +14,9 @@ level below which a negative eigenvalue is not trusted.
   ``scipy.sparse.linalg.eigsh`` in shift-invert mode about ``sigma`` returns the smallest eigenvalue
   (the nearest one above the shift).  Otherwise a negative eigenvalue near zero found by Lanczos
   (``k`` nearest the shift) is confirmed or a lower shift bracketing the smallest eigenvalue is
-  found by counting (shifts growing fourfold), and Lanczos about it returns the smallest.  When a
+  found by counting (shifts growing fourfold), and Lanczos about it returns the smallest.  When the
+  count finds eigenvalues below the shift that Lanczos near it does not reach (many eigenvalues near
+  zero), the bracketing starts from the shift itself.  When a
   factorisation fails (an exactly singular shifted matrix, off-diagonal pivots) the shift-invert
   estimate alone is used; when Lanczos fails, ``None`` is returned: not checked.
 
@@ -106,10 +108,15 @@ def smallest_eigenpair(A, *, dense_limit: int = 64, k: int = 6,
     if below == 0:  # all eigenvalues >= sigma: the nearest one above the shift is the smallest
         return _pair(_nearest(A, sigma, 1))
     near = _pair(_nearest(A, sigma, k))
-    if below is None or near is None or near[0] >= sigma:
-        return near  # no inertia to go by (or Lanczos failed): the estimate nearest zero
-    # a negative eigenvalue near[0] < sigma: is it the smallest?  Bracket with counts below it.
-    lo = near[0] * 1.5
+    if below is None:
+        return near  # no inertia to go by: the estimate nearest zero
+    if near is not None and near[0] < sigma:
+        lo = near[0] * 1.5  # a negative eigenvalue near[0]: is it the smallest?  Bracket with counts below it.
+    else:
+        # the count says an eigenvalue lies below sigma, but the k nearest the shift are all above it (many
+        # eigenvalues near zero, as a soft strip has): bracket downwards from the shift.  Should that fail,
+        # nothing is claimed (None) rather than the positive estimate the count contradicts.
+        near, lo = None, 4 * sigma
     for _ in range(max_brackets):
         c = count_below(A, lo)
         if c is None:

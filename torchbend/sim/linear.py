@@ -37,6 +37,7 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
+from .._arrays import sorted_unique
 from ..options import Option, Projection
 from . import pardiso
 from .terms import as_csr
@@ -103,7 +104,7 @@ class _Pattern:
             term_keep.append(np.flatnonzero(keep))
             term_keys.append(index[rows[keep]] * nf + index[cols[keep]])
         block_keys = bi * nf + bj.reshape(-1)
-        keys = np.unique(np.concatenate([block_keys, *term_keys]))
+        keys = sorted_unique(np.concatenate([block_keys, *term_keys]))
         rows = keys // nf
         crow = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=crow[1:])
@@ -344,6 +345,27 @@ def _ldlt_solve(factor: pardiso.SymmetricFactor, A: sp.csr_matrix, rhs: np.ndarr
     if not factor.factor(A.data, shift):
         return None, False
     return factor.solve(rhs), factor.positive_definite
+
+
+def reused_factor_solve(A: sp.csr_matrix, rhs: np.ndarray, factor: pardiso.SymmetricFactor, *, tol: float,
+                        maxiter: int) -> tuple[np.ndarray | None, int]:
+    """``A^{-1} rhs`` to the relative residual ``tol`` by CG preconditioned with the numeric factorisation that
+    ``factor`` holds of an earlier matrix of ``A``'s pattern (an earlier Newton iterate's, or the previous time
+    step's: nearby matrices, so that CG converges in a few iterations at the cost of triangular solves).
+    ``A``: ``scipy.sparse`` CSR ``(n, n)``, ``rhs``: ``(n,)``.  Returns ``(p, CG iterations)``, with ``p = None``
+    when there is no positive definite factorisation to use, or CG did not reach ``tol`` within ``maxiter``,
+    met a direction of non-positive curvature or broke down, or ``p`` is not a descent direction
+    (``rhs . p > 0``): the caller factorises ``A`` then."""
+    if not factor.positive_definite or factor.n != A.shape[0]:
+        return None, 0
+    b = torch.from_numpy(np.ascontiguousarray(rhs, dtype=np.float64))
+    res = pcg(lambda d: torch.from_numpy(A @ d.numpy()), b, lambda r: torch.from_numpy(factor.solve(r.numpy())),
+              tol=tol, maxiter=maxiter)
+    p = res.x.numpy()
+    if not res.converged or res.negative_curvature is not None or res.breakdown \
+            or not np.all(np.isfinite(p)) or not float(rhs @ p) > 0:
+        return None, res.iterations
+    return p, res.iterations
 
 
 def direct_solve(A, rhs: np.ndarray, max_shifts: int = 12, *, cholesky: bool = False,
