@@ -19,6 +19,7 @@ try:
         ConfigDict,
         Discriminator,
         Field,
+        StrictBool,
         Tag,
         ValidationError,
         field_validator,
@@ -395,20 +396,23 @@ MeshSpec = Annotated[Union[GridMesh, FileMesh], Field(discriminator="type")]
 class LinearSolverSection(Section):
     """``solver.linear_solver`` as a mapping, one to one with :class:`~torchbend.LinearSolver`: ``method``
     (``direct``, ``cg``), ``preconditioner`` (``auto``, ``block_jacobi``, ``ilu``, ``amg``), ``cholesky``,
-    ``max_cg_iters``, ``factorization`` (``auto``, ``ldlt``, ``lu``); a string is the ``method``."""
+    ``max_cg_iters``, ``factorization`` (``auto``, ``ldlt``, ``lu``), ``reuse_factorization`` (``auto``, true,
+    false); a string is the ``method``."""
 
     method: str = "direct"
     preconditioner: str = "auto"
     cholesky: bool = False
     max_cg_iters: PositiveInt | None = None
     factorization: str = "auto"
+    reuse_factorization: Union[StrictBool, Literal["auto"]] = "auto"
 
     _check_method = field_validator("method")(_option(LinearMethod, "linear solver"))
     _check_preconditioner = field_validator("preconditioner")(_option(Preconditioner, "preconditioner"))
     _check_factorization = field_validator("factorization")(_option(Factorization, "factorization"))
 
     def linear_solver(self) -> LinearSolver:
-        return LinearSolver(self.method, self.preconditioner, self.cholesky, self.max_cg_iters, self.factorization)
+        return LinearSolver(self.method, self.preconditioner, self.cholesky, self.max_cg_iters, self.factorization,
+                            self.reuse_factorization)
 
 
 def _linear_shorthand(value):

@@ -101,9 +101,19 @@ from ..options import Projection
 from .curvature import curvature_tolerance, smallest_eigenpair
 from .damping import Damping
 from .line_search import LineSearchResult, armijo_backtracking
-from .linear import FreeHessian, Preconditioner, cg_iteration_bound, direct_solve, make_preconditioner, pcg
+from .linear import (
+    DirectResult,
+    FreeHessian,
+    Preconditioner,
+    cg_iteration_bound,
+    direct_solve,
+    make_preconditioner,
+    pcg,
+    reused_factor_solve,
+)
 from .model import ClothModel, ClothState
 from .options import (
+    REUSE_CG_ITERS,
     UNSET,
     Controls,
     Factorization,
@@ -171,7 +181,8 @@ class SolveInfo:
     ``iterations``: Newton iterations in all (every sub-solve); ``solves``: Newton solves in all
     (continuation and substeps make several); ``energy_history`` / ``residual_history``: one entry
     per accepted iterate; ``regularized_steps``: Newton directions that needed a Levenberg shift or
-    the steepest-descent fallback; ``cg_iterations``: in all (CG solver); ``linear_seconds``: wall time
+    the steepest-descent fallback; ``cg_iterations``: in all (the CG solver's, and a direct solver's on reused
+    factorisations, ``LinearSolver.reuse_factorization``); ``linear_seconds``: wall time
     [s] of the linear solves of the Newton directions (factorisations and solves, or CG with its
     preconditioner; not the assembly of the matrix); ``substeps``:
     implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
@@ -237,6 +248,7 @@ class _Potential:
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
         self.linear_seconds = 0.0  # in the linear solves, all directions (SolveInfo.linear_seconds)
+        self.reuse_cg_iterations = 0  # CG iterations on reused factorisations (SolveInfo.cg_iterations)
         self.skip_exact = False  # a time step's exact Hessian was just indefinite: the next direction is clamped's
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
         # Levenberg-Marquardt damping by the lumped masses (static solves only: a step has its inertia)
@@ -317,18 +329,29 @@ class _Potential:
                              "torchbend[solvers]); use 'auto' or 'lu'")
         return factor
 
-    def direct_direction(self, x: Tensor, gf: np.ndarray) -> tuple[np.ndarray, int]:
+    def direct_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float = 1.0) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
-        sparse Cholesky first if ``linear.cholesky``); ``(p, Levenberg shifts)``; sets
-        ``positive_definite`` and ``linear_method``."""
+        sparse Cholesky first if ``linear.cholesky``); with ``linear.reuse_factorization`` first by CG
+        preconditioned with the last factorisation (:func:`~torchbend.sim.linear.reused_factor_solve`) to the
+        forcing term ``min(1e-2, sqrt(|g| / scale))`` (at least 1e-10); ``(p, Levenberg shifts)``; sets
+        ``positive_definite`` (unknown after a reused factorisation) and ``linear_method``."""
         # an indefinite exact Hessian in a time step gives way to the clamped one (below): no shifted retries
         clamp_if_indefinite = self.ctx.dynamic and self.option is Projection.NONE
+        reuse = self.linear.reuses_factorization(len(gf))
+        forcing = max(min(1e-2, math.sqrt(relative_residual)), 1e-10)
 
         def solve(A: Tensor, indefinite_stop: bool = False):  # an assembled matrix; timed in linear_seconds
             A_host, factor = self.hessian_op.to_scipy(A), self._factor()  # the factor of A's pattern
             t0 = time.perf_counter()
-            out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor,
-                               indefinite_stop=indefinite_stop)
+            out = None
+            if reuse and factor is not None:
+                p, its = reused_factor_solve(A_host, -gf, factor, tol=forcing, maxiter=REUSE_CG_ITERS)
+                self.reuse_cg_iterations += its
+                if p is not None:
+                    out = DirectResult(p, 0, None, "ldlt-reused")
+            if out is None:
+                out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor,
+                                   indefinite_stop=indefinite_stop)
             self.linear_seconds += time.perf_counter() - t0
             return out
 
@@ -415,8 +438,10 @@ def _one_direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSol
     """One direction of :func:`_direction` with the current Newton matrix."""
     before = phi.linear_seconds
     if linear.is_direct:
-        p, shifts = phi.direct_direction(x, gf)
+        reused = phi.reuse_cg_iterations
+        p, shifts = phi.direct_direction(x, gf, relative_residual)
         info.regularized_steps += shifts
+        info.cg_iterations += phi.reuse_cg_iterations - reused
     else:
         p, cg_it = phi.cg_direction(x, gf, relative_residual)
         info.cg_iterations += cg_it

@@ -65,6 +65,14 @@ class LinearMethod(Option):
     CG = "cg"
 
 
+REUSE_MIN_UNKNOWNS = 30_000
+"""``reuse_factorization="auto"``: the free unknowns from which a direct solve first tries CG preconditioned with
+the last factorisation (a 100x100 cloth; at 161x161 a factorisation costs 0.42 s, a CG iteration 0.035 s)."""
+
+REUSE_CG_ITERS = 8
+"""CG iterations a reused factorisation gets before the matrix is factorised anew."""
+
+
 @dataclass(frozen=True)
 class LinearSolver:
     """The linear solves of the Newton directions, ``linear_solver=`` of :func:`~torchbend.solve_static`,
@@ -79,6 +87,12 @@ class LinearSolver:
       (see :class:`Factorization`);
     * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; the factorisation above when it fails);
     * ``max_cg_iters`` (CG): iterations per direction at most (``None``: ``min(2 n, max(100, 20 sqrt(n)))``).
+    * ``reuse_factorization`` (direct, PARDISO): solve a Newton system by CG preconditioned with the last
+      numeric factorisation (of an earlier iterate's matrix, or the previous time step's) and factorise
+      anew only when that CG does not reach the forcing tolerance within :data:`REUSE_CG_ITERS` iterations
+      (or meets negative curvature); ``"auto"`` (default) does so from :data:`REUSE_MIN_UNKNOWNS` free
+      unknowns on (where a factorisation costs 10x and more a triangular solve), ``True`` always,
+      ``False`` never.  The directions are Newton's to the forcing tolerance; the stopping test is the same.
 
     ``tb.LinearSolver("cg", preconditioner="amg")``; invalid values are a ``ValueError`` naming the field."""
 
@@ -87,6 +101,7 @@ class LinearSolver:
     cholesky: bool = False
     max_cg_iters: int | None = None
     factorization: Factorization | str = "auto"
+    reuse_factorization: bool | str = "auto"
 
     DIRECT: ClassVar[LinearMethod] = LinearMethod.DIRECT
     CG: ClassVar[LinearMethod] = LinearMethod.CG
@@ -99,6 +114,15 @@ class LinearSolver:
             raise ValueError(f"LinearSolver: cholesky must be True or False, got {self.cholesky!r}")
         if self.max_cg_iters is not None:
             object.__setattr__(self, "max_cg_iters", int_at_least(self.max_cg_iters, "LinearSolver: max_cg_iters", 1))
+        if not (isinstance(self.reuse_factorization, bool) or self.reuse_factorization == "auto"):
+            raise ValueError(f"LinearSolver: reuse_factorization must be 'auto', True or False, "
+                             f"got {self.reuse_factorization!r}")
+
+    def reuses_factorization(self, unknowns: int) -> bool:
+        """Whether a direct solve of ``unknowns`` free DOFs tries the last factorisation first."""
+        if self.reuse_factorization == "auto":
+            return unknowns >= REUSE_MIN_UNKNOWNS
+        return bool(self.reuse_factorization)
 
     @classmethod
     def parse(cls, value) -> LinearSolver:
