@@ -1,6 +1,7 @@
 """Membrane projection benchmark: closed-form eigensystem vs numerical eigendecomposition.
 
     python benchmarks/bm_membrane.py                # 1e3, 1e4, 1e5 triangles, float64
+    python benchmarks/bm_membrane.py --model-hessian  # the drape's Newton matrix, membrane blocks eager vs compiled
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
   closed form  : MembraneEnergy.element_hessians(x, projection="clamp") (eigenvalues clamped in F-space);
@@ -52,8 +53,40 @@ def measure(mem: MembraneEnergy, x: torch.Tensor, repeat: int) -> str:
             f"{t_f / t_c:8.2f}x {t_x / t_c:8.2f}x  closed vs eigh(F) rel. diff {err:.1e}")
 
 
+def model_hessians(sizes: list[int], repeat: int) -> None:
+    """The solver's Newton matrix on the drape of configs/cloth_sphere.yaml (membrane, bending, gravity, the
+    sphere): ``ClothModel.hessian(x, "exact")`` with the membrane's unprojected StVK blocks eager (the code
+    before they were compiled) and compiled (``backend="auto"``), and the StVK element Hessians alone."""
+    import os
+
+    from torchbend.scenes.config import build_scene, load_config
+
+    cfg = load_config(os.path.join(os.path.dirname(__file__), "..", "configs", "cloth_sphere.yaml"))
+    print(f"{'size':>8s} {'faces':>7s} {'blocks eager':>13s} {'compiled':>9s} {'ratio':>6s} | "
+          f"{'model.hessian eager membrane':>28s} {'compiled':>9s} {'ratio':>6s}  check")
+    for n in sizes:
+        model, x0, _ = build_scene(cfg, resolution=(n, n))
+        gen = torch.Generator().manual_seed(0)
+        x = x0 + 0.2 / n * torch.randn(x0.shape, generator=gen, dtype=x0.dtype)
+        mem = model.membrane
+        assert mem is not None, "the drape has a membrane"
+        rows = {}
+        for backend in ("eager", "auto"):
+            mem.backend = tb.Backend.parse(backend)
+            rows[backend] = (timeit(lambda mem=mem, x=x: mem.element_hessians(x), repeat),
+                             timeit(lambda model=model, x=x: model.hessian(x, "exact"), repeat),
+                             model.hessian(x, "exact"))
+        mem.backend = tb.Backend.AUTO
+        (be, he, He), (bc, hc, Hc) = rows["eager"], rows["auto"]
+        err = float(abs(Hc - He).max() / abs(He).max())
+        print(f"{n:4d}x{n:<3d} {mem.face_count:7d} {be * 1e3:11.2f}ms {bc * 1e3:7.2f}ms {be / bc:5.1f}x | "
+              f"{he * 1e3:26.2f}ms {hc * 1e3:7.2f}ms {he / hc:5.1f}x  max rel. diff {err:.1e}", flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
+    p.add_argument("--model-hessian", type=int, nargs="*", default=None, metavar="N",
+                   help="the solver's Newton matrix of the N x N drape instead (default N: 41 81 161)")
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     p.add_argument("--models", nargs="+", default=["stvk", "arap", "symmetric_dirichlet", "neohookean"])
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
@@ -61,6 +94,9 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     dtype = getattr(torch, a.dtype)
     print("machine:", machine())
+    if a.model_hessian is not None:
+        model_hessians(a.model_hessian or [41, 81, 161], a.repeat)
+        return
     print(f"{'triangles':>10s} {'model':>20s} {'closed form':>12s} {'eigh (F)':>10s} {'eigh (x)':>10s} "
           f"{'F/closed':>9s} {'x/closed':>9s}  check")
     for T in a.sizes:

@@ -215,10 +215,15 @@ def test_stvk_closed_form_blocks_and_hvp_match_eigensystem_and_torch_func(scale)
     x = rest * torch.tensor([1.3, 0.6, 1.0], dtype=F64) + 0.1 * scale * torch.randn(rest.shape, generator=gen, dtype=F64)
     x[faces[0, 2]] = x[faces[0, 0]] + 0.5 * (x[faces[0, 1]] - x[faces[0, 0]])  # face 0 collapsed to a segment
     x[faces[1, 2]] = x[faces[1, 0]] - (x[faces[1, 2]] - x[faces[1, 0]])  # face 1 turned over
-    H = mem.element_hessians(x)
+    H = mem.element_hessians(x, backend="eager")
     D = mem.shape_matrices
     F, _ = deformation(x, mem.faces, D)
     assert torch.equal(H, stvk_blocks(F, D, mem.mu, mem.lam) * (mem.rest_areas * mem.thickness)[:, None, None])
+    # the compiled blocks (the default on the CPU for one mesh): the same formula, other rounding (a few ulps of
+    # each block's largest entry)
+    Hn = mem.element_hessians(x)
+    scale = H.flatten(-2).abs().amax(-1)[:, None, None]
+    assert float(((Hn - H).abs() / scale).max()) <= 16 * torch.finfo(F64).eps
     l, Q = mem.element_eigensystems(x)  # the eigensystem path, pulled back to positions here
     Z = (Q.transpose(-1, -2).unflatten(-1, (3, 2)) @ D.transpose(-1, -2)[:, None]).transpose(-1, -2).flatten(-2)
     He = (Z.transpose(-1, -2) * l[:, None, :]) @ Z
@@ -240,3 +245,74 @@ def test_stvk_closed_form_blocks_and_hvp_match_eigensystem_and_torch_func(scale)
         ref = (mem.hessian(xb[b]).to_dense() @ v.reshape(-1)).reshape(-1, 3)
         assert rel(hv[b], ref) <= 1e-13
     assert torch.equal(mem.element_hessians(xb)[0], H)
+
+
+# -------------------------------------------------------------------- the compiled StVK blocks
+def _stretched_sheet(dtype, seed=0):
+    rest, faces = tb.scenes.random_curved_sheet(9, 7, amplitude=0.3, seed=seed, dtype=dtype)
+    gen = torch.Generator().manual_seed(seed + 1)
+    x = rest * torch.tensor([1.2, 0.7, 1.0], dtype=dtype) + 0.05 * torch.randn(rest.shape, generator=gen, dtype=dtype)
+    x[faces[0, 2]] = x[faces[0, 0]] + 0.5 * (x[faces[0, 1]] - x[faces[0, 0]])  # face 0 collapsed to a segment
+    x[faces[1, 2]] = x[faces[1, 0]] - (x[faces[1, 2]] - x[faces[1, 0]])  # face 1 turned over
+    return rest, faces, x
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_stvk_blocks_match_the_eager_formula(dtype):
+    """native.membrane_stvk_blocks (csrc/membrane_math.h) against ops.membrane.stvk_blocks times A t: the same
+    formula in another order of operations, so within a few ulps of each block's largest entry, on stretched,
+    collapsed and inverted triangles, with one material or one per triangle; T = 0 gives no blocks."""
+    from torchbend.backends import native
+    from torchbend.ops.membrane import stvk_blocks
+
+    if native.load() is None:
+        pytest.skip("the CPU extension is not built")
+    rest, faces, x = _stretched_sheet(dtype)
+    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4).to(dtype)
+    D, coef = mem.shape_matrices.to(dtype), (mem.rest_areas * mem.thickness).to(dtype)
+    F = deformation_gradient(x, mem.faces, D)
+    T = faces.shape[0]
+    gen = torch.Generator().manual_seed(3)
+    per_face = (mem.mu * (0.5 + torch.rand(T, generator=gen, dtype=dtype)),
+                mem.lam * (0.5 + torch.rand(T, generator=gen, dtype=dtype)))
+    eps = torch.finfo(dtype).eps
+    for mu, lam in ((mem.mu.to(dtype), mem.lam.to(dtype)), per_face):
+        if mu.ndim:  # the eager formula takes one material (or one per sample): face by face
+            ref = torch.cat([stvk_blocks(F[t:t + 1], D[t:t + 1], mu[t], lam[t]) for t in range(T)])
+        else:
+            ref = stvk_blocks(F, D, mu, lam)
+        ref = ref * coef[:, None, None]
+        got = native.membrane_stvk_blocks(F, D, mu, lam, coef)
+        assert got.shape == (T, 9, 9) and got.dtype == dtype
+        scale = ref.flatten(-2).abs().amax(-1)[:, None, None]
+        assert float(((got - ref).abs() / scale).max()) <= 16 * eps
+        assert torch.equal(got, got.transpose(-1, -2))  # symmetric by construction
+    empty = native.membrane_stvk_blocks(F[:0], D[:0], mem.mu.to(dtype), mem.lam.to(dtype), coef[:0])
+    assert empty.shape == (0, 9, 9)
+
+
+def test_compiled_stvk_blocks_are_chosen_for_one_mesh_without_a_graph():
+    """element_hessians takes the compiled blocks for one mesh on the CPU (backend 'auto' or 'native'); a batch, a
+    recorded graph (the eager blocks are differentiable) and backend='eager' take the eager formula;
+    backend='native' on a batch says why it cannot."""
+    from torchbend.backends import native
+
+    if native.load() is None:
+        pytest.skip("the CPU extension is not built")
+    rest, faces, x = _stretched_sheet(F64, seed=4)
+    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4)
+    eager = mem.element_hessians(x, backend="eager")
+    compiled = mem.element_hessians(x)
+    assert torch.equal(compiled, mem.element_hessians(x, backend="native"))
+    assert not torch.equal(compiled, eager)  # another rounding: the compiled kernel ran
+    assert float((compiled - eager).abs().max()) <= 16 * torch.finfo(F64).eps * float(eager.abs().max())
+    xb = torch.stack((x, rest))
+    assert torch.equal(mem.element_hessians(xb)[0], eager)
+    with pytest.raises(ValueError, match="one mesh"):
+        mem.element_hessians(xb, backend="native")
+    xg = x.clone().requires_grad_()
+    Hg = mem.element_hessians(xg)
+    assert Hg.requires_grad and torch.equal(Hg.detach(), eager)
+    # the assembled Hessian (the solver's) from the compiled blocks equals the eager one to round-off
+    Ha, He = mem.hessian(x).to_dense(), mem.hessian(x, backend="eager").to_dense()
+    assert float((Ha - He).abs().max()) <= 64 * torch.finfo(F64).eps * float(He.abs().max())

@@ -202,7 +202,8 @@ def test_reuse_factorization_option():
     assert not auto.reuses_factorization(REUSE_MIN_UNKNOWNS - 1) and auto.reuses_factorization(REUSE_MIN_UNKNOWNS)
     assert tb.LinearSolver(reuse_factorization=True).reuses_factorization(3)
     assert not tb.LinearSolver(reuse_factorization=False).reuses_factorization(10**7)
-    for bad in (1, "yes", None):
+    bad_values: tuple = (1, "yes", None)
+    for bad in bad_values:
         with pytest.raises(ValueError, match="reuse_factorization"):
             tb.LinearSolver(reuse_factorization=bad)
 

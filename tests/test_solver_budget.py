@@ -138,8 +138,8 @@ def test_an_impact_step_with_an_indefinite_exact_hessian_takes_the_clamped_direc
     methods: list = []
     real = newton._Potential.direct_direction
 
-    def spy(self, x, gf):
-        out = real(self, x, gf)
+    def spy(self, x, gf, *args):
+        out = real(self, x, gf, *args)
         methods.append(self.linear_method)
         return out
 

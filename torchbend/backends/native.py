@@ -40,7 +40,7 @@ from ._table import PROJECTION_CODE, model_code
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
+           "project_blocks", "membrane_stvk_blocks", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
@@ -147,6 +147,13 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     complement of the translations (the same matrix, 0.42 of the work); ``"reduced"`` (hinge blocks only) is that
     function's structured projection."""
     return _module().project_blocks(M, PROJECTION_CODE[mode], hinge)
+
+
+def membrane_stvk_blocks(F: Tensor, D: Tensor, mu: Tensor, lam: Tensor, coef: Tensor) -> Tensor:
+    """The unprojected StVK Hessian of each triangle, ``(T, 9, 9)`` [N/m] (flat index ``3 k + i``: vertex ``k``,
+    axis ``i``), of ``F``, ``D`` ``(T, 3, 2)`` and ``mu``, ``lam`` [Pa], ``coef = A t`` [m^3], each one value or
+    ``(T,)``, one mesh: :func:`torchbend.ops.membrane.stvk_blocks` times ``coef``, compiled."""
+    return _module().membrane_stvk_blocks(F, D, mu, lam, coef)
 
 
 def output_cache_info() -> dict[str, int]:

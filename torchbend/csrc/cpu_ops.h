@@ -47,6 +47,10 @@ std::tuple<Tensor, Tensor, int64_t> assemble(Tensor x, Tensor hinges, Tensor a, 
 // the PSD projection of symmetric blocks M (..., n, n), n 9 or 12 (cpu_projection.cpp)
 Tensor project_blocks(Tensor M, int64_t mode, bool hinge);
 
+// the unprojected StVK Hessian of each triangle, (T, 9, 9), of F, D (T, 3, 2) and mu, lam, coef (one value or
+// (T,)) (cpu_membrane.cpp)
+Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor coef);
+
 // the opt-in cache of large outputs (cpu_tiles.cpp): (blocks, bytes, hits, misses, limit), free, limit in bytes
 std::tuple<int64_t, int64_t, int64_t, int64_t, int64_t> output_cache_info();
 void empty_output_cache();

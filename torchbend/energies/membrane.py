@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from .. import backends
 from .._checks import check_direction, check_positions, positive
+from ..backends import native
 from ..mesh.topology import mesh_and_rest
 from ..ops.membrane import (
     MembraneModel,
@@ -46,7 +47,9 @@ class MembraneEnergy(nn.Module):
         young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
         thickness: ``t`` [m] (> 0).
         check_finite: check inputs for NaN/Inf.
-        backend: ``"auto" | "eager" | "native"``; membranes have no compiled kernel yet (eager).
+        backend: ``"auto" | "eager" | "native"``: the unprojected StVK element Hessians of one mesh on the CPU
+            (``element_hessians``, ``hessian``: the solver's assembly) have a compiled kernel, taken by ``"auto"``
+            where no autograd graph is recorded; everything else runs eagerly.
 
     Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
@@ -101,18 +104,24 @@ class MembraneEnergy(nn.Module):
         check_positions(x, self.vertex_count, check_finite=self.check_finite)
         if x.device != self.faces.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.faces.device}; move one with .to()")
-        backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x)
         dt = x.dtype
         return self.shape_matrices.to(dt), (self.rest_areas * self.thickness).to(dt), self.mu.to(dt), self.lam.to(dt)
+
+    def _selected(self, op: str, backend, x: Tensor, *params: Tensor) -> backends.Backend:
+        """The backend of ``membrane_<op>`` (:func:`torchbend.backends.select_backend`: a compiled kernel exists for
+        the unprojected StVK element Hessians of one mesh on the CPU; the other operations run eagerly)."""
+        return backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x, *params)
 
     def forward(self, x: Tensor, *, backend=None) -> Tensor:
         """Membrane energy ``(...,)`` [J] of ``x: (..., V, 3)`` [m]."""
         D, coef, mu, lam = self._args(x, "energy", backend)
+        self._selected("energy", backend, x)
         return fn.energy_function(self.model).apply(x, self.faces, D, coef, mu, lam)
 
     def gradient(self, x: Tensor, *, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N], closed form (``P = U diag(psi_i) V^T``); differentiable."""
         D, coef, mu, lam = self._args(x, "gradient", backend)
+        self._selected("gradient", backend, x)
         return fn.gradient_function(self.model).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu, lam)
 
     def _eigen(self, x: Tensor, op: str, projection, backend, v=None):
@@ -120,6 +129,7 @@ class MembraneEnergy(nn.Module):
         direction) is checked with the inputs, before any work."""
         projection = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, op, backend)
+        self._selected(op, backend, x)
         if v is not None:
             v = check_direction(v, x, self.check_finite)
         F, N = deformation(x, self.faces, D)
@@ -136,7 +146,8 @@ class MembraneEnergy(nn.Module):
 
     def _stvk_args(self, x: Tensor, op: str, backend):
         D, coef, mu, lam = self._args(x, op, backend)
-        return deformation_gradient(x, self.faces, D), D, coef, mu, lam
+        selected = self._selected(op, backend, x, mu, lam)
+        return deformation_gradient(x, self.faces, D), D, coef, mu, lam, selected
 
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
         """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
@@ -156,8 +167,11 @@ class MembraneEnergy(nn.Module):
         (``projection``; ``project=``: its deprecated alias)."""
         projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
         if self._closed_stvk(projection):  # StVK unprojected: the blocks in closed form, no eigensystem
-            F, D, coef, mu, lam = self._stvk_args(x, "element_hessians", backend)
-            H = stvk_blocks(F, D, mu, lam) * coef[..., None, None]
+            F, D, coef, mu, lam, selected = self._stvk_args(x, "element_hessians", backend)
+            if selected is backends.Backend.NATIVE and mu.ndim <= 1 and lam.ndim <= 1:  # one mesh (T,) or one value
+                H = native.membrane_stvk_blocks(F.detach(), D, mu, lam, coef)
+            else:
+                H = stvk_blocks(F, D, mu, lam) * coef[..., None, None]
             fn.check_values(self.model, "Hessian", H, F)
             return H
         l, Q, D, _ = self._eigen(x, "element_hessians", projection, backend)
@@ -171,7 +185,7 @@ class MembraneEnergy(nn.Module):
         ``projection``; ``project=``: its deprecated alias)."""
         projection = projection_argument(projection, project, "MembraneEnergy.hvp")
         if self._closed_stvk(projection):
-            F, D, coef, mu, lam = self._stvk_args(x, "hvp", backend)
+            F, D, coef, mu, lam, _ = self._stvk_args(x, "hvp", backend)
             v = check_direction(v, x, self.check_finite)
             dP = stvk_hvp_stress(F, deformation_gradient(v, self.faces, D), mu, lam) * coef[..., None, None]
             fn.check_values(self.model, "Hessian-vector product", dP, F)

@@ -356,7 +356,8 @@ def reused_factor_solve(A: sp.csr_matrix, rhs: np.ndarray, factor: pardiso.Symme
     when there is no positive definite factorisation to use, or CG did not reach ``tol`` within ``maxiter``,
     met a direction of non-positive curvature or broke down, or ``p`` is not a descent direction
     (``rhs . p > 0``): the caller factorises ``A`` then."""
-    if not factor.positive_definite or factor.n != A.shape[0]:
+    n = int(A.get_shape()[0])
+    if not factor.positive_definite or factor.n != n:
         return None, 0
     b = torch.from_numpy(np.ascontiguousarray(rhs, dtype=np.float64))
     res = pcg(lambda d: torch.from_numpy(A @ d.numpy()), b, lambda r: torch.from_numpy(factor.solve(r.numpy())),

@@ -1,0 +1,47 @@
+// Per-triangle mathematics of torchbend's compiled membrane kernels: the StVK element Hessian in closed form.
+// It mirrors the eager reference torchbend.ops.membrane.stvk_blocks, which the tests compare against; the same
+// rules as hinge_math.h (no torch, no std::, every function `TB_HD static inline`), so that a CUDA driver can
+// compile it with nvcc as the CPU driver (cpu_membrane.cpp) does with g++.
+#pragma once
+
+#include "vector_math.h"
+
+namespace torchbend {
+
+// The unprojected StVK Hessian of one triangle, coef d^2 Psi / dx^2 (coef = A t), flat (9, 9) over
+// (vertex k, axis i) x (vertex l, axis j), index (3 k + i) * 9 + 3 l + j.  F (3 x 2) and D (3 x 2) row-major:
+// F = sum_k x_k D_k^T.  With G = (F^T F - I) / 2, S = 2 mu G + lam tr(G) I and t = D F^T:
+//   H[k i, l j] = (D S D^T)_kl delta_ij + mu (D D^T)_kl (F F^T)_ij + mu t_kj t_li + lam t_ki t_lj,
+// computed on the upper triangle and mirrored (exactly symmetric).
+template <typename T>
+TB_HD static inline void stvk_block(const T* F, const T* D, T mu, T lam, T coef, T* H) {
+  const T g00 = T(0.5) * (F[0] * F[0] + F[2] * F[2] + F[4] * F[4] - T(1));
+  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
+  const T g11 = T(0.5) * (F[1] * F[1] + F[3] * F[3] + F[5] * F[5] - T(1));
+  const T tr = lam * (g00 + g11);
+  const T s00 = T(2) * mu * g00 + tr, s01 = T(2) * mu * g01, s11 = T(2) * mu * g11 + tr;
+  T A[3][3], B[3][3], FF[3][3], t[3][3];
+  for (int k = 0; k < 3; ++k) {
+    const T dk0 = D[2 * k], dk1 = D[2 * k + 1];
+    const T u0 = dk0 * s00 + dk1 * s01, u1 = dk0 * s01 + dk1 * s11;  // (D S)_k
+    for (int l = 0; l < 3; ++l) {
+      const T dl0 = D[2 * l], dl1 = D[2 * l + 1];
+      A[k][l] = coef * (u0 * dl0 + u1 * dl1);
+      B[k][l] = coef * mu * (dk0 * dl0 + dk1 * dl1);
+      FF[k][l] = F[2 * k] * F[2 * l] + F[2 * k + 1] * F[2 * l + 1];
+      t[k][l] = dk0 * F[2 * l] + dk1 * F[2 * l + 1];
+    }
+  }
+  const T cm = coef * mu, cl = coef * lam;
+  // the upper triangle, mirrored: exactly symmetric blocks (A symmetrized the same way)
+  for (int r = 0; r < 9; ++r)
+    for (int c = r; c < 9; ++c) {
+      const int k = r / 3, i = r % 3, l = c / 3, j = c % 3;
+      const T a = k <= l ? A[k][l] : A[l][k];
+      const T h = B[k][l] * FF[i][j] + cm * (t[k][j] * t[l][i]) + cl * (t[k][i] * t[l][j]) + (i == j ? a : T(0));
+      H[9 * r + c] = h;
+      H[9 * c + r] = h;
+    }
+}
+
+}  // namespace torchbend
