@@ -111,12 +111,18 @@ class _Pattern:
         as_dev = lambda a: torch.as_tensor(a, dtype=torch.int64, device=device)
         self.n, self.nnz, self.device = nf, int(keys.shape[0]), device
         self.crow, self.col = as_dev(crow), as_dev(keys % nf)
-        self.term_keep = [as_dev(k) for k in term_keep]
-        self.term_pos = [as_dev(np.searchsorted(keys, k)) for k in term_keys]
+        term_pos = [np.searchsorted(keys, k) for k in term_keys]
+        # a term whose every entry is kept (no pinned vertex in it) needs no gather; one whose entries are the
+        # whole pattern in order (the bending's 2-ring pattern usually) starts the values as a copy
+        self.term_keep = [None if k.shape[0] == t_rows.shape[0] else as_dev(k) for k, (t_rows, _) in zip(term_keep, terms)]
+        self.term_pos = [as_dev(q) for q in term_pos]
+        self.term_whole = [q.shape[0] == keys.shape[0] and bool(np.all(q == np.arange(keys.shape[0])))
+                           for q in term_pos]
         self.block_pos = as_dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
         self.free_vertices = as_dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
         self.scipy_indices = (keys % nf, crow)
         self.factor: pardiso.SymmetricFactor | None = None  # built on first use (direct solves with MKL)
+        self.single_factor: pardiso.SymmetricFactor | None = None  # idem, single precision (reused factorisations)
 
 
 def _same_patterns(a: tuple, b: tuple) -> bool:
@@ -195,9 +201,18 @@ class FreeHessian:
             self._pattern = _Pattern(self._free, [_csr_indices(H) for H in matrices], x.device)
             self._term_index = index
         pat = self._pattern
-        values = x.new_zeros(pat.nnz)
-        for H, keep, pos in zip(matrices, pat.term_keep, pat.term_pos):
-            values.index_add_(0, pos, H.values().detach().to(x.dtype)[keep])
+        values = None
+        for H, keep, pos, whole in zip(matrices, pat.term_keep, pat.term_pos, pat.term_whole):
+            v = H.values().detach().to(x.dtype)
+            v = v if keep is None else v[keep]
+            if values is None and whole:
+                values = v.clone()  # (the term's own values stay untouched)
+                continue
+            if values is None:
+                values = x.new_zeros(pat.nnz)
+            values.index_add_(0, pos, v)
+        if values is None:
+            values = x.new_zeros(pat.nnz)
         if blocks is not None:
             values.index_add_(0, pat.block_pos.reshape(-1), blocks.detach().to(x.dtype)[pat.free_vertices].reshape(-1))
         return _csr(pat.crow, pat.col, values, pat.n)
@@ -232,6 +247,17 @@ class FreeHessian:
             col, crow = pat.scipy_indices
             pat.factor = pardiso.SymmetricFactor(crow, col)
         return pat.factor
+
+    def single_factor(self) -> pardiso.SymmetricFactor | None:
+        """A single-precision factorisation bound to the current pattern (``SymmetricFactor(single=True)``), kept
+        with it as :meth:`direct_factor` is, or ``None`` without MKL: the preconditioner of the direct solver's
+        CG when it reuses factorisations (``LinearSolver.reuse_factorization``)."""
+        assert self._pattern is not None, "assemble() first"
+        pat = self._pattern
+        if pat.single_factor is None and pardiso.available():
+            col, crow = pat.scipy_indices
+            pat.single_factor = pardiso.SymmetricFactor(crow, col, single=True)
+        return pat.single_factor
 
     def to_scipy(self, A: Tensor) -> sp.csr_matrix:
         """An assembled free Hessian as ``scipy.sparse`` CSR float64 (copied to the CPU)."""

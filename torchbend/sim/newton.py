@@ -332,9 +332,9 @@ class _Potential:
     def direct_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float = 1.0) -> tuple[np.ndarray, int]:
         """Newton direction by a sparse direct solve on the CPU (:func:`~torchbend.sim.linear.direct_solve`;
         sparse Cholesky first if ``linear.cholesky``); with ``linear.reuse_factorization`` first by CG
-        preconditioned with the last factorisation (:func:`~torchbend.sim.linear.reused_factor_solve`) to the
-        forcing term ``min(1e-2, sqrt(|g| / scale))`` (at least 1e-10); ``(p, Levenberg shifts)``; sets
-        ``positive_definite`` (unknown after a reused factorisation) and ``linear_method``."""
+        preconditioned with a single-precision factorisation (:meth:`_preconditioned`) to the forcing term
+        ``min(1e-2, sqrt(|g| / scale))`` (at least 1e-10); ``(p, Levenberg shifts)``; sets
+        ``positive_definite`` (unknown after a preconditioned solve) and ``linear_method``."""
         # an indefinite exact Hessian in a time step gives way to the clamped one (below): no shifted retries
         clamp_if_indefinite = self.ctx.dynamic and self.option is Projection.NONE
         reuse = self.linear.reuses_factorization(len(gf))
@@ -343,12 +343,7 @@ class _Potential:
         def solve(A: Tensor, indefinite_stop: bool = False):  # an assembled matrix; timed in linear_seconds
             A_host, factor = self.hessian_op.to_scipy(A), self._factor()  # the factor of A's pattern
             t0 = time.perf_counter()
-            out = None
-            if reuse and factor is not None:
-                p, its = reused_factor_solve(A_host, -gf, factor, tol=forcing, maxiter=REUSE_CG_ITERS)
-                self.reuse_cg_iterations += its
-                if p is not None:
-                    out = DirectResult(p, 0, None, "ldlt-reused")
+            out = self._preconditioned(A_host, gf, forcing) if reuse and factor is not None else None
             if out is None:
                 out = direct_solve(A_host, -gf, cholesky=self.linear.cholesky, factor=factor,
                                    indefinite_stop=indefinite_stop)
@@ -373,6 +368,23 @@ class _Potential:
             # Levenberg-shifted exact one
             return clamped(after_exact=True)
         return res.p, res.shifts
+
+    def _preconditioned(self, A, gf: np.ndarray, tol: float) -> DirectResult | None:
+        """``A p = -gf`` (``A``: the assembled matrix, SciPy CSR) by CG to the relative residual ``tol``,
+        preconditioned with the single-precision factorisation of the pattern: the last one (an earlier
+        iterate's or step's matrix), else a new one of ``A`` (:func:`~torchbend.sim.linear.reused_factor_solve`,
+        at most ``REUSE_CG_ITERS`` iterations each); ``None`` when neither converges or ``A``'s factorisation
+        is not positive definite (the double-precision direct solve decides then)."""
+        single = self.hessian_op.single_factor()
+        if single is None:
+            return None
+        p, its = reused_factor_solve(A, -gf, single, tol=tol, maxiter=REUSE_CG_ITERS)
+        method = "ldlt32-reused+cg"
+        if p is None and single.factor(A.data) and single.positive_definite:
+            p, more = reused_factor_solve(A, -gf, single, tol=tol, maxiter=REUSE_CG_ITERS)
+            its, method = its + more, "ldlt32+cg"
+        self.reuse_cg_iterations += its
+        return None if p is None else DirectResult(p, 0, None, method)
 
     def cg_direction(self, x: Tensor, gf: np.ndarray, relative_residual: float) -> tuple[np.ndarray, int]:
         """Newton direction by truncated preconditioned CG (:func:`~torchbend.sim.linear.pcg`) on the

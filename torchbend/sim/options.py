@@ -87,10 +87,11 @@ class LinearSolver:
       (see :class:`Factorization`);
     * ``cholesky`` (direct): try a sparse Cholesky first (needs ``cholespy``; the factorisation above when it fails);
     * ``max_cg_iters`` (CG): iterations per direction at most (``None``: ``min(2 n, max(100, 20 sqrt(n)))``).
-    * ``reuse_factorization`` (direct, PARDISO): solve a Newton system by CG preconditioned with the last
-      numeric factorisation (of an earlier iterate's matrix, or the previous time step's) and factorise
-      anew only when that CG does not reach the forcing tolerance within :data:`REUSE_CG_ITERS` iterations
-      (or meets negative curvature); ``"auto"`` (default) does so from :data:`REUSE_MIN_UNKNOWNS` free
+    * ``reuse_factorization`` (direct, PARDISO): solve a Newton system by CG (in float64) preconditioned with
+      a single-precision factorisation: the last one (of an earlier iterate's matrix, or the previous time
+      step's), else a new one of this matrix; when neither reaches the forcing tolerance within
+      :data:`REUSE_CG_ITERS` iterations (or the matrix is not positive definite), the double-precision
+      factorisation decides as without it.  ``"auto"`` (default) does so from :data:`REUSE_MIN_UNKNOWNS` free
       unknowns on (where a factorisation costs 10x and more a triangular solve), ``True`` always,
       ``False`` never.  The directions are Newton's to the forcing tolerance; the stopping test is the same.
 

@@ -102,9 +102,14 @@ class SymmetricFactor:
     :meth:`factor` takes the CSR values of a matrix (optionally ``+ shift I``) and returns whether the
     factorisation succeeded; then :attr:`inertia` is ``(positive, negative)`` pivots, :attr:`perturbed`
     the pivots PARDISO perturbed (a singular or nearly singular matrix), and :meth:`solve` solves with it.
-    Raises ``RuntimeError`` if MKL is not available."""
+    Raises ``RuntimeError`` if MKL is not available.
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray):
+    ``single=True``: the factorisation and the solves in single precision (PARDISO's ``iparm(28)``; the values
+    and right-hand sides are rounded to float32, solutions come back as float64): 1.6x faster to factorise and
+    1.4x to solve on the 161x161 drape, accurate to about ``cond(A) * 6e-8``: a preconditioner (CG on the
+    float64 matrix recovers the digits), not a solver."""
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, *, single: bool = False):
         lib = _library()
         if lib is None:
             raise RuntimeError("SymmetricFactor needs MKL's PARDISO: pip install mkl (or torchbend[solvers])")
@@ -133,7 +138,10 @@ class SymmetricFactor:
         ip[12] = 0   # iparm(13): no weighted matching (idem)
         ip[20] = 0   # iparm(21): 1x1 diagonal pivots (as SuperLU's symmetric mode; 1.4x faster than Bunch-Kaufman here)
         ip[34] = 1   # iparm(35): zero-based indices
-        self._values = np.zeros(self._ja.shape[0])
+        self.single = bool(single)
+        self._dtype = np.float32 if self.single else np.float64
+        ip[27] = 1 if self.single else 0  # iparm(28): single precision
+        self._values = np.zeros(self._ja.shape[0], dtype=self._dtype)
         self._analysed = False
         self._factored = False
         self.inertia: tuple[int, int] = (0, 0)
@@ -147,9 +155,9 @@ class SymmetricFactor:
         err = i32(0)
         nrhs = 1
         if b is None:
-            bb = xx = np.zeros(1)
+            bb = xx = np.zeros(1, dtype=self._dtype)
         else:
-            bb = np.asfortranarray(b, dtype=np.float64)
+            bb = np.asfortranarray(b, dtype=self._dtype)
             nrhs = 1 if bb.ndim == 1 else bb.shape[1]
             xx = np.zeros_like(bb)
         perm = np.zeros(1, dtype=np.int32)
@@ -157,13 +165,13 @@ class SymmetricFactor:
                           c(_REAL_SYMMETRIC_INDEFINITE), c(phase), c(self.n), self._values.ctypes.data,
                           self._ia.ctypes.data_as(P), self._ja.ctypes.data_as(P), perm.ctypes.data_as(P), c(nrhs),
                           self._iparm.ctypes.data_as(P), c(0), bb.ctypes.data, xx.ctypes.data, ctypes.byref(err))
-        return err.value, (None if b is None else np.ascontiguousarray(xx))
+        return err.value, (None if b is None else np.ascontiguousarray(xx, dtype=np.float64))
 
     def factor(self, values: np.ndarray, shift: float = 0.0) -> bool:
         """Numeric factorisation of the matrix with CSR ``values`` (of the full pattern) plus ``shift I``
         (the symbolic one first, once).  False if PARDISO reports the matrix singular (then :meth:`solve`
         must not be called); other errors raise :class:`PardisoError`."""
-        np.take(np.asarray(values, dtype=np.float64), self._upper, out=self._values)
+        np.take(np.asarray(values, dtype=self._dtype), self._upper, out=self._values)
         if shift:
             self._values[self._diag] += shift
         self._factored = False
