@@ -65,9 +65,10 @@ class LinearMethod(Option):
     CG = "cg"
 
 
-REUSE_MIN_UNKNOWNS = 30_000
+REUSE_MIN_UNKNOWNS = 15_000
 """``reuse_factorization="auto"``: the free unknowns from which a direct solve first tries CG preconditioned with
-the last factorisation (a 100x100 cloth; at 161x161 a factorisation costs 0.42 s, a CG iteration 0.035 s)."""
+a single-precision factorisation (a 71x71 cloth; benchmarks/bm_scale.py: at 81x81 steps take 25% less time with
+it, at 41x41 about 10%, within the noise)."""
 
 REUSE_CG_ITERS = 8
 """CG iterations a reused factorisation gets before the matrix is factorised anew."""
