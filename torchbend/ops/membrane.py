@@ -392,10 +392,28 @@ def eigensystem(model: MembraneModel, F: Tensor, mu: Tensor, lam: Tensor, N: Ten
 
 
 def stress(model: MembraneModel, F: Tensor, mu: Tensor, lam: Tensor, N: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """``psi (...,)`` and ``P = dPsi/dF = U diag(psi_i) V^T (..., 3, 2)`` per element."""
+    """``psi (...,)`` and ``P = dPsi/dF = U diag(psi_i) V^T (..., 3, 2)`` per element (StVK: ``P = F S`` in
+    closed form, ``S = 2 mu G + lam tr(G) I``, ``G = (F^T F - I) / 2``, without the singular value decomposition)."""
+    if model is MembraneModel.STVK:
+        return _stvk_stress(F, mu, lam)
     U, s, V, _ = _thin_svd(F, N)
     psi, (p1, p2) = _DENSITIES[model](s[..., 0], s[..., 1], mu, lam, 1)
     P = p1[..., None, None] * _outer(U[..., 0], V[..., 0]) + p2[..., None, None] * _outer(U[..., 1], V[..., 1])
+    return psi, P
+
+
+def _stvk_stress(F: Tensor, mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
+    """StVK's ``psi = mu |G|^2 + lam tr(G)^2 / 2`` and ``P = F S`` of ``F (..., T, 3, 2)`` (``mu``, ``lam`` broadcast
+    with ``(..., T)``, as in :func:`stress`).  ``G``'s diagonal is ``(|f_a|^2 - 1) / 2``, as accurate as the singular values' ``(s - 1)(s + 1)``
+    (both carry the rounding of ``F``)."""
+    f0, f1 = F[..., 0], F[..., 1]
+    g00 = 0.5 * ((f0 * f0).sum(-1) - 1)
+    g11 = 0.5 * ((f1 * f1).sum(-1) - 1)
+    g01 = 0.5 * (f0 * f1).sum(-1)
+    tr = g00 + g11
+    psi = mu * (g00 * g00 + g11 * g11 + 2 * g01 * g01) + 0.5 * lam * tr * tr
+    s00, s11, s01 = 2 * mu * g00 + lam * tr, 2 * mu * g11 + lam * tr, 2 * mu * g01
+    P = torch.stack((f0 * s00[..., None] + f1 * s01[..., None], f0 * s01[..., None] + f1 * s11[..., None]), -1)
     return psi, P
 
 
