@@ -12,16 +12,19 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "hessian_hinge": ("cpu",),
     "hessian_triangle": ("cpu",),
     "membrane_element_hessians": ("cpu",),
+    "membrane_energy": ("cpu",),
+    "membrane_gradient": ("cpu",),
 }
 """Operation of the energies (the ``op`` of :func:`torchbend.backends.select_backend`) -> the devices with a
 compiled kernel for it: the energy, its gradient and Hessian-vector product (inside the analytic autograd
 Functions), the per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and assembly) and the
 unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane, the unprojected StVK
-element Hessians (one mesh, CPU only)."""
+element Hessians (one mesh, CPU only) and the StVK energy and gradient (CPU, inside the membrane's autograd
+Functions)."""
 
 ONE_MESH = frozenset({"hessian_hinge", "hessian_triangle", "membrane_element_hessians"})
 """Entry points whose kernel takes one mesh (no batch)."""
-DIFFERENTIABLE = frozenset({"energy", "gradient"})
+DIFFERENTIABLE = frozenset({"energy", "gradient", "membrane_energy", "membrane_gradient"})
 """Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph does
 not keep them from running."""
 

@@ -40,7 +40,7 @@ from ._table import PROJECTION_CODE, model_code
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "membrane_stvk_blocks", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
+           "project_blocks", "membrane_stvk_blocks", "membrane_stvk_energy_gradient", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
@@ -154,6 +154,16 @@ def membrane_stvk_blocks(F: Tensor, D: Tensor, mu: Tensor, lam: Tensor, coef: Te
     axis ``i``), of ``F``, ``D`` ``(T, 3, 2)`` and ``mu``, ``lam`` [Pa], ``coef = A t`` [m^3], each one value or
     ``(T,)``, one mesh: :func:`torchbend.ops.membrane.stvk_blocks` times ``coef``, compiled."""
     return _module().membrane_stvk_blocks(F, D, mu, lam, coef)
+
+
+def membrane_stvk_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                                  weight: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    """The StVK energy ``sum_T coef psi`` [J] of ``x (..., V, 3)`` per sample, ``(...,)``, and with ``weight`` (one
+    value per sample, flat ``(B,)``) ``weight dE/dx (..., V, 3)`` [N], else ``None``; ``faces (T, 3)``, ``D (T, 3, 2)``,
+    ``coef = A t (T,)``, one ``mu`` and ``lam`` [Pa].  Sums in face order (deterministic)."""
+    w = x.new_zeros(0) if weight is None else weight
+    E, g = _module().membrane_stvk_energy_gradient(x, faces, D, coef, mu, lam, w, weight is not None)
+    return E, (None if weight is None else g)
 
 
 def output_cache_info() -> dict[str, int]:

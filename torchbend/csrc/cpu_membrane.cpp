@@ -1,6 +1,10 @@
-// The membrane's per-triangle blocks (membrane_stvk_blocks): the closed-form StVK Hessian of membrane_math.h over
-// the triangles, in parallel chunks (at::parallel_for: torch's thread pool and its thread count).
+// The membrane's compiled StVK operators: the per-triangle Hessian blocks (membrane_stvk_blocks) and the energy with
+// its gradient (membrane_stvk_energy_gradient), the per-triangle formulas of membrane_math.h in parallel chunks
+// (at::parallel_for: torch's thread pool and its thread count), the sums over triangles in face order.
 #include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <vector>
 
 #include "cpu_ops.h"
 #include "membrane_math.h"
@@ -39,6 +43,62 @@ Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor co
     });
   });
   return out;
+}
+
+std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
+                                                         Tensor lam, Tensor weight, bool gradient) {
+  TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3, "membrane_stvk_energy_gradient: x must be (..., V, 3)");
+  TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
+              "membrane_stvk_energy_gradient: faces must be (T, 3) int64");
+  const int64_t T = faces.size(0), V = x.size(-2);
+  TORCH_CHECK(D.dim() == 3 && D.size(0) == T && D.size(1) == 3 && D.size(2) == 2,
+              "membrane_stvk_energy_gradient: D must be (T, 3, 2)");
+  TORCH_CHECK(coef.numel() == T && mu.numel() == 1 && lam.numel() == 1,
+              "membrane_stvk_energy_gradient: coef (T,), one mu and one lam");
+  for (const Tensor* p : {&D, &coef, &mu, &lam, &weight})
+    TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(),
+                "membrane_stvk_energy_gradient: CPU tensors of x's dtype");
+  TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), "membrane_stvk_energy_gradient: CPU tensors only");
+  const auto batch = x.sizes().slice(0, x.dim() - 2);
+  const int64_t B = x.numel() / std::max<int64_t>(V * 3, 1);
+  TORCH_CHECK(!gradient || weight.numel() == B, "membrane_stvk_energy_gradient: one weight per sample");
+  x = x.contiguous();
+  faces = faces.contiguous();
+  D = D.contiguous();
+  coef = coef.contiguous();
+  weight = weight.contiguous();
+  const int64_t* fc = faces.data_ptr<int64_t>();
+  for (int64_t e = 0; e < 3 * T; ++e)
+    TORCH_CHECK(fc[e] >= 0 && fc[e] < V, "membrane_stvk_energy_gradient: faces index out of range [0, ", V, ")");
+  Tensor energy = torch::empty(batch, x.options());
+  Tensor grad = gradient ? torch::zeros(x.sizes(), x.options()) : torch::empty({0}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_energy_gradient", [&] {
+    const scalar_t* d = D.data_ptr<scalar_t>();
+    const scalar_t* c = coef.data_ptr<scalar_t>();
+    const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
+    std::vector<scalar_t> psi(T), forces(gradient ? 9 * T : 0);
+    for (int64_t b = 0; b < B; ++b) {
+      const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
+      at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
+        for (int64_t e = begin; e < end; ++e) {
+          const int64_t* t = fc + 3 * e;
+          psi[e] = stvk_face<scalar_t>(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m, la, c[e],
+                                       gradient ? forces.data() + 9 * e : nullptr);
+        }
+      });
+      scalar_t total = 0;  // in face order: deterministic
+      for (int64_t e = 0; e < T; ++e) total += psi[e];
+      energy.data_ptr<scalar_t>()[b] = total;
+      if (gradient) {  // the scatter in face order: deterministic, whatever the threads
+        const scalar_t w = weight.data_ptr<scalar_t>()[b];
+        scalar_t* gb = grad.data_ptr<scalar_t>() + b * V * 3;
+        for (int64_t e = 0; e < T; ++e)
+          for (int k = 0; k < 3; ++k)
+            for (int i = 0; i < 3; ++i) gb[3 * fc[3 * e + k] + i] += w * forces[9 * e + 3 * k + i];
+      }
+    }
+  });
+  return {energy, grad};
 }
 
 }  // namespace cpu

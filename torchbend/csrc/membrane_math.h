@@ -44,4 +44,29 @@ TB_HD static inline void stvk_block(const T* F, const T* D, T mu, T lam, T coef,
     }
 }
 
+// StVK energy density and forces of one triangle with vertices p0, p1, p2: F = e1 W_0^T + e2 W_1^T (e_a = p_a - p0,
+// W = D's rows 1 and 2, as torchbend.ops.membrane.deformation_gradient), psi = mu |G|^2 + lam tr(G)^2 / 2, and, if
+// f is given, f (3 vertices x 3 axes) = coef d psi / dx_k = coef (F S) D_k (the rows of P D^T).
+template <typename T>
+TB_HD static inline T stvk_face(const T* p0, const T* p1, const T* p2, const T* D, T mu, T lam, T coef, T* f) {
+  T F[6];
+  for (int i = 0; i < 3; ++i) {
+    const T e1 = p1[i] - p0[i], e2 = p2[i] - p0[i];
+    F[2 * i] = e1 * D[2] + e2 * D[4];
+    F[2 * i + 1] = e1 * D[3] + e2 * D[5];
+  }
+  const T g00 = T(0.5) * ((F[0] * F[0] + F[2] * F[2] + F[4] * F[4]) - T(1));
+  const T g11 = T(0.5) * ((F[1] * F[1] + F[3] * F[3] + F[5] * F[5]) - T(1));
+  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
+  const T tr = g00 + g11;
+  if (f != nullptr) {
+    const T s00 = T(2) * mu * g00 + lam * tr, s11 = T(2) * mu * g11 + lam * tr, s01 = T(2) * mu * g01;
+    for (int i = 0; i < 3; ++i) {
+      const T P0 = coef * (F[2 * i] * s00 + F[2 * i + 1] * s01), P1 = coef * (F[2 * i] * s01 + F[2 * i + 1] * s11);
+      for (int k = 0; k < 3; ++k) f[3 * k + i] = P0 * D[2 * k] + P1 * D[2 * k + 1];
+    }
+  }
+  return coef * (mu * (g00 * g00 + g11 * g11 + T(2) * g01 * g01) + T(0.5) * lam * tr * tr);
+}
+
 }  // namespace torchbend

@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._checks import is_traced
+from ..backends import native
 from ..backends.compile_guard import compiled_backward_guard
 from ..ops.membrane import (
     MembraneModel,
@@ -47,12 +49,34 @@ def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: 
         check_finite_values(model, what, values, F, N)
 
 
-def _make(model: MembraneModel):
+def _compiled(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor | None):
+    """``(E (...,), weight dE/dx (..., V, 3) or None)`` of StVK by the compiled kernel
+    (:func:`torchbend.backends.native.membrane_stvk_energy_gradient`) where it applies (CPU, float32/64, one material,
+    per-face ``coef``, not traced or compiled, finite results), else ``None``: the eager formulas then (also for
+    the error that names the faces of a non-finite result)."""
+    if (x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or mu.ndim or lam.ndim
+            or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
+            or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,)))):
+        return None
+    if weight is not None:
+        weight = weight.to(x.dtype).expand(x.shape[:-2]).reshape(-1)
+    E, g = native.membrane_stvk_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight)
+    if not bool(torch.isfinite(E).all()) or (g is not None and not bool(torch.isfinite(g.sum()))):
+        return None
+    return E, g
+
+
+def _make(model: MembraneModel, compiled: bool = False):
+    compiled = compiled and model is MembraneModel.STVK
+
     class _GradientImpl(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(gE, x, faces, D, coef, mu, lam):
+            out = _compiled(x, faces, D, coef, mu, lam, gE) if compiled else None
+            if out is not None:
+                return out[1]
             F, N = deformation(x, faces, D)
             check_collapsed(model, F, N)
             _, P = stress(model, F, mu, lam, N)
@@ -99,6 +123,9 @@ def _make(model: MembraneModel):
 
         @staticmethod
         def forward(x, faces, D, coef, mu, lam):
+            out = _compiled(x, faces, D, coef, mu, lam, None) if compiled else None
+            if out is not None:
+                return out[0]
             F, N = deformation(x, faces, D)
             check_collapsed(model, F, N)
             psi = energy_density(model, F, mu, lam, N)
@@ -125,20 +152,22 @@ def _make(model: MembraneModel):
             dF = deformation_gradient(t_x, faces, D)
             return (coef[..., None, None] * P * dF).sum((-1, -2, -3))
 
-    name = "".join(w.capitalize() for w in model.value.split("_"))
+    name = "".join(w.capitalize() for w in model.value.split("_")) + ("Compiled" if compiled else "")
     _Gradient = type(f"{name}MembraneGradient", (_GradientImpl,), {"__module__": __name__})
     _Energy = type(f"{name}MembraneEnergy", (_EnergyImpl,), {"__module__": __name__})
     return _Energy, _Gradient
 
 
-_FUNCTIONS = {m: _make(m) for m in MembraneModel}
+_FUNCTIONS = {(m, c): _make(m, c) for m in MembraneModel for c in (False, True)}
 
 
-def energy_function(model: MembraneModel | str) -> type[torch.autograd.Function]:
-    """The private energy Function of ``model`` (a :class:`MembraneModel` or its name)."""
-    return _FUNCTIONS[MembraneModel.parse(model)][0]
+def energy_function(model: MembraneModel | str, compiled: bool = False) -> type[torch.autograd.Function]:
+    """The private energy Function of ``model`` (a :class:`MembraneModel` or its name); ``compiled``: its forward
+    (and the gradient's) take the compiled StVK kernel where it applies (:func:`_compiled`)."""
+    return _FUNCTIONS[MembraneModel.parse(model), bool(compiled)][0]
 
 
-def gradient_function(model: MembraneModel | str) -> type[torch.autograd.Function]:
-    """The private gradient Function of ``model`` (its backward is the analytic HVP)."""
-    return _FUNCTIONS[MembraneModel.parse(model)][1]
+def gradient_function(model: MembraneModel | str, compiled: bool = False) -> type[torch.autograd.Function]:
+    """The private gradient Function of ``model`` (its backward is the analytic HVP); ``compiled`` as in
+    :func:`energy_function`."""
+    return _FUNCTIONS[MembraneModel.parse(model), bool(compiled)][1]

@@ -115,14 +115,15 @@ class MembraneEnergy(nn.Module):
     def forward(self, x: Tensor, *, backend=None) -> Tensor:
         """Membrane energy ``(...,)`` [J] of ``x: (..., V, 3)`` [m]."""
         D, coef, mu, lam = self._args(x, "energy", backend)
-        self._selected("energy", backend, x)
-        return fn.energy_function(self.model).apply(x, self.faces, D, coef, mu, lam)
+        compiled = self._selected("energy", backend, x) is backends.Backend.NATIVE
+        return fn.energy_function(self.model, compiled).apply(x, self.faces, D, coef, mu, lam)
 
     def gradient(self, x: Tensor, *, backend=None) -> Tensor:
         """``dE/dx: (..., V, 3)`` [N], closed form (``P = U diag(psi_i) V^T``); differentiable."""
         D, coef, mu, lam = self._args(x, "gradient", backend)
-        self._selected("gradient", backend, x)
-        return fn.gradient_function(self.model).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu, lam)
+        compiled = self._selected("gradient", backend, x) is backends.Backend.NATIVE
+        return fn.gradient_function(self.model, compiled).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu,
+                                                                lam)
 
     def _eigen(self, x: Tensor, op: str, projection, backend, v=None):
         """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D, v)``; ``v`` (an HVP's

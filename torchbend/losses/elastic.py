@@ -33,6 +33,7 @@ from ..energies import _membrane_fn
 from ..energies.bending import BendingEnergy
 from ..energies.membrane import MembraneEnergy
 from ..ops.membrane import MembraneModel
+from ..options import Backend
 from ._base import LossTerm, per_sample
 
 __all__ = ["Stretch", "Bending"]
@@ -98,10 +99,12 @@ class Stretch(LossTerm):
         D, area = mem.shape_matrices.to(x.dtype), mem.rest_areas.to(x.dtype)
         ones = x.new_ones(x.shape[:-2])
 
+        compiled = mem._selected("gradient" if gradient else "energy", None, x) is Backend.NATIVE
+
         def call(m, l, coef):
             if gradient:
-                return _membrane_fn.gradient_function(mem.model).apply(ones, x, mem.faces, D, coef, m, l)
-            return _membrane_fn.energy_function(mem.model).apply(x, mem.faces, D, coef, m, l)
+                return _membrane_fn.gradient_function(mem.model, compiled).apply(ones, x, mem.faces, D, coef, m, l)
+            return _membrane_fn.energy_function(mem.model, compiled).apply(x, mem.faces, D, coef, m, l)
 
         uses_lam = mem.model in _USES_LAMBDA
         if mu.ndim == 0 and lam.ndim == 0 and t.ndim == 0 and not any(p.requires_grad for p in (mu, lam, t)):
