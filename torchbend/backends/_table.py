@@ -14,13 +14,14 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "membrane_element_hessians": ("cpu",),
     "membrane_energy": ("cpu",),
     "membrane_gradient": ("cpu",),
+    "membrane_hvp": ("cpu",),
 }
 """Operation of the energies (the ``op`` of :func:`torchbend.backends.select_backend`) -> the devices with a
 compiled kernel for it: the energy, its gradient and Hessian-vector product (inside the analytic autograd
 Functions), the per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and assembly) and the
 unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane, the unprojected StVK
-element Hessians (one mesh, CPU only) and the StVK energy and gradient (CPU, inside the membrane's autograd
-Functions)."""
+element Hessians (one mesh, CPU only), the StVK energy and gradient (CPU, inside the membrane's autograd
+Functions) and its Hessian-vector product (CPU)."""
 
 ONE_MESH = frozenset({"hessian_hinge", "hessian_triangle", "membrane_element_hessians"})
 """Entry points whose kernel takes one mesh (no batch)."""

@@ -40,7 +40,8 @@ from ._table import PROJECTION_CODE, model_code
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "membrane_stvk_blocks", "membrane_stvk_energy_gradient", "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
+           "project_blocks", "membrane_stvk_blocks", "membrane_stvk_energy_gradient", "membrane_stvk_hvp",
+           "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
 """The module ``setup.py`` builds at install time."""
@@ -164,6 +165,13 @@ def membrane_stvk_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Ten
     w = x.new_zeros(0) if weight is None else weight
     E, g = _module().membrane_stvk_energy_gradient(x, faces, D, coef, mu, lam, w, weight is not None)
     return E, (None if weight is None else g)
+
+
+def membrane_stvk_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                      weight: Tensor) -> tuple[Tensor, Tensor]:
+    """``(weight (d^2E/dx^2) v (..., V, 3) [N], dE/dx . v (...,) [J])`` of the StVK energy (arguments as in
+    :func:`membrane_stvk_energy_gradient`; ``weight`` one value per sample, flat ``(B,)``)."""
+    return _module().membrane_stvk_hvp(x, v, faces, D, coef, mu, lam, weight)
 
 
 def output_cache_info() -> dict[str, int]:

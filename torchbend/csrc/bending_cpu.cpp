@@ -27,6 +27,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the unprojected StVK Hessian of each triangle (T, 9, 9) in closed form");
   m.def("membrane_stvk_energy_gradient", &op::membrane_stvk_energy_gradient,
         "the StVK energy of each sample and, optionally, its weighted gradient, in closed form");
+  m.def("membrane_stvk_hvp", &op::membrane_stvk_hvp,
+        "the StVK Hessian-vector product of each sample, weighted, and the directional derivative of its energy");
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");

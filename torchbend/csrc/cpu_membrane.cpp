@@ -101,5 +101,58 @@ std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces,
   return {energy, grad};
 }
 
+std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
+                                             Tensor lam, Tensor weight) {
+  TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3 && v.sizes() == x.sizes(), "membrane_stvk_hvp: x, v must be (..., V, 3)");
+  TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
+              "membrane_stvk_hvp: faces must be (T, 3) int64");
+  const int64_t T = faces.size(0), V = x.size(-2);
+  TORCH_CHECK(D.dim() == 3 && D.size(0) == T && D.size(1) == 3 && D.size(2) == 2, "membrane_stvk_hvp: D must be (T, 3, 2)");
+  TORCH_CHECK(coef.numel() == T && mu.numel() == 1 && lam.numel() == 1, "membrane_stvk_hvp: coef (T,), one mu and one lam");
+  for (const Tensor* p : {&v, &D, &coef, &mu, &lam, &weight})
+    TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(), "membrane_stvk_hvp: CPU tensors of x's dtype");
+  TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), "membrane_stvk_hvp: CPU tensors only");
+  const int64_t B = x.numel() / std::max<int64_t>(V * 3, 1);
+  TORCH_CHECK(weight.numel() == B, "membrane_stvk_hvp: one weight per sample");
+  x = x.contiguous();
+  v = v.contiguous();
+  faces = faces.contiguous();
+  D = D.contiguous();
+  coef = coef.contiguous();
+  weight = weight.contiguous();
+  const int64_t* fc = faces.data_ptr<int64_t>();
+  for (int64_t e = 0; e < 3 * T; ++e)
+    TORCH_CHECK(fc[e] >= 0 && fc[e] < V, "membrane_stvk_hvp: faces index out of range [0, ", V, ")");
+  Tensor hv = torch::zeros(x.sizes(), x.options());
+  Tensor dot = torch::empty(x.sizes().slice(0, x.dim() - 2), x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_hvp", [&] {
+    const scalar_t* d = D.data_ptr<scalar_t>();
+    const scalar_t* c = coef.data_ptr<scalar_t>();
+    const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
+    std::vector<scalar_t> h(9 * T), dots(T);
+    for (int64_t b = 0; b < B; ++b) {
+      const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
+      const scalar_t* vb = v.data_ptr<scalar_t>() + b * V * 3;
+      at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
+        for (int64_t e = begin; e < end; ++e) {
+          const int64_t* t = fc + 3 * e;
+          dots[e] = stvk_face_hvp<scalar_t>(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1],
+                                            vb + 3 * t[2], d + 6 * e, m, la, c[e], h.data() + 9 * e);
+        }
+      });
+      const scalar_t w = weight.data_ptr<scalar_t>()[b];
+      scalar_t* hb = hv.data_ptr<scalar_t>() + b * V * 3;
+      scalar_t total = 0;
+      for (int64_t e = 0; e < T; ++e) {  // in face order: deterministic
+        total += dots[e];
+        for (int k = 0; k < 3; ++k)
+          for (int i = 0; i < 3; ++i) hb[3 * fc[3 * e + k] + i] += w * h[9 * e + 3 * k + i];
+      }
+      dot.data_ptr<scalar_t>()[b] = total;
+    }
+  });
+  return {hv, dot};
+}
+
 }  // namespace cpu
 }  // namespace torchbend

@@ -54,6 +54,9 @@ Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor co
 // its gradient times one weight per sample (cpu_membrane.cpp)
 std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
                                                          Tensor lam, Tensor weight, bool gradient);
+// (weight (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,)): the StVK Hessian-vector product (cpu_membrane.cpp)
+std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
+                                             Tensor lam, Tensor weight);
 
 // the opt-in cache of large outputs (cpu_tiles.cpp): (blocks, bytes, hits, misses, limit), free, limit in bytes
 std::tuple<int64_t, int64_t, int64_t, int64_t, int64_t> output_cache_info();

@@ -69,4 +69,41 @@ TB_HD static inline T stvk_face(const T* p0, const T* p1, const T* p2, const T* 
   return coef * (mu * (g00 * g00 + g11 * g11 + T(2) * g01 * g01) + T(0.5) * lam * tr * tr);
 }
 
+// The StVK Hessian of one triangle applied to the direction u0, u1, u2 (its vertices'), coef d^2 psi/dx^2 u as
+// 3 vertices x 3 axes in h: dP = dF S + F dS, dS = 2 mu sym(F^T dF) + lam tr(F^T dF) I (the eager
+// torchbend.ops.membrane.stvk_hvp_stress), h_k = coef dP D_k.  Returns coef P : dF (the directional derivative
+// of the face's energy, for the gradient's weight in a double backward).
+template <typename T>
+TB_HD static inline T stvk_face_hvp(const T* p0, const T* p1, const T* p2, const T* u0, const T* u1, const T* u2,
+                                    const T* D, T mu, T lam, T coef, T* h) {
+  T F[6], dF[6];
+  for (int i = 0; i < 3; ++i) {
+    const T e1 = p1[i] - p0[i], e2 = p2[i] - p0[i], d1 = u1[i] - u0[i], d2 = u2[i] - u0[i];
+    F[2 * i] = e1 * D[2] + e2 * D[4];
+    F[2 * i + 1] = e1 * D[3] + e2 * D[5];
+    dF[2 * i] = d1 * D[2] + d2 * D[4];
+    dF[2 * i + 1] = d1 * D[3] + d2 * D[5];
+  }
+  const T g00 = T(0.5) * ((F[0] * F[0] + F[2] * F[2] + F[4] * F[4]) - T(1));
+  const T g11 = T(0.5) * ((F[1] * F[1] + F[3] * F[3] + F[5] * F[5]) - T(1));
+  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
+  const T tr = g00 + g11;
+  const T s00 = T(2) * mu * g00 + lam * tr, s11 = T(2) * mu * g11 + lam * tr, s01 = T(2) * mu * g01;
+  // M = F^T dF (2 x 2)
+  const T m00 = F[0] * dF[0] + F[2] * dF[2] + F[4] * dF[4], m01 = F[0] * dF[1] + F[2] * dF[3] + F[4] * dF[5];
+  const T m10 = F[1] * dF[0] + F[3] * dF[2] + F[5] * dF[4], m11 = F[1] * dF[1] + F[3] * dF[3] + F[5] * dF[5];
+  const T trm = lam * (m00 + m11);
+  const T d00 = T(2) * mu * m00 + trm, d11 = T(2) * mu * m11 + trm, d01 = mu * (m01 + m10);
+  T dot = T(0);
+  for (int i = 0; i < 3; ++i) {
+    const T f0 = F[2 * i], f1 = F[2 * i + 1], df0 = dF[2 * i], df1 = dF[2 * i + 1];
+    const T P0 = f0 * s00 + f1 * s01, P1 = f0 * s01 + f1 * s11;
+    dot += P0 * df0 + P1 * df1;
+    const T Q0 = coef * (df0 * s00 + df1 * s01 + f0 * d00 + f1 * d01);
+    const T Q1 = coef * (df0 * s01 + df1 * s11 + f0 * d01 + f1 * d11);
+    for (int k = 0; k < 3; ++k) h[3 * k + i] = Q0 * D[2 * k] + Q1 * D[2 * k + 1];
+  }
+  return coef * dot;
+}
+
 }  // namespace torchbend

@@ -49,14 +49,21 @@ def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: 
         check_finite_values(model, what, values, F, N)
 
 
-def _compiled(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor | None):
+def _applies(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor | None) -> bool:
+    """Whether the compiled StVK kernels take these arguments: CPU, float32/64, one material, per-face ``coef``,
+    not traced by a ``torch.func`` transform nor compiled."""
+    return not (x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or mu.ndim or lam.ndim
+                or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
+                or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,))))
+
+
+def _compiled(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+              weight: Tensor | None) -> tuple[Tensor, Tensor | None] | None:
     """``(E (...,), weight dE/dx (..., V, 3) or None)`` of StVK by the compiled kernel
-    (:func:`torchbend.backends.native.membrane_stvk_energy_gradient`) where it applies (CPU, float32/64, one material,
-    per-face ``coef``, not traced or compiled, finite results), else ``None``: the eager formulas then (also for
-    the error that names the faces of a non-finite result)."""
-    if (x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or mu.ndim or lam.ndim
-            or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
-            or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,)))):
+    (:func:`torchbend.backends.native.membrane_stvk_energy_gradient`) where it applies (:func:`_applies`) and its
+    results are finite, else ``None``: the eager formulas then (also for the error that names the faces of a
+    non-finite result)."""
+    if not _applies(x, faces, D, coef, mu, lam, weight):
         return None
     if weight is not None:
         weight = weight.to(x.dtype).expand(x.shape[:-2]).reshape(-1)
@@ -64,6 +71,22 @@ def _compiled(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam
     if not bool(torch.isfinite(E).all()) or (g is not None and not bool(torch.isfinite(g.sum()))):
         return None
     return E, g
+
+
+def _compiled_hvp(saved: tuple, v: Tensor | None) -> tuple[Tensor, Tensor] | None:
+    """``(gE (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,))`` of StVK by the compiled kernel
+    (:func:`torchbend.backends.native.membrane_stvk_hvp`) from a gradient Function's saved
+    ``(gE, x, faces, D, coef, mu, lam)``, where it applies (:func:`_applies`), else ``None``."""
+    gE, x, faces, D, coef, mu, lam = saved
+    if v is None or v.shape != x.shape or v.dtype != x.dtype or v.device != x.device or is_traced(v):
+        return None
+    if not _applies(x, faces, D, coef, mu, lam, gE):
+        return None
+    hv, dot = native.membrane_stvk_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam,
+                                       gE.to(x.dtype).expand(x.shape[:-2]).reshape(-1))
+    if not bool(torch.isfinite(hv.sum())):
+        return None
+    return hv, dot
 
 
 def _make(model: MembraneModel, compiled: bool = False):
@@ -109,6 +132,10 @@ def _make(model: MembraneModel, compiled: bool = False):
 
         @staticmethod
         def backward(ctx, ggx):
+            # the compiled HVP where no graph of it is asked for (create_graph=False: grad mode is off here)
+            out = _compiled_hvp(ctx.saved_tensors, ggx) if compiled and not torch.is_grad_enabled() else None
+            if out is not None:
+                return (out[1] if ctx.needs_input_grad[0] else None), out[0], None, None, None, None, None
             dx, dg = _GradientImpl._second(ctx, None, ggx)
             dgE = None if dg is None or not ctx.needs_input_grad[0] else dg.sum(-1)
             return dgE, dx, None, None, None, None, None

@@ -9,6 +9,7 @@ closed-form gradient and its backward the Hessian-vector product through the eig
 """
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .. import backends
@@ -186,8 +187,15 @@ class MembraneEnergy(nn.Module):
         ``projection``; ``project=``: its deprecated alias)."""
         projection = projection_argument(projection, project, "MembraneEnergy.hvp")
         if self._closed_stvk(projection):
-            F, D, coef, mu, lam, _ = self._stvk_args(x, "hvp", backend)
+            D, coef, mu, lam = self._args(x, "hvp", backend)
+            selected = self._selected("hvp", backend, x, mu, lam)
             v = check_direction(v, x, self.check_finite)
+            if selected is backends.Backend.NATIVE and mu.ndim == 0 and lam.ndim == 0:
+                hv, _ = native.membrane_stvk_hvp(x.detach(), v.expand_as(x).detach(), self.faces, D, coef, mu, lam,
+                                                 x.new_ones(x.shape[:-2]).reshape(-1))
+                if bool(torch.isfinite(hv.sum())):
+                    return hv
+            F = deformation_gradient(x, self.faces, D)
             dP = stvk_hvp_stress(F, deformation_gradient(v, self.faces, D), mu, lam) * coef[..., None, None]
             fn.check_values(self.model, "Hessian-vector product", dP, F)
             return fn.to_vertices(dP, D, self.faces, x.shape[-2])
