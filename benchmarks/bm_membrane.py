@@ -2,6 +2,7 @@
 
     python benchmarks/bm_membrane.py                # 1e3, 1e4, 1e5 triangles, float64
     python benchmarks/bm_membrane.py --model-hessian  # the drape's Newton matrix, membrane blocks eager vs compiled
+    python benchmarks/bm_membrane.py --operators      # StVK energy, gradient, HVP vs autograd, torch.func (1e3-1e6)
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
   closed form  : MembraneEnergy.element_hessians(x, projection="clamp") (eigenvalues clamped in F-space);
@@ -83,10 +84,60 @@ def model_hessians(sizes: list[int], repeat: int) -> None:
               f"{he * 1e3:26.2f}ms {hc * 1e3:7.2f}ms {he / hc:5.1f}x  max rel. diff {err:.1e}", flush=True)
 
 
+def plain_stvk(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
+    """The StVK energy as a user writes it in PyTorch (the reference of the operator rows)."""
+    D = mem.shape_matrices.to(x.dtype)
+    F = deformation_gradient(x, mem.faces, D)
+    G = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(2, dtype=x.dtype))
+    tr = G.diagonal(dim1=-2, dim2=-1).sum(-1)
+    psi = mem.mu.to(x.dtype) * (G * G).sum((-1, -2)) + 0.5 * mem.lam.to(x.dtype) * tr * tr
+    return (psi * (mem.rest_areas * mem.thickness).to(x.dtype)).sum(-1)
+
+
+def operators(sizes: list[int], dtype: torch.dtype, repeat: int) -> None:
+    """StVK energy, gradient and HVP of MembraneEnergy (compiled on the CPU) against eager autograd of
+    :func:`plain_stvk` (its backward, its double backward) and torch.func (grad, jvp of grad), one mesh."""
+    print(f"{'triangles':>10s} {'op':>9s} {'torchbend':>11s} {'autograd':>10s} {'torch.func':>11s} "
+          f"{'x autograd':>10s} {'x func':>8s}  check")
+    for T in sizes:
+        n = max(3, round((T / 2) ** 0.5) + 1)
+        rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=dtype)
+        gen = torch.Generator().manual_seed(0)
+        x = rest * 1.05 + (0.3 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
+        v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
+        mem = MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=1e-3).to(dtype)
+        f = lambda y, mem=mem: plain_stvk(mem, y)  # noqa: E731
+
+        def ag_grad(x=x, f=f):
+            xg = x.clone().requires_grad_()
+            return torch.autograd.grad(f(xg), xg)[0]
+
+        def ag_hvp(x=x, v=v, f=f):
+            xg = x.clone().requires_grad_()
+            (g,) = torch.autograd.grad(f(xg), xg, create_graph=True)
+            return torch.autograd.grad((g * v).sum(), xg)[0]
+
+        gfun = torch.func.grad(f)
+        rows = {
+            "energy": (lambda mem=mem, x=x: mem(x), lambda f=f, x=x: f(x), lambda f=f, x=x: f(x)),
+            "gradient": (lambda mem=mem, x=x: mem.gradient(x), ag_grad, lambda g=gfun, x=x: g(x)),
+            "hvp": (lambda mem=mem, x=x, v=v: mem.hvp(x, v), ag_hvp,
+                    lambda g=gfun, x=x, v=v: torch.func.jvp(g, (x,), (v,))[1]),
+        }
+        for op, (ours, ag, fu) in rows.items():
+            t0, t1, t2 = timeit(ours, repeat), timeit(ag, repeat), timeit(fu, repeat)
+            ref = ag()
+            err = float((ours() - ref).abs().max() / ref.abs().max())
+            print(f"{mem.face_count:>10d} {op:>9s} {t0 * 1e3:9.3f}ms {t1 * 1e3:8.3f}ms {t2 * 1e3:9.3f}ms "
+                  f"{t1 / t0:9.1f}x {t2 / t0:7.1f}x  max rel. diff {err:.1e}", flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--model-hessian", type=int, nargs="*", default=None, metavar="N",
                    help="the solver's Newton matrix of the N x N drape instead (default N: 41 81 161)")
+    p.add_argument("--operators", action="store_true",
+                   help="StVK energy, gradient and HVP against eager autograd and torch.func instead")
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     p.add_argument("--models", nargs="+", default=["stvk", "arap", "symmetric_dirichlet", "neohookean"])
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
@@ -94,6 +145,9 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     dtype = getattr(torch, a.dtype)
     print("machine:", machine())
+    if a.operators:
+        operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat)
+        return
     if a.model_hessian is not None:
         model_hessians(a.model_hessian or [41, 81, 161], a.repeat)
         return
