@@ -14,6 +14,7 @@ Hessian is assembled on the CPU.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,6 +125,10 @@ class TermSum:
         option = Projection.parse(option)
         ctx = ctx or StepContext()
         n = 3 * self.vertex_count
+        if contact is None and isinstance(x, Tensor) and x.shape == (self.vertex_count, 3):
+            # the solver's assembly (one pattern analysed per model and device, values scattered into it)
+            fh = _full_hessian(self, x.device)
+            return fh.to_scipy(fh.assemble(x, self.terms, ctx, option))
         H = sp.csr_matrix((n, n))
         for t in self.terms:
             projection = self._projection(t, option, contact)
@@ -382,6 +387,21 @@ def _pinned_mask(pinned, V: int, device: torch.device) -> Tensor:
     mask = torch.zeros(V, dtype=torch.bool, device=device)
     mask[pinned.long().to(device)] = True
     return mask
+
+
+_FULL_HESSIANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _full_hessian(model, device: torch.device):
+    """The :class:`~torchbend.sim.linear.FreeHessian` of every DOF of ``model`` on ``device`` (kept per model, apart
+    from the solver's, whose free DOFs leave the pinned vertices out)."""
+    from .linear import FreeHessian
+
+    fh = _FULL_HESSIANS.get(model)
+    if fh is None or fh.free_mask.device != device or fh.free_mask.shape[0] != 3 * model.vertex_count:
+        fh = FreeHessian(model, torch.ones(3 * model.vertex_count, dtype=torch.bool, device=device))
+        _FULL_HESSIANS[model] = fh
+    return fh
 
 
 def _block_diagonal_csr(blocks: np.ndarray):
