@@ -4,6 +4,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <initializer_list>
 #include <vector>
 
 #include "cpu_ops.h"
@@ -11,6 +12,29 @@
 
 namespace torchbend {
 namespace cpu {
+
+// The checks the StVK operators over positions x (..., V, 3) share (op names the operator in the messages); `same`:
+// the tensors that must be CPU tensors of x's dtype.  Returns the number of samples.
+static int64_t check_stvk(const char* op, const Tensor& x, const Tensor& faces, const Tensor& D, const Tensor& coef,
+                          const Tensor& mu, const Tensor& lam, std::initializer_list<const Tensor*> same) {
+  TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3, op, ": x must be (..., V, 3)");
+  TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
+              op, ": faces must be (T, 3) int64");
+  const int64_t T = faces.size(0), V = x.size(-2);
+  TORCH_CHECK(D.dim() == 3 && D.size(0) == T && D.size(1) == 3 && D.size(2) == 2, op, ": D must be (T, 3, 2)");
+  TORCH_CHECK(coef.numel() == T && mu.numel() == 1 && lam.numel() == 1, op, ": coef (T,), one mu and one lam");
+  for (const Tensor* p : same)
+    TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(), op, ": CPU tensors of x's dtype");
+  TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), op, ": CPU tensors only");
+  return x.numel() / std::max<int64_t>(V * 3, 1);
+}
+
+// Every vertex index of the contiguous faces (T, 3) in [0, V).
+static void check_face_indices(const char* op, const Tensor& faces, int64_t V) {
+  const int64_t* fc = faces.data_ptr<int64_t>();
+  for (int64_t e = 0; e < faces.numel(); ++e)
+    TORCH_CHECK(fc[e] >= 0 && fc[e] < V, op, ": faces index out of range [0, ", V, ")");
+}
 
 Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor coef) {
   TORCH_CHECK(F.dim() == 3 && F.size(1) == 3 && F.size(2) == 2, "membrane_stvk_blocks: F must be (T, 3, 2)");
@@ -47,29 +71,18 @@ Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor co
 
 std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
                                                          Tensor lam, Tensor weight, bool gradient) {
-  TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3, "membrane_stvk_energy_gradient: x must be (..., V, 3)");
-  TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
-              "membrane_stvk_energy_gradient: faces must be (T, 3) int64");
+  const char* op = "membrane_stvk_energy_gradient";
+  const int64_t B = check_stvk(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam, &weight});
   const int64_t T = faces.size(0), V = x.size(-2);
-  TORCH_CHECK(D.dim() == 3 && D.size(0) == T && D.size(1) == 3 && D.size(2) == 2,
-              "membrane_stvk_energy_gradient: D must be (T, 3, 2)");
-  TORCH_CHECK(coef.numel() == T && mu.numel() == 1 && lam.numel() == 1,
-              "membrane_stvk_energy_gradient: coef (T,), one mu and one lam");
-  for (const Tensor* p : {&D, &coef, &mu, &lam, &weight})
-    TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(),
-                "membrane_stvk_energy_gradient: CPU tensors of x's dtype");
-  TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), "membrane_stvk_energy_gradient: CPU tensors only");
   const auto batch = x.sizes().slice(0, x.dim() - 2);
-  const int64_t B = x.numel() / std::max<int64_t>(V * 3, 1);
-  TORCH_CHECK(!gradient || weight.numel() == B, "membrane_stvk_energy_gradient: one weight per sample");
+  TORCH_CHECK(!gradient || weight.numel() == B, op, ": one weight per sample");
   x = x.contiguous();
   faces = faces.contiguous();
   D = D.contiguous();
   coef = coef.contiguous();
   weight = weight.contiguous();
+  check_face_indices(op, faces, V);
   const int64_t* fc = faces.data_ptr<int64_t>();
-  for (int64_t e = 0; e < 3 * T; ++e)
-    TORCH_CHECK(fc[e] >= 0 && fc[e] < V, "membrane_stvk_energy_gradient: faces index out of range [0, ", V, ")");
   Tensor energy = torch::empty(batch, x.options());
   Tensor grad = gradient ? torch::zeros(x.sizes(), x.options()) : torch::empty({0}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_energy_gradient", [&] {
@@ -103,26 +116,19 @@ std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces,
 
 std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
                                              Tensor lam, Tensor weight) {
-  TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3 && v.sizes() == x.sizes(), "membrane_stvk_hvp: x, v must be (..., V, 3)");
-  TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
-              "membrane_stvk_hvp: faces must be (T, 3) int64");
+  const char* op = "membrane_stvk_hvp";
+  const int64_t B = check_stvk(op, x, faces, D, coef, mu, lam, {&v, &D, &coef, &mu, &lam, &weight});
   const int64_t T = faces.size(0), V = x.size(-2);
-  TORCH_CHECK(D.dim() == 3 && D.size(0) == T && D.size(1) == 3 && D.size(2) == 2, "membrane_stvk_hvp: D must be (T, 3, 2)");
-  TORCH_CHECK(coef.numel() == T && mu.numel() == 1 && lam.numel() == 1, "membrane_stvk_hvp: coef (T,), one mu and one lam");
-  for (const Tensor* p : {&v, &D, &coef, &mu, &lam, &weight})
-    TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(), "membrane_stvk_hvp: CPU tensors of x's dtype");
-  TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), "membrane_stvk_hvp: CPU tensors only");
-  const int64_t B = x.numel() / std::max<int64_t>(V * 3, 1);
-  TORCH_CHECK(weight.numel() == B, "membrane_stvk_hvp: one weight per sample");
+  TORCH_CHECK(v.sizes() == x.sizes(), op, ": v must have x's shape (..., V, 3)");
+  TORCH_CHECK(weight.numel() == B, op, ": one weight per sample");
   x = x.contiguous();
   v = v.contiguous();
   faces = faces.contiguous();
   D = D.contiguous();
   coef = coef.contiguous();
   weight = weight.contiguous();
+  check_face_indices(op, faces, V);
   const int64_t* fc = faces.data_ptr<int64_t>();
-  for (int64_t e = 0; e < 3 * T; ++e)
-    TORCH_CHECK(fc[e] >= 0 && fc[e] < V, "membrane_stvk_hvp: faces index out of range [0, ", V, ")");
   Tensor hv = torch::zeros(x.sizes(), x.options());
   Tensor dot = torch::empty(x.sizes().slice(0, x.dim() - 2), x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_hvp", [&] {

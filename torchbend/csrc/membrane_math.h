@@ -8,6 +8,31 @@
 
 namespace torchbend {
 
+// F (3 x 2, row-major) of a triangle with vertices p0, p1, p2 (or the dF of a direction): e_a = p_a - p0,
+// F = e1 W_0^T + e2 W_1^T with W = D's rows 1 and 2 (as torchbend.ops.membrane.deformation_gradient).
+template <typename T>
+TB_HD static inline void face_deformation(const T* p0, const T* p1, const T* p2, const T* D, T* F) {
+  for (int i = 0; i < 3; ++i) {
+    const T e1 = p1[i] - p0[i], e2 = p2[i] - p0[i];
+    F[2 * i] = e1 * D[2] + e2 * D[4];
+    F[2 * i + 1] = e1 * D[3] + e2 * D[5];
+  }
+}
+
+// StVK's Green strain G = (F^T F - I) / 2 (g: g00, g01, g11) and stress S = 2 mu G + lam tr(G) I (s: s00, s01,
+// s11) of F (3 x 2, row-major); returns tr(G).
+template <typename T>
+TB_HD static inline T stvk_strain_stress(const T* F, T mu, T lam, T* g, T* s) {
+  g[0] = T(0.5) * ((F[0] * F[0] + F[2] * F[2] + F[4] * F[4]) - T(1));
+  g[1] = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
+  g[2] = T(0.5) * ((F[1] * F[1] + F[3] * F[3] + F[5] * F[5]) - T(1));
+  const T tr = g[0] + g[2];
+  s[0] = T(2) * mu * g[0] + lam * tr;
+  s[1] = T(2) * mu * g[1];
+  s[2] = T(2) * mu * g[2] + lam * tr;
+  return tr;
+}
+
 // The unprojected StVK Hessian of one triangle, coef d^2 Psi / dx^2 (coef = A t), flat (9, 9) over
 // (vertex k, axis i) x (vertex l, axis j), index (3 k + i) * 9 + 3 l + j.  F (3 x 2) and D (3 x 2) row-major:
 // F = sum_k x_k D_k^T.  With G = (F^T F - I) / 2, S = 2 mu G + lam tr(G) I and t = D F^T:
@@ -15,11 +40,9 @@ namespace torchbend {
 // computed on the upper triangle and mirrored (exactly symmetric).
 template <typename T>
 TB_HD static inline void stvk_block(const T* F, const T* D, T mu, T lam, T coef, T* H) {
-  const T g00 = T(0.5) * (F[0] * F[0] + F[2] * F[2] + F[4] * F[4] - T(1));
-  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
-  const T g11 = T(0.5) * (F[1] * F[1] + F[3] * F[3] + F[5] * F[5] - T(1));
-  const T tr = lam * (g00 + g11);
-  const T s00 = T(2) * mu * g00 + tr, s01 = T(2) * mu * g01, s11 = T(2) * mu * g11 + tr;
+  T g[3], S[3];
+  stvk_strain_stress(F, mu, lam, g, S);
+  const T s00 = S[0], s01 = S[1], s11 = S[2];
   T A[3][3], B[3][3], FF[3][3], t[3][3];
   for (int k = 0; k < 3; ++k) {
     const T dk0 = D[2 * k], dk1 = D[2 * k + 1];
@@ -44,29 +67,21 @@ TB_HD static inline void stvk_block(const T* F, const T* D, T mu, T lam, T coef,
     }
 }
 
-// StVK energy density and forces of one triangle with vertices p0, p1, p2: F = e1 W_0^T + e2 W_1^T (e_a = p_a - p0,
-// W = D's rows 1 and 2, as torchbend.ops.membrane.deformation_gradient), psi = mu |G|^2 + lam tr(G)^2 / 2, and, if
+// StVK energy density and forces of one triangle with vertices p0, p1, p2 (F of face_deformation),
+// psi = mu |G|^2 + lam tr(G)^2 / 2, and, if
 // f is given, f (3 vertices x 3 axes) = coef d psi / dx_k = coef (F S) D_k (the rows of P D^T).
 template <typename T>
 TB_HD static inline T stvk_face(const T* p0, const T* p1, const T* p2, const T* D, T mu, T lam, T coef, T* f) {
-  T F[6];
-  for (int i = 0; i < 3; ++i) {
-    const T e1 = p1[i] - p0[i], e2 = p2[i] - p0[i];
-    F[2 * i] = e1 * D[2] + e2 * D[4];
-    F[2 * i + 1] = e1 * D[3] + e2 * D[5];
-  }
-  const T g00 = T(0.5) * ((F[0] * F[0] + F[2] * F[2] + F[4] * F[4]) - T(1));
-  const T g11 = T(0.5) * ((F[1] * F[1] + F[3] * F[3] + F[5] * F[5]) - T(1));
-  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
-  const T tr = g00 + g11;
+  T F[6], g[3], S[3];
+  face_deformation(p0, p1, p2, D, F);
+  const T tr = stvk_strain_stress(F, mu, lam, g, S);
   if (f != nullptr) {
-    const T s00 = T(2) * mu * g00 + lam * tr, s11 = T(2) * mu * g11 + lam * tr, s01 = T(2) * mu * g01;
     for (int i = 0; i < 3; ++i) {
-      const T P0 = coef * (F[2 * i] * s00 + F[2 * i + 1] * s01), P1 = coef * (F[2 * i] * s01 + F[2 * i + 1] * s11);
+      const T P0 = coef * (F[2 * i] * S[0] + F[2 * i + 1] * S[1]), P1 = coef * (F[2 * i] * S[1] + F[2 * i + 1] * S[2]);
       for (int k = 0; k < 3; ++k) f[3 * k + i] = P0 * D[2 * k] + P1 * D[2 * k + 1];
     }
   }
-  return coef * (mu * (g00 * g00 + g11 * g11 + T(2) * g01 * g01) + T(0.5) * lam * tr * tr);
+  return coef * (mu * (g[0] * g[0] + g[2] * g[2] + T(2) * g[1] * g[1]) + T(0.5) * lam * tr * tr);
 }
 
 // The StVK Hessian of one triangle applied to the direction u0, u1, u2 (its vertices'), coef d^2 psi/dx^2 u as
@@ -76,19 +91,11 @@ TB_HD static inline T stvk_face(const T* p0, const T* p1, const T* p2, const T* 
 template <typename T>
 TB_HD static inline T stvk_face_hvp(const T* p0, const T* p1, const T* p2, const T* u0, const T* u1, const T* u2,
                                     const T* D, T mu, T lam, T coef, T* h) {
-  T F[6], dF[6];
-  for (int i = 0; i < 3; ++i) {
-    const T e1 = p1[i] - p0[i], e2 = p2[i] - p0[i], d1 = u1[i] - u0[i], d2 = u2[i] - u0[i];
-    F[2 * i] = e1 * D[2] + e2 * D[4];
-    F[2 * i + 1] = e1 * D[3] + e2 * D[5];
-    dF[2 * i] = d1 * D[2] + d2 * D[4];
-    dF[2 * i + 1] = d1 * D[3] + d2 * D[5];
-  }
-  const T g00 = T(0.5) * ((F[0] * F[0] + F[2] * F[2] + F[4] * F[4]) - T(1));
-  const T g11 = T(0.5) * ((F[1] * F[1] + F[3] * F[3] + F[5] * F[5]) - T(1));
-  const T g01 = T(0.5) * (F[0] * F[1] + F[2] * F[3] + F[4] * F[5]);
-  const T tr = g00 + g11;
-  const T s00 = T(2) * mu * g00 + lam * tr, s11 = T(2) * mu * g11 + lam * tr, s01 = T(2) * mu * g01;
+  T F[6], dF[6], g[3], S[3];
+  face_deformation(p0, p1, p2, D, F);
+  face_deformation(u0, u1, u2, D, dF);
+  stvk_strain_stress(F, mu, lam, g, S);
+  const T s00 = S[0], s01 = S[1], s11 = S[2];
   // M = F^T dF (2 x 2)
   const T m00 = F[0] * dF[0] + F[2] * dF[2] + F[4] * dF[4], m01 = F[0] * dF[1] + F[2] * dF[3] + F[4] * dF[5];
   const T m10 = F[1] * dF[0] + F[3] * dF[2] + F[5] * dF[4], m11 = F[1] * dF[1] + F[3] * dF[3] + F[5] * dF[5];
