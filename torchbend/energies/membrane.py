@@ -48,9 +48,10 @@ class MembraneEnergy(nn.Module):
         young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
         thickness: ``t`` [m] (> 0).
         check_finite: check inputs for NaN/Inf.
-        backend: ``"auto" | "eager" | "native"``: the unprojected StVK element Hessians of one mesh on the CPU
-            (``element_hessians``, ``hessian``: the solver's assembly) have a compiled kernel, taken by ``"auto"``
-            where no autograd graph is recorded; everything else runs eagerly.
+        backend: ``"auto" | "eager" | "native"``: StVK has compiled CPU kernels, taken by ``"auto"``: the energy
+            and gradient (also under a recorded graph: they sit inside the analytic autograd Functions), the
+            unprojected ``hvp`` and double backward, and the unprojected element Hessians of one mesh
+            (``element_hessians``, ``hessian``); projections, the other models and other devices run eagerly.
 
     Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
@@ -109,8 +110,8 @@ class MembraneEnergy(nn.Module):
         return self.shape_matrices.to(dt), (self.rest_areas * self.thickness).to(dt), self.mu.to(dt), self.lam.to(dt)
 
     def _selected(self, op: str, backend, x: Tensor, *params: Tensor) -> backends.Backend:
-        """The backend of ``membrane_<op>`` (:func:`torchbend.backends.select_backend`: a compiled kernel exists for
-        the unprojected StVK element Hessians of one mesh on the CPU; the other operations run eagerly)."""
+        """The backend of ``membrane_<op>`` (:func:`torchbend.backends.select_backend`; the operations with a compiled
+        StVK kernel are the entry points ``membrane_*`` of :data:`torchbend.backends._table.ENTRY_POINTS`)."""
         return backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x, *params)
 
     def forward(self, x: Tensor, *, backend=None) -> Tensor:
