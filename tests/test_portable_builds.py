@@ -24,7 +24,7 @@ from torchbend.backends import _build_config as cfg
 from torchbend.backends import native
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-KERNEL_TESTS = ("tests/test_ops.py", "tests/test_native.py", "tests/test_native_second_order.py")
+KERNEL_TESTS = ("tests/test_ops.py", "tests/test_native.py", "tests/test_native_second_order.py", "tests/test_membrane.py")
 
 
 @pytest.mark.parametrize("value,flags,tag", [
