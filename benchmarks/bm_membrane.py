@@ -1,15 +1,18 @@
-"""Membrane projection benchmark: closed-form eigensystem vs numerical eigendecomposition.
+"""Membrane benchmark: projected element Hessians and operators, compiled vs eager, autograd and torch.func.
 
-    python benchmarks/bm_membrane.py                # 1e3, 1e4, 1e5 triangles, float64
+    python benchmarks/bm_membrane.py                # projected blocks, 1e3, 1e4, 1e5 triangles, float64
     python benchmarks/bm_membrane.py --model-hessian  # the drape's Newton matrix, membrane blocks eager vs compiled
-    python benchmarks/bm_membrane.py --operators      # StVK energy, gradient, HVP vs autograd, torch.func (1e3-1e6)
+    python benchmarks/bm_membrane.py --operators      # energy, gradient, HVP vs autograd, torch.func (1e3-1e6)
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
-  closed form  : MembraneEnergy.element_hessians(x, projection="clamp") (eigenvalues clamped in F-space);
-  eigh (F)     : the same F-space Hessian rebuilt densely, torch.linalg.eigh (6x6), clamp, map with dF/dx;
-  eigh (x)     : the unprojected 9x9 position-space blocks, torch.linalg.eigh (9x9), clamp (a different,
-                 generic projection that many codes use).
-No assertions on time.
+  torchbend    : MembraneEnergy.element_hessians(x, projection="clamp") (the compiled kernel on the CPU:
+                 closed-form eigensystem, eigenvalues clamped in F-space);
+  eager        : the same with backend="eager" (the closed form in PyTorch operations);
+  func + eigh  : what a user writes without this library: torch.func.hessian of the plain per-triangle energy
+                 (vmap over triangles), torch.linalg.eigh (9x9), clamp (a different, position-space projection);
+  check        : the unprojected compiled blocks against torch.func.hessian of the plain energy.
+The plain energies are written in the invariants I2 = |F|^2 and J = |f0 x f1| (as a user would), independent of
+the library's singular values.  No assertions on time.
 """
 from __future__ import annotations
 
@@ -20,38 +23,60 @@ from common import machine, timeit
 
 import torchbend as tb
 from torchbend import MembraneEnergy
-from torchbend.ops.membrane import deformation_gradient, eigensystem
+from torchbend.ops.membrane import deformation_gradient
 
 
-def numerical_f_projection(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
+def plain_density(model: str, F: torch.Tensor, mu, lam) -> torch.Tensor:
+    """The energy density of ``F (..., 3, 2)`` as a user writes it, in ``I2 = |F|^2`` and ``J = |f0 x f1|``."""
+    f0, f1 = F[..., 0], F[..., 1]
+    if model == "stvk":
+        G = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(2, dtype=F.dtype))
+        tr = G[..., 0, 0] + G[..., 1, 1]
+        return mu * (G * G).sum((-1, -2)) + 0.5 * lam * tr * tr
+    I2 = (F * F).sum((-1, -2))
+    J = torch.linalg.cross(f0, f1, dim=-1).norm(dim=-1)
+    if model == "arap":  # sum (s_i - 1)^2 with s1 + s2 = sqrt(I2 + 2 J)
+        return mu * (I2 - 2 * torch.sqrt(I2 + 2 * J) + 2)
+    if model == "symmetric_dirichlet":  # |F|^2 + |F^+|^2 - 4, |F^+|^2 = I2 / J^2
+        return mu * (I2 + I2 / (J * J) - 4)
+    lj = torch.log(J)  # neo-Hookean
+    return 0.5 * mu * (I2 - 2) - mu * lj + 0.5 * lam * lj * lj
+
+
+def plain_energy(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
+    """The membrane energy as a user writes it in PyTorch (the reference of the operator rows)."""
     D = mem.shape_matrices.to(x.dtype)
-    F = deformation_gradient(x, mem.faces, D)
-    l, Q, _, _ = eigensystem(mem.model, F, mem.mu.to(x.dtype), mem.lam.to(x.dtype))
-    M = (Q * l[..., None, :]) @ Q.transpose(-1, -2)  # dense F-space Hessian (T, 6, 6)
-    L, R = torch.linalg.eigh(M)
-    M = (R * L.clamp_min(0)[..., None, :]) @ R.transpose(-1, -2)
-    # B = df/dx: (T, 6, 9) with df[a,b]/dx_k[a'] = delta_aa' D[k, b]
-    eye = torch.eye(3, dtype=x.dtype)
-    B = torch.einsum("ac,tkb->tabkc", eye, D).reshape(-1, 6, 9)
+    psi = plain_density(mem.model.value, deformation_gradient(x, mem.faces, D), mem.mu.to(x.dtype), mem.lam.to(x.dtype))
+    return (psi * (mem.rest_areas * mem.thickness).to(x.dtype)).sum(-1)
+
+
+def func_hessians(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
+    """Per-triangle Hessians ``(T, 9, 9)`` by ``torch.func.hessian`` of the plain energy, vmapped over triangles."""
+    D = mem.shape_matrices.to(x.dtype)
     coef = (mem.rest_areas * mem.thickness).to(x.dtype)
-    return coef[:, None, None] * (B.transpose(-1, -2) @ M @ B)
+    mu, lam, model = mem.mu.to(x.dtype), mem.lam.to(x.dtype), mem.model.value
+
+    def one(X, Dk, c):  # X (3 vertices, 3 axes), Dk (3, 2): F = X^T Dk
+        return c * plain_density(model, X.transpose(0, 1) @ Dk, mu, lam)
+
+    return torch.func.vmap(torch.func.hessian(one))(x[mem.faces], D, coef).reshape(-1, 9, 9)
 
 
-def numerical_x_projection(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
-    He = mem.element_hessians(x)
-    L, R = torch.linalg.eigh(He)
+def func_eigh_projection(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
+    """torch.func Hessians, eigh, eigenvalues clamped: the generic PSD projection a user writes."""
+    L, R = torch.linalg.eigh(func_hessians(mem, x))
     return (R * L.clamp_min(0)[..., None, :]) @ R.transpose(-1, -2)
 
 
 def measure(mem: MembraneEnergy, x: torch.Tensor, repeat: int) -> str:
-    """One row: the three projections timed on ``x``, and the closed form against eigh (F)."""
+    """One row: the projected blocks compiled, eager and by torch.func + eigh; the unprojected ones checked."""
     t_c = timeit(lambda: mem.element_hessians(x, projection="clamp"), repeat)
-    t_f = timeit(lambda: numerical_f_projection(mem, x), repeat)
-    t_x = timeit(lambda: numerical_x_projection(mem, x), repeat)
-    ref = numerical_f_projection(mem, x)
-    err = float((mem.element_hessians(x, projection="clamp") - ref).norm() / ref.norm())
-    return (f"{mem.face_count:>10d} {mem.model.value:>20s} {t_c * 1e3:10.2f}ms {t_f * 1e3:8.2f}ms {t_x * 1e3:8.2f}ms "
-            f"{t_f / t_c:8.2f}x {t_x / t_c:8.2f}x  closed vs eigh(F) rel. diff {err:.1e}")
+    t_e = timeit(lambda: mem.element_hessians(x, projection="clamp", backend="eager"), repeat)
+    t_f = timeit(lambda: func_eigh_projection(mem, x), repeat)
+    ref = func_hessians(mem, x)
+    err = float((mem.element_hessians(x) - ref).abs().max() / ref.abs().max())
+    return (f"{mem.face_count:>10d} {mem.model.value:>20s} {t_c * 1e3:10.2f}ms {t_e * 1e3:8.2f}ms {t_f * 1e3:9.2f}ms "
+            f"{t_e / t_c:8.1f}x {t_f / t_c:8.1f}x  unprojected vs torch.func max rel. diff {err:.1e}")
 
 
 def model_hessians(sizes: list[int], repeat: int) -> None:
@@ -84,20 +109,10 @@ def model_hessians(sizes: list[int], repeat: int) -> None:
               f"{he * 1e3:26.2f}ms {hc * 1e3:7.2f}ms {he / hc:5.1f}x  max rel. diff {err:.1e}", flush=True)
 
 
-def plain_stvk(mem: MembraneEnergy, x: torch.Tensor) -> torch.Tensor:
-    """The StVK energy as a user writes it in PyTorch (the reference of the operator rows)."""
-    D = mem.shape_matrices.to(x.dtype)
-    F = deformation_gradient(x, mem.faces, D)
-    G = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(2, dtype=x.dtype))
-    tr = G.diagonal(dim1=-2, dim2=-1).sum(-1)
-    psi = mem.mu.to(x.dtype) * (G * G).sum((-1, -2)) + 0.5 * mem.lam.to(x.dtype) * tr * tr
-    return (psi * (mem.rest_areas * mem.thickness).to(x.dtype)).sum(-1)
-
-
-def operators(sizes: list[int], dtype: torch.dtype, repeat: int) -> None:
-    """StVK energy, gradient and HVP of MembraneEnergy (compiled on the CPU) against eager autograd of
-    :func:`plain_stvk` (its backward, its double backward) and torch.func (grad, jvp of grad), one mesh."""
-    print(f"{'triangles':>10s} {'op':>9s} {'torchbend':>11s} {'autograd':>10s} {'torch.func':>11s} "
+def operators(sizes: list[int], dtype: torch.dtype, repeat: int, models: list[str]) -> None:
+    """Energy, gradient and HVP of MembraneEnergy (compiled on the CPU) against eager autograd of
+    :func:`plain_energy` (its backward, its double backward) and torch.func (grad, jvp of grad), one mesh."""
+    print(f"{'triangles':>10s} {'model':>20s} {'op':>9s} {'torchbend':>11s} {'autograd':>10s} {'torch.func':>11s} "
           f"{'x autograd':>10s} {'x func':>8s}  check")
     for T in sizes:
         n = max(3, round((T / 2) ** 0.5) + 1)
@@ -105,31 +120,37 @@ def operators(sizes: list[int], dtype: torch.dtype, repeat: int) -> None:
         gen = torch.Generator().manual_seed(0)
         x = rest * 1.05 + (0.3 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
         v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
-        mem = MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=1e-3).to(dtype)
-        f = lambda y, mem=mem: plain_stvk(mem, y)  # noqa: E731
+        for model in models:
+            mem = MembraneEnergy(faces, rest, model=model, young=1e5, poisson=0.3, thickness=1e-3).to(dtype)
+            operator_rows(mem, x, v, repeat)
 
-        def ag_grad(x=x, f=f):
-            xg = x.clone().requires_grad_()
-            return torch.autograd.grad(f(xg), xg)[0]
 
-        def ag_hvp(x=x, v=v, f=f):
-            xg = x.clone().requires_grad_()
-            (g,) = torch.autograd.grad(f(xg), xg, create_graph=True)
-            return torch.autograd.grad((g * v).sum(), xg)[0]
+def operator_rows(mem: MembraneEnergy, x: torch.Tensor, v: torch.Tensor, repeat: int) -> None:
+    """The energy, gradient and HVP rows of one membrane."""
+    f = lambda y, mem=mem: plain_energy(mem, y)  # noqa: E731
 
-        gfun = torch.func.grad(f)
-        rows = {
-            "energy": (lambda mem=mem, x=x: mem(x), lambda f=f, x=x: f(x), lambda f=f, x=x: f(x)),
-            "gradient": (lambda mem=mem, x=x: mem.gradient(x), ag_grad, lambda g=gfun, x=x: g(x)),
-            "hvp": (lambda mem=mem, x=x, v=v: mem.hvp(x, v), ag_hvp,
-                    lambda g=gfun, x=x, v=v: torch.func.jvp(g, (x,), (v,))[1]),
-        }
-        for op, (ours, ag, fu) in rows.items():
-            t0, t1, t2 = timeit(ours, repeat), timeit(ag, repeat), timeit(fu, repeat)
-            ref = ag()
-            err = float((ours() - ref).abs().max() / ref.abs().max())
-            print(f"{mem.face_count:>10d} {op:>9s} {t0 * 1e3:9.3f}ms {t1 * 1e3:8.3f}ms {t2 * 1e3:9.3f}ms "
-                  f"{t1 / t0:9.1f}x {t2 / t0:7.1f}x  max rel. diff {err:.1e}", flush=True)
+    def ag_grad(x=x, f=f):
+        xg = x.clone().requires_grad_()
+        return torch.autograd.grad(f(xg), xg)[0]
+
+    def ag_hvp(x=x, v=v, f=f):
+        xg = x.clone().requires_grad_()
+        (g,) = torch.autograd.grad(f(xg), xg, create_graph=True)
+        return torch.autograd.grad((g * v).sum(), xg)[0]
+
+    gfun = torch.func.grad(f)
+    rows = {
+        "energy": (lambda mem=mem, x=x: mem(x), lambda f=f, x=x: f(x), lambda f=f, x=x: f(x)),
+        "gradient": (lambda mem=mem, x=x: mem.gradient(x), ag_grad, lambda g=gfun, x=x: g(x)),
+        "hvp": (lambda mem=mem, x=x, v=v: mem.hvp(x, v), ag_hvp,
+                lambda g=gfun, x=x, v=v: torch.func.jvp(g, (x,), (v,))[1]),
+    }
+    for op, (ours, ag, fu) in rows.items():
+        t0, t1, t2 = timeit(ours, repeat), timeit(ag, repeat), timeit(fu, repeat)
+        ref = ag()
+        err = float((ours() - ref).abs().max() / ref.abs().max())
+        print(f"{mem.face_count:>10d} {mem.model.value:>20s} {op:>9s} {t0 * 1e3:9.3f}ms {t1 * 1e3:8.3f}ms "
+              f"{t2 * 1e3:9.3f}ms {t1 / t0:9.1f}x {t2 / t0:7.1f}x  max rel. diff {err:.1e}", flush=True)
 
 
 def main(argv=None) -> None:
@@ -137,7 +158,7 @@ def main(argv=None) -> None:
     p.add_argument("--model-hessian", type=int, nargs="*", default=None, metavar="N",
                    help="the solver's Newton matrix of the N x N drape instead (default N: 41 81 161)")
     p.add_argument("--operators", action="store_true",
-                   help="StVK energy, gradient and HVP against eager autograd and torch.func instead")
+                   help="energy, gradient and HVP against eager autograd and torch.func instead")
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     p.add_argument("--models", nargs="+", default=["stvk", "arap", "symmetric_dirichlet", "neohookean"])
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
@@ -146,13 +167,13 @@ def main(argv=None) -> None:
     dtype = getattr(torch, a.dtype)
     print("machine:", machine())
     if a.operators:
-        operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat)
+        operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat, a.models)
         return
     if a.model_hessian is not None:
         model_hessians(a.model_hessian or [41, 81, 161], a.repeat)
         return
-    print(f"{'triangles':>10s} {'model':>20s} {'closed form':>12s} {'eigh (F)':>10s} {'eigh (x)':>10s} "
-          f"{'F/closed':>9s} {'x/closed':>9s}  check")
+    print(f"{'triangles':>10s} {'model':>20s} {'torchbend':>12s} {'eager':>10s} {'func+eigh':>11s} "
+          f"{'x eager':>9s} {'x func':>9s}  check")
     for T in a.sizes:
         n = max(3, round((T / 2) ** 0.5) + 1)
         rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=dtype)

@@ -244,93 +244,89 @@ def test_stvk_closed_form_blocks_and_hvp_match_eigensystem_and_torch_func(scale)
     for b in range(2):
         ref = (mem.hessian(xb[b]).to_dense() @ v.reshape(-1)).reshape(-1, 3)
         assert rel(hv[b], ref) <= 1e-13
-    assert torch.equal(mem.element_hessians(xb)[0], H)
+    assert torch.equal(mem.element_hessians(xb)[0], Hn)  # a batch takes the compiled blocks too
 
 
-# -------------------------------------------------------------------- the compiled StVK blocks
-def _stretched_sheet(dtype, seed=0):
+# -------------------------------------------------------------------- the compiled kernels (every model)
+def _stretched_sheet(dtype, seed=0, collapse=True):
+    """A stretched, sheared sheet with face 1 turned over and (``collapse``) face 0 collapsed to a segment."""
     rest, faces = tb.scenes.random_curved_sheet(9, 7, amplitude=0.3, seed=seed, dtype=dtype)
     gen = torch.Generator().manual_seed(seed + 1)
     x = rest * torch.tensor([1.2, 0.7, 1.0], dtype=dtype) + 0.05 * torch.randn(rest.shape, generator=gen, dtype=dtype)
-    x[faces[0, 2]] = x[faces[0, 0]] + 0.5 * (x[faces[0, 1]] - x[faces[0, 0]])  # face 0 collapsed to a segment
-    x[faces[1, 2]] = x[faces[1, 0]] - (x[faces[1, 2]] - x[faces[1, 0]])  # face 1 turned over
+    if collapse:
+        x[faces[0, 2]] = x[faces[0, 0]] + 0.5 * (x[faces[0, 1]] - x[faces[0, 0]])
+    x[faces[1, 2]] = x[faces[1, 0]] - (x[faces[1, 2]] - x[faces[1, 0]])
     return rest, faces, x
 
 
+def _compiled_case(model, dtype, seed, collapse=None):
+    """A membrane of ``model`` on :func:`_stretched_sheet` (collapsed face only where the model is defined there) and a
+    batch of two states; skips without the CPU extension."""
+    from torchbend.backends import native
+
+    if native.load() is None:
+        pytest.skip("the CPU extension is not built")
+    if collapse is None:
+        collapse = model in ("stvk", "arap")
+    rest, faces, x = _stretched_sheet(dtype, seed, collapse)
+    mem = MembraneEnergy(faces, rest, model=model, young=2e4, poisson=0.35, thickness=5e-4).to(dtype)
+    return mem, x, torch.stack((x, rest * 1.1))
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_compiled_stvk_blocks_match_the_eager_formula(dtype):
-    """native.membrane_stvk_blocks (csrc/membrane_math.h) against ops.membrane.stvk_blocks times A t: the same
-    formula in another order of operations, so within a few ulps of each block's largest entry, on stretched,
-    collapsed and inverted triangles, with one material or one per triangle; T = 0 gives no blocks."""
+@pytest.mark.parametrize("model", MODELS)
+def test_compiled_blocks_match_the_eager_path(model, dtype):
+    """native.membrane_blocks (csrc/membrane_math.h: StVK unprojected in closed form, the rest through the closed-form
+    eigensystem) against element_hessians(backend='eager'), every projection: the same formulas in another order of
+    operations (and hypot as a square root where no square can overflow), so within a few ulps of each block's largest
+    entry (observed at most 12 over 20 sheets), on stretched, turned-over and (StVK, ARAP) collapsed triangles, one
+    mesh and a batch; exactly symmetric; the default backend takes them; T = 0 gives no blocks."""
     from torchbend.backends import native
-    from torchbend.ops.membrane import stvk_blocks
 
-    if native.load() is None:
-        pytest.skip("the CPU extension is not built")
-    rest, faces, x = _stretched_sheet(dtype)
-    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4).to(dtype)
-    D, coef = mem.shape_matrices.to(dtype), (mem.rest_areas * mem.thickness).to(dtype)
-    F = deformation_gradient(x, mem.faces, D)
-    T = faces.shape[0]
-    gen = torch.Generator().manual_seed(3)
-    per_face = (mem.mu * (0.5 + torch.rand(T, generator=gen, dtype=dtype)),
-                mem.lam * (0.5 + torch.rand(T, generator=gen, dtype=dtype)))
+    mem, x, xb = _compiled_case(model, dtype, seed=0)
     eps = torch.finfo(dtype).eps
-    for mu, lam in ((mem.mu.to(dtype), mem.lam.to(dtype)), per_face):
-        if mu.ndim:  # the eager formula takes one material (or one per sample): face by face
-            ref = torch.cat([stvk_blocks(F[t:t + 1], D[t:t + 1], mu[t], lam[t]) for t in range(T)])
-        else:
-            ref = stvk_blocks(F, D, mu, lam)
-        ref = ref * coef[:, None, None]
-        got = native.membrane_stvk_blocks(F, D, mu, lam, coef)
-        assert got.shape == (T, 9, 9) and got.dtype == dtype
-        scale = ref.flatten(-2).abs().amax(-1)[:, None, None]
-        assert float(((got - ref).abs() / scale).max()) <= 16 * eps
-        assert torch.equal(got, got.transpose(-1, -2))  # symmetric by construction
-    empty = native.membrane_stvk_blocks(F[:0], D[:0], mem.mu.to(dtype), mem.lam.to(dtype), coef[:0])
-    assert empty.shape == (0, 9, 9)
+    D, coef = mem.shape_matrices.to(dtype), (mem.rest_areas * mem.thickness).to(dtype)
+    mu, lam = mem.mu.to(dtype), mem.lam.to(dtype)
+    for projection in ("none", "clamp", "abs"):
+        for pos in (x, xb):
+            ref = mem.element_hessians(pos, projection=projection, backend="eager")
+            got = native.membrane_blocks(pos, mem.faces, D, coef, mu, lam, model, projection)
+            assert got.shape == ref.shape and got.dtype == dtype
+            scale = ref.flatten(-2).abs().amax(-1)[..., None, None]  # zero for a block clamped away entirely
+            assert bool(((got - ref).abs() <= 32 * eps * scale).all())
+            assert torch.equal(got, got.transpose(-1, -2))
+            assert torch.equal(mem.element_hessians(pos, projection=projection), got)
+    assert native.membrane_blocks(x, mem.faces[:0], D[:0], coef[:0], mu, lam, model, "clamp").shape == (0, 9, 9)
 
 
-def test_compiled_stvk_blocks_are_chosen_for_one_mesh_without_a_graph():
-    """element_hessians takes the compiled blocks for one mesh on the CPU (backend 'auto' or 'native'); a batch, a
-    recorded graph (the eager blocks are differentiable) and backend='eager' take the eager formula;
-    backend='native' on a batch says why it cannot."""
-    from torchbend.backends import native
-
-    if native.load() is None:
-        pytest.skip("the CPU extension is not built")
-    rest, faces, x = _stretched_sheet(F64, seed=4)
-    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4)
+def test_compiled_blocks_are_chosen_without_a_graph():
+    """element_hessians takes the compiled blocks on the CPU (backend 'auto' or 'native', one mesh or a batch); a
+    recorded graph (the eager blocks are differentiable) and backend='eager' take the eager formulas; the assembled
+    Hessian from the compiled blocks equals the eager one to round-off."""
+    mem, x, xb = _compiled_case("stvk", F64, seed=4)
     eager = mem.element_hessians(x, backend="eager")
     compiled = mem.element_hessians(x)
     assert torch.equal(compiled, mem.element_hessians(x, backend="native"))
     assert not torch.equal(compiled, eager)  # another rounding: the compiled kernel ran
     assert float((compiled - eager).abs().max()) <= 16 * torch.finfo(F64).eps * float(eager.abs().max())
-    xb = torch.stack((x, rest))
-    assert torch.equal(mem.element_hessians(xb)[0], eager)
-    with pytest.raises(ValueError, match="one mesh"):
-        mem.element_hessians(xb, backend="native")
+    assert torch.equal(mem.element_hessians(xb, backend="native")[0], compiled)
     xg = x.clone().requires_grad_()
     Hg = mem.element_hessians(xg)
     assert Hg.requires_grad and torch.equal(Hg.detach(), eager)
-    # the assembled Hessian (the solver's) from the compiled blocks equals the eager one to round-off
     Ha, He = mem.hessian(x).to_dense(), mem.hessian(x, backend="eager").to_dense()
     assert float((Ha - He).abs().max()) <= 64 * torch.finfo(F64).eps * float(He.abs().max())
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_compiled_stvk_energy_and_gradient_match_the_eager_path(dtype):
-    """The compiled StVK energy and gradient (csrc/membrane_math.h stvk_face, sums in face order) against the eager
-    Functions (backend='eager'): the same closed form in another order of operations, on stretched, collapsed and
-    inverted triangles, one mesh and a batch with per-sample weights (an energy's backward)."""
-    from torchbend.backends import native
-
-    if native.load() is None:
-        pytest.skip("the CPU extension is not built")
-    rest, faces, x = _stretched_sheet(dtype, seed=9)
-    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4).to(dtype)
+@pytest.mark.parametrize("model", MODELS)
+def test_compiled_energy_and_gradient_match_the_eager_path(model, dtype):
+    """The compiled energy and gradient (membrane_math.h membrane_face, sums in face order) against the eager
+    Functions (backend='eager'), one mesh and a batch with per-sample weights (an energy's backward).  No collapsed
+    triangle here: at one, ARAP's gradient depends on the rotation R = U V^T, which is not unique there and is
+    decided by the rounding of F (both paths return a valid one; test_membrane_extremes covers collapse)."""
+    mem, x, _ = _compiled_case(model, dtype, seed=9, collapse=model == "stvk")
     eps = torch.finfo(dtype).eps
-    xb = torch.stack((x, rest * 1.1, x.flip(0)))
+    xb = torch.stack((x, x * 1.1, x.flip(0)))
     for pos in (x, xb):
         E, Ee = mem(pos), mem(pos, backend="eager")
         # the per-face terms are the same to a few ulps; their sum is rounded in another order
@@ -344,16 +340,12 @@ def test_compiled_stvk_energy_and_gradient_match_the_eager_path(dtype):
         assert float((gw - w[..., None, None] * ge).abs().max()) <= 64 * eps * float(ge.abs().max())
 
 
-def test_compiled_stvk_energy_gradcheck_and_fallbacks():
-    """Through the compiled forward: gradcheck and gradgradcheck (the double backward is the eager HVP); under
-    torch.func.vmap and for backend='eager' the eager Functions run; a result that overflows falls back to the
-    eager path, whose error names the faces."""
-    from torchbend.backends import native
-
-    if native.load() is None:
-        pytest.skip("the CPU extension is not built")
-    rest, faces, x = _stretched_sheet(F64, seed=11)
-    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4)
+@pytest.mark.parametrize("model", MODELS)
+def test_compiled_energy_gradcheck_and_fallbacks(model):
+    """Through the compiled forward and double backward: gradcheck and gradgradcheck; under torch.func.vmap and for
+    backend='eager' the eager Functions run; a result that overflows, and (neo-Hookean, symmetric Dirichlet) a
+    collapsed triangle, fall back to the eager path, whose error names the faces."""
+    mem, x, _ = _compiled_case(model, F64, seed=11, collapse=model == "stvk")  # ARAP has a kink at collapse
     xg = x.clone().requires_grad_()
     assert "Compiled" in type(mem(xg).grad_fn).__name__
     assert "Compiled" not in type(mem(xg, backend="eager").grad_fn).__name__
@@ -361,29 +353,32 @@ def test_compiled_stvk_energy_gradcheck_and_fallbacks():
     assert torch.autograd.gradgradcheck(lambda y: mem(y), (xg,))
     xb = torch.stack((x, 1.05 * x))
     assert rel(torch.func.vmap(mem)(xb), mem(xb)) <= 1e-13
-    huge = x * 1e160
     with pytest.raises(ValueError, match="overflows"):
-        mem.gradient(huge)
+        mem.gradient(x * 1e160)
+    if model in ("neohookean", "symmetric_dirichlet"):
+        xc = x.clone()
+        f = mem.faces[0]
+        xc[f[2]] = xc[f[0]]  # an exactly collapsed triangle (J = 0)
+        for op in (mem, mem.gradient, lambda y: mem.element_hessians(y, projection="clamp"),
+                   lambda y: mem.hvp(y, torch.ones_like(y), projection="clamp")):
+            with pytest.raises(ValueError, match="collapsed"):
+                op(xc)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_compiled_stvk_hvp_matches_the_eager_path(dtype):
-    """The compiled StVK Hessian-vector product (membrane_math.h stvk_face_hvp): MembraneEnergy.hvp, the double
-    backward of the energy (the HVP, and the derivative in a per-sample weight: dE/dx . v) against the eager
-    closed form; a double backward that records a graph (third derivatives) keeps the eager path."""
-    from torchbend.backends import native
-
-    if native.load() is None:
-        pytest.skip("the CPU extension is not built")
-    rest, faces, x = _stretched_sheet(dtype, seed=13)
-    mem = MembraneEnergy(faces, rest, young=2e4, poisson=0.35, thickness=5e-4).to(dtype)
+@pytest.mark.parametrize("model", MODELS)
+def test_compiled_hvp_matches_the_eager_path(model, dtype):
+    """The compiled Hessian-vector product (membrane_math.h membrane_face_hvp, every projection): MembraneEnergy.hvp
+    and the double backward of the energy (the HVP, and the derivative in a per-sample weight: dE/dx . v) against
+    the eager paths; a double backward that records a graph (third derivatives) keeps the eager path."""
+    mem, x, xb = _compiled_case(model, dtype, seed=13)
     eps = torch.finfo(dtype).eps
     gen = torch.Generator().manual_seed(2)
-    xb = torch.stack((x, rest * 1.1))
     v = torch.randn(xb.shape, generator=gen, dtype=dtype)
     for pos, dv in ((x, v[0]), (xb, v)):
-        hv, hve = mem.hvp(pos, dv), mem.hvp(pos, dv, backend="eager")
-        assert float((hv - hve).abs().max()) <= 64 * eps * float(hve.abs().max())
+        for projection in ("none", "clamp", "abs"):
+            hv, hve = mem.hvp(pos, dv, projection=projection), mem.hvp(pos, dv, projection=projection, backend="eager")
+            assert float((hv - hve).abs().max()) <= 64 * eps * float(hve.abs().max())
 
         def double_backward(backend, create_graph=False, pos=pos, dv=dv):
             xg = pos.clone().requires_grad_()

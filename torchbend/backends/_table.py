@@ -19,11 +19,11 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
 """Operation of the energies (the ``op`` of :func:`torchbend.backends.select_backend`) -> the devices with a
 compiled kernel for it: the energy, its gradient and Hessian-vector product (inside the analytic autograd
 Functions), the per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and assembly) and the
-unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane, the unprojected StVK
-element Hessians (one mesh, CPU only), the StVK energy and gradient (CPU, inside the membrane's autograd
-Functions) and its Hessian-vector product (CPU)."""
+unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane (every model, CPU), the
+element Hessians (projected or not), the energy and gradient (inside the membrane's autograd Functions) and the
+Hessian-vector product (projected or not)."""
 
-ONE_MESH = frozenset({"hessian_hinge", "hessian_triangle", "membrane_element_hessians"})
+ONE_MESH = frozenset({"hessian_hinge", "hessian_triangle"})
 """Entry points whose kernel takes one mesh (no batch)."""
 DIFFERENTIABLE = frozenset({"energy", "gradient", "membrane_energy", "membrane_gradient"})
 """Kernels called inside torchbend's autograd Functions: differentiable (analytically), so a recorded graph does
@@ -73,6 +73,11 @@ MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}
 
 PROJECTION_CODE = {"clamp": 0, "abs": 1, "reduced": 2}
 """The projections of the compiled ``project_blocks``."""
+
+MEMBRANE_MODEL_CODE = {"stvk": 0, "arap": 1, "symmetric_dirichlet": 2, "neohookean": 3}
+"""The codes of the membrane models in the kernels (csrc/membrane_math.h)."""
+MEMBRANE_PROJECTION_CODE = {"none": 0, "clamp": 1, "abs": 2}
+"""The codes of the membrane's eigenvalue projections in the kernels (csrc/membrane_math.h)."""
 
 
 def model_code(model) -> int:

@@ -36,11 +36,11 @@ from torch import Tensor
 from . import _build_config as cfg
 from ._loader import Extension
 from ._status import raise_for_status
-from ._table import PROJECTION_CODE, model_code
+from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CODE, model_code
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "membrane_stvk_blocks", "membrane_stvk_energy_gradient", "membrane_stvk_hvp",
+           "project_blocks", "membrane_blocks", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
@@ -150,28 +150,34 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     return _module().project_blocks(M, PROJECTION_CODE[mode], hinge)
 
 
-def membrane_stvk_blocks(F: Tensor, D: Tensor, mu: Tensor, lam: Tensor, coef: Tensor) -> Tensor:
-    """The unprojected StVK Hessian of each triangle, ``(T, 9, 9)`` [N/m] (flat index ``3 k + i``: vertex ``k``,
-    axis ``i``), of ``F``, ``D`` ``(T, 3, 2)`` and ``mu``, ``lam`` [Pa], ``coef = A t`` [m^3], each one value or
-    ``(T,)``, one mesh: :func:`torchbend.ops.membrane.stvk_blocks` times ``coef``, compiled."""
-    return _module().membrane_stvk_blocks(F, D, mu, lam, coef)
+def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,
+                    projection: str = "none") -> Tensor:
+    """The Hessian of each triangle of each sample, ``(..., T, 9, 9)`` [N/m] (flat index ``3 k + i``: vertex ``k``,
+    axis ``i``), of positions ``x (..., V, 3)``, its eigenvalues in ``f = vec(F)`` projected (``projection``:
+    ``"none"``, ``"clamp"``, ``"abs"``): :meth:`torchbend.MembraneEnergy.element_hessians`, compiled (StVK unprojected
+    in closed form, the rest through the closed-form eigensystem).  ``faces (T, 3)``, ``D (T, 3, 2)``, ``coef = A t
+    (T,)`` [m^3], one ``mu`` and ``lam`` [Pa]; ``model`` a :class:`torchbend.ops.membrane.MembraneModel` value."""
+    return _module().membrane_blocks(x, faces, D, coef, mu, lam, MEMBRANE_MODEL_CODE[model],
+                                     MEMBRANE_PROJECTION_CODE[projection])
 
 
-def membrane_stvk_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
-                                  weight: Tensor | None) -> tuple[Tensor, Tensor | None]:
-    """The StVK energy ``sum_T coef psi`` [J] of ``x (..., V, 3)`` per sample, ``(...,)``, and with ``weight`` (one
-    value per sample, flat ``(B,)``) ``weight dE/dx (..., V, 3)`` [N], else ``None``; ``faces (T, 3)``, ``D (T, 3, 2)``,
-    ``coef = A t (T,)``, one ``mu`` and ``lam`` [Pa].  Sums in face order (deterministic)."""
+def membrane_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                             weight: Tensor | None, model: str = "stvk") -> tuple[Tensor, Tensor | None]:
+    """The membrane energy ``sum_T coef psi`` [J] of ``x (..., V, 3)`` per sample, ``(...,)``, and with ``weight`` (one
+    value per sample, flat ``(B,)``) ``weight dE/dx (..., V, 3)`` [N], else ``None`` (arguments as in
+    :func:`membrane_blocks`).  Sums in face order (deterministic)."""
     w = x.new_zeros(0) if weight is None else weight
-    E, g = _module().membrane_stvk_energy_gradient(x, faces, D, coef, mu, lam, w, weight is not None)
+    E, g = _module().membrane_energy_gradient(x, faces, D, coef, mu, lam, w, weight is not None,
+                                              MEMBRANE_MODEL_CODE[model])
     return E, (None if weight is None else g)
 
 
-def membrane_stvk_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
-                      weight: Tensor) -> tuple[Tensor, Tensor]:
-    """``(weight (d^2E/dx^2) v (..., V, 3) [N], dE/dx . v (...,) [J])`` of the StVK energy (arguments as in
-    :func:`membrane_stvk_energy_gradient`; ``weight`` one value per sample, flat ``(B,)``)."""
-    return _module().membrane_stvk_hvp(x, v, faces, D, coef, mu, lam, weight)
+def membrane_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                 weight: Tensor, model: str = "stvk", projection: str = "none") -> tuple[Tensor, Tensor]:
+    """``(weight H v (..., V, 3) [N], dE/dx . v (...,) [J])``: the (projected) Hessian-vector product of the membrane
+    energy (arguments as in :func:`membrane_blocks`; ``weight`` one value per sample, flat ``(B,)``)."""
+    return _module().membrane_hvp(x, v, faces, D, coef, mu, lam, weight, MEMBRANE_MODEL_CODE[model],
+                                  MEMBRANE_PROJECTION_CODE[projection])
 
 
 def output_cache_info() -> dict[str, int]:

@@ -7,6 +7,7 @@
 // with the dispatcher as torch.ops.torchbend.* in cpu_registration.cpp.
 #include <torch/extension.h>
 
+#include "cpu_membrane.h"
 #include "cpu_ops.h"
 #include "op_registration.h"
 
@@ -23,12 +24,13 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the general double backward: position and parameter directions, per-hinge weight");
   m.def("project_blocks", &op::project_blocks,
         "PSD projection (clamp, abs; reduced for hinge blocks) of symmetric 9x9 or 12x12 blocks, Jacobi");
-  m.def("membrane_stvk_blocks", &op::membrane_stvk_blocks,
-        "the unprojected StVK Hessian of each triangle (T, 9, 9) in closed form");
-  m.def("membrane_stvk_energy_gradient", &op::membrane_stvk_energy_gradient,
-        "the StVK energy of each sample and, optionally, its weighted gradient, in closed form");
-  m.def("membrane_stvk_hvp", &op::membrane_stvk_hvp,
-        "the StVK Hessian-vector product of each sample, weighted, and the directional derivative of its energy");
+  m.def("membrane_blocks", &op::membrane_blocks,
+        "the (projected) Hessian of each triangle (..., T, 9, 9) of any membrane model, closed-form eigensystem");
+  m.def("membrane_energy_gradient", &op::membrane_energy_gradient,
+        "the energy of each sample and, optionally, its weighted gradient, of any membrane model");
+  m.def("membrane_hvp", &op::membrane_hvp,
+        "the (projected) Hessian-vector product of each sample of any membrane model, weighted, and the directional "
+        "derivative of its energy");
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");

@@ -1,13 +1,16 @@
-// The membrane's compiled StVK operators: the per-triangle Hessian blocks (membrane_stvk_blocks) and the energy with
-// its gradient (membrane_stvk_energy_gradient), the per-triangle formulas of membrane_math.h in parallel chunks
-// (at::parallel_for: torch's thread pool and its thread count), the sums over triangles in face order.
+// The membrane's compiled operators: the per-triangle (projected) Hessian blocks (membrane_blocks), the energy with
+// its gradient (membrane_energy_gradient) and the Hessian-vector product (membrane_hvp) of every model, the
+// per-triangle formulas of membrane_math.h in parallel chunks (at::parallel_for: torch's thread pool and its thread
+// count), the sums over triangles in face order.
 #include <ATen/Parallel.h>
 
 #include <algorithm>
 #include <initializer_list>
 #include <vector>
 
+#include "cpu_membrane.h"
 #include "cpu_ops.h"
+#include "cpu_tiles.h"
 #include "membrane_math.h"
 
 namespace torchbend {
@@ -15,7 +18,7 @@ namespace cpu {
 
 // The checks the StVK operators over positions x (..., V, 3) share (op names the operator in the messages); `same`:
 // the tensors that must be CPU tensors of x's dtype.  Returns the number of samples.
-static int64_t check_stvk(const char* op, const Tensor& x, const Tensor& faces, const Tensor& D, const Tensor& coef,
+static int64_t check_membrane(const char* op, const Tensor& x, const Tensor& faces, const Tensor& D, const Tensor& coef,
                           const Tensor& mu, const Tensor& lam, std::initializer_list<const Tensor*> same) {
   TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3, op, ": x must be (..., V, 3)");
   TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
@@ -36,43 +39,16 @@ static void check_face_indices(const char* op, const Tensor& faces, int64_t V) {
     TORCH_CHECK(fc[e] >= 0 && fc[e] < V, op, ": faces index out of range [0, ", V, ")");
 }
 
-Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor coef) {
-  TORCH_CHECK(F.dim() == 3 && F.size(1) == 3 && F.size(2) == 2, "membrane_stvk_blocks: F must be (T, 3, 2)");
-  TORCH_CHECK(D.sizes() == F.sizes(), "membrane_stvk_blocks: D must have F's shape (T, 3, 2)");
-  TORCH_CHECK(F.device().is_cpu() && D.device().is_cpu() && mu.device().is_cpu() && lam.device().is_cpu() &&
-                  coef.device().is_cpu(),
-              "membrane_stvk_blocks: CPU tensors only");
-  const int64_t T = F.size(0);
-  for (const Tensor* p : {&D, &mu, &lam, &coef})
-    TORCH_CHECK(p->scalar_type() == F.scalar_type(), "membrane_stvk_blocks: all arguments must have F's dtype");
-  for (const Tensor* p : {&mu, &lam, &coef})
-    TORCH_CHECK(p->numel() == 1 || p->numel() == T, "membrane_stvk_blocks: mu, lam, coef: one value or one per triangle");
-  F = F.contiguous();
-  D = D.contiguous();
-  mu = mu.contiguous();
-  lam = lam.contiguous();
-  coef = coef.contiguous();
-  Tensor out = torch::empty({T, 9, 9}, F.options());
-  AT_DISPATCH_FLOATING_TYPES(F.scalar_type(), "membrane_stvk_blocks", [&] {
-    const scalar_t* f = F.data_ptr<scalar_t>();
-    const scalar_t* d = D.data_ptr<scalar_t>();
-    const scalar_t* m = mu.data_ptr<scalar_t>();
-    const scalar_t* la = lam.data_ptr<scalar_t>();
-    const scalar_t* c = coef.data_ptr<scalar_t>();
-    const int64_t sm = mu.numel() == 1 ? 0 : 1, sl = lam.numel() == 1 ? 0 : 1, sc = coef.numel() == 1 ? 0 : 1;
-    scalar_t* o = out.data_ptr<scalar_t>();
-    at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
-      for (int64_t e = begin; e < end; ++e)
-        stvk_block<scalar_t>(f + 6 * e, d + 6 * e, m[sm * e], la[sl * e], c[sc * e], o + 81 * e);
-    });
-  });
-  return out;
+static void check_model(const char* op, int64_t model, int64_t projection) {
+  TORCH_CHECK(model >= kStvk && model <= kNeohookean, op, ": unknown membrane model ", model);
+  TORCH_CHECK(projection >= kProjectNone && projection <= kProjectAbs, op, ": unknown projection ", projection);
 }
 
-std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
-                                                         Tensor lam, Tensor weight, bool gradient) {
-  const char* op = "membrane_stvk_energy_gradient";
-  const int64_t B = check_stvk(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam, &weight});
+std::tuple<Tensor, Tensor> membrane_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
+                                                    Tensor lam, Tensor weight, bool gradient, int64_t model) {
+  const char* op = "membrane_energy_gradient";
+  check_model(op, model, kProjectNone);
+  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam, &weight});
   const int64_t T = faces.size(0), V = x.size(-2);
   const auto batch = x.sizes().slice(0, x.dim() - 2);
   TORCH_CHECK(!gradient || weight.numel() == B, op, ": one weight per sample");
@@ -85,7 +61,7 @@ std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces,
   const int64_t* fc = faces.data_ptr<int64_t>();
   Tensor energy = torch::empty(batch, x.options());
   Tensor grad = gradient ? torch::zeros(x.sizes(), x.options()) : torch::empty({0}, x.options());
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_energy_gradient", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_energy_gradient", [&] {
     const scalar_t* d = D.data_ptr<scalar_t>();
     const scalar_t* c = coef.data_ptr<scalar_t>();
     const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
@@ -95,8 +71,8 @@ std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces,
       at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
         for (int64_t e = begin; e < end; ++e) {
           const int64_t* t = fc + 3 * e;
-          psi[e] = stvk_face<scalar_t>(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m, la, c[e],
-                                       gradient ? forces.data() + 9 * e : nullptr);
+          psi[e] = membrane_face<scalar_t>(int(model), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m, la,
+                                           c[e], gradient ? forces.data() + 9 * e : nullptr);
         }
       });
       scalar_t total = 0;  // in face order: deterministic
@@ -114,10 +90,11 @@ std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces,
   return {energy, grad};
 }
 
-std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
-                                             Tensor lam, Tensor weight) {
-  const char* op = "membrane_stvk_hvp";
-  const int64_t B = check_stvk(op, x, faces, D, coef, mu, lam, {&v, &D, &coef, &mu, &lam, &weight});
+std::tuple<Tensor, Tensor> membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
+                                        Tensor lam, Tensor weight, int64_t model, int64_t projection) {
+  const char* op = "membrane_hvp";
+  check_model(op, model, projection);
+  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&v, &D, &coef, &mu, &lam, &weight});
   const int64_t T = faces.size(0), V = x.size(-2);
   TORCH_CHECK(v.sizes() == x.sizes(), op, ": v must have x's shape (..., V, 3)");
   TORCH_CHECK(weight.numel() == B, op, ": one weight per sample");
@@ -131,7 +108,7 @@ std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, T
   const int64_t* fc = faces.data_ptr<int64_t>();
   Tensor hv = torch::zeros(x.sizes(), x.options());
   Tensor dot = torch::empty(x.sizes().slice(0, x.dim() - 2), x.options());
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_stvk_hvp", [&] {
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_hvp", [&] {
     const scalar_t* d = D.data_ptr<scalar_t>();
     const scalar_t* c = coef.data_ptr<scalar_t>();
     const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
@@ -142,8 +119,9 @@ std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, T
       at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
         for (int64_t e = begin; e < end; ++e) {
           const int64_t* t = fc + 3 * e;
-          dots[e] = stvk_face_hvp<scalar_t>(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1],
-                                            vb + 3 * t[2], d + 6 * e, m, la, c[e], h.data() + 9 * e);
+          dots[e] = membrane_face_hvp<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1],
+                                                xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1], vb + 3 * t[2], d + 6 * e,
+                                                m, la, c[e], h.data() + 9 * e);
         }
       });
       const scalar_t w = weight.data_ptr<scalar_t>()[b];
@@ -158,6 +136,40 @@ std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, T
     }
   });
   return {hv, dot};
+}
+
+Tensor membrane_blocks(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, int64_t model,
+                       int64_t projection) {
+  const char* op = "membrane_blocks";
+  check_model(op, model, projection);
+  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
+  const int64_t T = faces.size(0), V = x.size(-2);
+  x = x.contiguous();
+  faces = faces.contiguous();
+  D = D.contiguous();
+  coef = coef.contiguous();
+  check_face_indices(op, faces, V);
+  std::vector<int64_t> shape(x.sizes().begin(), x.sizes().end() - 2);
+  shape.insert(shape.end(), {T, 9, 9});
+  Tensor out = pooled_empty(shape, x.options());  // huge pages for a large output (cpu_tiles.cpp)
+  const int64_t* fc = faces.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_blocks", [&] {
+    const scalar_t* d = D.data_ptr<scalar_t>();
+    const scalar_t* c = coef.data_ptr<scalar_t>();
+    const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
+    for (int64_t b = 0; b < B; ++b) {
+      const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
+      scalar_t* o = out.data_ptr<scalar_t>() + b * T * 81;
+      at::parallel_for(0, T, 1024, [&](int64_t begin, int64_t end) {
+        for (int64_t e = begin; e < end; ++e) {
+          const int64_t* t = fc + 3 * e;
+          membrane_face_block<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
+                                        d + 6 * e, m, la, c[e], o + 81 * e);
+        }
+      });
+    }
+  });
+  return out;
 }
 
 }  // namespace cpu

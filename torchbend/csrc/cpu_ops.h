@@ -47,16 +47,7 @@ std::tuple<Tensor, Tensor, int64_t> assemble(Tensor x, Tensor hinges, Tensor a, 
 // the PSD projection of symmetric blocks M (..., n, n), n 9 or 12 (cpu_projection.cpp)
 Tensor project_blocks(Tensor M, int64_t mode, bool hinge);
 
-// the unprojected StVK Hessian of each triangle, (T, 9, 9), of F, D (T, 3, 2) and mu, lam, coef (one value or
-// (T,)) (cpu_membrane.cpp)
-Tensor membrane_stvk_blocks(Tensor F, Tensor D, Tensor mu, Tensor lam, Tensor coef);
-// (E (...,), weight dE/dx (..., V, 3) or empty): the StVK energy sum_T coef psi of x (..., V, 3) and, with gradient,
-// its gradient times one weight per sample (cpu_membrane.cpp)
-std::tuple<Tensor, Tensor> membrane_stvk_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
-                                                         Tensor lam, Tensor weight, bool gradient);
-// (weight (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,)): the StVK Hessian-vector product (cpu_membrane.cpp)
-std::tuple<Tensor, Tensor> membrane_stvk_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu,
-                                             Tensor lam, Tensor weight);
+// the membrane operators: cpu_membrane.h
 
 // the opt-in cache of large outputs (cpu_tiles.cpp): (blocks, bytes, hits, misses, limit), free, limit in bytes
 std::tuple<int64_t, int64_t, int64_t, int64_t, int64_t> output_cache_info();

@@ -26,7 +26,7 @@ from ..ops.membrane import (
 )
 from ..ops.stencil import scatter
 
-__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values"]
+__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "applies"]
 
 
 def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
@@ -49,55 +49,56 @@ def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: 
         check_finite_values(model, what, values, F, N)
 
 
-def _applies(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor | None) -> bool:
-    """Whether the compiled StVK kernels take these arguments: CPU, float32/64, one material, per-face ``coef``,
+def applies(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+            weight: Tensor | None = None) -> bool:
+    """Whether the compiled membrane kernels take these arguments: CPU, float32/64, one material, per-face ``coef``,
     not traced by a ``torch.func`` transform nor compiled."""
     return not (x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or mu.ndim or lam.ndim
                 or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
                 or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,))))
 
 
-def _compiled(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+def _compiled(model: MembraneModel, x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
               weight: Tensor | None) -> tuple[Tensor, Tensor | None] | None:
-    """``(E (...,), weight dE/dx (..., V, 3) or None)`` of StVK by the compiled kernel
-    (:func:`torchbend.backends.native.membrane_stvk_energy_gradient`) where it applies (:func:`_applies`) and its
+    """``(E (...,), weight dE/dx (..., V, 3) or None)`` by the compiled kernel
+    (:func:`torchbend.backends.native.membrane_energy_gradient`) where it applies (:func:`applies`) and its
     results are finite, else ``None``: the eager formulas then (also for the error that names the faces of a
-    non-finite result)."""
-    if not _applies(x, faces, D, coef, mu, lam, weight):
+    collapsed triangle or a non-finite result)."""
+    if not applies(x, faces, D, coef, mu, lam, weight):
         return None
     if weight is not None:
         weight = weight.to(x.dtype).expand(x.shape[:-2]).reshape(-1)
-    E, g = native.membrane_stvk_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight)
+    E, g = native.membrane_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight, model.value)
     if not bool(torch.isfinite(E).all()) or (g is not None and not bool(torch.isfinite(g.sum()))):
         return None
     return E, g
 
 
-def _compiled_hvp(saved: tuple, v: Tensor | None) -> tuple[Tensor, Tensor] | None:
-    """``(gE (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,))`` of StVK by the compiled kernel
-    (:func:`torchbend.backends.native.membrane_stvk_hvp`) from a gradient Function's saved
-    ``(gE, x, faces, D, coef, mu, lam)``, where it applies (:func:`_applies`), else ``None``."""
-    gE, x, faces, D, coef, mu, lam = saved
-    if v is None or v.shape != x.shape or v.dtype != x.dtype or v.device != x.device or is_traced(v):
+def compiled_hvp(model: MembraneModel, projection: str, x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor,
+                 mu: Tensor, lam: Tensor, weight: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
+    """``(weight (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,))`` by the compiled kernel
+    (:func:`torchbend.backends.native.membrane_hvp`; eigenvalues projected by ``projection``) where it applies
+    (:func:`applies`) and its result is finite, else ``None`` (the eager formulas then)."""
+    if v.shape != x.shape or v.dtype != x.dtype or v.device != x.device or is_traced(v):
         return None
-    if not _applies(x, faces, D, coef, mu, lam, gE):
+    if not applies(x, faces, D, coef, mu, lam, weight):
         return None
-    hv, dot = native.membrane_stvk_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam,
-                                       gE.to(x.dtype).expand(x.shape[:-2]).reshape(-1))
+    w = x.new_ones(()) if weight is None else weight.to(x.dtype)
+    hv, dot = native.membrane_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam, w.expand(x.shape[:-2]).reshape(-1),
+                                  model.value, projection)
     if not bool(torch.isfinite(hv.sum())):
         return None
     return hv, dot
 
 
 def _make(model: MembraneModel, compiled: bool = False):
-    compiled = compiled and model is MembraneModel.STVK
 
     class _GradientImpl(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(gE, x, faces, D, coef, mu, lam):
-            out = _compiled(x, faces, D, coef, mu, lam, gE) if compiled else None
+            out = _compiled(model, x, faces, D, coef, mu, lam, gE) if compiled else None
             if out is not None:
                 return out[1]
             F, N = deformation(x, faces, D)
@@ -133,7 +134,10 @@ def _make(model: MembraneModel, compiled: bool = False):
         @staticmethod
         def backward(ctx, ggx):
             # the compiled HVP where no graph of it is asked for (create_graph=False: grad mode is off here)
-            out = _compiled_hvp(ctx.saved_tensors, ggx) if compiled and not torch.is_grad_enabled() else None
+            out = None
+            if compiled and ggx is not None and not torch.is_grad_enabled():
+                gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
+                out = compiled_hvp(model, "none", x, ggx, faces, D, coef, mu, lam, gE)
             if out is not None:
                 return (out[1] if ctx.needs_input_grad[0] else None), out[0], None, None, None, None, None
             dx, dg = _GradientImpl._second(ctx, None, ggx)
@@ -150,7 +154,7 @@ def _make(model: MembraneModel, compiled: bool = False):
 
         @staticmethod
         def forward(x, faces, D, coef, mu, lam):
-            out = _compiled(x, faces, D, coef, mu, lam, None) if compiled else None
+            out = _compiled(model, x, faces, D, coef, mu, lam, None) if compiled else None
             if out is not None:
                 return out[0]
             F, N = deformation(x, faces, D)
@@ -190,7 +194,7 @@ _FUNCTIONS = {(m, c): _make(m, c) for m in MembraneModel for c in (False, True)}
 
 def energy_function(model: MembraneModel | str, compiled: bool = False) -> type[torch.autograd.Function]:
     """The private energy Function of ``model`` (a :class:`MembraneModel` or its name); ``compiled``: its forward
-    (and the gradient's) take the compiled StVK kernel where it applies (:func:`_compiled`)."""
+    (and the gradient's, and the gradient's backward) take the compiled kernels where they apply (:func:`_compiled`)."""
     return _FUNCTIONS[MembraneModel.parse(model), bool(compiled)][0]
 
 

@@ -48,10 +48,10 @@ class MembraneEnergy(nn.Module):
         young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
         thickness: ``t`` [m] (> 0).
         check_finite: check inputs for NaN/Inf.
-        backend: ``"auto" | "eager" | "native"``: StVK has compiled CPU kernels, taken by ``"auto"``: the energy
-            and gradient (also under a recorded graph: they sit inside the analytic autograd Functions), the
-            unprojected ``hvp`` and double backward, and the unprojected element Hessians of one mesh
-            (``element_hessians``, ``hessian``); projections, the other models and other devices run eagerly.
+        backend: ``"auto" | "eager" | "native"``: every model has compiled CPU kernels, taken by ``"auto"``: the
+            energy and gradient (also under a recorded graph: they sit inside the analytic autograd Functions), the
+            ``hvp`` (projected or not) and the double backward, and the element Hessians (projected or not;
+            ``element_hessians``, ``hessian``) without a recorded graph; other devices run eagerly.
 
     Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
@@ -141,17 +141,6 @@ class MembraneEnergy(nn.Module):
         fn.check_values(self.model, "Hessian", l, F, N)
         return project_eigenvalues(l, projection) * coef[..., None], Q, D, v
 
-    def _closed_stvk(self, projection) -> bool:
-        """Whether an unprojected StVK result takes the closed form (:func:`~torchbend.ops.membrane.stvk_blocks`),
-        about 3x faster than the eigensystem's ``Q diag(l) Q^T`` and equal to it to round-off."""
-        return self.model is MembraneModel.STVK and Projection.parse(
-            projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS) is Projection.NONE
-
-    def _stvk_args(self, x: Tensor, op: str, backend):
-        D, coef, mu, lam = self._args(x, op, backend)
-        selected = self._selected(op, backend, x, mu, lam)
-        return deformation_gradient(x, self.faces, D), D, coef, mu, lam, selected
-
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
         """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
         ``(..., T, 6)`` and orthonormal eigenvectors ``(..., T, 6, 6)`` (columns) with ``Q diag(l) Q^T =
@@ -167,17 +156,21 @@ class MembraneEnergy(nn.Module):
     def element_hessians(self, x: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
         """Position-space element Hessians ``(..., T, 9, 9)`` [N/m] (flat index ``3*k + j``, face order):
         ``B^T (Q diag(l) Q^T) B`` from the closed-form eigensystem, eigenvalues projected first
-        (``projection``; ``project=``: its deprecated alias)."""
+        (``projection``; ``project=``: its deprecated alias); unprojected StVK in closed form."""
         projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
-        if self._closed_stvk(projection):  # StVK unprojected: the blocks in closed form, no eigensystem
-            F, D, coef, mu, lam, selected = self._stvk_args(x, "element_hessians", backend)
-            if selected is backends.Backend.NATIVE and mu.ndim <= 1 and lam.ndim <= 1:  # one mesh (T,) or one value
-                H = native.membrane_stvk_blocks(F.detach(), D, mu, lam, coef)
-            else:
-                H = stvk_blocks(F, D, mu, lam) * coef[..., None, None]
+        proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
+        D, coef, mu, lam = self._args(x, "element_hessians", backend)
+        if self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE and fn.applies(
+                x, self.faces, D, coef, mu, lam):
+            H = native.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
+            if bool(torch.isfinite(H.sum())):
+                return H  # else the eager path names the faces
+        if self.model is MembraneModel.STVK and proj is Projection.NONE:  # the closed form, no eigensystem
+            F = deformation_gradient(x, self.faces, D)
+            H = stvk_blocks(F, D, mu, lam) * coef[..., None, None]
             fn.check_values(self.model, "Hessian", H, F)
             return H
-        l, Q, D, _ = self._eigen(x, "element_hessians", projection, backend)
+        l, Q, D, _ = self._eigen(x, "element_hessians", proj, backend)
         # z_k = B^T q_k: (Q_k D^T)^T as a 9-vector over (vertex, axis)
         Qm = Q.transpose(-1, -2).unflatten(-1, (3, 2))  # (..., T, 6 modes, 3, 2)
         Z = (Qm @ D.transpose(-1, -2)[..., None, :, :]).transpose(-1, -2).flatten(-2)  # (..., T, 6, 9)
@@ -185,22 +178,22 @@ class MembraneEnergy(nn.Module):
 
     def hvp(self, x: Tensor, v: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
         """``(d^2E/dx^2) v: (..., V, 3)``, matrix-free through the eigensystem (optionally projected:
-        ``projection``; ``project=``: its deprecated alias)."""
+        ``projection``; ``project=``: its deprecated alias); unprojected StVK in closed form."""
         projection = projection_argument(projection, project, "MembraneEnergy.hvp")
-        if self._closed_stvk(projection):
-            D, coef, mu, lam = self._args(x, "hvp", backend)
-            selected = self._selected("hvp", backend, x, mu, lam)
-            v = check_direction(v, x, self.check_finite)
-            if selected is backends.Backend.NATIVE and mu.ndim == 0 and lam.ndim == 0:
-                hv, _ = native.membrane_stvk_hvp(x.detach(), v.expand_as(x).detach(), self.faces, D, coef, mu, lam,
-                                                 x.new_ones(x.shape[:-2]).reshape(-1))
-                if bool(torch.isfinite(hv.sum())):
-                    return hv
+        proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
+        D, coef, mu, lam = self._args(x, "hvp", backend)
+        selected = self._selected("hvp", backend, x, mu, lam)
+        v = check_direction(v, x, self.check_finite)
+        if selected is backends.Backend.NATIVE:
+            out = fn.compiled_hvp(self.model, proj.value, x, v.expand_as(x), self.faces, D, coef, mu, lam)
+            if out is not None:
+                return out[0]
+        if self.model is MembraneModel.STVK and proj is Projection.NONE:
             F = deformation_gradient(x, self.faces, D)
             dP = stvk_hvp_stress(F, deformation_gradient(v, self.faces, D), mu, lam) * coef[..., None, None]
             fn.check_values(self.model, "Hessian-vector product", dP, F)
             return fn.to_vertices(dP, D, self.faces, x.shape[-2])
-        l, Q, D, vc = self._eigen(x, "hvp", projection, backend, v)
+        l, Q, D, vc = self._eigen(x, "hvp", proj, backend, v)
         assert vc is not None  # _eigen returns the checked direction when given one
         dF = deformation_gradient(vc, self.faces, D).flatten(-2)
         return fn.to_vertices(fn.hvp_faces(l, Q, dF), D, self.faces, x.shape[-2])
