@@ -91,6 +91,15 @@ def compiled_hvp(model: MembraneModel, projection: str, x: Tensor, v: Tensor, fa
     return hv, dot
 
 
+def _compiled_backward(model: MembraneModel, saved: tuple, ggx: Tensor | None) -> tuple[Tensor, Tensor] | None:
+    """The gradient Function's backward by the compiled HVP (:func:`compiled_hvp`) where no graph of it is asked for
+    (``create_graph=False``: grad mode is off in the backward), else ``None``."""
+    if ggx is None or torch.is_grad_enabled():
+        return None
+    gE, x, faces, D, coef, mu, lam = saved
+    return compiled_hvp(model, "none", x, ggx, faces, D, coef, mu, lam, gE)
+
+
 def _make(model: MembraneModel, compiled: bool = False):
 
     class _GradientImpl(torch.autograd.Function):
@@ -134,10 +143,7 @@ def _make(model: MembraneModel, compiled: bool = False):
         @staticmethod
         def backward(ctx, ggx):
             # the compiled HVP where no graph of it is asked for (create_graph=False: grad mode is off here)
-            out = None
-            if compiled and ggx is not None and not torch.is_grad_enabled():
-                gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
-                out = compiled_hvp(model, "none", x, ggx, faces, D, coef, mu, lam, gE)
+            out = _compiled_backward(model, ctx.saved_tensors, ggx) if compiled else None
             if out is not None:
                 return (out[1] if ctx.needs_input_grad[0] else None), out[0], None, None, None, None, None
             dx, dg = _GradientImpl._second(ctx, None, ggx)
