@@ -167,8 +167,9 @@ TB_HD static inline void mem_unit_eigvec(T d, T h12, T r, T* c, T* s) {
   const T x = pos ? d + r : h12, y = pos ? h12 : r - d;
   const T nrm = mem_hypot(x, y);
   if (nrm > T(0)) {
-    *c = x / nrm;
-    *s = y / nrm;
+    const T inv = T(1) / nrm;
+    *c = x * inv;
+    *s = y * inv;
   } else {
     *c = T(1);
     *s = T(0);
@@ -220,13 +221,15 @@ TB_HD static inline void mem_thin_svd(const T* F, const T* N, T* s, T* cp, T* sp
   T w[3];
   for (int i = 0; i < 3; ++i) w[i] = F[2 * i] * *cp + F[2 * i + 1] * *sp;
   const T nw = tb_hypot3(w);
-  for (int i = 0; i < 3; ++i) u1[i] = nw > T(0) ? w[i] / nw : (i == 0 ? T(1) : T(0));
+  const T iw = nw > T(0) ? T(1) / nw : T(0);  // one division, three products
+  for (int i = 0; i < 3; ++i) u1[i] = nw > T(0) ? w[i] * iw : (i == 0 ? T(1) : T(0));
   const T cu = N[0] * u1[0] + N[1] * u1[1] + N[2] * u1[2];
   T m[3];
   for (int i = 0; i < 3; ++i) m[i] = N[i] - cu * u1[i];
   const T nm = tb_hypot3(m);
   if (nm > tb_tiny(T(0)) / tb_eps(T(0))) {
-    for (int i = 0; i < 3; ++i) n[i] = m[i] / nm;
+    const T im = T(1) / nm;
+    for (int i = 0; i < 3; ++i) n[i] = m[i] * im;
   } else {  // a unit vector perpendicular to u1 (ops.membrane._perp)
     const bool use_y = (u1[0] < T(0) ? -u1[0] : u1[0]) > T(0.9);
     const T alt[3] = {use_y ? T(0) : T(1), use_y ? T(1) : T(0), T(0)};
@@ -436,7 +439,10 @@ TB_HD static inline T membrane_face_hvp(int model, int projection, const T* p0, 
 }
 
 // The (projected) Hessian of one triangle of any model, flat (9, 9) over (vertex, axis): coef sum_k proj(l_k) z_k z_k^T
-// with z_k = B^T q_k (z_k[3 m + a] = (Q_k D^T)[a, m]), exactly symmetric.  StVK unprojected: stvk_block.
+// with z_k = B^T q_k (z_k[3 m + a] = (Q_k D^T)[a, m]), exactly symmetric.  Each mode is a sum of outer products
+// u v^T (u in {u1, u2, n}, v in {v1, v2}), whose z is u[a] (W v)[m] for the vertices m = 1, 2 (W: D's rows 1, 2);
+// vertex 0's rows are minus the sum of the others' (D's row 0 is -(W's rows summed): the translations are in the
+// null space), so only the 6 x 6 block of vertices 1, 2 is accumulated over the modes.  StVK unprojected: stvk_block.
 template <typename T>
 TB_HD static inline void membrane_face_block(int model, int projection, const T* p0, const T* p1, const T* p2,
                                              const T* D, T mu, T lam, T coef, T* H) {
@@ -446,24 +452,58 @@ TB_HD static inline void membrane_face_block(int model, int projection, const T*
     stvk_block(F, D, mu, lam, coef, H);
     return;
   }
-  T N[3], l[6], Q[36], P[6], z[6][9];
+  T N[3], s[2], cp, sp, u1[3], u2[3], n[3], p[2], l[6], c, sn;
   face_normal(p0, p1, p2, D, N);
-  mem_eigensystem(model, F, N, mu, lam, l, Q, P);
-  for (int k = 0; k < 6; ++k) {
-    l[k] = coef * mem_project(projection, l[k]);
-    for (int m = 0; m < 3; ++m)
-      for (int a = 0; a < 3; ++a) z[k][3 * m + a] = Q[6 * k + 2 * a] * D[2 * m] + Q[6 * k + 2 * a + 1] * D[2 * m + 1];
+  mem_thin_svd(F, N, s, &cp, &sp, u1, u2, n);
+  mem_density(model, s[0], s[1], mu, lam, 2, p, l, &c, &sn);
+  for (int k = 0; k < 6; ++k) l[k] = coef * mem_project(projection, l[k]);
+  // (W v1)[m], (W v2)[m] for m = 1, 2 (v1 = (cp, sp), v2 = (-sp, cp))
+  T w1[2], w2[2];
+  for (int m = 0; m < 2; ++m) {
+    const T d0 = D[2 * (m + 1)], d1 = D[2 * (m + 1) + 1];
+    w1[m] = d0 * cp + d1 * sp;
+    w2[m] = d1 * cp - d0 * sp;
   }
-  for (int r = 0; r < 9; ++r) {
+  const T h = T(0.70710678118654752440);
+  T z[6][6];  // the six modes over (vertex m = 1, 2; axis a): index 3 (m - 1) + a
+  for (int m = 0; m < 2; ++m)
+    for (int a = 0; a < 3; ++a) {
+      const T o11 = u1[a] * w1[m], o22 = u2[a] * w2[m], o21 = u2[a] * w1[m], o12 = u1[a] * w2[m];
+      const int j = 3 * m + a;
+      z[0][j] = c * o11 + sn * o22;
+      z[1][j] = c * o22 - sn * o11;
+      z[2][j] = h * (o21 - o12);
+      z[3][j] = h * (o21 + o12);
+      z[4][j] = n[a] * w1[m];
+      z[5][j] = n[a] * w2[m];
+    }
+  T R[6][6];  // vertices 1, 2
+  for (int r = 0; r < 6; ++r) {
     T lz[6];
     for (int k = 0; k < 6; ++k) lz[k] = l[k] * z[k][r];
-    for (int c = r; c < 9; ++c) {
+    for (int q = r; q < 6; ++q) {
       T acc = T(0);
-      for (int k = 0; k < 6; ++k) acc += lz[k] * z[k][c];
-      H[9 * r + c] = acc;
-      H[9 * c + r] = acc;
+      for (int k = 0; k < 6; ++k) acc += lz[k] * z[k][q];
+      R[r][q] = acc;
+      R[q][r] = acc;
     }
   }
+  T C[3][6];  // vertex 0 against vertices 1, 2: minus the column sums over vertices 1, 2
+  for (int a = 0; a < 3; ++a)
+    for (int q = 0; q < 6; ++q) C[a][q] = -(R[a][q] + R[3 + a][q]);
+  for (int a = 0; a < 3; ++a)
+    for (int b = a; b < 3; ++b) {
+      const T v = -(C[a][b] + C[a][3 + b]);  // vertex 0 against itself
+      H[9 * a + b] = v;
+      H[9 * b + a] = v;
+    }
+  for (int a = 0; a < 3; ++a)
+    for (int q = 0; q < 6; ++q) {
+      H[9 * a + 3 + q] = C[a][q];
+      H[9 * (3 + q) + a] = C[a][q];
+    }
+  for (int r = 0; r < 6; ++r)
+    for (int q = 0; q < 6; ++q) H[9 * (3 + r) + 3 + q] = R[r][q];
 }
 
 }  // namespace torchbend
