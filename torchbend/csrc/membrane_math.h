@@ -58,14 +58,17 @@ TB_HD static inline void stvk_block(const T* F, const T* D, T mu, T lam, T coef,
     }
   }
   const T cm = coef * mu, cl = coef * lam;
-  // the upper triangle, mirrored: exactly symmetric blocks (A symmetrized the same way)
-  for (int r = 0; r < 9; ++r)
-    for (int c = r; c < 9; ++c) {
-      const int k = r / 3, i = r % 3, l = c / 3, j = c % 3;
-      const T a = k <= l ? A[k][l] : A[l][k];
-      const T h = B[k][l] * FF[i][j] + cm * (t[k][j] * t[l][i]) + cl * (t[k][i] * t[l][j]) + (i == j ? a : T(0));
-      H[9 * r + c] = h;
-      H[9 * c + r] = h;
+  // the upper triangle (vertex pairs k <= l), mirrored: exactly symmetric blocks (A's upper triangle)
+  for (int k = 0; k < 3; ++k)
+    for (int l = k; l < 3; ++l) {
+      const T a = A[k][l], b = B[k][l];
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+          if (l == k && j < i) continue;
+          const T h = b * FF[i][j] + cm * (t[k][j] * t[l][i]) + cl * (t[k][i] * t[l][j]) + (i == j ? a : T(0));
+          H[9 * (3 * k + i) + 3 * l + j] = h;
+          H[9 * (3 * l + j) + 3 * k + i] = h;
+        }
     }
 }
 
