@@ -10,7 +10,7 @@ Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9)
   eager        : the same with backend="eager" (the closed form in PyTorch operations);
   func + eigh  : what a user writes without this library: torch.func.hessian of the plain per-triangle energy
                  (vmap over triangles), torch.linalg.eigh (9x9), clamp (a different, position-space projection);
-  check        : the unprojected compiled blocks against torch.func.hessian of the plain energy.
+  check        : the unprojected compiled blocks against torch.func.hessian of the plain energy in float64.
 The plain energies are written in the invariants I2 = |F|^2 and J = |f0 x f1| (as a user would), independent of
 the library's singular values.  No assertions on time.
 """
@@ -73,8 +73,8 @@ def measure(mem: MembraneEnergy, x: torch.Tensor, repeat: int) -> str:
     t_c = timeit(lambda: mem.element_hessians(x, projection="clamp"), repeat)
     t_e = timeit(lambda: mem.element_hessians(x, projection="clamp", backend="eager"), repeat)
     t_f = timeit(lambda: func_eigh_projection(mem, x), repeat)
-    ref = func_hessians(mem, x)
-    err = float((mem.element_hessians(x) - ref).abs().max() / ref.abs().max())
+    ref = func_hessians(mem.double(), x.double())  # the reference in float64 (a float32 one loses digits itself)
+    err = float((mem.to(x.dtype).element_hessians(x).double() - ref).abs().max() / ref.abs().max())
     return (f"{mem.face_count:>10d} {mem.model.value:>20s} {t_c * 1e3:10.2f}ms {t_e * 1e3:8.2f}ms {t_f * 1e3:9.2f}ms "
             f"{t_e / t_c:8.1f}x {t_f / t_c:8.1f}x  unprojected vs torch.func max rel. diff {err:.1e}")
 

@@ -290,13 +290,15 @@ def test_compiled_blocks_match_the_eager_path(model, dtype):
     for projection in ("none", "clamp", "abs"):
         for pos in (x, xb):
             ref = mem.element_hessians(pos, projection=projection, backend="eager")
-            got = native.membrane_blocks(pos, mem.faces, D, coef, mu, lam, model, projection)
-            assert got.shape == ref.shape and got.dtype == dtype
+            got, finite = native.membrane_blocks(pos, mem.faces, D, coef, mu, lam, model, projection)
+            assert finite and got.shape == ref.shape and got.dtype == dtype
             scale = ref.flatten(-2).abs().amax(-1)[..., None, None]  # zero for a block clamped away entirely
             assert bool(((got - ref).abs() <= 32 * eps * scale).all())
             assert torch.equal(got, got.transpose(-1, -2))
             assert torch.equal(mem.element_hessians(pos, projection=projection), got)
-    assert native.membrane_blocks(x, mem.faces[:0], D[:0], coef[:0], mu, lam, model, "clamp").shape == (0, 9, 9)
+    assert native.membrane_blocks(x, mem.faces[:0], D[:0], coef[:0], mu, lam, model, "clamp")[0].shape == (0, 9, 9)
+    _, finite = native.membrane_blocks(x * 1e160, mem.faces, D, coef, mu, lam, model, projection)
+    assert not finite  # overflow: element_hessians then takes the eager path, whose error names the faces
 
 
 def test_compiled_blocks_are_chosen_without_a_graph():

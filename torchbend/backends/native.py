@@ -151,12 +151,13 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
 
 
 def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,
-                    projection: str = "none") -> Tensor:
-    """The Hessian of each triangle of each sample, ``(..., T, 9, 9)`` [N/m] (flat index ``3 k + i``: vertex ``k``,
+                    projection: str = "none") -> tuple[Tensor, bool]:
+    """``(H, finite)``: the Hessian of each triangle of each sample, ``H (..., T, 9, 9)`` [N/m] (flat index ``3 k + i``: vertex ``k``,
     axis ``i``), of positions ``x (..., V, 3)``, its eigenvalues in ``f = vec(F)`` projected (``projection``:
     ``"none"``, ``"clamp"``, ``"abs"``): :meth:`torchbend.MembraneEnergy.element_hessians`, compiled (StVK unprojected
     in closed form, the rest through the closed-form eigensystem).  ``faces (T, 3)``, ``D (T, 3, 2)``, ``coef = A t
-    (T,)`` [m^3], one ``mu`` and ``lam`` [Pa]; ``model`` a :class:`torchbend.ops.membrane.MembraneModel` value."""
+    (T,)`` [m^3], one ``mu`` and ``lam`` [Pa]; ``model`` a :class:`torchbend.ops.membrane.MembraneModel` value;
+    ``finite``: whether every entry is (checked in the kernel, on each block as it is written)."""
     return _module().membrane_blocks(x, faces, D, coef, mu, lam, MEMBRANE_MODEL_CODE[model],
                                      MEMBRANE_PROJECTION_CODE[projection])
 

@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <initializer_list>
 #include <vector>
 
@@ -138,8 +139,8 @@ std::tuple<Tensor, Tensor> membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor
   return {hv, dot};
 }
 
-Tensor membrane_blocks(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, int64_t model,
-                       int64_t projection) {
+std::tuple<Tensor, bool> membrane_blocks(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam,
+                                         int64_t model, int64_t projection) {
   const char* op = "membrane_blocks";
   check_model(op, model, projection);
   const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
@@ -152,6 +153,7 @@ Tensor membrane_blocks(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
   std::vector<int64_t> shape(x.sizes().begin(), x.sizes().end() - 2);
   shape.insert(shape.end(), {T, 9, 9});
   Tensor out = pooled_empty(shape, x.options());  // huge pages for a large output (cpu_tiles.cpp)
+  std::atomic<bool> finite{true};
   const int64_t* fc = faces.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_blocks", [&] {
     const scalar_t* d = D.data_ptr<scalar_t>();
@@ -161,15 +163,19 @@ Tensor membrane_blocks(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu,
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
       scalar_t* o = out.data_ptr<scalar_t>() + b * T * 81;
       at::parallel_for(0, T, 1024, [&](int64_t begin, int64_t end) {
+        bool ok = true;
         for (int64_t e = begin; e < end; ++e) {
           const int64_t* t = fc + 3 * e;
+          scalar_t* H = o + 81 * e;
           membrane_face_block<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
-                                        d + 6 * e, m, la, c[e], o + 81 * e);
+                                        d + 6 * e, m, la, c[e], H);
+          ok = all_finite(H, 81) && ok;  // on the block just written, in L1
         }
+        if (!ok) finite.store(false, std::memory_order_relaxed);
       });
     }
   });
-  return out;
+  return {out, finite.load()};
 }
 
 }  // namespace cpu

@@ -10,9 +10,11 @@
 namespace torchbend {
 namespace cpu {
 
-// (..., T, 9, 9): the (projected) Hessian of each triangle of each sample, coef d^2 psi / dx^2
-torch::Tensor membrane_blocks(torch::Tensor x, torch::Tensor faces, torch::Tensor D, torch::Tensor coef,
-                              torch::Tensor mu, torch::Tensor lam, int64_t model, int64_t projection);
+// ((..., T, 9, 9), finite): the (projected) Hessian of each triangle of each sample, coef d^2 psi / dx^2, and whether
+// every entry is finite
+std::tuple<torch::Tensor, bool> membrane_blocks(torch::Tensor x, torch::Tensor faces, torch::Tensor D,
+                                                torch::Tensor coef, torch::Tensor mu, torch::Tensor lam, int64_t model,
+                                                int64_t projection);
 // (E (...,), weight dE/dx (..., V, 3) or empty): the energy of each sample and, optionally, its weighted gradient
 std::tuple<torch::Tensor, torch::Tensor> membrane_energy_gradient(torch::Tensor x, torch::Tensor faces,
                                                                   torch::Tensor D, torch::Tensor coef,

@@ -162,8 +162,8 @@ class MembraneEnergy(nn.Module):
         D, coef, mu, lam = self._args(x, "element_hessians", backend)
         if self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE and fn.applies(
                 x, self.faces, D, coef, mu, lam):
-            H = native.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
-            if bool(torch.isfinite(H.sum())):
+            H, finite = native.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
+            if finite:
                 return H  # else the eager path names the faces
         if self.model is MembraneModel.STVK and proj is Projection.NONE:  # the closed form, no eigensystem
             F = deformation_gradient(x, self.faces, D)
