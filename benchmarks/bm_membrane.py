@@ -3,6 +3,7 @@
     python benchmarks/bm_membrane.py                # projected blocks, 1e3, 1e4, 1e5 triangles, float64
     python benchmarks/bm_membrane.py --model-hessian  # the drape's Newton matrix, membrane blocks eager vs compiled
     python benchmarks/bm_membrane.py --operators      # energy, gradient, HVP vs autograd, torch.func (1e3-1e6)
+    python benchmarks/bm_membrane.py --compile        # bending + membrane under torch.compile(fullgraph) vs eager
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
   torchbend    : MembraneEnergy.element_hessians(x, projection="clamp") (the compiled kernel on the CPU:
@@ -153,12 +154,50 @@ def operator_rows(mem: MembraneEnergy, x: torch.Tensor, v: torch.Tensor, repeat:
               f"{t2 * 1e3:9.3f}ms {t1 / t0:9.1f}x {t2 / t0:7.1f}x  max rel. diff {err:.1e}", flush=True)
 
 
+def compiled_cloth(sizes: list[int], repeat: int, models: list[str]) -> None:
+    """A cloth energy of bending (tan) and membrane: its value, and a training step (value, backward), eagerly and
+    under ``torch.compile(fullgraph=True)``, one mesh, float64."""
+    print(f"{'triangles':>10s} {'model':>20s} {'op':>6s} {'eager':>10s} {'compiled':>10s} {'speedup':>8s}  check")
+    for T in sizes:
+        n = max(3, round((T / 2) ** 0.5) + 1)
+        rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=torch.float64)
+        gen = torch.Generator().manual_seed(0)
+        x = rest * 1.05 + (0.3 / n) * torch.randn(rest.shape, generator=gen, dtype=torch.float64)
+        bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-4)
+        for model in models:
+            mem = MembraneEnergy(faces, rest, model=model, young=1e5, poisson=0.3, thickness=1e-3)
+
+            def energy(y, bend=bend, mem=mem):
+                return bend(y) + mem(y)
+
+            def step(y, energy=energy):
+                value = energy(y)
+                value.backward()
+                return value.detach()
+
+            torch._dynamo.reset()
+            c_energy = torch.compile(energy, fullgraph=True)
+            with torch._dynamo.config.patch(trace_autograd_ops=True):
+                c_step = torch.compile(step, fullgraph=True)
+                y = x.clone().requires_grad_()
+                c_step(y)
+                for op, eager, comp, arg in (("energy", energy, c_energy, lambda: x),
+                                             ("step", step, c_step, lambda: x.clone().requires_grad_())):
+                    te = timeit(lambda f=eager, a=arg: f(a()), repeat)
+                    tc = timeit(lambda f=comp, a=arg: f(a()), repeat)
+                    ulp = float((c_energy(x) - energy(x)).abs() / (torch.finfo(x.dtype).eps * energy(x).abs()))
+                    print(f"{mem.face_count:>10d} {model:>20s} {op:>6s} {te * 1e3:8.3f}ms {tc * 1e3:8.3f}ms "
+                          f"{te / tc:7.2f}x  energy {ulp:.1f} ulp from eager", flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--model-hessian", type=int, nargs="*", default=None, metavar="N",
                    help="the solver's Newton matrix of the N x N drape instead (default N: 41 81 161)")
     p.add_argument("--operators", action="store_true",
                    help="energy, gradient and HVP against eager autograd and torch.func instead")
+    p.add_argument("--compile", action="store_true",
+                   help="bending + membrane under torch.compile(fullgraph=True) against eager instead")
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     p.add_argument("--models", nargs="+", default=["stvk", "arap", "symmetric_dirichlet", "neohookean"])
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
@@ -168,6 +207,9 @@ def main(argv=None) -> None:
     print("machine:", machine())
     if a.operators:
         operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat, a.models)
+        return
+    if a.compile:
+        compiled_cloth(a.sizes, a.repeat, a.models)
         return
     if a.model_hessian is not None:
         model_hessians(a.model_hessian or [41, 81, 161], a.repeat)

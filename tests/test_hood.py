@@ -271,3 +271,27 @@ def test_signatures_of_the_issue_and_hoods_names():
     assert float(hood.Bending(faces, x0, 2e-5)(x)) == float(hood.Bending(faces, x0, bending_coeff=2e-5)(x))
     with pytest.raises(ValueError, match="mu or lame_mu, not both"):
         hood.Stretching(faces, x0, mu=1e4, lame_mu=1e4)
+
+
+def test_hood_losses_compile_fullgraph():
+    """HOOD's stretching and bending in a ClothLoss under torch.compile(fullgraph=True): no graph break (the
+    material checks run eagerly only), the loss and a training step's gradient as the eager ones."""
+    s, mats = _scene(), _materials(3)
+    terms = _terms(s, mats)
+    loss = tb.ClothLoss({k: terms[k] for k in ("stretching", "bending")}, reduction="sum")
+
+    def step(y):
+        value = loss(y)[0]
+        value.backward()
+        return value.detach()
+
+    torch._dynamo.reset()
+    try:
+        y1, y2 = s["x"].clone().requires_grad_(), s["x"].clone().requires_grad_()
+        with torch._dynamo.config.patch(trace_autograd_ops=True):
+            l1 = torch.compile(step, fullgraph=True)(y1)
+        l2 = step(y2)
+    finally:
+        torch._dynamo.reset()
+    torch.testing.assert_close(l1, l2, rtol=4 * torch.finfo(torch.float64).eps, atol=0)
+    torch.testing.assert_close(y1.grad, y2.grad, rtol=1e-13, atol=1e-13 * float(y2.grad.abs().max()))

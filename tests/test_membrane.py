@@ -393,3 +393,74 @@ def test_compiled_hvp_matches_the_eager_path(model, dtype):
         assert float((dw - dwe).abs().max()) <= 64 * eps * float(dwe.abs().max())
         h3, _ = double_backward("auto", create_graph=True)
         assert h3.requires_grad and float((h3.detach() - he).abs().max()) <= 64 * eps * float(he.abs().max())
+
+
+# -------------------------------------------------------------------- torch.compile
+@pytest.fixture
+def fresh_dynamo():
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_torch_compile_fullgraph_bending_and_membrane(fresh_dynamo, model):
+    """A cloth energy of bending and membrane under torch.compile(fullgraph=True): no graph break (the membrane's
+    operators torch.ops.torchbend.membrane_* and their Functions without jvp), the energy within 4 ulps of the eager
+    call, a training step (loss.backward() inside the graph) with the eager gradients; a double backward through
+    the compiled energy is the guard's clear error; torch.ops.torchbend.membrane_hvp gives the eager HVP."""
+    from torchbend.backends import CompiledDoubleBackwardError, native
+
+    if native.load() is None:
+        pytest.skip("the CPU extension is not built")
+    rest, faces = tb.scenes.random_curved_sheet(8, 7, amplitude=0.2, seed=5, dtype=F64)
+    gen = torch.Generator().manual_seed(6)
+    x = rest * 1.05 + 0.01 * torch.randn(rest.shape, generator=gen, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-4)
+    mem = _mem(rest, faces, model)
+
+    def energy(y):
+        return bend(y) + mem(y)
+
+    compiled = torch.compile(energy, fullgraph=True)
+    e, ref = compiled(x), energy(x)
+    assert float((e - ref).abs()) <= 4 * torch.finfo(F64).eps * float(ref.abs())
+
+    def step(y):
+        loss = energy(y)
+        loss.backward()
+        return loss.detach()
+
+    y1, y2 = x.clone().requires_grad_(), x.clone().requires_grad_()
+    with torch._dynamo.config.patch(trace_autograd_ops=True):
+        torch.compile(step, fullgraph=True)(y1)
+    step(y2)
+    assert rel(y1.grad, y2.grad) <= 1e-14
+    yg = x.clone().requires_grad_()
+    with pytest.raises(CompiledDoubleBackwardError):
+        torch.autograd.grad(torch.compile(mem, fullgraph=True)(yg), yg, create_graph=True)
+    D, coef = mem.shape_matrices, mem.rest_areas * mem.thickness
+    v = torch.randn(x.shape, generator=gen, dtype=F64)
+    hv, _ = torch.ops.torchbend.membrane_hvp(x, v, mem.faces, D, coef, mem.mu, mem.lam, x.new_ones(()), model, "clamp")
+    assert rel(hv, mem.hvp(x, v, projection="clamp", backend="eager")) <= 1e-13
+
+
+def test_torch_compile_membrane_operator_errors(fresh_dynamo):
+    """Inside compiled code the membrane operators raise the eager path's errors: non-finite positions, and a
+    collapsed triangle of a model undefined there, named by its faces."""
+    from torchbend.backends import native
+
+    if native.load() is None:
+        pytest.skip("the CPU extension is not built")
+    rest, faces = tb.scenes.random_curved_sheet(5, 4, amplitude=0.2, seed=2, dtype=F64)
+    mem = _mem(rest, faces, "neohookean")
+    compiled = torch.compile(mem, fullgraph=True)
+    bad = rest.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        compiled(bad)
+    flat = rest.clone()
+    f = mem.faces[2]
+    flat[f[2]] = flat[f[0]]
+    with pytest.raises(ValueError, match="collapsed"):
+        compiled(flat)

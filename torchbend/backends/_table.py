@@ -38,9 +38,11 @@ OPERATORS: dict[str, str | None] = {
     "hinge_hessians": "hinge_hessians",
     "assemble": None,
     "project_blocks": None,
+    "membrane_energy_gradient": None,
+    "membrane_hvp": None,
 }
 """``torch.ops.torchbend.<name>`` (:mod:`torchbend.backends.ops`) -> the kernel of the CUDA driver that runs it
-(``None``: CPU only; ``project_blocks`` runs eagerly on CUDA tensors)."""
+(``None``: no CUDA kernel; ``project_blocks`` and the membrane operators run their eager formulas on CUDA tensors)."""
 
 SCHEMAS: dict[str, str] = {
     "bending_energy": "(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "
@@ -60,6 +62,10 @@ SCHEMAS: dict[str, str] = {
                 "Tensor hinge_blocks, Tensor faces, Tensor face_edge_hinges, Tensor face_edge_signs, "
                 "Tensor face_blocks, Tensor row_len, SymInt nnz, bool per_triangle) -> Tensor",
     "project_blocks": "(Tensor M, str mode, bool hinge=False) -> Tensor",
+    "membrane_energy_gradient": "(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
+                                "bool gradient, str model) -> (Tensor, Tensor)",
+    "membrane_hvp": "(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
+                    "str model, str projection) -> (Tensor, Tensor)",
 }
 """The schema of every operator (``torch.ops.torchbend.<name>``): registered in C++ by the CPU extension
 (``csrc/op_registration.h``, the same strings: a test compares them), defined from Python where it cannot be

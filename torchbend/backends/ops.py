@@ -46,10 +46,10 @@ from .._torch_compat import dispatch_stack_len, is_functorch_wrapped, torch_func
 from . import kernels, native
 from ._table import MODEL_CODE, OPERATORS, SCHEMAS
 
-__all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_hessians", "assemble", "project_blocks", "OPS",
-           "run"]
+__all__ = ["bending_energy", "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order",
+           "hinge_hessians", "assemble", "project_blocks", "membrane_energy_gradient", "membrane_hvp", "OPS", "run"]
 
-_PYTHON_KERNELS = frozenset({"project_blocks"})
+_PYTHON_KERNELS = frozenset({"project_blocks", "membrane_energy_gradient", "membrane_hvp"})
 """Operators whose kernel is registered from Python even where the C++ library defines them."""
 
 
@@ -266,6 +266,36 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
             raise ValueError("torchbend.project_blocks: M holds non-finite values")
         return eager_project(M, Projection(mode)).contiguous()
     return native.project_blocks(M, mode, hinge)
+
+
+def _membrane_energy_gradient_fake(x, faces, D, coef, mu, lam, weight, gradient, model):
+    return x.new_empty(_batch(x)), (x.new_empty(x.shape) if gradient else x.new_empty(0))
+
+
+@_operator(_membrane_energy_gradient_fake)
+def membrane_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor,
+                             gradient: bool, model: str) -> tuple[Tensor, Tensor]:
+    """``(E (...,), weight dE/dx (..., V, 3) or empty)``: the membrane energy of ``model`` per sample and, with
+    ``gradient``, its gradient times ``weight`` (x's batch shape); the compiled kernel on the CPU, the eager formulas
+    elsewhere and for the ValueError that names the faces of a collapsed or overflowing triangle
+    (:func:`torchbend.energies._membrane_fn.kernel_energy_gradient`)."""
+    from ..energies import _membrane_fn
+
+    return _membrane_fn.kernel_energy_gradient(x, faces, D, coef, mu, lam, weight, gradient, model)
+
+
+def _membrane_hvp_fake(x, v, faces, D, coef, mu, lam, weight, model, projection):
+    return x.new_empty(x.shape), x.new_empty(_batch(x))
+
+
+@_operator(_membrane_hvp_fake)
+def membrane_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor,
+                 model: str, projection: str) -> tuple[Tensor, Tensor]:
+    """``(weight H v (..., V, 3), dE/dx . v (...,))``: the (``projection``) Hessian-vector product of the membrane
+    energy of ``model`` (:func:`torchbend.energies._membrane_fn.kernel_hvp`; as :func:`membrane_energy_gradient`)."""
+    from ..energies import _membrane_fn
+
+    return _membrane_fn.kernel_hvp(x, v, faces, D, coef, mu, lam, weight, model, projection)
 
 
 assert set(_KERNELS) == set(OPERATORS) == set(SCHEMAS), "torchbend.backends._table.OPERATORS lists every operator"

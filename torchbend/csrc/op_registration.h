@@ -33,6 +33,10 @@ inline constexpr const char* kSchemas[] = {
     "Tensor hinge_blocks, Tensor faces, Tensor face_edge_hinges, Tensor face_edge_signs, Tensor face_blocks, "
     "Tensor row_len, SymInt nnz, bool per_triangle) -> Tensor",
     "project_blocks(Tensor M, str mode, bool hinge=False) -> Tensor",
+    "membrane_energy_gradient(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
+    "bool gradient, str model) -> (Tensor, Tensor)",
+    "membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
+    "str model, str projection) -> (Tensor, Tensor)",
 };
 
 // the Python callable (status, model, x, theta, v) -> raises; held for the life of the process (never destroyed:

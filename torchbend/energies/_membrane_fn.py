@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import is_traced
+from .._checks import check_direction, check_positions, is_traced
 from ..backends import native
 from ..backends.compile_guard import compiled_backward_guard
 from ..ops.membrane import (
@@ -24,9 +24,12 @@ from ..ops.membrane import (
     energy_density,
     stress,
 )
+from ..ops.projection import project_eigenvalues
 from ..ops.stencil import scatter
+from ..options import Projection
 
-__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "applies"]
+__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "applies",
+           "kernel_energy_gradient", "kernel_hvp"]
 
 
 def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
@@ -198,13 +201,116 @@ def _make(model: MembraneModel, compiled: bool = False):
 _FUNCTIONS = {(m, c): _make(m, c) for m in MembraneModel for c in (False, True)}
 
 
+# ------------------------------------------------------------------------------ the operators torch.compile traces
+def kernel_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor,
+                           gradient: bool, model: str) -> tuple[Tensor, Tensor]:
+    """The kernel of ``torch.ops.torchbend.membrane_energy_gradient``: ``(E (...,), weight dE/dx (..., V, 3) or
+    empty)`` by the compiled kernel where it applies, else (other devices, a collapsed or overflowing triangle) by
+    the eager formulas, whose checks raise the ValueError that names the faces."""
+    m = MembraneModel.parse(model)
+    out = _compiled(m, x, faces, D, coef, mu, lam, weight if gradient else None) if native.load() is not None else None
+    if out is not None:
+        E, g = out
+        return E, (g if g is not None else x.new_empty(0))
+    check_positions(x, x.shape[-2], check_finite=True)  # a non-finite input is named as such
+    F, N = deformation(x, faces, D)
+    check_collapsed(m, F, N)
+    if not gradient:
+        psi = energy_density(m, F, mu, lam, N)
+        check_values(m, "energy", psi, F, N)
+        return (coef * psi).sum(-1), x.new_empty(0)
+    psi, P = stress(m, F, mu, lam, N)
+    check_values(m, "gradient", P, F, N)
+    G = (weight.to(x.dtype).expand(x.shape[:-2])[..., None] * coef)[..., None, None] * P
+    return (coef * psi).sum(-1), to_vertices(G, D, faces, x.shape[-2])
+
+
+def kernel_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor,
+               model: str, projection: str) -> tuple[Tensor, Tensor]:
+    """The kernel of ``torch.ops.torchbend.membrane_hvp``: ``(weight H v (..., V, 3), dE/dx . v (...,))`` with the
+    eigenvalues projected by ``projection``, compiled where it applies, else by the eigensystem's eager formulas."""
+    m = MembraneModel.parse(model)
+    out = compiled_hvp(m, projection, x, v, faces, D, coef, mu, lam, weight) if native.load() is not None else None
+    if out is not None:
+        return out
+    check_positions(x, x.shape[-2], check_finite=True)
+    check_direction(v, x, True)
+    F, N = deformation(x, faces, D)
+    check_collapsed(m, F, N)
+    l, Q, _, P = eigensystem(m, F, mu, lam, N)
+    check_values(m, "Hessian", l, F, N)
+    dF = deformation_gradient(v, faces, D).flatten(-2)
+    w = weight.to(x.dtype).expand(x.shape[:-2])[..., None] * coef
+    hv = to_vertices(w[..., None, None] * hvp_faces(project_eigenvalues(l, Projection(projection)), Q, dF), D, faces,
+                     x.shape[-2])
+    return hv, (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2, -3))
+
+
+def _make_kernel(model: MembraneModel):
+    """The pair of Functions that ``torch.compile`` traces (the operators above): no ``jvp`` and no vmap rule
+    (Dynamo does not trace Functions that define a custom ``jvp``), ``ctx`` in ``forward``.  The energy's forward
+    computes the gradient in the same pass when it will be differentiated; a double backward that records a graph
+    goes to the eager pair (and, through a compiled region, to the guard's error)."""
+    code = model.value
+
+    class _GradientImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, gE, x, faces, D, coef, mu, lam):
+            ctx.save_for_backward(gE, x, faces, D, coef, mu, lam)
+            return _ops().run("membrane_energy_gradient", x, faces, D, coef, mu, lam, gE, True, code)[1]
+
+        @staticmethod
+        def backward(ctx, ggx):
+            gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
+            hv, dot = _ops().run("membrane_hvp", x, ggx, faces, D, coef, mu, lam, gE, code, "none")
+            return (dot if ctx.needs_input_grad[0] else None), hv, None, None, None, None, None
+
+    class _EnergyImpl(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x, faces, D, coef, mu, lam):
+            need = ctx.needs_input_grad[0]
+            E, g = _ops().run("membrane_energy_gradient", x, faces, D, coef, mu, lam, x.new_ones(x.shape[:-2]), need,
+                              code)
+            ctx.save_for_backward(x, faces, D, coef, mu, lam, g if need else None)
+            return E
+
+        @staticmethod
+        def backward(ctx, gE):
+            gE = compiled_backward_guard(gE)  # a compiled backward cannot be differentiated: a clear error
+            x, faces, D, coef, mu, lam, g = ctx.saved_tensors
+            if torch.is_grad_enabled():  # create_graph=True (eagerly): the differentiable gradient
+                gx = _FUNCTIONS[model, True][1].apply(gE, x, faces, D, coef, mu, lam)
+            else:
+                gx = gE[..., None, None] * g
+            return gx, None, None, None, None, None
+
+    name = "".join(w.capitalize() for w in model.value.split("_"))
+    _Gradient = type(f"{name}MembraneGradientKernel", (_GradientImpl,), {"__module__": __name__})
+    _Energy = type(f"{name}MembraneEnergyKernel", (_EnergyImpl,), {"__module__": __name__})
+    return _Energy, _Gradient
+
+
+def _ops():
+    from ..backends import ops  # imported on first use: ops registers its kernels, which import this module
+
+    return ops
+
+
+_KERNEL_FUNCTIONS = {m: _make_kernel(m) for m in MembraneModel}
+
+
 def energy_function(model: MembraneModel | str, compiled: bool = False) -> type[torch.autograd.Function]:
     """The private energy Function of ``model`` (a :class:`MembraneModel` or its name); ``compiled``: its forward
-    (and the gradient's, and the gradient's backward) take the compiled kernels where they apply (:func:`_compiled`)."""
+    (and the gradient's, and the gradient's backward) take the compiled kernels where they apply (:func:`_compiled`);
+    while ``torch.compile`` traces, the Functions of the operators ``torch.ops.torchbend.membrane_*``."""
+    if compiled and torch.compiler.is_compiling():  # the operators torch.compile traces
+        return _KERNEL_FUNCTIONS[MembraneModel.parse(model)][0]
     return _FUNCTIONS[MembraneModel.parse(model), bool(compiled)][0]
 
 
 def gradient_function(model: MembraneModel | str, compiled: bool = False) -> type[torch.autograd.Function]:
     """The private gradient Function of ``model`` (its backward is the analytic HVP); ``compiled`` as in
     :func:`energy_function`."""
+    if compiled and torch.compiler.is_compiling():
+        return _KERNEL_FUNCTIONS[MembraneModel.parse(model)][1]
     return _FUNCTIONS[MembraneModel.parse(model), bool(compiled)][1]

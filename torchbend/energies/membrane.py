@@ -103,7 +103,8 @@ class MembraneEnergy(nn.Module):
         return int(self.faces.shape[0])
 
     def _args(self, x: Tensor, op: str, backend=None):
-        check_positions(x, self.vertex_count, check_finite=self.check_finite)
+        # compiled code checks inside the operators (torch.ops.torchbend.membrane_*): no data-dependent branch here
+        check_positions(x, self.vertex_count, check_finite=self.check_finite and not torch.compiler.is_compiling())
         if x.device != self.faces.device:
             raise ValueError(f"x is on {x.device} but the module is on {self.faces.device}; move one with .to()")
         dt = x.dtype

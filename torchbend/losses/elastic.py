@@ -29,6 +29,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
+from .._checks import is_traced
 from ..energies import _membrane_fn
 from ..energies.bending import BendingEnergy
 from ..energies.membrane import MembraneEnergy
@@ -79,7 +80,7 @@ class Stretch(LossTerm):
 
     def _check_poisson(self, nu: Tensor) -> None:
         d = nu.detach()
-        if bool(((d <= -1) | (d >= 0.5)).any()):
+        if not is_traced(d) and bool(((d <= -1) | (d >= 0.5)).any()):  # (checked eagerly, not compiled)
             raise ValueError(f"{self.term_name}: poisson must lie in the open interval (-1, 0.5), got "
                              f"[{float(d.min()):g}, {float(d.max()):g}]")
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from ... import backends
-from ..._checks import positive
+from ..._checks import is_traced, positive
 from ...energies._bending_fn import bending_energy_raw
 from ...energies.bending import BendingEnergy
 from ...ops.psi import BendingModel
@@ -160,7 +160,7 @@ class Stretching(HoodTerm):
         mu = per_sample(self.lame_mu if lame_mu is None else lame_mu, "lame_mu", x, name, positive=True)
         lam = per_sample(self.lame_lambda if lame_lambda is None else lame_lambda, "lame_lambda", x, name,
                          positive=None)
-        if bool((lam.detach() <= -mu.detach()).any()):
+        if not is_traced(lam) and bool((lam.detach() <= -mu.detach()).any()):  # (checked eagerly, not compiled)
             raise ValueError(f"{name}: lame_lambda must exceed -lame_mu (2-D stability), got lame_mu "
                              f"{mu.detach().tolist()} and lame_lambda {lam.detach().tolist()}")
         e_mu, e_lam, _ = _StVKParts.apply(x, self.faces, self.corners, self.Dinv.to(x.dtype),
