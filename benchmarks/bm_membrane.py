@@ -181,8 +181,8 @@ def compiled_cloth(sizes: list[int], repeat: int, models: list[str]) -> None:
                 c_step = torch.compile(step, fullgraph=True)
                 y = x.clone().requires_grad_()
                 c_step(y)
-                for op, eager, comp, arg in (("energy", energy, c_energy, lambda: x),
-                                             ("step", step, c_step, lambda: x.clone().requires_grad_())):
+                for op, eager, comp, arg in (("energy", energy, c_energy, lambda x=x: x),
+                                             ("step", step, c_step, lambda x=x: x.clone().requires_grad_())):
                     te = timeit(lambda f=eager, a=arg: f(a()), repeat)
                     tc = timeit(lambda f=comp, a=arg: f(a()), repeat)
                     ulp = float((c_energy(x) - energy(x)).abs() / (torch.finfo(x.dtype).eps * energy(x).abs()))

@@ -63,3 +63,37 @@ def test_a_users_cg_newton_on_it_reaches_solve_statics_equilibrium(beam):
             alpha *= 0.5
         x = x + alpha * step
     assert rel(x - rest, x_ref - rest) <= 1e-6
+
+
+def test_a_damped_cg_newton_on_it_takes_solve_statics_iterations(beam):
+    """The damped Newton a user writes on linearize (benchmarks/bm_linearize.py: the exact Hessian with a
+    Levenberg-Marquardt shift, SciPy CG, the step bound, Armijo) reaches solve_static's equilibrium in at most
+    twice its Newton iterations: the operator loses nothing against the solver's own assembly."""
+    import scipy.sparse as sp
+
+    model, rest, _ = beam
+    x_ref, info = tb.solve_static(model, rest)
+    assert info.converged
+    x, free = rest.clone(), ~model.pinned
+    scale = float(model.external_force(F64).norm())
+    lam, e, its = 0.0, float(model.potential(x)), 0
+    while its < 100:
+        g = model.gradient(x)[free].reshape(-1).numpy()
+        if np.linalg.norm(g) <= 1e-10 * scale:
+            break
+        A = model.linearize(x, "exact").free
+        floor = 1e-8 * float(abs(A.diagonal()).max())
+        while True:
+            M = A + lam * sp.identity(A.shape[0], format="csr") if lam else A
+            p, _ = spla.cg(M, -g, rtol=1e-10, maxiter=2000)
+            step = torch.zeros_like(x)
+            step[free] = torch.as_tensor(p).reshape(-1, 3)
+            alpha = min(1.0, model.max_step(x, step))
+            e1 = float(model.potential(x + alpha * step))
+            if float(g @ p) < 0 and e1 <= e + 1e-4 * alpha * float(g @ p):
+                x, e, lam = x + alpha * step, e1, (lam / 10 if lam > floor else 0.0)
+                break
+            lam = max(10 * lam, floor)
+        its += 1
+    assert its <= 2 * info.iterations
+    assert rel(x - rest, x_ref - rest) <= 1e-6
