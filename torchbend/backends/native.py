@@ -40,7 +40,7 @@ from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CO
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "membrane_blocks", "membrane_energy_gradient", "membrane_hvp",
+           "project_blocks", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
@@ -160,6 +160,17 @@ def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tenso
     ``finite``: whether every entry is (checked in the kernel, on each block as it is written)."""
     return _module().membrane_blocks(x, faces, D, coef, mu, lam, MEMBRANE_MODEL_CODE[model],
                                      MEMBRANE_PROJECTION_CODE[projection])
+
+
+def membrane_assemble(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,
+                      projection: str, blocks: Tensor, row_len: Tensor, nnz: int) -> Tensor | None:
+    """The CSR values ``(nnz,)`` of the (projected) membrane Hessian of one mesh ``x (V, 3)``: the blocks of
+    :func:`membrane_blocks` added in face order, in cached chunks instead of a ``(T, 9, 9)`` tensor, entry
+    ``(3 k + i, 3 l + j)`` of a triangle at ``blocks[t, 3 k + l] + i row_len[faces[t, k]] + j`` (the layout of
+    :class:`torchbend.energies.sparse.StencilPattern`); ``None`` where a value is not finite."""
+    values = _module().membrane_assemble(x, faces, D, coef, mu, lam, MEMBRANE_MODEL_CODE[model],
+                                         MEMBRANE_PROJECTION_CODE[projection], blocks, row_len, nnz)
+    return values if values.numel() == nnz else None
 
 
 def membrane_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,

@@ -26,6 +26,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "PSD projection (clamp, abs; reduced for hinge blocks) of symmetric 9x9 or 12x12 blocks, Jacobi");
   m.def("membrane_blocks", &op::membrane_blocks,
         "the (projected) Hessian of each triangle (..., T, 9, 9) of any membrane model, closed-form eigensystem");
+  m.def("membrane_assemble", &op::membrane_assemble,
+        "the CSR values of the (projected) membrane Hessian of one mesh, blocks added in face order");
   m.def("membrane_energy_gradient", &op::membrane_energy_gradient,
         "the energy of each sample and, optionally, its weighted gradient, of any membrane model");
   m.def("membrane_hvp", &op::membrane_hvp,

@@ -178,5 +178,79 @@ std::tuple<Tensor, bool> membrane_blocks(Tensor x, Tensor faces, Tensor D, Tenso
   return {out, finite.load()};
 }
 
+
+Tensor membrane_assemble(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, int64_t model,
+                         int64_t projection, Tensor blocks, Tensor row_len, int64_t nnz) {
+  const char* op = "membrane_assemble";
+  check_model(op, model, projection);
+  check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
+  const int64_t T = faces.size(0), V = x.size(-2);
+  TORCH_CHECK(x.dim() == 2, op, ": one mesh, x (V, 3)");
+  TORCH_CHECK(blocks.scalar_type() == torch::kInt64 && blocks.numel() == 9 * T && blocks.device().is_cpu(), op,
+              ": blocks must be (T, 9) int64 CSR positions of the vertex pairs' 3x3 blocks");
+  TORCH_CHECK(row_len.scalar_type() == torch::kInt64 && row_len.numel() == V && row_len.device().is_cpu(), op,
+              ": row_len must be (V,) int64");
+  x = x.contiguous();
+  faces = faces.contiguous();
+  D = D.contiguous();
+  coef = coef.contiguous();
+  blocks = blocks.contiguous();
+  row_len = row_len.contiguous();
+  check_face_indices(op, faces, V);
+  const int64_t* fc = faces.data_ptr<int64_t>();
+  const int64_t* bs = blocks.data_ptr<int64_t>();
+  const int64_t* rl = row_len.data_ptr<int64_t>();
+  for (int64_t e = 0; e < T; ++e)  // every entry base + i row_len + j (i, j < 3) inside the values
+    for (int k = 0; k < 3; ++k)
+      for (int l = 0; l < 3; ++l) {
+        const int64_t base = bs[9 * e + 3 * k + l], r = rl[fc[3 * e + k]];
+        TORCH_CHECK(base >= 0 && r >= 0 && base + 2 * r + 2 < nnz, op, ": blocks out of range [0, ", nnz, ")");
+      }
+  Tensor values = torch::zeros({nnz}, x.options());
+  bool finite = true;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "membrane_assemble", [&] {
+    const scalar_t* d = D.data_ptr<scalar_t>();
+    const scalar_t* c = coef.data_ptr<scalar_t>();
+    const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
+    const scalar_t* xb = x.data_ptr<scalar_t>();
+    scalar_t* out = values.data_ptr<scalar_t>();
+    // chunks of triangles: their blocks computed in parallel into a buffer that stays in cache, then added to the
+    // values in face order (deterministic, whatever the threads): entry (3 k + i, 3 l + j) of a triangle's block at
+    // blocks[k l] + i row_len[vertex k] + j
+    constexpr int64_t kChunk = 2048;
+    std::vector<scalar_t> buf(size_t(std::min(T, kChunk)) * 81);
+    for (int64_t c0 = 0; c0 < T; c0 += kChunk) {
+      const int64_t n = std::min(kChunk, T - c0);
+      std::atomic<bool> ok{true};
+      at::parallel_for(0, n, 256, [&](int64_t begin, int64_t end) {
+        bool good = true;
+        for (int64_t i = begin; i < end; ++i) {
+          const int64_t e = c0 + i;
+          const int64_t* t = fc + 3 * e;
+          scalar_t* H = buf.data() + 81 * i;
+          membrane_face_block<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
+                                        d + 6 * e, m, la, c[e], H);
+          good = all_finite(H, 81) && good;
+        }
+        if (!good) ok.store(false, std::memory_order_relaxed);
+      });
+      finite = finite && ok.load();
+      for (int64_t i = 0; i < n; ++i) {
+        const int64_t e = c0 + i;
+        const scalar_t* H = buf.data() + 81 * i;
+        for (int k = 0; k < 3; ++k) {
+          const int64_t r = rl[fc[3 * e + k]];
+          for (int l = 0; l < 3; ++l) {
+            scalar_t* o = out + bs[9 * e + 3 * k + l];
+            for (int p = 0; p < 3; ++p)
+              for (int q = 0; q < 3; ++q) o[p * r + q] += H[9 * (3 * k + p) + 3 * l + q];
+          }
+        }
+      }
+    }
+  });
+  return finite ? values : torch::empty({0}, x.options());
+}
+
 }  // namespace cpu
 }  // namespace torchbend

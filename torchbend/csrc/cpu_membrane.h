@@ -15,6 +15,12 @@ namespace cpu {
 std::tuple<torch::Tensor, bool> membrane_blocks(torch::Tensor x, torch::Tensor faces, torch::Tensor D,
                                                 torch::Tensor coef, torch::Tensor mu, torch::Tensor lam, int64_t model,
                                                 int64_t projection);
+// the CSR values (nnz,) of the (projected) Hessian of one mesh x (V, 3): each triangle's block added in face order
+// (entry (3 k + i, 3 l + j) at blocks[e, 3 k + l] + i row_len[vertex k] + j), without the (T, 9, 9) blocks in
+// memory; empty where a value is not finite
+torch::Tensor membrane_assemble(torch::Tensor x, torch::Tensor faces, torch::Tensor D, torch::Tensor coef,
+                                torch::Tensor mu, torch::Tensor lam, int64_t model, int64_t projection,
+                                torch::Tensor blocks, torch::Tensor row_len, int64_t nnz);
 // (E (...,), weight dE/dx (..., V, 3) or empty): the energy of each sample and, optionally, its weighted gradient
 std::tuple<torch::Tensor, torch::Tensor> membrane_energy_gradient(torch::Tensor x, torch::Tensor faces,
                                                                   torch::Tensor D, torch::Tensor coef,

@@ -205,10 +205,18 @@ class MembraneEnergy(nn.Module):
         projection = projection_argument(projection, project, "MembraneEnergy.hessian")
         if x.ndim != 2:
             raise ValueError(f"hessian() assembles one mesh: x must have shape ({self.vertex_count}, 3), got {tuple(x.shape)}")
-        He = self.element_hessians(x, projection=projection, backend=backend)
         if self._pattern is None:
             self._pattern = StencilPattern(self.topology.faces.numpy(), self.vertex_count)
         pat = self._pattern
+        proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
+        D, coef, mu, lam = self._args(x, "element_hessians", backend)
+        if self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE and fn.applies(
+                x, self.faces, D, coef, mu, lam):  # blocks added as they are computed (no (T, 9, 9) tensor)
+            values = native.membrane_assemble(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value,
+                                              pat.element_blocks, pat.row_len, pat.nnz)
+            if values is not None:
+                return pat.csr(values)
+        He = self.element_hessians(x, projection=proj, backend=backend)
         pos = pat.element_positions(x.device)
         return pat.csr(x.new_zeros(pat.nnz).index_add_(0, pos.reshape(-1), He.reshape(-1)))
 
