@@ -337,16 +337,18 @@ def test_double_backward_through_a_compiled_energy_raises_a_clear_error(fresh_dy
     assert torch.allclose(g1, g.detach(), rtol=1e-14, atol=0)
 
 
-def test_compiled_energy_backward_with_retain_graph_is_not_refused(fresh_dynamo, monkeypatch):
+def test_compiled_energy_backward_with_retain_graph_is_not_refused(fresh_dynamo):
     import torch._functorch.config as functorch_config
 
-    monkeypatch.setattr(functorch_config, "donated_buffer", False)  # PyTorch's own retain_graph limit
     bend, x, _ = _setup("quadratic", F64, False, ())
-    compiled = torch.compile(bend, fullgraph=True)
-    y = x.clone().requires_grad_()
-    e = compiled(y)
-    e.backward(retain_graph=True)
-    e.backward()
+    # PyTorch's own retain_graph limit, lifted by the config's patch (undone exactly: a monkeypatch of the config
+    # module deletes the entry on undo, which breaks every later compilation)
+    with functorch_config.patch(donated_buffer=False):
+        compiled = torch.compile(bend, fullgraph=True)
+        y = x.clone().requires_grad_()
+        e = compiled(y)
+        e.backward(retain_graph=True)
+        e.backward()
     z = x.clone().requires_grad_()
     bend(z).backward()
     assert torch.allclose(_grad(y), 2 * _grad(z), rtol=1e-14, atol=0)

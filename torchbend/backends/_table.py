@@ -40,6 +40,7 @@ OPERATORS: dict[str, str | None] = {
     "project_blocks": None,
     "membrane_energy_gradient": None,
     "membrane_hvp": None,
+    "sum_last": None,
 }
 """``torch.ops.torchbend.<name>`` (:mod:`torchbend.backends.ops`) -> the kernel of the CUDA driver that runs it
 (``None``: no CUDA kernel; ``project_blocks`` and the membrane operators run their eager formulas on CUDA tensors)."""
@@ -66,6 +67,7 @@ SCHEMAS: dict[str, str] = {
                                 "bool gradient, str model) -> (Tensor, Tensor)",
     "membrane_hvp": "(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
                     "str model, str projection) -> (Tensor, Tensor)",
+    "sum_last": "(Tensor values) -> Tensor",
 }
 """The schema of every operator (``torch.ops.torchbend.<name>``): registered in C++ by the CPU extension
 (``csrc/op_registration.h``, the same strings: a test compares them), defined from Python where it cannot be

@@ -37,6 +37,7 @@ inline constexpr const char* kSchemas[] = {
     "bool gradient, str model) -> (Tensor, Tensor)",
     "membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor D, Tensor coef, Tensor mu, Tensor lam, Tensor weight, "
     "str model, str projection) -> (Tensor, Tensor)",
+    "sum_last(Tensor values) -> Tensor",
 };
 
 // the Python callable (status, model, x, theta, v) -> raises; held for the life of the process (never destroyed:

@@ -75,8 +75,8 @@ def _dot4(a, b) -> Tensor:
 
 
 def _reduce(psi: Tensor, seg: Tensor | None, seg_count: int) -> Tensor:
-    if seg is None:
-        return psi.sum(-1)
+    if seg is None:  # compiled code: ATen's sum behind an operator, in eager's order (ops.sum_last)
+        return _ops.run("sum_last", psi) if torch.compiler.is_compiling() else psi.sum(-1)
     out = psi.new_zeros(psi.shape[:-1] + (seg_count,))
     return out.index_add(-1, seg, psi)
 
