@@ -11,15 +11,15 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "hvp_projected": ("cpu", "cuda"),
     "hessian_hinge": ("cpu",),
     "hessian_triangle": ("cpu",),
-    "membrane_element_hessians": ("cpu",),
-    "membrane_energy": ("cpu",),
-    "membrane_gradient": ("cpu",),
-    "membrane_hvp": ("cpu",),
+    "membrane_element_hessians": ("cpu", "cuda"),
+    "membrane_energy": ("cpu", "cuda"),
+    "membrane_gradient": ("cpu", "cuda"),
+    "membrane_hvp": ("cpu", "cuda"),
 }
 """Operation of the energies (the ``op`` of :func:`torchbend.backends.select_backend`) -> the devices with a
 compiled kernel for it: the energy, its gradient and Hessian-vector product (inside the analytic autograd
 Functions), the per-hinge 12x12 blocks (also behind the eigenvalue-projected hvp and assembly) and the
-unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane (every model, CPU), the
+unprojected sparse assembly per hinge or per triangle (one mesh, CPU only); of the membrane (every model), the
 element Hessians (projected or not), the energy and gradient (inside the membrane's autograd Functions) and the
 Hessian-vector product (projected or not)."""
 
@@ -73,7 +73,9 @@ SCHEMAS: dict[str, str] = {
 (``csrc/op_registration.h``, the same strings: a test compares them), defined from Python where it cannot be
 built (:mod:`torchbend.backends.ops`)."""
 
-CUDA_KERNELS: tuple[str, ...] = tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None))
+MEMBRANE_CUDA_KERNELS: tuple[str, ...] = ("membrane_energy_gradient", "membrane_hvp", "membrane_blocks")
+"""The membrane's kernels of the CUDA driver (called by the membrane's Python paths, not registered as operators)."""
+CUDA_KERNELS: tuple[str, ...] = tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None)) + MEMBRANE_CUDA_KERNELS
 """The kernels of the CUDA driver (``csrc/bending_cuda.cu``), each compiled for float32 and float64."""
 
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}

@@ -31,13 +31,15 @@ from torch import Tensor
 from . import _build_config as cfg
 from ._loader import Extension
 from ._status import fold_status, input_status, raise_for_status
-from ._table import CUDA_KERNELS, model_code
+from ._table import CUDA_KERNELS, MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, model_code
 
 __all__ = ["load", "build_error", "build_info", "available", "kernels", "bending_energy", "bending_gradient",
-           "bending_energy_gradient", "bending_hvp", "bending_hessians"]
+           "bending_energy_gradient", "bending_hvp", "bending_hessians", "membrane_energy_gradient", "membrane_hvp",
+           "membrane_blocks"]
 
 KERNELS = CUDA_KERNELS
-"""The operations the CUDA driver implements, each for float32 and float64 (:data:`torchbend.backends._table.OPERATORS`)."""
+"""The operations the CUDA driver implements, each for float32 and float64 (:data:`torchbend.backends._table.OPERATORS`
+and the membrane's, :data:`torchbend.backends._table.MEMBRANE_CUDA_KERNELS`)."""
 PREBUILT = "torchbend._cuda"
 """The module ``setup.py`` builds at install time."""
 
@@ -212,3 +214,29 @@ def hinge_angles(x: Tensor, hinges: Tensor) -> Tensor:
     """Bend angles ``(..., H)`` as the compiled energy computes them (the same instructions)."""
     zero = x.new_zeros(1)
     return _module().bending_energy(x.detach(), hinges, zero, zero, zero, None, None, 0, _stream(x))[1]
+
+
+def membrane_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                             weight: Tensor | None, model: str = "stvk") -> tuple[Tensor, Tensor | None]:
+    """As :func:`torchbend.backends.native.membrane_energy_gradient`, on CUDA tensors: ``(E (...,), weight dE/dx or
+    None)``; one thread per (sample, triangle), the energies summed by torch, the gradient scattered atomically."""
+    w = x.new_zeros(0) if weight is None else weight.detach()
+    psi, g = _module().membrane_energy_gradient(x.detach(), faces, D, coef, float(mu), float(lam), w, weight is not None,
+                                                MEMBRANE_MODEL_CODE[model], _stream(x))
+    return psi.sum(-1), (None if weight is None else g)
+
+
+def membrane_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                 weight: Tensor, model: str = "stvk", projection: str = "none") -> tuple[Tensor, Tensor]:
+    """As :func:`torchbend.backends.native.membrane_hvp`, on CUDA tensors."""
+    hv, dots = _module().membrane_hvp(x.detach(), v.detach(), faces, D, coef, float(mu), float(lam), weight.detach(),
+                                      MEMBRANE_MODEL_CODE[model], MEMBRANE_PROJECTION_CODE[projection], _stream(x))
+    return hv, dots.sum(-1)
+
+
+def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,
+                    projection: str = "none") -> tuple[Tensor, bool]:
+    """As :func:`torchbend.backends.native.membrane_blocks`, on CUDA tensors: ``(H (..., T, 9, 9), finite)``."""
+    H = _module().membrane_blocks(x.detach(), faces, D, coef, float(mu), float(lam), MEMBRANE_MODEL_CODE[model],
+                                  MEMBRANE_PROJECTION_CODE[projection], _stream(x))
+    return H, bool(torch.isfinite(H.sum()))

@@ -1,4 +1,5 @@
-// CUDA driver of torchbend's compiled bending operations: one thread per (sample, hinge), the per-hinge
+// CUDA driver of torchbend's compiled bending and membrane operations: one thread per (sample, hinge) or (sample,
+// triangle); the membrane's per-triangle mathematics is membrane_math.h, as on the CPU (cpu_membrane.cpp).  The per-hinge
 // mathematics of hinge_math.h / hinge_ops.h with W = 1 (the same functions the CPU driver runs in tiles
 // of 8 lanes, which the CPU tests compare against the eager reference), atomic scatter of the per-vertex
 // results.  No torch headers: the C interface is bending_cuda.h, bound to torch in cuda_binding.cpp.
@@ -6,6 +7,7 @@
 
 #include "bending_cuda.h"
 #include "hinge_ops.h"
+#include "membrane_math.h"
 
 using namespace torchbend;
 
@@ -187,9 +189,90 @@ template <typename T> int hessians(const void* x, const int64_t* hinges, int64_t
   return int(cudaGetLastError());
 }
 
+// ---- the membrane: one thread per (sample, triangle), atomic scatter of the per-vertex results ----------------
+template <typename T>
+__global__ void membrane_energy_gradient_kernel(const T* x, const int64_t* faces, int64_t B, int64_t V, int64_t Tn,
+                                                const T* D, const T* coef, T mu, T lam, int model, const T* w, T* psi,
+                                                T* gx) {
+  int64_t bt = thread_index();
+  if (bt >= B * Tn) return;
+  int64_t b = bt / Tn, e = bt - b * Tn;
+  const int64_t* t = faces + 3 * e;
+  const T* xb = x + 3 * V * b;
+  T f[9];
+  psi[bt] = membrane_face<T>(model, xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], D + 6 * e, mu, lam, coef[e],
+                             gx ? f : nullptr);
+  if (!gx) return;
+  T* out = gx + 3 * V * b;
+  for (int k = 0; k < 3; ++k)
+    for (int i = 0; i < 3; ++i) atomicAdd(out + 3 * t[k] + i, w[b] * f[3 * k + i]);
+}
+
+template <typename T>
+__global__ void membrane_hvp_kernel(const T* x, const T* v, const int64_t* faces, int64_t B, int64_t V, int64_t Tn,
+                                    const T* D, const T* coef, T mu, T lam, int model, int projection, const T* w,
+                                    T* hv, T* dots) {
+  int64_t bt = thread_index();
+  if (bt >= B * Tn) return;
+  int64_t b = bt / Tn, e = bt - b * Tn;
+  const int64_t* t = faces + 3 * e;
+  const T* xb = x + 3 * V * b;
+  const T* vb = v + 3 * V * b;
+  T h[9];
+  dots[bt] = membrane_face_hvp<T>(model, projection, xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], vb + 3 * t[0],
+                                  vb + 3 * t[1], vb + 3 * t[2], D + 6 * e, mu, lam, coef[e], h);
+  T* out = hv + 3 * V * b;
+  for (int k = 0; k < 3; ++k)
+    for (int i = 0; i < 3; ++i) atomicAdd(out + 3 * t[k] + i, w[b] * h[3 * k + i]);
+}
+
+template <typename T>
+__global__ void membrane_blocks_kernel(const T* x, const int64_t* faces, int64_t B, int64_t V, int64_t Tn, const T* D,
+                                       const T* coef, T mu, T lam, int model, int projection, T* blocks) {
+  int64_t bt = thread_index();
+  if (bt >= B * Tn) return;
+  int64_t b = bt / Tn, e = bt - b * Tn;
+  const int64_t* t = faces + 3 * e;
+  const T* xb = x + 3 * V * b;
+  membrane_face_block<T>(model, projection, xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], D + 6 * e, mu, lam, coef[e],
+                         blocks + 81 * bt);
+}
+
+template <typename T> int membrane_energy_gradient(const void* x, const int64_t* faces, int64_t B, int64_t V,
+                                                   int64_t Tn, const tb_membrane_args& a, const void* w, void* psi,
+                                                   void* gx, cudaStream_t s) {
+  if (B * Tn == 0) return 0;
+  membrane_energy_gradient_kernel<T><<<grid(B * Tn), kThreads, 0, s>>>(
+      static_cast<const T*>(x), faces, B, V, Tn, static_cast<const T*>(a.D), static_cast<const T*>(a.coef), T(a.mu),
+      T(a.lam), a.model, static_cast<const T*>(w), static_cast<T*>(psi), static_cast<T*>(gx));
+  return int(cudaGetLastError());
+}
+
+template <typename T> int membrane_hvp(const void* x, const void* v, const int64_t* faces, int64_t B, int64_t V,
+                                       int64_t Tn, const tb_membrane_args& a, const void* w, void* hv, void* dots,
+                                       cudaStream_t s) {
+  if (B * Tn == 0) return 0;
+  membrane_hvp_kernel<T><<<grid(B * Tn), kThreads, 0, s>>>(
+      static_cast<const T*>(x), static_cast<const T*>(v), faces, B, V, Tn, static_cast<const T*>(a.D),
+      static_cast<const T*>(a.coef), T(a.mu), T(a.lam), a.model, a.projection, static_cast<const T*>(w),
+      static_cast<T*>(hv), static_cast<T*>(dots));
+  return int(cudaGetLastError());
+}
+
+template <typename T> int membrane_blocks(const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t Tn,
+                                          const tb_membrane_args& a, void* blocks, cudaStream_t s) {
+  if (B * Tn == 0) return 0;
+  membrane_blocks_kernel<T><<<grid(B * Tn), kThreads, 0, s>>>(
+      static_cast<const T*>(x), faces, B, V, Tn, static_cast<const T*>(a.D), static_cast<const T*>(a.coef), T(a.mu),
+      T(a.lam), a.model, a.projection, static_cast<T*>(blocks));
+  return int(cudaGetLastError());
+}
+
 const char* const kKernels[] = {"energy_f32", "energy_f64", "gradient_f32", "gradient_f64",
                                 "hvp_f32", "hvp_f64", "hinge_hessians_f32", "hinge_hessians_f64",
-                                "second_order_f32", "second_order_f64"};
+                                "second_order_f32", "second_order_f64",
+                                "membrane_energy_gradient_f32", "membrane_energy_gradient_f64",
+                                "membrane_hvp_f32", "membrane_hvp_f64", "membrane_blocks_f32", "membrane_blocks_f64"};
 
 }  // namespace
 
@@ -230,6 +313,27 @@ int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int6
   auto s = static_cast<cudaStream_t>(stream);
   return dtype ? hessians<double>(x, hinges, B, V, H, args, blocks, grads, d2, theta, s)
                : hessians<float>(x, hinges, B, V, H, args, blocks, grads, d2, theta, s);
+}
+
+int tb_cuda_membrane_energy_gradient(int dtype, const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t T,
+                                     tb_membrane_args args, const void* weight, void* psi, void* gx, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? membrane_energy_gradient<double>(x, faces, B, V, T, args, weight, psi, gx, s)
+               : membrane_energy_gradient<float>(x, faces, B, V, T, args, weight, psi, gx, s);
+}
+
+int tb_cuda_membrane_hvp(int dtype, const void* x, const void* v, const int64_t* faces, int64_t B, int64_t V,
+                         int64_t T, tb_membrane_args args, const void* weight, void* hv, void* dots, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? membrane_hvp<double>(x, v, faces, B, V, T, args, weight, hv, dots, s)
+               : membrane_hvp<float>(x, v, faces, B, V, T, args, weight, hv, dots, s);
+}
+
+int tb_cuda_membrane_blocks(int dtype, const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t T,
+                            tb_membrane_args args, void* blocks, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? membrane_blocks<double>(x, faces, B, V, T, args, blocks, s)
+               : membrane_blocks<float>(x, faces, B, V, T, args, blocks, s);
 }
 
 const char* tb_cuda_error_string(int code) { return cudaGetErrorString(cudaError_t(code)); }

@@ -28,6 +28,18 @@ int tb_cuda_second_order(int dtype, const void* x, const void* v, const void* t,
                          void* dx, void* dp, void* dg, void* theta, void* stream);
 int tb_cuda_hinge_hessians(int dtype, const void* x, const int64_t* hinges, int64_t B, int64_t V, int64_t H,
                            tb_hinge_args args, void* blocks, void* grads, void* d2, void* theta, void* stream);
+// the membrane of one material (membrane_math.h): D (T, 3, 2) and coef (T,) of x's dtype; model 0 stvk, 1 arap,
+// 2 symmetric_dirichlet, 3 neohookean; projection 0 none, 1 clamp, 2 abs
+struct tb_membrane_args { const void* D; const void* coef; double mu, lam; int model, projection; };
+// psi (B, T) the per-triangle energies (times coef); gx (B, V, 3), zeroed by the caller, or null: weight[b] dE/dx
+int tb_cuda_membrane_energy_gradient(int dtype, const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t T,
+                                     tb_membrane_args args, const void* weight, void* psi, void* gx, void* stream);
+// hv (B, V, 3), zeroed by the caller: weight[b] H v; dots (B, T): coef P : dF per triangle
+int tb_cuda_membrane_hvp(int dtype, const void* x, const void* v, const int64_t* faces, int64_t B, int64_t V,
+                         int64_t T, tb_membrane_args args, const void* weight, void* hv, void* dots, void* stream);
+// blocks (B, T, 81): the (projected) Hessian of each triangle
+int tb_cuda_membrane_blocks(int dtype, const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t T,
+                            tb_membrane_args args, void* blocks, void* stream);
 const char* tb_cuda_error_string(int code);
 // the names of the kernels this build holds (one per operation and dtype), for the registration check
 int tb_cuda_kernel_count();

@@ -100,6 +100,94 @@ void check_direction(const char* op, const torch::Tensor& v, const torch::Tensor
                              torchbend::checks::shape_str(v), " ", v.scalar_type(), " on ", v.device());
 }
 
+// ---- the membrane (one material): x (..., V, 3) CUDA float32/float64, faces (T, 3) int64, D (T, 3, 2) and coef (T,)
+// on x's device; the sums over triangles are torch's (deterministic), the scatter atomic
+struct MembraneArgs {
+  torch::Tensor x, faces, D, coef;
+  int64_t B = 1, V = 0, T = 0;
+  std::vector<int64_t> batch;
+  tb_membrane_args args{};
+};
+
+MembraneArgs prepare_membrane(const char* op, const torch::Tensor& x, const torch::Tensor& faces,
+                              const torch::Tensor& D, const torch::Tensor& coef, double mu, double lam, int64_t model,
+                              int64_t projection) {
+  namespace ck = torchbend::checks;
+  ck::require(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CUDA (..., V, 3) tensor, got ",
+              ck::shape_str(x), " on ", x.device());
+  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
+              "x must be float32 or float64, got ", x.scalar_type());
+  ck::require(model >= 0 && model <= 3 && projection >= 0 && projection <= 2, op,
+              "membrane model code must be 0-3 and projection 0-2, got ", model, " and ", projection);
+  MembraneArgs r;
+  r.faces = ck::index_tensor(op, "faces", faces, x.device(), 3);
+  r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
+  for (auto s : r.batch) r.B *= s;
+  r.V = x.size(-2);
+  r.T = faces.size(0);
+  ck::check_range(op, "faces", r.faces, 0, r.V, "x has V = " + std::to_string(r.V) + " vertices");
+  ck::require(D.device() == x.device() && D.numel() == 6 * r.T && coef.device() == x.device() && coef.numel() == r.T,
+              op, "D (T, 3, 2) and coef (T,) must be on x's device");
+  r.x = x.contiguous();
+  r.D = D.to(x.scalar_type()).contiguous();
+  r.coef = coef.to(x.scalar_type()).contiguous();
+  r.args = tb_membrane_args{r.D.data_ptr(), r.coef.data_ptr(), mu, lam, int(model), int(projection)};
+  return r;
+}
+
+torch::Tensor sample_weight(const char* op, const torch::Tensor& w, const MembraneArgs& r) {
+  torchbend::checks::require(w.device() == r.x.device() && w.is_floating_point() && w.numel() == r.B, op,
+                             "weight must be one value per sample on x's device, got ", w.numel());
+  return w.to(r.x.scalar_type()).contiguous();
+}
+
+// (psi (..., T), weight dE/dx (..., V, 3) or empty)
+std::tuple<torch::Tensor, torch::Tensor> membrane_energy_gradient(torch::Tensor x, torch::Tensor faces,
+                                                                  torch::Tensor D, torch::Tensor coef, double mu,
+                                                                  double lam, torch::Tensor weight, bool gradient,
+                                                                  int64_t model, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  MembraneArgs r = prepare_membrane("membrane_energy_gradient", x, faces, D, coef, mu, lam, model, 0);
+  auto psi = torch::empty(with(r.batch, {r.T}), r.x.options());
+  auto gx = gradient ? torch::zeros(r.x.sizes(), r.x.options()) : torch::empty({0}, r.x.options());
+  auto w = gradient ? sample_weight("membrane_energy_gradient", weight, r) : torch::empty({0}, r.x.options());
+  check(tb_cuda_membrane_energy_gradient(dtype_code(r.x), r.x.data_ptr(), r.faces.data_ptr<int64_t>(), r.B, r.V, r.T,
+                                         r.args, gradient ? w.data_ptr() : nullptr, psi.data_ptr(),
+                                         gradient ? gx.data_ptr() : nullptr, as_stream(stream)),
+        "membrane_energy_gradient");
+  return {psi, gx};
+}
+
+// (weight H v (..., V, 3), coef P : dF per triangle (..., T))
+std::tuple<torch::Tensor, torch::Tensor> membrane_hvp(torch::Tensor x, torch::Tensor v, torch::Tensor faces,
+                                                      torch::Tensor D, torch::Tensor coef, double mu, double lam,
+                                                      torch::Tensor weight, int64_t model, int64_t projection,
+                                                      int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  MembraneArgs r = prepare_membrane("membrane_hvp", x, faces, D, coef, mu, lam, model, projection);
+  check_direction("membrane_hvp", v, x);
+  auto vc = v.contiguous();
+  auto w = sample_weight("membrane_hvp", weight, r);
+  auto hv = torch::zeros(r.x.sizes(), r.x.options());
+  auto dots = torch::empty(with(r.batch, {r.T}), r.x.options());
+  check(tb_cuda_membrane_hvp(dtype_code(r.x), r.x.data_ptr(), vc.data_ptr(), r.faces.data_ptr<int64_t>(), r.B, r.V,
+                             r.T, r.args, w.data_ptr(), hv.data_ptr(), dots.data_ptr(), as_stream(stream)),
+        "membrane_hvp");
+  return {hv, dots};
+}
+
+// (..., T, 9, 9): the (projected) Hessian of each triangle
+torch::Tensor membrane_blocks(torch::Tensor x, torch::Tensor faces, torch::Tensor D, torch::Tensor coef, double mu,
+                              double lam, int64_t model, int64_t projection, int64_t stream) {
+  c10::DeviceGuard guard(x.device());
+  MembraneArgs r = prepare_membrane("membrane_blocks", x, faces, D, coef, mu, lam, model, projection);
+  auto blocks = torch::empty(with(r.batch, {r.T, 9, 9}), r.x.options());
+  check(tb_cuda_membrane_blocks(dtype_code(r.x), r.x.data_ptr(), r.faces.data_ptr<int64_t>(), r.B, r.V, r.T, r.args,
+                                blocks.data_ptr(), as_stream(stream)),
+        "membrane_blocks");
+  return blocks;
+}
+
 // (w dE/dx, w dpsi/dparams or empty, psi or empty, theta); with `energy` the per-hinge energies psi come from the
 // same kernel
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> gradient(
@@ -295,6 +383,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bending_hessians", &hinge_hessians, "per-hinge 12x12 blocks, angle gradients, psi'', theta (CUDA)");
   m.def("bending_second_order", &second_order,
         "the general double backward: position and parameter directions, per-hinge weight (CUDA)");
+  m.def("membrane_energy_gradient", &membrane_energy_gradient,
+        "per-triangle membrane energies and, optionally, the weighted gradient (CUDA)");
+  m.def("membrane_hvp", &membrane_hvp, "the (projected) membrane Hessian-vector product, weighted (CUDA)");
+  m.def("membrane_blocks", &membrane_blocks, "the (projected) membrane Hessian of each triangle (CUDA)");
   m.def("kernels", &kernels, "the names of the CUDA kernels in this build");
   m.def("set_status_handler", &torchbend::reg::set_status_handler,
         "the Python function raising the ValueError of a status word in the registered operators");

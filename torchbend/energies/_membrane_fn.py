@@ -29,7 +29,7 @@ from ..ops.stencil import scatter
 from ..options import Projection
 
 __all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "applies",
-           "kernel_energy_gradient", "kernel_hvp"]
+           "kernel_energy_gradient", "kernel_hvp", "kernels"]
 
 
 def hvp_faces(l: Tensor, Q: Tensor, dF: Tensor) -> Tensor:
@@ -52,12 +52,24 @@ def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: 
         check_finite_values(model, what, values, F, N)
 
 
+def kernels(x: Tensor):
+    """The module of the compiled membrane kernels for ``x``'s device (:mod:`torchbend.backends.native` on the CPU,
+    :mod:`torchbend.backends.cuda` on CUDA), or ``None`` where they are not built (or the device has none)."""
+    if x.device.type == "cpu":
+        return native if native.load() is not None else None
+    if x.device.type == "cuda":
+        from ..backends import cuda
+
+        return cuda if cuda.load() is not None else None
+    return None
+
+
 def applies(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
             weight: Tensor | None = None) -> bool:
-    """Whether the compiled membrane kernels take these arguments: CPU, float32/64, one material, per-face ``coef``,
-    not traced by a ``torch.func`` transform nor compiled."""
-    return not (x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or mu.ndim or lam.ndim
-                or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
+    """Whether the compiled membrane kernels take these arguments: CPU or CUDA, float32/64, one material, per-face
+    ``coef``, not traced by a ``torch.func`` transform nor compiled."""
+    return not (x.device.type not in ("cpu", "cuda") or x.dtype not in (torch.float32, torch.float64) or mu.ndim
+                or lam.ndim or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
                 or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,))))
 
 
@@ -71,7 +83,10 @@ def _compiled(model: MembraneModel, x: Tensor, faces: Tensor, D: Tensor, coef: T
         return None
     if weight is not None:
         weight = weight.to(x.dtype).expand(x.shape[:-2]).reshape(-1)
-    E, g = native.membrane_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight, model.value)
+    module = kernels(x)
+    if module is None:
+        return None
+    E, g = module.membrane_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight, model.value)
     if not bool(torch.isfinite(E).all()) or (g is not None and not bool(torch.isfinite(g.sum()))):
         return None
     return E, g
@@ -87,7 +102,10 @@ def compiled_hvp(model: MembraneModel, projection: str, x: Tensor, v: Tensor, fa
     if not applies(x, faces, D, coef, mu, lam, weight):
         return None
     w = x.new_ones(()) if weight is None else weight.to(x.dtype)
-    hv, dot = native.membrane_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam, w.expand(x.shape[:-2]).reshape(-1),
+    module = kernels(x)
+    if module is None:
+        return None
+    hv, dot = module.membrane_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam, w.expand(x.shape[:-2]).reshape(-1),
                                   model.value, projection)
     if not bool(torch.isfinite(hv.sum())):
         return None
@@ -208,7 +226,7 @@ def kernel_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu
     empty)`` by the compiled kernel where it applies, else (other devices, a collapsed or overflowing triangle) by
     the eager formulas, whose checks raise the ValueError that names the faces."""
     m = MembraneModel.parse(model)
-    out = _compiled(m, x, faces, D, coef, mu, lam, weight if gradient else None) if native.load() is not None else None
+    out = _compiled(m, x, faces, D, coef, mu, lam, weight if gradient else None)
     if out is not None:
         E, g = out
         return E, (g if g is not None else x.new_empty(0))
@@ -230,7 +248,7 @@ def kernel_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu:
     """The kernel of ``torch.ops.torchbend.membrane_hvp``: ``(weight H v (..., V, 3), dE/dx . v (...,))`` with the
     eigenvalues projected by ``projection``, compiled where it applies, else by the eigensystem's eager formulas."""
     m = MembraneModel.parse(model)
-    out = compiled_hvp(m, projection, x, v, faces, D, coef, mu, lam, weight) if native.load() is not None else None
+    out = compiled_hvp(m, projection, x, v, faces, D, coef, mu, lam, weight)
     if out is not None:
         return out
     check_positions(x, x.shape[-2], check_finite=True)

@@ -161,9 +161,10 @@ class MembraneEnergy(nn.Module):
         projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
         proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, "element_hessians", backend)
-        if self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE and fn.applies(
-                x, self.faces, D, coef, mu, lam):
-            H, finite = native.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
+        native_selected = self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE
+        module = fn.kernels(x) if native_selected else None
+        if module is not None and fn.applies(x, self.faces, D, coef, mu, lam):
+            H, finite = module.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
             if finite:
                 return H  # else the eager path names the faces
         if self.model is MembraneModel.STVK and proj is Projection.NONE:  # the closed form, no eigensystem
@@ -210,8 +211,8 @@ class MembraneEnergy(nn.Module):
         pat = self._pattern
         proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, "element_hessians", backend)
-        if self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE and fn.applies(
-                x, self.faces, D, coef, mu, lam):  # blocks added as they are computed (no (T, 9, 9) tensor)
+        if x.device.type == "cpu" and self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE \
+                and fn.applies(x, self.faces, D, coef, mu, lam):  # blocks added as they are computed (no (T, 9, 9))
             values = native.membrane_assemble(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value,
                                               pat.element_blocks, pat.row_len, pat.nnz)
             if values is not None:
