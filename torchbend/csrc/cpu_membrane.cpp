@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <initializer_list>
 #include <vector>
 
@@ -40,6 +41,128 @@ static void check_face_indices(const char* op, const Tensor& faces, int64_t V) {
     TORCH_CHECK(fc[e] >= 0 && fc[e] < V, op, ": faces index out of range [0, ", V, ")");
 }
 
+// ---- the thin SVD and stress of ARAP and symmetric Dirichlet across the lanes of a tile ----------------------------
+// The scalar membrane_math.h functions call the C library's hypot where a square could overflow, and branch: a lane
+// loop over them does not vectorize.  These lane versions compute both the fast and the scaled hypot and select, and
+// select instead of branching, so that GCC vectorizes them across a tile's triangles; the formulas and their order
+// are mem_thin_svd's and mem_density's (order 1).  Neo-Hookean needs log (no vectorizable one here) and StVK has its
+// own closed form: both stay scalar.
+constexpr int kLanes = 8;
+
+template <typename T>
+static inline T lane_hypot(T a, T b) {
+  const T aa = std::abs(a), bb = std::abs(b);
+  const T big = aa > bb ? aa : bb, small = aa > bb ? bb : aa;
+  const T q = small / (big > T(0) ? big : T(1));
+  const T slow = big * std::sqrt(T(1) + q * q);
+  return mem_squares_safe(big) ? std::sqrt(a * a + b * b) : slow;
+}
+
+template <typename T>
+static inline T lane_hypot3(T a, T b, T c) {
+  const T big = std::max(std::max(std::abs(a), std::abs(b)), std::abs(c));
+  const T inv = T(1) / (big > T(0) ? big : T(1));
+  const T sa = a * inv, sb = b * inv, sc = c * inv;
+  const T slow = big * std::sqrt(sa * sa + sb * sb + sc * sc);
+  return mem_squares_safe(big) ? std::sqrt(a * a + b * b + c * c) : slow;
+}
+
+// psi and P = dPsi/dF (row-major, P[j] for j = 2 a + b) of one triangle of ARAP or symmetric Dirichlet from F and N
+template <typename T, int Model>
+static inline T lane_stress(const T (&F)[6], const T (&N)[3], T mu, T* P) {
+  const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
+  const T b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
+  const T c = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
+  const T d = T(0.5) * a - T(0.5) * c;
+  const T r = lane_hypot(d, b);
+  const T s1 = std::sqrt((T(0.5) * a + T(0.5) * c) + r);
+  const T J = lane_hypot3(N[0], N[1], N[2]);
+  const T s2 = s1 > T(0) ? J / (s1 > T(0) ? s1 : T(1)) : T(0);
+  // v1 = (cp, sp) (mem_unit_eigvec)
+  const bool pos = d >= T(0);
+  const T ex = pos ? d + r : b, ey = pos ? b : r - d;
+  const T nrm = lane_hypot(ex, ey);
+  const T inv = T(1) / (nrm > T(0) ? nrm : T(1));
+  const T cp = nrm > T(0) ? ex * inv : T(1), sp = nrm > T(0) ? ey * inv : T(0);
+  // u1 = F v1 / |F v1|
+  const T w0 = F[0] * cp + F[1] * sp, w1 = F[2] * cp + F[3] * sp, w2 = F[4] * cp + F[5] * sp;
+  const T nw = lane_hypot3(w0, w1, w2);
+  const T iw = T(1) / (nw > T(0) ? nw : T(1));
+  const T u10 = nw > T(0) ? w0 * iw : T(1), u11 = nw > T(0) ? w1 * iw : T(0), u12 = nw > T(0) ? w2 * iw : T(0);
+  // n: N made orthogonal to u1, else a unit vector perpendicular to u1
+  const T cu = N[0] * u10 + N[1] * u11 + N[2] * u12;
+  const T m0 = N[0] - cu * u10, m1 = N[1] - cu * u11, m2 = N[2] - cu * u12;
+  const T nm = lane_hypot3(m0, m1, m2);
+  const bool okn = nm > tb_tiny(T(0)) / tb_eps(T(0));
+  const T im = T(1) / (okn ? nm : T(1));
+  const bool use_y = std::abs(u10) > T(0.9);
+  const T al0 = use_y ? T(0) : T(1), al1 = use_y ? T(1) : T(0);
+  const T q0 = -u12 * al1, q1 = u12 * al0, q2 = u10 * al1 - u11 * al0;  // u1 x (al0, al1, 0)
+  const T iq = T(1) / std::sqrt(q0 * q0 + q1 * q1 + q2 * q2);
+  const T n0 = okn ? m0 * im : q0 * iq, n1 = okn ? m1 * im : q1 * iq, n2 = okn ? m2 * im : q2 * iq;
+  const T u20 = n1 * u12 - n2 * u11, u21 = n2 * u10 - n0 * u12, u22 = n0 * u11 - n1 * u10;
+  // the density in the singular values (mem_density, order 1)
+  T psi, p1, p2;
+  if (Model == kArap) {
+    const T d1 = s1 - T(1), d2 = s2 - T(1);
+    psi = mu * (d1 * d1 + d2 * d2);
+    const T two = T(2) * mu;
+    p1 = two * d1;
+    p2 = two * d2;
+  } else {  // symmetric Dirichlet
+    const T i1 = T(1) / s1, i2 = T(1) / s2;
+    const T d1 = (s1 - T(1)) * (s1 + T(1)) * i1, d2 = (s2 - T(1)) * (s2 + T(1)) * i2;
+    psi = (mu * d1) * d1 + (mu * d2) * d2;
+    const T two = T(2) * mu;
+    p1 = (two * d1) * (T(1) + i1 * i1);
+    p2 = (two * d2) * (T(1) + i2 * i2);
+  }
+  P[0] = p1 * u10 * cp - p2 * u20 * sp;
+  P[1] = p1 * u10 * sp + p2 * u20 * cp;
+  P[2] = p1 * u11 * cp - p2 * u21 * sp;
+  P[3] = p1 * u11 * sp + p2 * u21 * cp;
+  P[4] = p1 * u12 * cp - p2 * u22 * sp;
+  P[5] = p1 * u12 * sp + p2 * u22 * cp;
+  return psi;
+}
+
+// energies (coef psi) and forces of the triangles [e0, e0 + nl) of one sample, nl <= kLanes: gathered per lane,
+// the SVD and stress vectorized across the lanes, the forces written per triangle
+template <typename T, int Model>
+static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, int64_t e0, int nl, T* psi,
+                        T* forces) {
+  alignas(64) T Fs[6][kLanes], Ns[3][kLanes], Ps[6][kLanes], ps[kLanes];
+  for (int l = 0; l < kLanes; ++l) {
+    T F[6] = {T(1), T(0), T(0), T(1), T(0), T(0)}, N[3] = {T(0), T(0), T(1)};  // idle lanes: at rest
+    if (l < nl) {
+      const int64_t e = e0 + l;
+      const int64_t* t = fc + 3 * e;
+      face_deformation(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, F);
+      face_normal(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, N);
+    }
+    for (int j = 0; j < 6; ++j) Fs[j][l] = F[j];
+    for (int j = 0; j < 3; ++j) Ns[j][l] = N[j];
+  }
+  TB_LANES_AGG(kLanes) {
+    const T F[6] = {Fs[0][l], Fs[1][l], Fs[2][l], Fs[3][l], Fs[4][l], Fs[5][l]};
+    const T N[3] = {Ns[0][l], Ns[1][l], Ns[2][l]};
+    T P[6];
+    ps[l] = lane_stress<T, Model>(F, N, mu, P);
+    for (int j = 0; j < 6; ++j) Ps[j][l] = P[j];
+  }
+  for (int l = 0; l < nl; ++l) {
+    const int64_t e = e0 + l;
+    const T ce = c[e];
+    psi[e] = ce * ps[l];
+    if (forces == nullptr) continue;
+    const T* De = d + 6 * e;
+    for (int i = 0; i < 3; ++i) {
+      const T P0 = ce * Ps[2 * i][l], P1 = ce * Ps[2 * i + 1][l];
+      for (int k = 0; k < 3; ++k) forces[9 * e + 3 * k + i] = P0 * De[2 * k] + P1 * De[2 * k + 1];
+    }
+  }
+}
+
 static void check_model(const char* op, int64_t model, int64_t projection) {
   TORCH_CHECK(model >= kStvk && model <= kNeohookean, op, ": unknown membrane model ", model);
   TORCH_CHECK(projection >= kProjectNone && projection <= kProjectAbs, op, ": unknown projection ", projection);
@@ -69,13 +192,27 @@ std::tuple<Tensor, Tensor> membrane_energy_gradient(Tensor x, Tensor faces, Tens
     std::vector<scalar_t> psi(T), forces(gradient ? 9 * T : 0);
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
-      at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
-        for (int64_t e = begin; e < end; ++e) {
-          const int64_t* t = fc + 3 * e;
-          psi[e] = membrane_face<scalar_t>(int(model), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m, la,
-                                           c[e], gradient ? forces.data() + 9 * e : nullptr);
-        }
-      });
+      if (gradient && (model == kArap || model == kSymmetricDirichlet)) {  // the SVD vectorized across triangles
+        const int64_t tiles = (T + kLanes - 1) / kLanes;
+        at::parallel_for(0, tiles, 256, [&](int64_t begin, int64_t end) {
+          for (int64_t g = begin; g < end; ++g) {
+            const int64_t e0 = g * kLanes;
+            const int nl = int(std::min<int64_t>(kLanes, T - e0));
+            if (model == kArap)
+              stress_tile<scalar_t, kArap>(xb, fc, d, c, m, e0, nl, psi.data(), forces.data());
+            else
+              stress_tile<scalar_t, kSymmetricDirichlet>(xb, fc, d, c, m, e0, nl, psi.data(), forces.data());
+          }
+        });
+      } else {
+        at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
+          for (int64_t e = begin; e < end; ++e) {
+            const int64_t* t = fc + 3 * e;
+            psi[e] = membrane_face<scalar_t>(int(model), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m,
+                                             la, c[e], gradient ? forces.data() + 9 * e : nullptr);
+          }
+        });
+      }
       scalar_t total = 0;  // in face order: deterministic
       for (int64_t e = 0; e < T; ++e) total += psi[e];
       energy.data_ptr<scalar_t>()[b] = total;
