@@ -18,10 +18,13 @@
 namespace torchbend {
 namespace cpu {
 
-// The checks the StVK operators over positions x (..., V, 3) share (op names the operator in the messages); `same`:
-// the tensors that must be CPU tensors of x's dtype.  Returns the number of samples.
-static int64_t check_membrane(const char* op, const Tensor& x, const Tensor& faces, const Tensor& D, const Tensor& coef,
-                          const Tensor& mu, const Tensor& lam, std::initializer_list<const Tensor*> same) {
+// What the membrane operators over positions x (..., V, 3) share (op names the operator in the messages): the
+// argument checks (`same`: the tensors that must be CPU tensors of x's dtype), then x, faces, D, coef and the
+// operator's `extra` tensors made contiguous, and every vertex index of the faces in [0, V).  Returns the number
+// of samples.
+static int64_t prepare_membrane(const char* op, Tensor& x, Tensor& faces, Tensor& D, Tensor& coef, const Tensor& mu,
+                                const Tensor& lam, std::initializer_list<const Tensor*> same,
+                                std::initializer_list<Tensor*> extra = {}) {
   TORCH_CHECK(x.dim() >= 2 && x.size(-1) == 3, op, ": x must be (..., V, 3)");
   TORCH_CHECK(faces.dim() == 2 && faces.size(1) == 3 && faces.scalar_type() == torch::kInt64,
               op, ": faces must be (T, 3) int64");
@@ -31,14 +34,12 @@ static int64_t check_membrane(const char* op, const Tensor& x, const Tensor& fac
   for (const Tensor* p : same)
     TORCH_CHECK(p->scalar_type() == x.scalar_type() && p->device().is_cpu(), op, ": CPU tensors of x's dtype");
   TORCH_CHECK(x.device().is_cpu() && faces.device().is_cpu(), op, ": CPU tensors only");
-  return x.numel() / std::max<int64_t>(V * 3, 1);
-}
-
-// Every vertex index of the contiguous faces (T, 3) in [0, V).
-static void check_face_indices(const char* op, const Tensor& faces, int64_t V) {
+  for (Tensor* t : {&x, &faces, &D, &coef}) *t = t->contiguous();
+  for (Tensor* t : extra) *t = t->contiguous();
   const int64_t* fc = faces.data_ptr<int64_t>();
   for (int64_t e = 0; e < faces.numel(); ++e)
     TORCH_CHECK(fc[e] >= 0 && fc[e] < V, op, ": faces index out of range [0, ", V, ")");
+  return x.numel() / std::max<int64_t>(V * 3, 1);
 }
 
 // ---- the thin SVD and stress of ARAP and symmetric Dirichlet across the lanes of a tile ----------------------------
@@ -172,16 +173,10 @@ std::tuple<Tensor, Tensor> membrane_energy_gradient(Tensor x, Tensor faces, Tens
                                                     Tensor lam, Tensor weight, bool gradient, int64_t model) {
   const char* op = "membrane_energy_gradient";
   check_model(op, model, kProjectNone);
-  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam, &weight});
+  const int64_t B = prepare_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam, &weight}, {&weight});
   const int64_t T = faces.size(0), V = x.size(-2);
   const auto batch = x.sizes().slice(0, x.dim() - 2);
   TORCH_CHECK(!gradient || weight.numel() == B, op, ": one weight per sample");
-  x = x.contiguous();
-  faces = faces.contiguous();
-  D = D.contiguous();
-  coef = coef.contiguous();
-  weight = weight.contiguous();
-  check_face_indices(op, faces, V);
   const int64_t* fc = faces.data_ptr<int64_t>();
   Tensor energy = torch::empty(batch, x.options());
   Tensor grad = gradient ? torch::zeros(x.sizes(), x.options()) : torch::empty({0}, x.options());
@@ -232,17 +227,11 @@ std::tuple<Tensor, Tensor> membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor
                                         Tensor lam, Tensor weight, int64_t model, int64_t projection) {
   const char* op = "membrane_hvp";
   check_model(op, model, projection);
-  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&v, &D, &coef, &mu, &lam, &weight});
+  const int64_t B =
+      prepare_membrane(op, x, faces, D, coef, mu, lam, {&v, &D, &coef, &mu, &lam, &weight}, {&v, &weight});
   const int64_t T = faces.size(0), V = x.size(-2);
   TORCH_CHECK(v.sizes() == x.sizes(), op, ": v must have x's shape (..., V, 3)");
   TORCH_CHECK(weight.numel() == B, op, ": one weight per sample");
-  x = x.contiguous();
-  v = v.contiguous();
-  faces = faces.contiguous();
-  D = D.contiguous();
-  coef = coef.contiguous();
-  weight = weight.contiguous();
-  check_face_indices(op, faces, V);
   const int64_t* fc = faces.data_ptr<int64_t>();
   Tensor hv = torch::zeros(x.sizes(), x.options());
   Tensor dot = torch::empty(x.sizes().slice(0, x.dim() - 2), x.options());
@@ -280,13 +269,8 @@ std::tuple<Tensor, bool> membrane_blocks(Tensor x, Tensor faces, Tensor D, Tenso
                                          int64_t model, int64_t projection) {
   const char* op = "membrane_blocks";
   check_model(op, model, projection);
-  const int64_t B = check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
+  const int64_t B = prepare_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
   const int64_t T = faces.size(0), V = x.size(-2);
-  x = x.contiguous();
-  faces = faces.contiguous();
-  D = D.contiguous();
-  coef = coef.contiguous();
-  check_face_indices(op, faces, V);
   std::vector<int64_t> shape(x.sizes().begin(), x.sizes().end() - 2);
   shape.insert(shape.end(), {T, 9, 9});
   Tensor out = pooled_empty(shape, x.options());  // huge pages for a large output (cpu_tiles.cpp)
@@ -320,20 +304,13 @@ Tensor membrane_assemble(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor m
                          int64_t projection, Tensor blocks, Tensor row_len, int64_t nnz) {
   const char* op = "membrane_assemble";
   check_model(op, model, projection);
-  check_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam});
-  const int64_t T = faces.size(0), V = x.size(-2);
   TORCH_CHECK(x.dim() == 2, op, ": one mesh, x (V, 3)");
+  prepare_membrane(op, x, faces, D, coef, mu, lam, {&D, &coef, &mu, &lam}, {&blocks, &row_len});
+  const int64_t T = faces.size(0), V = x.size(-2);
   TORCH_CHECK(blocks.scalar_type() == torch::kInt64 && blocks.numel() == 9 * T && blocks.device().is_cpu(), op,
               ": blocks must be (T, 9) int64 CSR positions of the vertex pairs' 3x3 blocks");
   TORCH_CHECK(row_len.scalar_type() == torch::kInt64 && row_len.numel() == V && row_len.device().is_cpu(), op,
               ": row_len must be (V,) int64");
-  x = x.contiguous();
-  faces = faces.contiguous();
-  D = D.contiguous();
-  coef = coef.contiguous();
-  blocks = blocks.contiguous();
-  row_len = row_len.contiguous();
-  check_face_indices(op, faces, V);
   const int64_t* fc = faces.data_ptr<int64_t>();
   const int64_t* bs = blocks.data_ptr<int64_t>();
   const int64_t* rl = row_len.data_ptr<int64_t>();

@@ -28,6 +28,30 @@ struct Args {
   std::vector<int64_t> batch;
 };
 
+// x a CUDA float32/float64 (..., V, 3) tensor, else the ValueError naming the operator
+void check_x(const char* op, const torch::Tensor& x) {
+  namespace ck = torchbend::checks;
+  ck::require(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CUDA (..., V, 3) tensor, got ",
+              ck::shape_str(x), " on ", x.device());
+  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
+              "x must be float32 or float64, got ", x.scalar_type());
+}
+
+// the element indices `elems` (n, cols) int64 on x's device with vertex indices in [0, V), checked; r gets x
+// (contiguous), its batch shape, B and V
+template <class R>
+torch::Tensor mesh_indices(const char* op, const torch::Tensor& x, const torch::Tensor& elems, const char* name,
+                           int64_t cols, R& r) {
+  namespace ck = torchbend::checks;
+  torch::Tensor idx = ck::index_tensor(op, name, elems, x.device(), cols);
+  r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
+  for (auto s : r.batch) r.B *= s;
+  r.V = x.size(-2);
+  ck::check_range(op, name, idx, 0, r.V, "x has V = " + std::to_string(r.V) + " vertices");
+  r.x = x.contiguous();
+  return idx;
+}
+
 // the shared arguments, checked before any work (checks.h: a ValueError naming the operator, the argument and
 // its first offending entry): x a CUDA float32/float64 (..., V, 3) tensor, hinges int64 (H, 4) on x's device with
 // vertex indices in [0, V), per-hinge parameters on x's device with 1, H or B*H values, c and prev both or neither
@@ -35,21 +59,13 @@ Args prepare(const char* op, const torch::Tensor& x, const torch::Tensor& hinges
              const torch::Tensor& k, const torch::Tensor& rest, const c10::optional<torch::Tensor>& c,
              const c10::optional<torch::Tensor>& prev, int64_t model) {
   namespace ck = torchbend::checks;
-  ck::require(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CUDA (..., V, 3) tensor, got ",
-              ck::shape_str(x), " on ", x.device());
-  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
-              "x must be float32 or float64, got ", x.scalar_type());
+  check_x(op, x);
   ck::require(model >= 0 && model <= 2, op, "model code must be 0 (quadratic), 1 (tan) or 2 (sin), got ", model);
   ck::require(c.has_value() == prev.has_value(), op, "the viscous term needs both c and prev (got ",
               c.has_value() ? "c without prev" : "prev without c", ")");
   Args r;
-  r.hinges = ck::index_tensor(op, "hinges", hinges, x.device(), 4);
-  r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
-  for (auto s : r.batch) r.B *= s;
-  r.V = x.size(-2);
+  r.hinges = mesh_indices(op, x, hinges, "hinges", 4, r);
   r.H = hinges.size(0);
-  ck::check_range(op, "hinges", r.hinges, 0, r.V, "x has V = " + std::to_string(r.V) + " vertices");
-  r.x = x.contiguous();
   auto prep = [&](const torch::Tensor& t, const char* name) {
     ck::require(t.device() == x.device(), op, name, " must be on x's device (", x.device(), "), got ", t.device());
     ck::require(t.is_floating_point() || t.scalar_type() == torch::kLong || t.scalar_type() == torch::kInt, op, name,
@@ -113,22 +129,14 @@ MembraneArgs prepare_membrane(const char* op, const torch::Tensor& x, const torc
                               const torch::Tensor& D, const torch::Tensor& coef, double mu, double lam, int64_t model,
                               int64_t projection) {
   namespace ck = torchbend::checks;
-  ck::require(x.is_cuda() && x.dim() >= 2 && x.size(-1) == 3, op, "x must be a CUDA (..., V, 3) tensor, got ",
-              ck::shape_str(x), " on ", x.device());
-  ck::require(x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble, op,
-              "x must be float32 or float64, got ", x.scalar_type());
+  check_x(op, x);
   ck::require(model >= 0 && model <= 3 && projection >= 0 && projection <= 2, op,
               "membrane model code must be 0-3 and projection 0-2, got ", model, " and ", projection);
   MembraneArgs r;
-  r.faces = ck::index_tensor(op, "faces", faces, x.device(), 3);
-  r.batch.assign(x.sizes().begin(), x.sizes().end() - 2);
-  for (auto s : r.batch) r.B *= s;
-  r.V = x.size(-2);
+  r.faces = mesh_indices(op, x, faces, "faces", 3, r);
   r.T = faces.size(0);
-  ck::check_range(op, "faces", r.faces, 0, r.V, "x has V = " + std::to_string(r.V) + " vertices");
   ck::require(D.device() == x.device() && D.numel() == 6 * r.T && coef.device() == x.device() && coef.numel() == r.T,
               op, "D (T, 3, 2) and coef (T,) must be on x's device");
-  r.x = x.contiguous();
   r.D = D.to(x.scalar_type()).contiguous();
   r.coef = coef.to(x.scalar_type()).contiguous();
   r.args = tb_membrane_args{r.D.data_ptr(), r.coef.data_ptr(), mu, lam, int(model), int(projection)};
