@@ -294,4 +294,6 @@ def test_hood_losses_compile_fullgraph():
     finally:
         torch._dynamo.reset()
     torch.testing.assert_close(l1, l2, rtol=4 * torch.finfo(torch.float64).eps, atol=0)
-    torch.testing.assert_close(y1.grad, y2.grad, rtol=1e-13, atol=1e-13 * float(y2.grad.abs().max()))
+    g1, g2 = y1.grad, y2.grad
+    assert g1 is not None and g2 is not None
+    torch.testing.assert_close(g1, g2, rtol=1e-13, atol=1e-13 * float(g2.abs().max()))
