@@ -359,11 +359,12 @@ def test_compiled_energy_and_gradient_match_the_eager_path(model, dtype):
 
 
 @pytest.mark.parametrize("scale", [1e-170, 1e-30, 1e30, 1e150])
-@pytest.mark.parametrize("model", ["arap", "symmetric_dirichlet"])
-def test_vectorized_stress_at_extreme_scales(model, scale):
-    """ARAP's and symmetric Dirichlet's gradient run their thin SVD across the lanes of a tile (cpu_membrane.cpp
-    lane_stress: both hypot forms computed and selected): where squares would underflow or overflow the scaled form
-    is taken, and the gradient stays within a few ulps of the eager path's (or raises its error)."""
+@pytest.mark.parametrize("model", ["arap", "symmetric_dirichlet", "neohookean"])
+def test_lane_stress_at_extreme_scales(model, scale):
+    """ARAP's, symmetric Dirichlet's and neo-Hookean's gradients run their thin SVD over the lanes of a tile
+    (cpu_membrane.cpp lane_stress: both hypot forms computed and selected; log J by tb_logv): where squares would
+    underflow or overflow the scaled form is taken, and the gradient stays within a few ulps of the eager path's (or
+    raises its error)."""
     mem, x, _ = _compiled_case(model, F64, seed=3, collapse=False)
     try:
         ge = mem.gradient(x * scale, backend="eager")

@@ -1,4 +1,5 @@
-"""The vectorizable math of ``torchbend/csrc/vector_math.h`` (``tb_atan2v``, ``tb_sincos``, ``tb_half_sincos``, ``tb_half_tan``)
+"""The vectorizable math of ``torchbend/csrc/vector_math.h`` (``tb_atan2v``, ``tb_sincos``, ``tb_half_sincos``, ``tb_half_tan``,
+``tb_logv``)
 against a 40-digit reference (mpmath): at most 1 ulp of the exact value over the whole domain, float64 and
 float32, IEEE's signed zeros and quadrants exactly.
 
@@ -75,12 +76,18 @@ class Harness:
     def half_sincos(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> tuple[np.ndarray, np.ndarray]:
         return self._pair("half_sincos", x, dtype, vec)
 
-    def half_tan(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> np.ndarray:
+    def _unary(self, kind: str, x: np.ndarray, dtype: np.dtype, vec: bool) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype)
         out = np.empty_like(x)
-        name = f"tb_half_tan_{'vec' if vec else 'scalar'}_{'f64' if dtype == F64 else 'f32'}"
+        name = f"tb_{kind}_{'vec' if vec else 'scalar'}_{'f64' if dtype == F64 else 'f32'}"
         self._fn(name)(self._ptr(x), self._ptr(out), ctypes.c_long(x.size))
         return out
+
+    def half_tan(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> np.ndarray:
+        return self._unary("half_tan", x, dtype, vec)
+
+    def log(self, x: np.ndarray, dtype: np.dtype, vec: bool = True) -> np.ndarray:
+        return self._unary("log", x, dtype, vec)
 
 
 @pytest.fixture(scope="module", params=ARCHS)
@@ -395,6 +402,30 @@ def test_half_tan_ulp(harness, dtype, vec):
     assert np.array_equal(harness.half_tan(-x, dtype, vec), -u)
     z = harness.half_tan(np.array([0.0, -0.0], dtype), dtype, vec)
     assert np.all(z == 0) and list(np.signbit(z)) == [False, True]
+
+
+def _log_ref(dtype: np.dtype):
+    """Positive arguments over the whole range (subnormal to the largest, log-uniform), near 1 (where log is
+    tiny), and the powers of two and their neighbours."""
+    rng = np.random.default_rng(7)
+    lim = _limits(dtype)
+    near1 = 1.0 + _signs(rng, _log_uniform(rng, 400, -52 if dtype == F64 else -23, -1, dtype).astype(np.float64))
+    edges = [_next(2.0**e, dtype, j) for e in (-1, 0, 1, 10, -1022 if dtype == F64 else -126) for j in range(-3, 4)]
+    x = np.concatenate([_log_uniform(rng, 1500, lim["emin"], lim["emax"], dtype), near1.astype(dtype),
+                        np.array(edges + [lim["tiny"], lim["min"], lim["max"]], dtype)])
+    x = x[x > 0]
+    return x, [mpmath.log(mpmath.mpf(float(a))) for a in x]
+
+
+@pytest.mark.parametrize("vec", [True, False], ids=["vector", "scalar"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
+def test_log_ulp(harness, dtype, vec):
+    """tb_logv (the neo-Hookean's log J in the membrane's lane loops) within 1 ulp over every positive argument,
+    subnormals included; log(1) = 0, log(0) = -inf, log(inf) = inf, negative and NaN arguments NaN."""
+    x, exact = _reference("log", dtype, lambda: _log_ref(dtype))
+    _check(f"tb_logv {dtype.name}", (x,), _ulp_errors(harness.log(x, dtype, vec), exact, dtype))
+    special = harness.log(np.array([1.0, 0.0, np.inf, -1.0, np.nan], dtype), dtype, vec)
+    assert special[0] == 0 and special[1] == -np.inf and special[2] == np.inf and np.isnan(special[3:]).all()
 
 
 def test_cuda_device_code_compiles(tmp_path):

@@ -1,5 +1,5 @@
 // Torch-free harness of the vectorizable math of torchbend/csrc/vector_math.h (tb_atan2v, tb_sincos_accurate
-// ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_tan), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
+// ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_tan, tb_logv), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
 // flags and loaded with ctypes.  The *_vec loops are written as the kernels' lane loops are (a plain loop
 // with the header's functions inlined, TB_IVDEP), so that GCC vectorizes them; the *_scalar loops call one
 // non-inlined scalar evaluation per element (the code a loop that does not vectorize runs).
@@ -8,6 +8,7 @@
 using torchbend::tb_atan2v;
 using torchbend::tb_half_sincos;
 using torchbend::tb_half_tan;
+using torchbend::tb_logv;
 using torchbend::tb_sincos;
 using torchbend::tb_sincos_accurate;
 
@@ -17,6 +18,7 @@ template <typename T> __attribute__((noinline)) void sincos_one(T x, T* s, T* c)
 template <typename T> __attribute__((noinline)) void sincos_fast_one(T x, T* s, T* c) { tb_sincos(x, *s, *c); }
 template <typename T> __attribute__((noinline)) void half_one(T x, T* s, T* c) { tb_half_sincos(x, *s, *c); }
 template <typename T> __attribute__((noinline)) T half_tan_one(T x) { return tb_half_tan(x); }
+template <typename T> __attribute__((noinline)) T log_one(T x) { return tb_logv(x); }
 }  // namespace
 
 #define TB_HARNESS(T, SUFFIX)                                                                              \
@@ -61,6 +63,12 @@ template <typename T> __attribute__((noinline)) T half_tan_one(T x) { return tb_
   }                                                                                                        \
   void tb_half_tan_scalar_##SUFFIX(const T* x, T* o, long n) {                                             \
     for (long i = 0; i < n; ++i) o[i] = half_tan_one<T>(x[i]);                                             \
+  }                                                                                                        \
+  void tb_log_vec_##SUFFIX(const T* __restrict x, T* __restrict o, long n) {                               \
+    TB_IVDEP for (long i = 0; i < n; ++i) o[i] = tb_logv(x[i]);                                            \
+  }                                                                                                        \
+  void tb_log_scalar_##SUFFIX(const T* x, T* o, long n) {                                                  \
+    for (long i = 0; i < n; ++i) o[i] = log_one<T>(x[i]);                                                  \
   }
 
 extern "C" {

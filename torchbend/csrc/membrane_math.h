@@ -134,8 +134,8 @@ TB_HD static inline double tb_tiny(double) { return DBL_MIN; }
 // hypot without the library call where no square can overflow or underflow (the largest magnitude within
 // 2^-60..2^60 in float, 2^-490..2^490 in double): sqrt of the sum of squares, within an ulp of hypot; the library's
 // hypot elsewhere (the call costs more than the rest of a triangle's singular values).
-TB_HD static inline bool mem_squares_safe(float big) { return big > 0x1p-60f && big < 0x1p60f; }
-TB_HD static inline bool mem_squares_safe(double big) { return big > 0x1p-490 && big < 0x1p490; }
+TB_HD static inline bool mem_squares_safe(float big) { return (big > 0x1p-60f) & (big < 0x1p60f); }
+TB_HD static inline bool mem_squares_safe(double big) { return (big > 0x1p-490) & (big < 0x1p490); }
 template <typename T> TB_HD static inline T tb_abs(T a) { return a < T(0) ? -a : a; }
 template <typename T>
 TB_HD static inline T mem_hypot(T a, T b) {

@@ -163,6 +163,41 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   return copysign(res, y);
 }
 
+// log(x) within 1 ulp for every x >= 0 (subnormals too; 0: -inf, +inf: +inf, negative or NaN: NaN): fdlibm's
+// __ieee754_log (x = 2^k m, m in [sqrt(2)/2, sqrt(2)), f = m - 1, s = f / (2 + f), log(1 + f) = 2s + s R(s^2) with
+// its Lg1..Lg7 and ln2 in two parts), branch-free: both of its final forms computed and selected, subnormals
+// scaled by 2^54 first, so that a lane loop vectorizes it (the C library's log is a call).  Float: the double
+// evaluation rounded once.  Tests: tests/test_vector_math_ulp.py (a 40-digit reference).
+TB_HD static TB_FORCEINLINE double tb_logv(double x) {
+  const double Lg1 = 6.666666666666735130e-01, Lg2 = 3.999999999940941908e-01, Lg3 = 2.857142874366239149e-01,
+               Lg4 = 2.222219843214978396e-01, Lg5 = 1.818357216161805012e-01, Lg6 = 1.531383769920937332e-01,
+               Lg7 = 1.479819860511658591e-01;
+  const double ln2_hi = 6.93147180369123816490e-01, ln2_lo = 1.90821492927058770002e-10;
+  const bool sub = x < 2.2250738585072014e-308;
+  const double xs = sub ? x * 18014398509481984.0 : x;  // 2^54
+  uint64_t b;
+  __builtin_memcpy(&b, &xs, sizeof b);
+  int32_t hx = int32_t(b >> 32);
+  int32_t k = ((hx >> 20) & 0x7ff) - 1023 - (sub ? 54 : 0);
+  hx &= 0x000fffff;
+  const int32_t i = (hx + 0x95f64) & 0x100000;
+  const uint64_t nb = (uint64_t(uint32_t(hx | (i ^ 0x3ff00000))) << 32) | (b & 0xffffffffull);
+  double m;
+  __builtin_memcpy(&m, &nb, sizeof m);  // x or x / 2 normalized into [sqrt(2)/2, sqrt(2))
+  k += i >> 20;
+  const double f = m - 1.0;
+  const double s = f / (2.0 + f), dk = double(k), z = s * s, w = z * z;
+  const double t1 = w * (Lg2 + w * (Lg4 + w * Lg6)), t2 = z * (Lg1 + w * (Lg3 + w * (Lg5 + w * Lg7)));
+  const double R = t2 + t1, hfsq = 0.5 * f * f;
+  const double wide = dk * ln2_hi - ((hfsq - (s * (hfsq + R) + dk * ln2_lo)) - f);
+  const double narrow = dk * ln2_hi - ((s * (f - R) - dk * ln2_lo) - f);
+  double r = ((hx - 0x6147a) | (0x6b851 - hx)) > 0 ? wide : narrow;
+  r = x == 0.0 ? -HUGE_VAL : r;
+  r = x > 1.7976931348623157e308 ? x : r;  // +inf
+  return (x < 0.0) | (x != x) ? NAN : r;
+}
+TB_HD static TB_FORCEINLINE float tb_logv(float x) { return float(tb_logv(double(x))); }
+
 // floor and ceil from rint (exact for finite values): GCC vectorizes rint but not floor/ceil here
 TB_HD static TB_FORCEINLINE double tb_floorv(double v) { double r = rint(v); return r > v ? r - 1.0 : r; }
 TB_HD static TB_FORCEINLINE double tb_ceilv(double v) { double r = rint(v); return r < v ? r + 1.0 : r; }
