@@ -28,7 +28,7 @@ from ..ops.projection import project_eigenvalues
 from ..ops.stencil import scatter
 from ..options import Projection
 
-__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "applies",
+__all__ = ["energy_function", "gradient_function", "hvp_faces", "to_vertices", "check_values", "compiled_hvp", "compiled_module",
            "kernel_energy_gradient", "kernel_hvp", "kernels"]
 
 
@@ -52,6 +52,31 @@ def check_values(model: MembraneModel, what: str, values: Tensor, F: Tensor, N: 
         check_finite_values(model, what, values, F, N)
 
 
+def _eager_energy(model: MembraneModel, x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor,
+                  lam: Tensor) -> Tensor:
+    """``E (...,)`` by the eager formulas, checked (collapse, non-finite values: the errors name the faces)."""
+    F, N = deformation(x, faces, D)
+    check_collapsed(model, F, N)
+    psi = energy_density(model, F, mu, lam, N)
+    check_values(model, "energy", psi, F, N)
+    return (coef * psi).sum(-1)
+
+
+def _eager_stress(model: MembraneModel, x: Tensor, faces: Tensor, D: Tensor, mu: Tensor,
+                  lam: Tensor) -> tuple[Tensor, Tensor]:
+    """``(psi (..., T), P (..., T, 3, 2))`` by the eager formulas, checked as :func:`_eager_energy`."""
+    F, N = deformation(x, faces, D)
+    check_collapsed(model, F, N)
+    psi, P = stress(model, F, mu, lam, N)
+    check_values(model, "gradient", P, F, N)
+    return psi, P
+
+
+def _pulled_back(gE: Tensor, coef: Tensor, P: Tensor, D: Tensor, faces: Tensor, vertex_count: int) -> Tensor:
+    """``gE dE/dx (..., V, 3)`` from the stress ``P`` and the per-sample weight ``gE (...,)``."""
+    return to_vertices((gE[..., None] * coef)[..., None, None] * P, D, faces, vertex_count)
+
+
 def kernels(x: Tensor):
     """The module of the compiled membrane kernels for ``x``'s device (:mod:`torchbend.backends.native` on the CPU,
     :mod:`torchbend.backends.cuda` on CUDA), or ``None`` where they are not built (or the device has none)."""
@@ -64,28 +89,29 @@ def kernels(x: Tensor):
     return None
 
 
-def applies(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
-            weight: Tensor | None = None) -> bool:
-    """Whether the compiled membrane kernels take these arguments: CPU or CUDA, float32/64, one material, per-face
-    ``coef``, not traced by a ``torch.func`` transform nor compiled."""
-    return not (x.device.type not in ("cpu", "cuda") or x.dtype not in (torch.float32, torch.float64) or mu.ndim
-                or lam.ndim or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
-                or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,))))
+def compiled_module(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
+                    weight: Tensor | None = None):
+    """The module of the compiled membrane kernels (:func:`kernels`) where they take these arguments: CPU or CUDA,
+    float32/64, one material, per-face ``coef``, not traced by a ``torch.func`` transform nor compiled; else
+    ``None``."""
+    if (x.device.type not in ("cpu", "cuda") or x.dtype not in (torch.float32, torch.float64) or mu.ndim
+            or lam.ndim or coef.shape != faces.shape[:1] or torch.compiler.is_compiling()
+            or any(is_traced(t) for t in (x, D, coef, mu, lam) + (() if weight is None else (weight,)))):
+        return None
+    return kernels(x)
 
 
 def _compiled(model: MembraneModel, x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor,
               weight: Tensor | None) -> tuple[Tensor, Tensor | None] | None:
     """``(E (...,), weight dE/dx (..., V, 3) or None)`` by the compiled kernel
-    (:func:`torchbend.backends.native.membrane_energy_gradient`) where it applies (:func:`applies`) and its
+    (:func:`torchbend.backends.native.membrane_energy_gradient`) where it applies (:func:`compiled_module`) and its
     results are finite, else ``None``: the eager formulas then (also for the error that names the faces of a
     collapsed triangle or a non-finite result)."""
-    if not applies(x, faces, D, coef, mu, lam, weight):
+    module = compiled_module(x, faces, D, coef, mu, lam, weight)
+    if module is None:
         return None
     if weight is not None:
         weight = weight.to(x.dtype).expand(x.shape[:-2]).reshape(-1)
-    module = kernels(x)
-    if module is None:
-        return None
     E, g = module.membrane_energy_gradient(x.detach(), faces, D, coef, mu, lam, weight, model.value)
     if not bool(torch.isfinite(E).all()) or (g is not None and not bool(torch.isfinite(g.sum()))):
         return None
@@ -96,15 +122,13 @@ def compiled_hvp(model: MembraneModel, projection: str, x: Tensor, v: Tensor, fa
                  mu: Tensor, lam: Tensor, weight: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
     """``(weight (d^2E/dx^2) v (..., V, 3), dE/dx . v (...,))`` by the compiled kernel
     (:func:`torchbend.backends.native.membrane_hvp`; eigenvalues projected by ``projection``) where it applies
-    (:func:`applies`) and its result is finite, else ``None`` (the eager formulas then)."""
+    (:func:`compiled_module`) and its result is finite, else ``None`` (the eager formulas then)."""
     if v.shape != x.shape or v.dtype != x.dtype or v.device != x.device or is_traced(v):
         return None
-    if not applies(x, faces, D, coef, mu, lam, weight):
-        return None
-    w = x.new_ones(()) if weight is None else weight.to(x.dtype)
-    module = kernels(x)
+    module = compiled_module(x, faces, D, coef, mu, lam, weight)
     if module is None:
         return None
+    w = x.new_ones(()) if weight is None else weight.to(x.dtype)
     hv, dot = module.membrane_hvp(x.detach(), v.detach(), faces, D, coef, mu, lam, w.expand(x.shape[:-2]).reshape(-1),
                                   model.value, projection)
     if not bool(torch.isfinite(hv.sum())):
@@ -131,12 +155,8 @@ def _make(model: MembraneModel, compiled: bool = False):
             out = _compiled(model, x, faces, D, coef, mu, lam, gE) if compiled else None
             if out is not None:
                 return out[1]
-            F, N = deformation(x, faces, D)
-            check_collapsed(model, F, N)
-            _, P = stress(model, F, mu, lam, N)
-            check_values(model, "gradient", P, F, N)
-            G = (gE[..., None] * coef)[..., None, None] * P  # (..., T, 3, 2)
-            return to_vertices(G, D, faces, x.shape[-2])
+            _, P = _eager_stress(model, x, faces, D, mu, lam)
+            return _pulled_back(gE, coef, P, D, faces, x.shape[-2])
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -184,11 +204,7 @@ def _make(model: MembraneModel, compiled: bool = False):
             out = _compiled(model, x, faces, D, coef, mu, lam, None) if compiled else None
             if out is not None:
                 return out[0]
-            F, N = deformation(x, faces, D)
-            check_collapsed(model, F, N)
-            psi = energy_density(model, F, mu, lam, N)
-            check_values(model, "energy", psi, F, N)
-            return (coef * psi).sum(-1)
+            return _eager_energy(model, x, faces, D, coef, mu, lam)
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -231,16 +247,10 @@ def kernel_energy_gradient(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu
         E, g = out
         return E, (g if g is not None else x.new_empty(0))
     check_positions(x, x.shape[-2], check_finite=True)  # a non-finite input is named as such
-    F, N = deformation(x, faces, D)
-    check_collapsed(m, F, N)
     if not gradient:
-        psi = energy_density(m, F, mu, lam, N)
-        check_values(m, "energy", psi, F, N)
-        return (coef * psi).sum(-1), x.new_empty(0)
-    psi, P = stress(m, F, mu, lam, N)
-    check_values(m, "gradient", P, F, N)
-    G = (weight.to(x.dtype).expand(x.shape[:-2])[..., None] * coef)[..., None, None] * P
-    return (coef * psi).sum(-1), to_vertices(G, D, faces, x.shape[-2])
+        return _eager_energy(m, x, faces, D, coef, mu, lam), x.new_empty(0)
+    psi, P = _eager_stress(m, x, faces, D, mu, lam)
+    return (coef * psi).sum(-1), _pulled_back(weight.to(x.dtype).expand(x.shape[:-2]), coef, P, D, faces, x.shape[-2])
 
 
 def kernel_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, weight: Tensor,

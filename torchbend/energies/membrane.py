@@ -48,10 +48,10 @@ class MembraneEnergy(nn.Module):
         young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
         thickness: ``t`` [m] (> 0).
         check_finite: check inputs for NaN/Inf.
-        backend: ``"auto" | "eager" | "native"``: every model has compiled CPU kernels, taken by ``"auto"``: the
-            energy and gradient (also under a recorded graph: they sit inside the analytic autograd Functions), the
-            ``hvp`` (projected or not) and the double backward, and the element Hessians (projected or not;
-            ``element_hessians``, ``hessian``) without a recorded graph; other devices run eagerly.
+        backend: ``"auto" | "eager" | "native"``: every model has compiled CPU and CUDA kernels, taken by
+            ``"auto"``: the energy and gradient (also under a recorded graph: they sit inside the analytic autograd
+            Functions), the ``hvp`` (projected or not) and the double backward, and the element Hessians (projected
+            or not; ``element_hessians``, ``hessian``) without a recorded graph; other devices run eagerly.
 
     Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
     backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
@@ -111,8 +111,8 @@ class MembraneEnergy(nn.Module):
         return self.shape_matrices.to(dt), (self.rest_areas * self.thickness).to(dt), self.mu.to(dt), self.lam.to(dt)
 
     def _selected(self, op: str, backend, x: Tensor, *params: Tensor) -> backends.Backend:
-        """The backend of ``membrane_<op>`` (:func:`torchbend.backends.select_backend`; the operations with a compiled
-        StVK kernel are the entry points ``membrane_*`` of :data:`torchbend.backends._table.ENTRY_POINTS`)."""
+        """The backend of ``membrane_<op>`` (:func:`torchbend.backends.select_backend`; the operations with compiled
+        kernels are the entry points ``membrane_*`` of :data:`torchbend.backends._table.ENTRY_POINTS`)."""
         return backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x, *params)
 
     def forward(self, x: Tensor, *, backend=None) -> Tensor:
@@ -142,6 +142,13 @@ class MembraneEnergy(nn.Module):
         fn.check_values(self.model, "Hessian", l, F, N)
         return project_eigenvalues(l, projection) * coef[..., None], Q, D, v
 
+    def _blocks_module(self, x: Tensor, backend, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor):
+        """The module of the compiled element Hessians for ``x`` (``native`` or ``cuda``), where the backend selects
+        them and they take these arguments (:func:`~torchbend.energies._membrane_fn.compiled_module`), else ``None``."""
+        if self._selected("element_hessians", backend, x, mu, lam) is not backends.Backend.NATIVE:
+            return None
+        return fn.compiled_module(x, self.faces, D, coef, mu, lam)
+
     def element_eigensystems(self, x: Tensor, *, backend=None) -> tuple[Tensor, Tensor]:
         """Closed-form eigensystem of each element's energy Hessian in ``f = vec(F)``: eigenvalues
         ``(..., T, 6)`` and orthonormal eigenvectors ``(..., T, 6, 6)`` (columns) with ``Q diag(l) Q^T =
@@ -161,9 +168,8 @@ class MembraneEnergy(nn.Module):
         projection = projection_argument(projection, project, "MembraneEnergy.element_hessians")
         proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, "element_hessians", backend)
-        native_selected = self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE
-        module = fn.kernels(x) if native_selected else None
-        if module is not None and fn.applies(x, self.faces, D, coef, mu, lam):
+        module = self._blocks_module(x, backend, D, coef, mu, lam)
+        if module is not None:
             H, finite = module.membrane_blocks(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value)
             if finite:
                 return H  # else the eager path names the faces
@@ -211,8 +217,7 @@ class MembraneEnergy(nn.Module):
         pat = self._pattern
         proj = Projection.parse(projection, what="membrane projection", supported=MEMBRANE_PROJECTIONS)
         D, coef, mu, lam = self._args(x, "element_hessians", backend)
-        if x.device.type == "cpu" and self._selected("element_hessians", backend, x, mu, lam) is backends.Backend.NATIVE \
-                and fn.applies(x, self.faces, D, coef, mu, lam):  # blocks added as they are computed (no (T, 9, 9))
+        if self._blocks_module(x, backend, D, coef, mu, lam) is native:  # blocks added as computed (no (T, 9, 9))
             values = native.membrane_assemble(x.detach(), self.faces, D, coef, mu, lam, self.model.value, proj.value,
                                               pat.element_blocks, pat.row_len, pat.nnz)
             if values is not None:
