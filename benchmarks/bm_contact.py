@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 import torch
 
@@ -24,6 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import machine  # noqa: E402
 
 import torchbend as tb  # noqa: E402
+from torchbend.testing import call_times  # noqa: E402
 
 
 def folded(n: int, size: float = 0.5):
@@ -37,13 +37,7 @@ def folded(n: int, size: float = 0.5):
 
 
 def best(fn, repeats: int) -> float:
-    fn()
-    out = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t)
-    return min(out)
+    return min(call_times(fn, repeats))
 
 
 def run_torchbend(x, f, dhat, repeats):

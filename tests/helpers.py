@@ -52,6 +52,25 @@ AVX-512 and AMD Zen builds (the tan model's half-angle terms amplify them the mo
 without hiding a wrong term, which shows at 1e-8 and above."""
 
 
+def assert_collider_derivatives_match_autograd(collider, x: torch.Tensor, rtol: float, hessian_rtol: float,
+                                               hessian_atol: float) -> None:
+    """A collider's gradient and exact per-vertex Hessian blocks against autograd of its energy (row by row: the
+    energy is a sum over vertices), and its clamped blocks PSD; ``x (V, 3)``, some vertices in contact; the
+    absolute tolerances are relative to the largest entry."""
+    x = x.detach().requires_grad_()
+    active = collider.depth(x.detach()) > 0
+    assert 5 < int(active.sum()) < x.shape[0]  # some points in contact, some free
+    (g,) = torch.autograd.grad(collider.energy(x), x, create_graph=True)
+    gd = g.detach()
+    torch.testing.assert_close(collider.gradient(x.detach()), gd, rtol=rtol, atol=rtol * float(gd.abs().max()))
+    H = torch.stack([torch.autograd.grad(g[:, j].sum(), x, retain_graph=True)[0] for j in range(3)], -1)
+    blocks = collider.hessian_blocks(x.detach(), projection="none")
+    torch.testing.assert_close(blocks, H.transpose(-1, -2), rtol=hessian_rtol,
+                               atol=hessian_atol * float(H.abs().max()))
+    projected = collider.hessian_blocks(x.detach(), projection="clamp")
+    assert float(torch.linalg.eigvalsh(projected).min()) >= -1e-12 * float(projected.abs().max())
+
+
 def round_off(dtype: torch.dtype) -> float:
     """:data:`ROUND_OFF` of ``dtype``."""
     return ROUND_OFF[dtype]

@@ -13,6 +13,8 @@ from torchbend.energies.colliders import _TensorCapsule
 from torchbend.energies.contact import LogBarrier, contact_law
 from torchbend.scenes.config import SceneConfig, build_collider, validate
 
+from .helpers import assert_collider_derivatives_match_autograd
+
 F64 = torch.float64
 
 
@@ -97,16 +99,8 @@ def outside_points(c, n: int, dhat: float, seed: int) -> torch.Tensor:
 def test_ipc_collider_gradient_and_hessian_blocks_match_autograd(name):
     dhat = 0.01
     c = COLLIDERS[name](law="ipc", stiffness=3.0, margin=dhat)
-    x = outside_points(c, 40, dhat, 3).requires_grad_()
-    active = c.depth(x.detach()) > 0
-    assert 5 < int(active.sum()) < 40
-    (g,) = torch.autograd.grad(c.energy(x), x, create_graph=True)
-    torch.testing.assert_close(c.gradient(x.detach()), g.detach(), rtol=1e-11, atol=1e-11 * float(g.detach().abs().max()))
-    H = torch.stack([torch.autograd.grad(g[:, j].sum(), x, retain_graph=True)[0] for j in range(3)], -1)
-    blocks = c.hessian_blocks(x.detach(), projection="none")
-    torch.testing.assert_close(blocks, H.transpose(-1, -2), rtol=1e-9, atol=1e-10 * float(H.abs().max()))
-    projected = c.hessian_blocks(x.detach(), projection="clamp")
-    assert float(torch.linalg.eigvalsh(projected).min()) >= -1e-12 * float(projected.abs().max())
+    x = outside_points(c, 40, dhat, 3)
+    assert_collider_derivatives_match_autograd(c, x, rtol=1e-11, hessian_rtol=1e-9, hessian_atol=1e-10)
 
 
 @pytest.mark.parametrize("name", list(COLLIDERS))

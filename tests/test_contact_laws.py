@@ -11,6 +11,8 @@ import torchbend as tb
 from torchbend.energies.contact import Penalty, PowerBarrier, contact_law
 from torchbend.scenes.config import SceneConfig, build_collider, validate
 
+from .helpers import assert_collider_derivatives_match_autograd
+
 F64 = torch.float64
 
 
@@ -62,17 +64,8 @@ COLLIDERS = [
 def test_collider_gradient_and_hessian_blocks_match_autograd(make, law):
     c = make(margin=0.01, **law)
     gen = torch.Generator().manual_seed(2)
-    x = (0.35 * torch.rand(40, 3, generator=gen, dtype=F64) - 0.15).requires_grad_()
-    active = c.depth(x.detach()) > 0
-    assert 5 < int(active.sum()) < 40  # some points in contact, some free
-    (g,) = torch.autograd.grad(c.energy(x), x, create_graph=True)
-    torch.testing.assert_close(c.gradient(x.detach()), g.detach(), rtol=1e-12, atol=1e-12 * float(g.detach().abs().max()))
-    # the per-vertex blocks of the exact Hessian: autograd row by row (the energy is a sum over vertices)
-    H = torch.stack([torch.autograd.grad(g[:, j].sum(), x, retain_graph=True)[0] for j in range(3)], -1)
-    blocks = c.hessian_blocks(x.detach(), projection="none")
-    torch.testing.assert_close(blocks, H.transpose(-1, -2), rtol=1e-10, atol=1e-10 * float(H.abs().max()))
-    projected = c.hessian_blocks(x.detach(), projection="clamp")
-    assert float(torch.linalg.eigvalsh(projected).min()) >= -1e-12 * float(projected.abs().max())
+    x = 0.35 * torch.rand(40, 3, generator=gen, dtype=F64) - 0.15
+    assert_collider_derivatives_match_autograd(c, x, rtol=1e-12, hessian_rtol=1e-10, hessian_atol=1e-10)
 
 
 def test_a_strip_rests_on_a_barrier_plane_above_the_margin_depth_the_law_gives():

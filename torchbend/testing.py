@@ -13,7 +13,7 @@ import time
 import torch
 from torch import Tensor
 
-__all__ = ["plain_hinge_angles", "plain_bending_energy", "autograd_gradient", "autograd_hvp", "median_time",
+__all__ = ["plain_hinge_angles", "plain_bending_energy", "autograd_gradient", "autograd_hvp", "call_times", "median_time",
            "hood_reference_loss", "HoodReference"]
 
 
@@ -62,8 +62,8 @@ def plain_bending_energy(
     return psi.sum(-1)
 
 
-def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
-    """Median wall-clock seconds of ``fn()`` over ``repeat`` calls after ``warmup`` calls."""
+def call_times(fn, repeat: int = 3, warmup: int = 1) -> list[float]:
+    """Wall-clock seconds of ``repeat`` calls of ``fn()``, after ``warmup`` untimed calls."""
     for _ in range(warmup):
         fn()
     times = []
@@ -71,7 +71,12 @@ def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return times
+
+
+def median_time(fn, repeat: int = 3, warmup: int = 1) -> float:
+    """Median wall-clock seconds of ``fn()`` over ``repeat`` calls after ``warmup`` calls."""
+    return statistics.median(call_times(fn, repeat, warmup))
 
 
 def autograd_gradient(energy, x: Tensor) -> Tensor:

@@ -110,10 +110,12 @@ torch::Tensor weight_of(const char* op, const torch::Tensor& w, const Args& r) {
   return w.to(r.x.scalar_type()).contiguous();
 }
 
-void check_direction(const char* op, const torch::Tensor& v, const torch::Tensor& x) {
+// the direction v of an HVP, checked against x (shape, dtype, device), contiguous
+torch::Tensor direction(const char* op, const torch::Tensor& v, const torch::Tensor& x) {
   torchbend::checks::require(v.sizes() == x.sizes() && v.scalar_type() == x.scalar_type() && v.device() == x.device(),
                              op, "v must have x's shape ", torchbend::checks::shape_str(x), ", dtype and device, got ",
                              torchbend::checks::shape_str(v), " ", v.scalar_type(), " on ", v.device());
+  return v.contiguous();
 }
 
 // ---- the membrane (one material): x (..., V, 3) CUDA float32/float64, faces (T, 3) int64, D (T, 3, 2) and coef (T,)
@@ -173,8 +175,7 @@ std::tuple<torch::Tensor, torch::Tensor> membrane_hvp(torch::Tensor x, torch::Te
                                                       int64_t stream) {
   c10::DeviceGuard guard(x.device());
   MembraneArgs r = prepare_membrane("membrane_hvp", x, faces, D, coef, mu, lam, model, projection);
-  check_direction("membrane_hvp", v, x);
-  auto vc = v.contiguous();
+  auto vc = direction("membrane_hvp", v, x);
   auto w = sample_weight("membrane_hvp", weight, r);
   auto hv = torch::zeros(r.x.sizes(), r.x.options());
   auto dots = torch::empty(with(r.batch, {r.T}), r.x.options());
@@ -221,8 +222,7 @@ std::tuple<torch::Tensor, torch::Tensor> hvp(torch::Tensor x, torch::Tensor v, t
                                              int64_t stream) {
   c10::DeviceGuard guard(x.device());
   Args r = prepare("bending_hvp", x, hinges, a, k, rest, c, prev, model);
-  check_direction("bending_hvp", v, x);
-  auto vc = v.contiguous();
+  auto vc = direction("bending_hvp", v, x);
   auto w = weight_of("bending_hvp", weight, r);
   auto hv = torch::zeros(with(r.batch, {r.V, 3}), r.x.options());
   auto theta = torch::empty(with(r.batch, {r.H}), r.x.options());
@@ -238,10 +238,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> second_or
   c10::DeviceGuard guard(x.device());
   Args r = prepare("bending_second_order", x, hinges, a, k, rest, c, prev, model);
   torch::Tensor vc, tc;
-  if (v.has_value()) {
-    check_direction("bending_second_order", *v, x);
-    vc = v->contiguous();
-  }
+  if (v.has_value()) vc = direction("bending_second_order", *v, x);
   if (t.has_value()) {
     torchbend::checks::require(t->device() == x.device() && t->is_floating_point() && t->dim() >= 2 &&
                                    t->size(-1) == 4 && t->size(-2) == r.H &&

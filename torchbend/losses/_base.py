@@ -6,7 +6,7 @@ from torch import Tensor, nn
 
 from .._checks import check_finite_tensor, is_traced
 
-__all__ = ["LossTerm", "check_points", "per_sample"]
+__all__ = ["LossTerm", "check_points", "lumped_masses", "per_sample"]
 
 
 class LossTerm(nn.Module):
@@ -106,3 +106,10 @@ def per_sample(value, name: str, x: Tensor, term: str, *, positive: bool | None 
                              f"got min {float(d.min())}")
     return t
 
+
+def lumped_masses(density, areas: Tensor, x: Tensor, term: str) -> Tensor:
+    """Lumped masses ``(V,)`` or ``(B, V)`` [kg] in the dtype of ``x``: a density per sample (:func:`per_sample`,
+    positive) times the lumped vertex areas ``(V,)`` [m^2] (a third of each rest triangle's area)."""
+    rho = per_sample(density, "density", x, term, positive=True)
+    a = areas.to(x.dtype)
+    return rho[..., None] * a if rho.ndim else rho * a

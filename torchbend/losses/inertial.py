@@ -20,7 +20,7 @@ from torch import Tensor
 
 from .._checks import vec3
 from ..mesh.topology import lumped_areas, mesh_and_rest
-from ._base import LossTerm, check_points, per_sample
+from ._base import LossTerm, check_points, lumped_masses, per_sample
 
 __all__ = ["Gravity", "Inertia", "Pinning"]
 
@@ -42,9 +42,7 @@ class _Lumped(LossTerm):
 
     def _masses(self, x: Tensor, density) -> Tensor:
         """Lumped masses ``(V,)`` or ``(B, V)`` [kg] in the dtype of ``x``."""
-        rho = per_sample(self.density if density is None else density, "density", x, self.term_name, positive=True)
-        a = self.areas.to(x.dtype)
-        return rho[..., None] * a if rho.ndim else rho * a
+        return lumped_masses(self.density if density is None else density, self.areas, x, self.term_name)
 
 
 class Gravity(_Lumped):

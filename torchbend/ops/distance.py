@@ -140,38 +140,25 @@ def _lines(a0: Tensor, a1: Tensor, b0: Tensor, b1: Tensor) -> Tensor:
     return h * h / _dot(n, n)
 
 
+_TYPED = {
+    PT_P0: (_pp, (0, 1)), PT_P1: (_pp, (0, 2)), PT_P2: (_pp, (0, 3)),
+    PT_E01: (_pe, (0, 1, 2)), PT_E12: (_pe, (0, 2, 3)), PT_E20: (_pe, (0, 3, 1)), PT_FACE: (_plane, (0, 1, 2, 3)),
+    EE_A0B0: (_pp, (0, 2)), EE_A0B1: (_pp, (0, 3)), EE_A1B0: (_pp, (1, 2)), EE_A1B1: (_pp, (1, 3)),
+    EE_AB0: (_pe, (2, 0, 1)), EE_AB1: (_pe, (3, 0, 1)), EE_A0B: (_pe, (0, 2, 3)), EE_A1B: (_pe, (1, 2, 3)),
+    EE_LINES: (_lines, (0, 1, 2, 3)),
+}
+"""Each distance type's formula and the stencil corners it takes (point-triangle stencils: the point, then the
+triangle; edge-edge: the first edge, then the second)."""
+
+
 def typed_distance_sq(X: Tensor, kind: int) -> Tensor:
     """The squared distance ``(N,)`` of stencils ``X (N, 4, 3)`` that all have the type ``kind`` (one formula,
     smooth: differentiate it for the derivatives of the distance)."""
-    x0, x1, x2, x3 = X.unbind(-2)
-    if kind == PT_P0:
-        return _pp(x0, x1)
-    if kind == PT_P1:
-        return _pp(x0, x2)
-    if kind == PT_P2:
-        return _pp(x0, x3)
-    if kind == PT_E01:
-        return _pe(x0, x1, x2)
-    if kind == PT_E12:
-        return _pe(x0, x2, x3)
-    if kind == PT_E20:
-        return _pe(x0, x3, x1)
-    if kind == PT_FACE:
-        return _plane(x0, x1, x2, x3)
-    pairs = {EE_A0B0: (x0, x2), EE_A0B1: (x0, x3), EE_A1B0: (x1, x2), EE_A1B1: (x1, x3)}
-    if kind in pairs:
-        return _pp(*pairs[kind])
-    if kind == EE_AB0:
-        return _pe(x2, x0, x1)
-    if kind == EE_AB1:
-        return _pe(x3, x0, x1)
-    if kind == EE_A0B:
-        return _pe(x0, x2, x3)
-    if kind == EE_A1B:
-        return _pe(x1, x2, x3)
-    if kind == EE_LINES:
-        return _lines(x0, x1, x2, x3)
-    raise ValueError(f"unknown distance type {kind}")
+    if kind not in _TYPED:
+        raise ValueError(f"unknown distance type {kind}")
+    formula, corners = _TYPED[kind]
+    xs = X.unbind(-2)
+    return formula(*(xs[i] for i in corners))
 
 
 def by_type(X: Tensor, types: Tensor):

@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from ...mesh.topology import lumped_areas, mesh_and_rest
-from .._base import LossTerm, check_points, per_sample
+from .._base import LossTerm, check_points, lumped_masses
 
 __all__ = ["HoodTerm", "face_centroids", "face_normals", "nearest"]
 
@@ -43,9 +43,7 @@ class HoodTerm(LossTerm):
 
     def _masses(self, x: Tensor, density) -> Tensor:
         """HOOD's ``v_mass``: lumped masses ``(V,)`` or ``(B, V)`` [kg], a third of each rest triangle's mass."""
-        rho = per_sample(self.density if density is None else density, "density", x, self.term_name, positive=True)
-        a = self.vertex_areas.to(x.dtype)
-        return rho[..., None] * a if rho.ndim else rho * a
+        return lumped_masses(self.density if density is None else density, self.vertex_areas, x, self.term_name)
 
     def _points(self, t, name: str, x: Tensor, count: int | None = None) -> Tensor:
         """A second set of positions (previous cloth, body) checked against ``x``'s batch, device and dtype."""
