@@ -174,6 +174,29 @@ def sweep(cases: str) -> None:
     print(f"{ok} of {total} solves converged within 1e-6 of the reference")
 
 
+def drape_table(a) -> None:
+    print(f"\ndrape: square cloth falling onto a sphere, {a.steps} implicit Euler steps of 0.005 s")
+    print(f"{'mesh':>7s} {'hessian':>13s} {'linear':>6s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} "
+          f"{'bend%':>5s} {'mem %':>5s} {'final energy':>13s} {'pen./edge':>12s}  converged")
+    for n in a.drape:
+        for h in a.hessians:
+            for lin in a.linear:
+                print(drape(n, h, a.steps, lin), flush=True)
+
+
+def split_table(a) -> None:
+    cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
+    print("\nbeams: static equilibrium per option, default solver options (time split)")
+    print(f"{'mesh':>6s} {'thickness':>9s} {'hessian':>13s} {'linear':>6s} {'its':>5s} {'seconds':>10s} "
+          f"{'bend%':>5s} {'mem %':>5s}  converged")
+    for res in a.split_beams:
+        nx, ny = (int(v) for v in res.split("x"))
+        for t in cfg["material"]["thicknesses"]:
+            for h in a.hessians:
+                for lin in a.linear:
+                    print(beam(nx, ny, float(t), h, lin, a.time_limit), flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     p.add_argument("--drape", type=int, nargs="*", default=[11, 21, 41])
@@ -191,24 +214,9 @@ def main(argv=None) -> None:
     if a.sweep:
         sweep(a.sweep)
     if a.drape:
-        print(f"\ndrape: square cloth falling onto a sphere, {a.steps} implicit Euler steps of 0.005 s")
-        print(f"{'mesh':>7s} {'hessian':>13s} {'linear':>6s} {'its/step':>8s} {'max':>5s} {'s/step':>12s} "
-              f"{'bend%':>5s} {'mem %':>5s} {'final energy':>13s} {'pen./edge':>12s}  converged")
-        for n in a.drape:
-            for h in a.hessians:
-                for lin in a.linear:
-                    print(drape(n, h, a.steps, lin), flush=True)
+        drape_table(a)
     if a.split_beams:
-        cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))
-        print("\nbeams: static equilibrium per option, default solver options (time split)")
-        print(f"{'mesh':>6s} {'thickness':>9s} {'hessian':>13s} {'linear':>6s} {'its':>5s} {'seconds':>10s} "
-              f"{'bend%':>5s} {'mem %':>5s}  converged")
-        for res in a.split_beams:
-            nx, ny = (int(v) for v in res.split("x"))
-            for t in cfg["material"]["thicknesses"]:
-                for h in a.hessians:
-                    for lin in a.linear:
-                        print(beam(nx, ny, float(t), h, lin, a.time_limit), flush=True)
+        split_table(a)
     if a.beams:
         print("\nbeams: cantilevers, static equilibrium (exact Hessian, direct solver)")
         cfg = load_config(os.path.join(CONFIGS, "beams.yaml"))

@@ -228,51 +228,71 @@ def cpu_targets(result: dict, at=(100_000, 1_000_000)) -> list:
     """``(target, size label, met: bool | None, measured text)`` for the CPU acceptance criteria (float64);
     the speed-up targets at the sizes ``at``; each target once per build in the record (:func:`builds`)."""
     rows = index(result)
-    dt = "float64"
     out = []
     for fast, tag in builds(result):
-        for label, op, slow, need, need_back in CPU_SPEEDUPS:
-            for target in at:
-                h = nearest(result, dt, target)
-                r = _ratio(rows, slow, op, dt, h, fast=fast)
-                extra, ok = "", None if r is None else r >= need
-                if op in ("gradient", "hvp") and slow == "autograd":
-                    rb = _ratio(rows, slow, op, dt, h, fast=_backward_of(fast))
-                    if rb is not None:
-                        extra = f" (through torch.autograd: {rb:.1f}x)"
-                        if need_back is not None and ok is not None:
-                            ok = ok and rb >= need_back
-                text = "not measured" if r is None else f"{r:.1f}x{extra}"
-                out.append((label + tag, f"{h:,}" if h else f"~{target:,}", ok, text))
-        for op in FLOOR_OPS:
-            for target in at:
-                h = nearest(result, dt, target)
-                c = next((c for c in configs(result, dt) if c["hinges"] == h), None)
-                t = ns(rows, fast, op, dt, h) if h else None
-                label = f"{op} within 3x of its floor" + tag
-                if c is None or t is None:
-                    out.append((label, f"~{target:,}", None, "not measured"))
-                    continue
-                fl = max(floor_ns(result, c, op)[2:])
-                out.append((label, f"{h:,}", t / fl <= 3.0, f"{t:.1f} ns vs floor {fl:.2f} ns: {t / fl:.1f}x"))
-        h3, h4, h5, h6 = (nearest(result, dt, t) for t in (1000, 10_000, 100_000, 1_000_000))
-        for op in OPS:
-            ref = ns(rows, fast, op, dt, h5) if h5 else None
-            vals = [(h, ns(rows, fast, op, dt, h)) for h in (h4, h5, h6) if h]
-            vals = [(h, t) for h, t in vals if t is not None]
-            label = f"{op}: ns per hinge flat within +-20% from 1e4 to 1e6" + tag
-            if ref is None or len(vals) < 2:
-                out.append((label, "", None, "not measured"))
-            else:
-                rel = [t / ref for _, t in vals]
-                out.append((label, ", ".join(f"{h:,}" for h, _ in vals), all(0.8 <= q <= 1.2 for q in rel) and len(vals) == 3,
-                            "relative to 1e5: " + ", ".join(f"{q:.2f}" for q in rel)))
-            t3 = ns(rows, fast, op, dt, h3) if h3 else None
-            label = f"{op}: at 1e3 at most 2x the 1e5 figure" + tag
-            if ref is None or t3 is None:
-                out.append((label, "", None, "not measured"))
-            else:
-                out.append((label, f"{h3:,}", t3 / ref <= 2.0, f"{t3:.1f} vs {ref:.1f} ns/hinge: {t3 / ref:.2f}x"))
+        out += _speedup_rows(result, rows, fast, tag, at)
+        out += _floor_rows(result, rows, fast, tag, at)
+        out += _flatness_rows(result, rows, fast, tag)
+    return out
+
+
+def _speedup_rows(result: dict, rows, fast: str, tag: str, at) -> list:
+    """The speed-up targets of one build (``fast``: its method) at the sizes ``at``."""
+    dt, out = "float64", []
+    for label, op, slow, need, need_back in CPU_SPEEDUPS:
+        for target in at:
+            h = nearest(result, dt, target)
+            r = _ratio(rows, slow, op, dt, h, fast=fast)
+            extra, ok = "", None if r is None else r >= need
+            if op in ("gradient", "hvp") and slow == "autograd":
+                rb = _ratio(rows, slow, op, dt, h, fast=_backward_of(fast))
+                if rb is not None:
+                    extra = f" (through torch.autograd: {rb:.1f}x)"
+                    if need_back is not None and ok is not None:
+                        ok = ok and rb >= need_back
+            text = "not measured" if r is None else f"{r:.1f}x{extra}"
+            out.append((label + tag, f"{h:,}" if h else f"~{target:,}", ok, text))
+    return out
+
+
+def _floor_rows(result: dict, rows, fast: str, tag: str, at) -> list:
+    """Each op of :data:`FLOOR_OPS` within 3x of its floor, one build, at the sizes ``at``."""
+    dt, out = "float64", []
+    for op in FLOOR_OPS:
+        for target in at:
+            h = nearest(result, dt, target)
+            c = next((c for c in configs(result, dt) if c["hinges"] == h), None)
+            t = ns(rows, fast, op, dt, h) if h else None
+            label = f"{op} within 3x of its floor" + tag
+            if c is None or t is None:
+                out.append((label, f"~{target:,}", None, "not measured"))
+                continue
+            fl = max(floor_ns(result, c, op)[2:])
+            out.append((label, f"{h:,}", t / fl <= 3.0, f"{t:.1f} ns vs floor {fl:.2f} ns: {t / fl:.1f}x"))
+    return out
+
+
+def _flatness_rows(result: dict, rows, fast: str, tag: str) -> list:
+    """ns per hinge flat from 1e4 to 1e6 and at 1e3 at most 2x the 1e5 figure, one build."""
+    dt, out = "float64", []
+    h3, h4, h5, h6 = (nearest(result, dt, t) for t in (1000, 10_000, 100_000, 1_000_000))
+    for op in OPS:
+        ref = ns(rows, fast, op, dt, h5) if h5 else None
+        vals = [(h, ns(rows, fast, op, dt, h)) for h in (h4, h5, h6) if h]
+        vals = [(h, t) for h, t in vals if t is not None]
+        label = f"{op}: ns per hinge flat within +-20% from 1e4 to 1e6" + tag
+        if ref is None or len(vals) < 2:
+            out.append((label, "", None, "not measured"))
+        else:
+            rel = [t / ref for _, t in vals]
+            out.append((label, ", ".join(f"{h:,}" for h, _ in vals), all(0.8 <= q <= 1.2 for q in rel) and len(vals) == 3,
+                        "relative to 1e5: " + ", ".join(f"{q:.2f}" for q in rel)))
+        t3 = ns(rows, fast, op, dt, h3) if h3 else None
+        label = f"{op}: at 1e3 at most 2x the 1e5 figure" + tag
+        if ref is None or t3 is None:
+            out.append((label, "", None, "not measured"))
+        else:
+            out.append((label, f"{h3:,}", t3 / ref <= 2.0, f"{t3:.1f} vs {ref:.1f} ns/hinge: {t3 / ref:.2f}x"))
     return out
 
 

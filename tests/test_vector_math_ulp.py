@@ -173,6 +173,41 @@ def _next(v: float, dtype: np.dtype, k: int) -> float:
     return float(out)  # inf past the largest finite value (dropped by the callers)
 
 
+def _atan2_boundaries(dtype: np.dtype, L: dict) -> tuple[list[float], list[float]]:
+    """(y, x) at the reduction boundaries |y|/|x| = 7/16, 11/16, 1 (and their reciprocals), a few ulps either
+    side, at scales from the subnormals to the largest finite value, in all quadrants."""
+    ys: list[float] = []
+    xs: list[float] = []
+    scales = [L["tiny"] * 64, L["min"], 2.0**-500 if dtype == F64 else 2.0**-60, 1.0, 3.0,
+              2.0**500 if dtype == F64 else 2.0**60, L["max"] / 2, L["max"]]
+    for ratio in (7 / 16, 11 / 16, 1.0):
+        for s in scales:
+            for k in range(-3, 4):
+                y, x = _next(ratio * s, dtype, k), s
+                if not np.isfinite(y):
+                    continue
+                for sy in (1, -1):
+                    for sx in (1, -1):
+                        ys += [sy * y, sy * x]
+                        xs += [sx * x, sx * y]
+    return ys, xs
+
+
+def _atan2_near_pi(dtype: np.dtype, L: dict) -> tuple[list[float], list[float]]:
+    """(y, x) whose atan2 lies next to +-pi (tiny y, x < 0) and +-pi/2 (tiny x), at every scale."""
+    ys: list[float] = []
+    xs: list[float] = []
+    for s in (1.0, L["max"], L["min"], 2.0**-30, 2.0**30):
+        for small in (L["tiny"], L["min"], 1e-300 if dtype == F64 else 1e-38, 1e-20, 1e-8, 2.0**-27, 1e-3):
+            v = small * s
+            if not (0 < v < np.inf) or dtype.type(v) == 0:
+                continue
+            for sg in (1, -1):
+                ys += [sg * v, sg * s, sg * s]
+                xs += [-s, v, -v]
+    return ys, xs
+
+
 def atan2_cases(dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
     """(y, x): special values in all combinations, the reduction boundaries (ratios 7/16, 11/16, 1) at every
     scale, results next to +-pi and +-pi/2, random magnitudes over the whole exponent range in all quadrants,
@@ -190,27 +225,8 @@ def atan2_cases(dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
 
     for a in special:
         add([a] * len(special), special)
-    # the reduction boundaries |y|/|x| = 7/16, 11/16, 1 (and their reciprocals), a few ulps either side,
-    # at scales from the subnormals to DBL_MAX, in all quadrants
-    scales = [L["tiny"] * 64, L["min"], 2.0**-500 if dtype == F64 else 2.0**-60, 1.0, 3.0,
-              2.0**500 if dtype == F64 else 2.0**60, L["max"] / 2, L["max"]]
-    for ratio in (7 / 16, 11 / 16, 1.0):
-        for s in scales:
-            for k in range(-3, 4):
-                y, x = _next(ratio * s, dtype, k), s
-                if not np.isfinite(y):
-                    continue
-                for sy in (1, -1):
-                    for sx in (1, -1):
-                        add([sy * y, sy * x], [sx * x, sx * y])
-    # results next to +-pi (tiny y, x < 0) and +-pi/2 (tiny x), at every scale
-    for s in (1.0, L["max"], L["min"], 2.0**-30, 2.0**30):
-        for small in (L["tiny"], L["min"], 1e-300 if dtype == F64 else 1e-38, 1e-20, 1e-8, 2.0**-27, 1e-3):
-            v = small * s
-            if not (0 < v < np.inf) or dtype.type(v) == 0:
-                continue
-            for sg in (1, -1):
-                add([sg * v, sg * s, sg * s], [-s, v, -v])
+    add(*_atan2_boundaries(dtype, L))
+    add(*_atan2_near_pi(dtype, L))
     # random magnitudes over the whole exponent range, all quadrants
     n = 700
     y = _signs(rng, _log_uniform(rng, n, L["emin"], L["emax"], dtype))

@@ -450,6 +450,14 @@ def overrides(a: argparse.Namespace) -> list[str]:
     return tc.flag_overrides(a)
 
 
+def log_losses(writer, values: dict, total: float, step: int, seconds_per_step: float) -> None:
+    """The step's unweighted term values, total loss and time per step to TensorBoard."""
+    for name, value in values.items():
+        writer.add_scalar(f"loss/{name}", float(value), step)
+    writer.add_scalar("loss/total", total, step)
+    writer.add_scalar("time/seconds_per_step", seconds_per_step, step)
+
+
 def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict:
     """Train; ``mesh = (rest (V, 3), faces (F, 3))`` replaces the config's cloth (placed as given).  Returns
     ``{"losses", "terms", "eval", "start", "steps"}`` (``eval``: ``{step: held-out mean loss per step}``)."""
@@ -516,10 +524,7 @@ def main(argv=None, mesh: tuple[torch.Tensor, torch.Tensor] | None = None) -> di
         for name, value in values.items():
             terms.setdefault(name, []).append(float(value))
         if step % log_every == 0 or step == steps:
-            for name, value in values.items():
-                writer.add_scalar(f"loss/{name}", float(value), step)
-            writer.add_scalar("loss/total", history[-1], step)
-            writer.add_scalar("time/seconds_per_step", lap.lap() / (step - logged), step)
+            log_losses(writer, values, history[-1], step, lap.lap() / (step - logged))
             logged = step
         if step % int(cfg["eval"]["every"]) == 0 and step != steps:
             run_eval(step)

@@ -145,6 +145,26 @@ def _compiled_backward(model: MembraneModel, saved: tuple, ggx: Tensor | None) -
     return compiled_hvp(model, "none", x, ggx, faces, D, coef, mu, lam, gE)
 
 
+def _gradient_tangent(model: MembraneModel, saved, t_gE: Tensor | None, t_x: Tensor | None):
+    """The eager second order of the gradient Function ``gE * dE/dx`` (``saved``: its inputs): ``(dx, dg)``, its
+    derivative along ``(t_gE, t_x)`` ``(..., V, 3)`` and the per-triangle ``P : dF`` ``(..., T)`` (the weight's
+    cotangent, before the sum), each ``None`` where it has no input."""
+    gE, x, faces, D, coef, mu, lam = saved
+    F, N = deformation(x, faces, D)
+    l, Q, _, P = eigensystem(model, F, mu, lam, N)
+    G = dg = None
+    if t_x is not None:
+        check_values(model, "Hessian", l, F, N)
+        dF = deformation_gradient(t_x, faces, D).flatten(-2)  # (..., T, 6)
+        G = (gE[..., None] * coef)[..., None, None] * hvp_faces(l, Q, dF)
+        dg = (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2))  # (..., T)
+    if t_gE is not None:
+        term = (t_gE[..., None] * coef)[..., None, None] * P
+        G = term if G is None else G + term
+    dx = None if G is None else to_vertices(G, D, faces, x.shape[-2])
+    return dx, dg
+
+
 def _make(model: MembraneModel, compiled: bool = False):
 
     class _GradientImpl(torch.autograd.Function):
@@ -165,35 +185,18 @@ def _make(model: MembraneModel, compiled: bool = False):
             ctx.save_for_forward(gE, x, faces, D, coef, mu, lam)
 
         @staticmethod
-        def _second(ctx, t_gE, t_x):
-            gE, x, faces, D, coef, mu, lam = ctx.saved_tensors
-            F, N = deformation(x, faces, D)
-            l, Q, _, P = eigensystem(model, F, mu, lam, N)
-            G = dg = None
-            if t_x is not None:
-                check_values(model, "Hessian", l, F, N)
-                dF = deformation_gradient(t_x, faces, D).flatten(-2)  # (..., T, 6)
-                G = (gE[..., None] * coef)[..., None, None] * hvp_faces(l, Q, dF)
-                dg = (coef[..., None, None] * P * dF.unflatten(-1, (3, 2))).sum((-1, -2))  # (..., T)
-            if t_gE is not None:
-                term = (t_gE[..., None] * coef)[..., None, None] * P
-                G = term if G is None else G + term
-            dx = None if G is None else to_vertices(G, D, faces, x.shape[-2])
-            return dx, dg
-
-        @staticmethod
         def backward(ctx, ggx):
             # the compiled HVP where no graph of it is asked for (create_graph=False: grad mode is off here)
             out = _compiled_backward(model, ctx.saved_tensors, ggx) if compiled else None
             if out is not None:
                 return (out[1] if ctx.needs_input_grad[0] else None), out[0], None, None, None, None, None
-            dx, dg = _GradientImpl._second(ctx, None, ggx)
+            dx, dg = _gradient_tangent(model, ctx.saved_tensors, None, ggx)
             dgE = None if dg is None or not ctx.needs_input_grad[0] else dg.sum(-1)
             return dgE, dx, None, None, None, None, None
 
         @staticmethod
         def jvp(ctx, t_gE, t_x, t_faces, t_D, t_coef, t_mu, t_lam):
-            dx, _ = _GradientImpl._second(ctx, t_gE, t_x)
+            dx, _ = _gradient_tangent(model, ctx.saved_tensors, t_gE, t_x)
             return torch.zeros_like(ctx.saved_tensors[1]) if dx is None else dx
 
     class _EnergyImpl(torch.autograd.Function):

@@ -38,34 +38,9 @@ MEMBRANE_PROJECTIONS = frozenset({Projection.NONE, Projection.CLAMP, Projection.
 """The projections a membrane supports (of its closed-form eigenvalues)."""
 
 
-class MembraneEnergy(nn.Module):
-    """Triangle membrane energy with closed-form gradient, Hessian eigensystem and projections.
-
-    Args:
-        faces: ``(F, 3)`` int triangles (validated like :class:`HingeTopology`), or a topology.
-        rest_positions: ``(V, 3)`` float rest positions [m]; each triangle's rest frame.
-        model: ``"stvk" | "arap" | "symmetric_dirichlet" | "neohookean"`` (keyword).
-        young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
-        thickness: ``t`` [m] (> 0).
-        check_finite: check inputs for NaN/Inf.
-        backend: ``"auto" | "eager" | "native"``: every model has compiled CPU and CUDA kernels, taken by
-            ``"auto"``: the energy and gradient (also under a recorded graph: they sit inside the analytic autograd
-            Functions), the ``hvp`` (projected or not) and the double backward, and the element Hessians (projected
-            or not; ``element_hessians``, ``hessian``) without a recorded graph; other devices run eagerly.
-
-    Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
-    backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
-
-    Numerical policy (details in :mod:`torchbend.ops.membrane`): ``F`` is built from edge vectors,
-    so results do not depend on where the mesh is (float32 included).  A 3x2 ``F`` cannot invert (a
-    flipped triangle is a rotated one): ``J >= 0`` always.  At collapsed triangles (``J = 0``:
-    collinear vertices, a collapsed edge, all at one point) ``stvk`` is exact and ``arap`` finite (the
-    cone of its Hessian is evaluated with the stretches floored at ``sqrt(eps)``); ``neohookean`` and
-    ``symmetric_dirichlet`` are undefined there, and every entry point raises a ``ValueError`` naming
-    the faces.  A needed value that overflows the dtype (``symmetric_dirichlet`` or ``neohookean``
-    very near collapse in float32) raises a ``ValueError`` too: never NaN or Inf.  These checks are
-    skipped under ``torch.func`` transforms.
-    """
+class _MembraneData(nn.Module):
+    """The mesh, rest shapes and material of a :class:`MembraneEnergy` (its constructor) and the checks of its
+    inputs."""
 
     faces: Tensor  # (F, 3) int64
     shape_matrices: Tensor  # (F, 3, 2): F = X D; rows 1-2 are W = Dm^-1 (F = Ds W is what is computed)
@@ -115,18 +90,14 @@ class MembraneEnergy(nn.Module):
         kernels are the entry points ``membrane_*`` of :data:`torchbend.backends._table.ENTRY_POINTS`)."""
         return backends.select_backend(f"membrane_{op}", self.backend if backend is None else backend, x, *params)
 
-    def forward(self, x: Tensor, *, backend=None) -> Tensor:
-        """Membrane energy ``(...,)`` [J] of ``x: (..., V, 3)`` [m]."""
-        D, coef, mu, lam = self._args(x, "energy", backend)
-        compiled = self._selected("energy", backend, x) is backends.Backend.NATIVE
-        return fn.energy_function(self.model, compiled).apply(x, self.faces, D, coef, mu, lam)
+    def extra_repr(self) -> str:
+        return (f"model={self.model.value}, faces={self.face_count}, young={self.young:g}, "
+                f"poisson={self.poisson:g}, thickness={self.thickness:g}")
 
-    def gradient(self, x: Tensor, *, backend=None) -> Tensor:
-        """``dE/dx: (..., V, 3)`` [N], closed form (``P = U diag(psi_i) V^T``); differentiable."""
-        D, coef, mu, lam = self._args(x, "gradient", backend)
-        compiled = self._selected("gradient", backend, x) is backends.Backend.NATIVE
-        return fn.gradient_function(self.model, compiled).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu,
-                                                                lam)
+
+class _MembraneHessians(_MembraneData):
+    """The second order of a :class:`MembraneEnergy`: the closed-form eigensystem, the element Hessians (projected
+    or not), the Hessian-vector product and the assembled Hessian."""
 
     def _eigen(self, x: Tensor, op: str, projection, backend, v=None):
         """``(l (..., T, 6) projected and weighted by A t, Q (..., T, 6, 6), D, v)``; ``v`` (an HVP's
@@ -156,10 +127,6 @@ class MembraneEnergy(nn.Module):
         normal 1, normal 2."""
         l, Q, _, _ = self._eigen(x, "eigensystems", None, backend)
         return l, Q
-
-    def deformation_gradients(self, x: Tensor) -> Tensor:
-        """``F: (..., T, 3, 2)``."""
-        return deformation_gradient(x, self.faces, self._args(x, "deformation_gradients")[0])
 
     def element_hessians(self, x: Tensor, *, projection=None, backend=None, project=None) -> Tensor:
         """Position-space element Hessians ``(..., T, 9, 9)`` [N/m] (flat index ``3*k + j``, face order):
@@ -226,6 +193,49 @@ class MembraneEnergy(nn.Module):
         pos = pat.element_positions(x.device)
         return pat.csr(x.new_zeros(pat.nnz).index_add_(0, pos.reshape(-1), He.reshape(-1)))
 
-    def extra_repr(self) -> str:
-        return (f"model={self.model.value}, faces={self.face_count}, young={self.young:g}, "
-                f"poisson={self.poisson:g}, thickness={self.thickness:g}")
+
+class MembraneEnergy(_MembraneHessians):
+    """Triangle membrane energy with closed-form gradient, Hessian eigensystem and projections.
+
+    Args:
+        faces: ``(F, 3)`` int triangles (validated like :class:`HingeTopology`), or a topology.
+        rest_positions: ``(V, 3)`` float rest positions [m]; each triangle's rest frame.
+        model: ``"stvk" | "arap" | "symmetric_dirichlet" | "neohookean"`` (keyword).
+        young: Young's modulus ``Y`` [Pa] (> 0); poisson: ``nu`` in (-1, 0.5);
+        thickness: ``t`` [m] (> 0).
+        check_finite: check inputs for NaN/Inf.
+        backend: ``"auto" | "eager" | "native"``: every model has compiled CPU and CUDA kernels, taken by
+            ``"auto"``: the energy and gradient (also under a recorded graph: they sit inside the analytic autograd
+            Functions), the ``hvp`` (projected or not) and the double backward, and the element Hessians (projected
+            or not; ``element_hessians``, ``hessian``) without a recorded graph; other devices run eagerly.
+
+    Energy ``(...,)`` [J] for ``x: (..., V, 3)``; ``forward`` is differentiable twice with analytic
+    backward and double backward.  ``project`` arguments take ``None | "clamp" | "abs"``.
+
+    Numerical policy (details in :mod:`torchbend.ops.membrane`): ``F`` is built from edge vectors,
+    so results do not depend on where the mesh is (float32 included).  A 3x2 ``F`` cannot invert (a
+    flipped triangle is a rotated one): ``J >= 0`` always.  At collapsed triangles (``J = 0``:
+    collinear vertices, a collapsed edge, all at one point) ``stvk`` is exact and ``arap`` finite (the
+    cone of its Hessian is evaluated with the stretches floored at ``sqrt(eps)``); ``neohookean`` and
+    ``symmetric_dirichlet`` are undefined there, and every entry point raises a ``ValueError`` naming
+    the faces.  A needed value that overflows the dtype (``symmetric_dirichlet`` or ``neohookean``
+    very near collapse in float32) raises a ``ValueError`` too: never NaN or Inf.  These checks are
+    skipped under ``torch.func`` transforms.
+    """
+
+    def forward(self, x: Tensor, *, backend=None) -> Tensor:
+        """Membrane energy ``(...,)`` [J] of ``x: (..., V, 3)`` [m]."""
+        D, coef, mu, lam = self._args(x, "energy", backend)
+        compiled = self._selected("energy", backend, x) is backends.Backend.NATIVE
+        return fn.energy_function(self.model, compiled).apply(x, self.faces, D, coef, mu, lam)
+
+    def gradient(self, x: Tensor, *, backend=None) -> Tensor:
+        """``dE/dx: (..., V, 3)`` [N], closed form (``P = U diag(psi_i) V^T``); differentiable."""
+        D, coef, mu, lam = self._args(x, "gradient", backend)
+        compiled = self._selected("gradient", backend, x) is backends.Backend.NATIVE
+        return fn.gradient_function(self.model, compiled).apply(x.new_ones(x.shape[:-2]), x, self.faces, D, coef, mu,
+                                                                lam)
+
+    def deformation_gradients(self, x: Tensor) -> Tensor:
+        """``F: (..., T, 3, 2)``."""
+        return deformation_gradient(x, self.faces, self._args(x, "deformation_gradients")[0])

@@ -127,6 +127,23 @@ def _fan(poly: list[int]) -> list[tuple[int, int, int]]:
     return [(poly[0], poly[k], poly[k + 1]) for k in range(1, len(poly) - 1)]
 
 
+def _obj_lines(path: str) -> list[str]:
+    """The lines of an OBJ file, ``\\`` continuations joined (ValueError if it cannot be read)."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a byte-order mark is not text
+            return fh.read().replace("\\\r\n", " ").replace("\\\n", " ").splitlines()
+    except OSError as e:
+        raise ValueError(f"cannot read mesh file {path}: {e}") from None
+
+
+def _numbers(tokens: list[str], what: str, line: str) -> list[float]:
+    """The floats of a statement's tokens, else ValueError ``what`` and the line."""
+    try:
+        return [float(t) for t in tokens]
+    except ValueError:
+        raise ValueError(f"{what} {line.strip()!r}") from None
+
+
 def _read_obj(path: str, corner_uvs: list | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """``(points (N, 3) float64, triangles (F, 3) int64 0-indexed, polygons fan-triangulated)`` of an OBJ file;
     with a list ``corner_uvs``, the texture coordinates of each triangle's corners are appended to it as one
@@ -141,27 +158,17 @@ def _read_obj(path: str, corner_uvs: list | None = None) -> tuple[np.ndarray, np
     texcoords: list[list[float]] = []
     tri_uv: list[tuple[int, int, int]] = []
     n_poly = 0
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a byte-order mark is not text
-            lines = fh.read().replace("\\\r\n", " ").replace("\\\n", " ").splitlines()
-    except OSError as e:
-        raise ValueError(f"cannot read mesh file {path}: {e}") from None
-    for lineno, line in enumerate(lines, 1):
+    for lineno, line in enumerate(_obj_lines(path), 1):
         tok = line.split()
         if not tok:
             continue
         if tok[0] == "v":
-            try:
-                points.append([float(t) for t in tok[1:4]])
-            except ValueError:
-                raise ValueError(f"{path}:{lineno}: bad vertex line {line.strip()!r}") from None
+            points.append(_numbers(tok[1:4], f"{path}:{lineno}: bad vertex line", line))
             if len(points[-1]) != 3:
                 raise ValueError(f"{path}:{lineno}: a vertex needs 3 coordinates, got {line.strip()!r}")
         elif tok[0] == "vt" and corner_uvs is not None:
-            try:
-                texcoords.append([float(t) for t in tok[1:3]] + [0.0] * (3 - len(tok)))
-            except ValueError:
-                raise ValueError(f"{path}:{lineno}: bad texture coordinate line {line.strip()!r}") from None
+            uv = _numbers(tok[1:3], f"{path}:{lineno}: bad texture coordinate line", line)
+            texcoords.append(uv + [0.0] * (2 - len(uv)))
         elif tok[0] == "f":
             n = len(points)
             if corner_uvs is not None:
@@ -354,6 +361,33 @@ def clean(positions, faces, *, weld_tol: float | None = 1e-6, report: bool = Fal
     return _clean(pos, f.astype(np.int64), weld_tol, report)
 
 
+def _weld(P: np.ndarray, used: np.ndarray, weld_tol) -> tuple[np.ndarray, float | None]:
+    """``(rep (V,), r)``: each vertex's representative (the lowest index of its cluster, the connected component
+    of "closer than r" among the ``used`` vertices) and the weld distance ``r = weld_tol * diagonal`` (None:
+    ``weld_tol`` None or 0, no welding)."""
+    V = P.shape[0]
+    rep = np.arange(V)
+    if weld_tol is None or float(weld_tol) == 0:
+        return rep, None
+    weld_tol = float(weld_tol)
+    if not (weld_tol > 0 and np.isfinite(weld_tol)):
+        raise ValueError(f"weld_tol must be positive and finite (or None / 0 to disable), got {weld_tol}")
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import KDTree
+
+    Pu = P[used]
+    r = weld_tol * float(np.linalg.norm(Pu.max(0) - Pu.min(0)))
+    pairs = used[KDTree(Pu).query_pairs(r, output_type="ndarray")]
+    if len(pairs):
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(V, V))
+        _, labels = connected_components(graph, directed=False)
+        first = np.full(labels.max() + 1, V, dtype=np.int64)
+        np.minimum.at(first, labels, np.arange(V))
+        rep = first[labels]
+    return rep, r
+
+
 def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str | None = None,
            polygons: int = 0, kept: list | None = None) -> Cleaned:
     """:func:`clean`; ``kept``: a list to which the mask of the input faces that remain is appended."""
@@ -373,25 +407,7 @@ def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str 
         raise ValueError(f"{where}non-finite (NaN or Inf) coordinates at vertices {bad_v[:8].tolist()}")
 
     # 1. weld: cluster = connected component of "closer than r"; representative = lowest index
-    rep = np.arange(V)
-    r = None
-    if weld_tol is not None and float(weld_tol) != 0:
-        weld_tol = float(weld_tol)
-        if not (weld_tol > 0 and np.isfinite(weld_tol)):
-            raise ValueError(f"weld_tol must be positive and finite (or None / 0 to disable), got {weld_tol}")
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import KDTree
-
-        Pu = P[used0]
-        r = weld_tol * float(np.linalg.norm(Pu.max(0) - Pu.min(0)))
-        pairs = used0[KDTree(Pu).query_pairs(r, output_type="ndarray")]
-        if len(pairs):
-            graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(V, V))
-            _, labels = connected_components(graph, directed=False)
-            first = np.full(labels.max() + 1, V, dtype=np.int64)
-            np.minimum.at(first, labels, np.arange(V))
-            rep = first[labels]
+    rep, r = _weld(P, used0, weld_tol)
     welded = int((rep[used0] != used0).sum())
     F = rep[F]
 

@@ -123,62 +123,24 @@ def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> t
     return pt, torch.cat([ea[disjoint], eb[disjoint]], 1), ee[disjoint]
 
 
-class SelfContact(EnergyTerm):
-    """IPC's barrier between the cloth's own non-adjacent primitives (module docstring).
+class _ContactPairs:
+    """The pairs of non-adjacent primitives of a mesh (the cloth's own, with a body's for :class:`MeshCollider`)
+    within a distance: the broad phase (:func:`candidate_pairs`, reused within a radius), the pairs within ``dhat``
+    grouped by distance type, the conservative step bound and the smallest distance (module docstring).  The
+    geometry of :class:`SelfContact`; ``bind`` sets the mesh."""
 
-    Args:
-        dhat: the activation distance [m] (> 0): pairs closer than this repel.
-        stiffness: ``kappa`` [J/m^4] of the barrier on squared distances, or None: chosen from the cloth's
-            weight when the term joins a :class:`~torchbend.ClothModel`.
-        friction: Coulomb's ``mu`` (>= 0) between the layers in time steps (module docstring); 0: none.
-        eps_v: the sliding speed [m/s] (> 0) below which the friction is smoothed (static-like).
-    """
-
-    contact = True
-    confines = False
-
-    def __init__(self, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
-                 eps_v: float = 1e-3, name: str = "self_contact"):
-        self.dhat = positive(dhat, "SelfContact: dhat")
-        self.stiffness = None if stiffness is None else positive(stiffness, "SelfContact: stiffness")
-        self._auto = stiffness is None  # chosen per model by bind
-        self.friction = nonnegative(friction, f"{type(self).__name__}: friction")
-        self.eps_v = positive(eps_v, "SelfContact: eps_v")
-        self.name = name
-        self.faces: Tensor | None = None
-        self.edges: Tensor | None = None
-        self._rest_len_sq: Tensor | None = None
-        self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
-        self._V = 0
-        self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
-        self._last_min = math.inf
-
-    ADAPT_FRACTION = 0.1
-    """A time step starting with a distance below this fraction of ``dhat`` doubles an adaptive ``kappa``."""
-    KAPPA_GROWTH = 100.0
-    """An adaptive ``kappa`` grows to at most this many times its initial value."""
-
-    # ---- binding to a model
-    def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
-        """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
-        ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
-        faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
-        self.faces, self.edges, self._cache = faces, edges, None
-        self._V = rest.shape[0]
-        e = rest[edges[:, 1]] - rest[edges[:, 0]]
-        self._rest_len_sq = (e * e).sum(-1)
-        if self._auto:
-            weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
-            # -b'(D) 2 d at d = dhat / 2 is 4.33 kappa dhat^3 (D = d^2, Dhat = dhat^2)
-            self.stiffness = 10 * weight / (4.33 * self.dhat ** 3)
-            self._kappa0, self._last_min = self.stiffness, math.inf
+    dhat: float
+    name: str
+    faces: Tensor | None
+    edges: Tensor | None
+    _rest_len_sq: Tensor | None
+    _cache: tuple | None
 
     def _mesh(self) -> tuple[Tensor, Tensor]:
         if self.faces is None or self.edges is None:
             raise ValueError("SelfContact: the term has no mesh: give it to a ClothModel (terms=[...]) first")
         return self.faces, self.edges
 
-    # ---- pairs and their energies
     def _points(self, x: Tensor) -> Tensor:
         """The positions the pairs index: the cloth's ``x`` (a body collider appends its own vertices)."""
         return x
@@ -233,158 +195,6 @@ class SelfContact(EnergyTerm):
                     out.append((close, kind, thresholds[sel][keep]))
         return out
 
-    def _pair_energy(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
-        assert self.stiffness is not None
-        e = barrier(typed_distance_sq(X, kind), self.dhat ** 2, self.stiffness)
-        return e if eps is None else e * mollifier(X, eps)
-
-    def _pair_hessians(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
-        """``(N, 12, 12)`` Hessians of the pairs' energies: the pairs are independent, so row ``j`` of every
-        pair's Hessian is one batched backward of the ``j``-th gradient component summed over the pairs."""
-        with torch.enable_grad():
-            Z = X.detach().requires_grad_(True)
-            (g,) = torch.autograd.grad(self._pair_energy(Z.reshape(-1, 4, 3), kind, eps).sum(), Z, create_graph=True)
-            rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
-        return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
-
-    def _barrier_energy(self, x: Tensor) -> Tensor:
-        total = x.new_zeros(())
-        xa = self._points(x)
-        for st, kind, eps in self._groups(x):
-            total = total + self._pair_energy(xa[st], kind, eps).sum()
-        return total
-
-    # ---- friction of a time step (module docstring)
-    def _pair_frames(self, X: Tensor, kind: int, eps: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """``(w (N, 4), n (N, 3), lam (N,))``: the closest points' signed weights, the unit normal from side B to
-        side A and the normal force magnitude [N] of stencils ``X (N, 4, 3)`` of one type (``eps``: the edge
-        pairs' mollifier thresholds, None for point-triangle pairs)."""
-        assert self.stiffness is not None
-        with torch.enable_grad():
-            Z = X.detach().requires_grad_(True)
-            D = typed_distance_sq(Z, kind)
-            (g,) = torch.autograd.grad(D.sum(), Z)
-            Dd = D.detach().requires_grad_(True)
-            (db,) = torch.autograd.grad(barrier(Dd, self.dhat ** 2, self.stiffness).sum(), Dd)
-        D = D.detach()
-        two_gap = g[:, :1].sum(1) if eps is None else g[:, :2].sum(1)  # 2 (c_A - c_B): side A's weights sum to 1
-        size = two_gap.norm(dim=-1).clamp_min(torch.finfo(X.dtype).tiny)
-        n = two_gap / size[:, None]
-        w = (g * n[:, None, :]).sum(-1) / size[:, None]
-        lam = (-db * 2 * D.clamp_min(0).sqrt()).clamp_min(0)
-        if eps is not None:
-            lam = lam * mollifier(X.detach(), eps)
-        return w, n, lam
-
-    def adapt_stiffness(self, x: Tensor) -> None:
-        """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
-        if self._kappa0 is None or self.faces is None or self.stiffness is None:
-            return
-        d, _ = self.min_distance(x.detach())
-        if d < self.ADAPT_FRACTION * self.dhat and d <= self._last_min:
-            self.stiffness = min(2 * self.stiffness, self.KAPPA_GROWTH * self._kappa0)
-        self._last_min = d
-
-    def begin_step(self, ctx: StepContext) -> None:
-        if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
-            return
-        self.adapt_stiffness(ctx.x_prev)
-        if not self.friction > 0:
-            return
-        x_prev = ctx.x_prev.detach()
-        xa = self._points(x_prev).detach()
-        parts = []
-        for st, kind, eps in self._groups(x_prev):
-            w, n, lam = self._pair_frames(xa[st], kind, eps)
-            keep = lam > 0
-            if bool(keep.any()):
-                parts.append((st[keep], w[keep], n[keep], lam[keep]))
-        if not parts:
-            return
-        st, w, n, lam = (torch.cat(p) for p in zip(*parts))
-        ctx.lagged[self.name] = {"stencils": st, "w": w, "n": n, "weight": self.friction * lam, "x_prev": xa,
-                                 "eps": self.eps_v * ctx.dt}
-
-    def _slip(self, x: Tensor, ctx: StepContext | None):
-        """``(lagged data, delta (M, 3))``: the pairs' relative displacements since the step's start, or None."""
-        f = ctx.lagged.get(self.name) if ctx is not None else None
-        if f is None or x.ndim != 2:
-            return None
-        st = f["stencils"]
-        xa = self._points(x)
-        delta = (f["w"][:, :, None] * (xa[st] - f["x_prev"][st].to(xa.dtype))).sum(1)
-        return f, delta
-
-    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
-        total = self._barrier_energy(x)
-        s = self._slip(x, ctx)
-        if s is not None:
-            f, delta = s
-            total = total + friction_energy(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
-        return total
-
-    def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
-        # a body mesh whose vertices require grad (the adjoint's parameters): the gradient keeps its graph to them
-        graph = torch.is_grad_enabled() and self._points_require_grad()
-        with torch.enable_grad():
-            y = x.detach().requires_grad_(True)
-            e = self._barrier_energy(y)
-            g = torch.autograd.grad(e, y, create_graph=graph)[0] if e.requires_grad else torch.zeros_like(x)
-        s = self._slip(x.detach(), ctx)
-        if s is not None:
-            f, delta = s
-            gd = friction_gradient(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
-            V = x.shape[0]
-            out = g.new_zeros(self._points(x).shape[0], 3)
-            out.index_add_(0, f["stencils"].reshape(-1), (f["w"][:, :, None] * gd[:, None, :]).reshape(-1, 3).to(g.dtype))
-            g = g + out[:V]
-        return g
-
-    def hvp(self, x: Tensor, v: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
-        if x.ndim != 2:
-            return super().hvp(x, v, ctx, projection)
-        H = self.hessian(x, ctx, projection)
-        return (H @ v.reshape(-1, 1).to(H.dtype)).reshape(x.shape).to(x.dtype)
-
-    def _friction_blocks(self, x: Tensor, ctx: StepContext | None) -> tuple[Tensor, Tensor] | None:
-        """``(stencils (M, 4), Hessians (M, 12, 12))`` of the friction pairs (``w_k w_l`` times the point block)."""
-        s = self._slip(x.detach(), ctx)
-        if s is None:
-            return None
-        f, delta = s
-        H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
-        w = f["w"].to(H3.dtype)
-        H = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
-        return f["stencils"], H
-
-    def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
-        V = x.shape[0]
-        rows, cols, vals = [], [], []
-        proj = Projection.NONE if projection is None else Projection.parse(projection)
-        xa = self._points(x).detach()
-
-        def add(st: Tensor, H: Tensor) -> None:
-            dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
-            r, c, v = (dof[:, :, None].expand(-1, 12, 12).reshape(-1), dof[:, None, :].expand(-1, 12, 12).reshape(-1),
-                       H.reshape(-1))
-            own = (r < 3 * V) & (c < 3 * V)  # a body's vertices are not unknowns
-            rows.append(r[own])
-            cols.append(c[own])
-            vals.append(v[own])
-
-        for st, kind, eps in self._groups(x):
-            add(st, _project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
-        fb = self._friction_blocks(x, ctx)
-        if fb is not None:  # positive semi-definite: the same for every projection
-            add(*fb)
-        if not vals:
-            return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
-                                           x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
-        idx = torch.stack([torch.cat(rows), torch.cat(cols)])
-        return torch.sparse_coo_tensor(idx, torch.cat(vals).to(x.dtype), (3 * V, 3 * V),
-                                       check_invariants=False).coalesce()
-
-    # ---- the step bound and the contact statistics
     def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
         move = dx.detach().norm(dim=-1)
         m = float(move.max()) if move.numel() else 0.0
@@ -436,6 +246,225 @@ class SelfContact(EnergyTerm):
             return ""
         return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
 
+
+class _LaggedFriction(_ContactPairs):
+    """IPC's lagged friction of the contact pairs in a time step (module docstring): the pairs' frames at the
+    step's start, the slip since, the friction's gradient and PSD blocks."""
+
+    stiffness: float | None
+    friction: float
+    eps_v: float
+
+    def _pair_frames(self, X: Tensor, kind: int, eps: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(w (N, 4), n (N, 3), lam (N,))``: the closest points' signed weights, the unit normal from side B to
+        side A and the normal force magnitude [N] of stencils ``X (N, 4, 3)`` of one type (``eps``: the edge
+        pairs' mollifier thresholds, None for point-triangle pairs)."""
+        assert self.stiffness is not None
+        with torch.enable_grad():
+            Z = X.detach().requires_grad_(True)
+            D = typed_distance_sq(Z, kind)
+            (g,) = torch.autograd.grad(D.sum(), Z)
+            Dd = D.detach().requires_grad_(True)
+            (db,) = torch.autograd.grad(barrier(Dd, self.dhat ** 2, self.stiffness).sum(), Dd)
+        D = D.detach()
+        two_gap = g[:, :1].sum(1) if eps is None else g[:, :2].sum(1)  # 2 (c_A - c_B): side A's weights sum to 1
+        size = two_gap.norm(dim=-1).clamp_min(torch.finfo(X.dtype).tiny)
+        n = two_gap / size[:, None]
+        w = (g * n[:, None, :]).sum(-1) / size[:, None]
+        lam = (-db * 2 * D.clamp_min(0).sqrt()).clamp_min(0)
+        if eps is not None:
+            lam = lam * mollifier(X.detach(), eps)
+        return w, n, lam
+
+    def _lag_friction(self, ctx: StepContext) -> None:
+        """Store the friction pairs of the step's start ``ctx.x_prev`` (those pushing, ``lam > 0``) in
+        ``ctx.lagged[name]``: stencils, closest-point weights, normals, ``mu lam`` and ``eps = eps_v dt``."""
+        assert ctx.x_prev is not None and ctx.dt is not None
+        x_prev = ctx.x_prev.detach()
+        xa = self._points(x_prev).detach()
+        parts = []
+        for st, kind, eps in self._groups(x_prev):
+            w, n, lam = self._pair_frames(xa[st], kind, eps)
+            keep = lam > 0
+            if bool(keep.any()):
+                parts.append((st[keep], w[keep], n[keep], lam[keep]))
+        if not parts:
+            return
+        st, w, n, lam = (torch.cat(p) for p in zip(*parts))
+        ctx.lagged[self.name] = {"stencils": st, "w": w, "n": n, "weight": self.friction * lam, "x_prev": xa,
+                                 "eps": self.eps_v * ctx.dt}
+
+    def _slip(self, x: Tensor, ctx: StepContext | None):
+        """``(lagged data, delta (M, 3))``: the pairs' relative displacements since the step's start, or None."""
+        f = ctx.lagged.get(self.name) if ctx is not None else None
+        if f is None or x.ndim != 2:
+            return None
+        st = f["stencils"]
+        xa = self._points(x)
+        delta = (f["w"][:, :, None] * (xa[st] - f["x_prev"][st].to(xa.dtype))).sum(1)
+        return f, delta
+
+    def _friction_force(self, x: Tensor, ctx: StepContext, like: Tensor) -> Tensor | None:
+        """The friction's gradient ``(V, 3)`` (in ``like``'s dtype) at ``x`` in the step ``ctx``, or None."""
+        s = self._slip(x.detach(), ctx)
+        if s is None:
+            return None
+        f, delta = s
+        gd = friction_gradient(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        out = like.new_zeros(self._points(x).shape[0], 3)
+        out.index_add_(0, f["stencils"].reshape(-1),
+                       (f["w"][:, :, None] * gd[:, None, :]).reshape(-1, 3).to(like.dtype))
+        return out[:x.shape[0]]
+
+    def _friction_blocks(self, x: Tensor, ctx: StepContext | None) -> tuple[Tensor, Tensor] | None:
+        """``(stencils (M, 4), Hessians (M, 12, 12))`` of the friction pairs (``w_k w_l`` times the point block)."""
+        s = self._slip(x.detach(), ctx)
+        if s is None:
+            return None
+        f, delta = s
+        H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        w = f["w"].to(H3.dtype)
+        H = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
+        return f["stencils"], H
+
+
+class SelfContact(_LaggedFriction, EnergyTerm):
+    """IPC's barrier between the cloth's own non-adjacent primitives (module docstring).
+
+    Args:
+        dhat: the activation distance [m] (> 0): pairs closer than this repel.
+        stiffness: ``kappa`` [J/m^4] of the barrier on squared distances, or None: chosen from the cloth's
+            weight when the term joins a :class:`~torchbend.ClothModel`.
+        friction: Coulomb's ``mu`` (>= 0) between the layers in time steps (module docstring); 0: none.
+        eps_v: the sliding speed [m/s] (> 0) below which the friction is smoothed (static-like).
+    """
+
+    contact = True
+    confines = False
+
+    def __init__(self, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
+                 eps_v: float = 1e-3, name: str = "self_contact"):
+        self.dhat = positive(dhat, "SelfContact: dhat")
+        self.stiffness = None if stiffness is None else positive(stiffness, "SelfContact: stiffness")
+        self._auto = stiffness is None  # chosen per model by bind
+        self.friction = nonnegative(friction, f"{type(self).__name__}: friction")
+        self.eps_v = positive(eps_v, "SelfContact: eps_v")
+        self.name = name
+        self.faces: Tensor | None = None
+        self.edges: Tensor | None = None
+        self._rest_len_sq: Tensor | None = None
+        self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
+        self._V = 0
+        self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
+        self._last_min = math.inf
+
+    ADAPT_FRACTION = 0.1
+    """A time step starting with a distance below this fraction of ``dhat`` doubles an adaptive ``kappa``."""
+    KAPPA_GROWTH = 100.0
+    """An adaptive ``kappa`` grows to at most this many times its initial value."""
+
+    # ---- binding to a model
+    def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
+        """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
+        ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
+        faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
+        self.faces, self.edges, self._cache = faces, edges, None
+        self._V = rest.shape[0]
+        e = rest[edges[:, 1]] - rest[edges[:, 0]]
+        self._rest_len_sq = (e * e).sum(-1)
+        if self._auto:
+            weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
+            # -b'(D) 2 d at d = dhat / 2 is 4.33 kappa dhat^3 (D = d^2, Dhat = dhat^2)
+            self.stiffness = 10 * weight / (4.33 * self.dhat ** 3)
+            self._kappa0, self._last_min = self.stiffness, math.inf
+
+    def _pair_energy(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
+        assert self.stiffness is not None
+        e = barrier(typed_distance_sq(X, kind), self.dhat ** 2, self.stiffness)
+        return e if eps is None else e * mollifier(X, eps)
+
+    def _pair_hessians(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
+        """``(N, 12, 12)`` Hessians of the pairs' energies: the pairs are independent, so row ``j`` of every
+        pair's Hessian is one batched backward of the ``j``-th gradient component summed over the pairs."""
+        with torch.enable_grad():
+            Z = X.detach().requires_grad_(True)
+            (g,) = torch.autograd.grad(self._pair_energy(Z.reshape(-1, 4, 3), kind, eps).sum(), Z, create_graph=True)
+            rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
+        return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
+
+    def _barrier_energy(self, x: Tensor) -> Tensor:
+        total = x.new_zeros(())
+        xa = self._points(x)
+        for st, kind, eps in self._groups(x):
+            total = total + self._pair_energy(xa[st], kind, eps).sum()
+        return total
+
+    def adapt_stiffness(self, x: Tensor) -> None:
+        """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
+        if self._kappa0 is None or self.faces is None or self.stiffness is None:
+            return
+        d, _ = self.min_distance(x.detach())
+        if d < self.ADAPT_FRACTION * self.dhat and d <= self._last_min:
+            self.stiffness = min(2 * self.stiffness, self.KAPPA_GROWTH * self._kappa0)
+        self._last_min = d
+
+    def begin_step(self, ctx: StepContext) -> None:
+        if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
+            return
+        self.adapt_stiffness(ctx.x_prev)
+        if self.friction > 0:
+            self._lag_friction(ctx)
+
+    def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
+        total = self._barrier_energy(x)
+        s = self._slip(x, ctx)
+        if s is not None:
+            f, delta = s
+            total = total + friction_energy(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        return total
+
+    def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
+        # a body mesh whose vertices require grad (the adjoint's parameters): the gradient keeps its graph to them
+        graph = torch.is_grad_enabled() and self._points_require_grad()
+        with torch.enable_grad():
+            y = x.detach().requires_grad_(True)
+            e = self._barrier_energy(y)
+            g = torch.autograd.grad(e, y, create_graph=graph)[0] if e.requires_grad else torch.zeros_like(x)
+        friction = self._friction_force(x, ctx, g)
+        return g if friction is None else g + friction
+
+    def hvp(self, x: Tensor, v: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        if x.ndim != 2:
+            return super().hvp(x, v, ctx, projection)
+        H = self.hessian(x, ctx, projection)
+        return (H @ v.reshape(-1, 1).to(H.dtype)).reshape(x.shape).to(x.dtype)
+
+    def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
+        V = x.shape[0]
+        rows, cols, vals = [], [], []
+        proj = Projection.NONE if projection is None else Projection.parse(projection)
+        xa = self._points(x).detach()
+
+        def add(st: Tensor, H: Tensor) -> None:
+            dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
+            r, c, v = (dof[:, :, None].expand(-1, 12, 12).reshape(-1), dof[:, None, :].expand(-1, 12, 12).reshape(-1),
+                       H.reshape(-1))
+            own = (r < 3 * V) & (c < 3 * V)  # a body's vertices are not unknowns
+            rows.append(r[own])
+            cols.append(c[own])
+            vals.append(v[own])
+
+        for st, kind, eps in self._groups(x):
+            add(st, _project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
+        fb = self._friction_blocks(x, ctx)
+        if fb is not None:  # positive semi-definite: the same for every projection
+            add(*fb)
+        if not vals:
+            return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
+                                           x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
+        idx = torch.stack([torch.cat(rows), torch.cat(cols)])
+        return torch.sparse_coo_tensor(idx, torch.cat(vals).to(x.dtype), (3 * V, 3 * V),
+                                       check_invariants=False).coalesce()
 
 class MeshCollider(SelfContact):
     """A rigid triangle-mesh body (``vertices (Vb, 3)`` [m], ``faces (Fb, 3)``) the cloth cannot pass through: the
