@@ -34,7 +34,8 @@ sys.path.insert(0, ROOT)
 from torchbend.backends import _build_config as cfg  # noqa: E402  (standard library only)
 
 # translation unit -> csrc function -> how many of its loops must vectorize: the tile kernels of every
-# operator (angle and energy, half-hinges, gradient, HVP, per-hinge blocks, projection) and the scatters.
+# operator (angle and energy, half-hinges, gradient, HVP, per-hinge blocks, projection, the assembly's angles and
+# face blocks) and the scatters.
 # x86-64-v3 and x86-64-v4 builds vectorize the same loops (GCC 12.2, 2026-12); ``--list`` prints the counts.
 REQUIRED: dict[str, dict[str, int]] = {
     "cpu_first_order.cpp": {"theta_tile": 1, "halves_tile": 1, "half_tile": 1, "grad_of_halves": 1,
@@ -45,6 +46,7 @@ REQUIRED: dict[str, dict[str, int]] = {
     "cpu_blocks.cpp": {"theta_tile": 1, "halves_tile": 1, "half_tile": 1, "block_lane": 1, "block_tile": 7,
                        "complete_tile": 2, "hessian_tiles": 2},
     "cpu_projection.cpp": {"project_hinge_tile": 6, "jacobi_project": 9},
+    "cpu_assembly.cpp": {"theta_tile": 1, "half_tile": 1, "grad_tile": 1, "block_tile": 7, "face_block_tile": 3},
 }
 
 _REPORT = re.compile(r"^(?P<file>[^:\s]+):(?P<line>\d+):\d+: optimized: loop vectorized using (?P<bytes>\d+) byte vectors")

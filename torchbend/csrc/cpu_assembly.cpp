@@ -8,12 +8,15 @@ namespace cpu {
 // Sparse assembly of the Hessian of one mesh into CSR values, both ways of
 // torchbend.energies.bending_hessian.assemble: per hinge (scatter of the 12x12 blocks) and per
 // triangle (paper sec. 4.1-4.2: psi'' g g^T per hinge, plus sum_h psi'_h Hess(theta_h) as one 9x9
-// block per triangle, eq. 7 with the conditional transpose: face_block).  Serial: the scatter
-// targets overlap.
+// block per triangle, eq. 7 with the conditional transpose: face_block_tile).  The angles, psi', psi'' and
+// angle gradients of W hinges and the face blocks of W triangles are computed across the lanes of a tile (as the
+// other operators do); each triangle's block waits in a queue of W for the tile that completes its hinges.
+// Serial: the scatter targets overlap.
 
 // values += the local (3m x 3m) matrix `loc` of an element with vertices v[0..m): vertex block (a, b) starts at
 // CSR position base[m a + b], its row p at base + p row_len[v[a]] (torchbend.energies.sparse.StencilPattern)
-template <typename T, int m>
+// (entry i of `loc` at loc[S i]: S = 1 a row-major matrix, S = W one lane of a tile [entry][lane])
+template <typename T, int m, int S = 1>
 static inline void scatter_blocks(T* values, const int64_t* base, const int64_t* v, const int64_t* row_len,
                                   const T* loc) {
   for (int a = 0; a < m; ++a) {
@@ -21,8 +24,8 @@ static inline void scatter_blocks(T* values, const int64_t* base, const int64_t*
     for (int b = 0; b < m; ++b) {
       T* dst = values + base[m * a + b];
       for (int p = 0; p < 3; ++p, dst += rl) {
-        const T* src = loc + 3 * m * (3 * a + p) + 3 * b;
-        dst[0] += src[0]; dst[1] += src[1]; dst[2] += src[2];
+        const T* src = loc + S * (3 * m * (3 * a + p) + 3 * b);
+        dst[0] += src[0]; dst[1] += src[S]; dst[2] += src[2 * S];
       }
     }
   }
@@ -73,9 +76,9 @@ static torch::Tensor index_view(const int64_t* p, int64_t n, int64_t m) {  // th
       ck::fail("assemble", "face_edge_signs[", i / 3, ", ", i % 3, "] = ", fes[i], " must be +1 or -1");
 }
 
-template <typename T>
+template <typename T, int M, bool damped>
 [[gnu::flatten]] static void assemble_impl(const T* x, const int64_t* hinges, int64_t H, Param<T> a, Param<T> k, Param<T> rest,
-                          Param<T> c, Param<T> prev, bool damped, int model, const int64_t* hblk,
+                          Param<T> c, Param<T> prev, const int64_t* hblk,
                           const int64_t* faces, const int64_t* feh, const int64_t* fes, const int64_t* fblk,
                           const int64_t* row_len, const int64_t* rs, int64_t V, int64_t F, bool per_triangle,
                           T* values, int64_t nnz, T* thout) {
@@ -102,10 +105,28 @@ template <typename T>
     int64_t last = std::max(fh[0], std::max(fh[1], fh[2]));
     if (last >= 0) { next[f] = first[last]; first[last] = f; }
   }
-  T blk[81];
+  // the faces queued for their blocks, W at a time (face_block_tile), each scattered right after
+  int64_t fq[W];
+  int nq = 0;
+  alignas(64) T FP[9][W], FC[3][W], FS[3][W], FO[81][W];
+  auto face_tile = [&]() {
+    for (int l = nq; l < W; ++l) {  // unused lanes: a degenerate triangle (zeros)
+      for (int m = 0; m < 9; ++m) FP[m][l] = T(0);
+      for (int kk = 0; kk < 3; ++kk) { FC[kk][l] = T(0); FS[kk][l] = T(1); }
+    }
+    face_block_tile<T, W>(FP, FC, FS, FO);
+    for (int l = 0; l < nq; ++l) {
+      T blk[81];
+      for (int m = 0; m < 81; ++m) blk[m] = FO[m][l];
+      scatter_blocks<T, 3>(values, fblk + 9 * fq[l], faces + 3 * fq[l], row_len, blk);
+    }
+    nq = 0;
+  };
   alignas(64) T buf[W][144];
   T gbuf[W][12];
-  T X[12][W], D1[W], D2[W], G[12][W];
+  alignas(64) T X[12][W];
+  alignas(64) T TH[W], D1[W], D2[W], G[12][W];
+  HingeTile<T, W> Q;
   Blocks<T, W> tile;
   T* op[W]; T* gp[W];
   for (int l = 0; l < W; ++l) { op[l] = buf[l]; gp[l] = gbuf[l]; }
@@ -116,15 +137,15 @@ template <typename T>
     int nl = int(std::min<int64_t>(W, H - h0));
     int64_t reach = zeroed;
     for (int l = 0; l < W; ++l) {
-      if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); D1[l] = D2[l] = T(0); continue; }
+      if (l >= nl) { for (int m = 0; m < 12; ++m) X[m][l] = T(0); zero_params<T, W>(l, Q); continue; }
       int64_t h = h0 + l;
       const int64_t* q = hinges + 4 * h;
       if (ck::kChecked && (uint64_t(q[0]) >= uint64_t(V) || uint64_t(q[1]) >= uint64_t(V) ||
                            uint64_t(q[2]) >= uint64_t(V) || uint64_t(q[3]) >= uint64_t(V)))
         bad_hinge();
       load_hinge<T, W>(x, q, X, l);
-      hinge_psi<T, W>(X, l, model, a(0, h), k(0, h), rest(0, h), damped, damped ? c(0, h) : T(0),
-                      damped ? prev(0, h) : T(0), thout[h], D1[l], D2[l]);
+      Q.a[l] = a(0, h); Q.k[l] = k(0, h); Q.rest[l] = rest(0, h);
+      Q.c[l] = damped ? c(0, h) : T(0); Q.prev[l] = damped ? prev(0, h) : T(0);
       // the reach of the hinge's blocks, and (fused, from the same loads) whether every base of block row q[va]
       // lies in that row's first scalar row with its 3 columns (check_element_bases names the first that does not)
       int bad = 0;
@@ -138,6 +159,13 @@ template <typename T>
       }
       if (bad) report_element_bases<4>("hinge_blocks", h, hblk + 16 * h, q, rs, row_len);
     }
+    // the angles and psi', psi'' of the tile's lanes, vectorized (as the blocks operator computes them)
+    theta_tile<T, W>(X, TH);
+    TB_LANES_AGG(W) {
+      T psi;
+      psi_lane<M, damped>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, D1[l], D2[l], static_cast<T*>(nullptr));
+    }
+    for (int l = 0; l < nl; ++l) thout[h0 + l] = TH[l];
     if (reach > zeroed) { std::fill(values + zeroed, values + reach, T(0)); zeroed = reach; }
     if (!per_triangle) {
       block_tile<T, W>(X, D1, D2, tile);
@@ -166,11 +194,14 @@ template <typename T>
                                (fs[1] != 1 && fs[1] != -1) || (fs[2] != 1 && fs[2] != -1)))
             bad_face();
           check_element_bases<3>("face_blocks", f, fblk + 9 * f, fv, rs, row_len);
-          face_block(x + 3 * fv[0], x + 3 * fv[1], x + 3 * fv[2], cf, fes + 3 * f, blk);
-          scatter_blocks<T, 3>(values, fblk + 9 * f, fv, row_len, blk);
+          fq[nq] = f;
+          for (int kk = 0; kk < 3; ++kk) { FC[kk][nq] = cf[kk]; FS[kk][nq] = T(fs[kk]); }
+          for (int m = 0; m < 9; ++m) FP[m][nq] = x[3 * fv[m / 3] + m % 3];
+          if (++nq == W) face_tile();
         }
     }
   }
+  if (nq) face_tile();
   std::fill(values + zeroed, values + nnz, T(0));  // blocks of no hinge (none in a bending pattern)
 }
 
@@ -264,14 +295,14 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> assemble(torch::Tensor x, torc
   auto theta = torch::empty({H}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "assemble", [&] {
     Param<scalar_t> none{nullptr, 0, H};
-    assemble_impl<scalar_t>(x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H),
-                            param<scalar_t>(k, H), param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none,
-                            damped ? param<scalar_t>(prev, H) : none, damped, int(model),
-                            hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(),
-                            face_edge_hinges.data_ptr<int64_t>(), face_edge_signs.data_ptr<int64_t>(),
-                            face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(), A.rs.data(), P.V, F, per_triangle,
-                            values.data_ptr<scalar_t>(), nnz,
-                            theta.data_ptr<scalar_t>());
+    with_model(int(model), damped, [&](auto M_, auto D_) {
+      assemble_impl<scalar_t, decltype(M_)::value, decltype(D_)::value>(
+          x.data_ptr<scalar_t>(), hinges.data_ptr<int64_t>(), H, param<scalar_t>(a, H), param<scalar_t>(k, H),
+          param<scalar_t>(rest, H), damped ? param<scalar_t>(c, H) : none, damped ? param<scalar_t>(prev, H) : none,
+          hinge_blocks.data_ptr<int64_t>(), faces.data_ptr<int64_t>(), face_edge_hinges.data_ptr<int64_t>(),
+          face_edge_signs.data_ptr<int64_t>(), face_blocks.data_ptr<int64_t>(), row_len.data_ptr<int64_t>(),
+          A.rs.data(), P.V, F, per_triangle, values.data_ptr<scalar_t>(), nnz, theta.data_ptr<scalar_t>());
+    });
   });
   return {values, theta, fold_status(theta, model)};
 }

@@ -354,46 +354,62 @@ template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W],
 }
 
 // ---- per-triangle blocks (triangle assembly) -----------------------------------------------------
-// 9x9 block (flat (3 i + p) * 9 + 3 j + q) of sum_h psi'_h Hess(theta_h) over the hinges of one
-// triangle p0 p1 p2 (paper eq. 7, torchbend.ops.triangle); c[k] = psi' of the hinge on edge k
-// (opposite p_k; 0 on the boundary), sg[k] > 0 where the triangle runs edge k in its global direction
-template <typename T>
-TB_HD static inline void face_block(const T* P0, const T* P1, const T* P2, const T* c, const int64_t* sg, T* o) {
-  V3<T> p0{P0[0], P0[1], P0[2]}, p1{P1[0], P1[1], P1[2]}, p2{P2[0], P2[1], P2[2]};
-  V3<T> ev[3] = {sub3(p2, p1), sub3(p0, p2), sub3(p1, p0)};  // e_k = p_{k+2} - p_{k+1}
-  Tri<T> t = tri_frame(ev[0], ev[1], ev[2]);
-  if (t.valid == T(0)) { for (int m = 0; m < 81; ++m) o[m] = T(0); return; }
-  const T ee[3] = {t.ee0, t.ee1, t.ee2}, N[3] = {t.N.x, t.N.y, t.N.z};
-  const T mh[3][3] = {{t.mh0.x, t.mh0.y, t.mh0.z}, {t.mh1.x, t.mh1.y, t.mh1.z}, {t.mh2.x, t.mh2.y, t.mh2.z}};
-  T elen[3], s[3], G[3][3];
-  for (int k = 0; k < 3; ++k) { elen[k] = tb_sqrt(ee[k]); s[k] = c[k] / elen[k]; }
-  // G_i = D_i N with D_i = -(sum_k (c_k / |e_k|) e_i . e_k) / |N|^2 (torchbend.ops.triangle)
-  for (int i = 0; i < 3; ++i) {
-    T D = -((dot3(ev[i], ev[0]) * s[0] + dot3(ev[i], ev[1]) * s[1]) + dot3(ev[i], ev[2]) * s[2]) / t.nn;
-    for (int p = 0; p < 3; ++p) G[i][p] = D * N[p];
+// 9x9 blocks (flat (3 i + p) * 9 + 3 j + q) of sum_h psi'_h Hess(theta_h) over the hinges of W triangles
+// p0 p1 p2 (paper eq. 7, torchbend.ops.triangle), vectorized across them: corners P[3 k + axis][lane], psi' of the
+// hinge on edge k (opposite p_k; 0 on the boundary) C[k][lane], SG[k][lane] > 0 where the triangle runs edge k in
+// its global direction (+1 / -1), the blocks into O[(3 i + p) * 9 + 3 j + q][lane]; a degenerate triangle: zeros.
+template <typename T, int W>
+TB_HD static inline void face_block_tile(const T (*P)[W], const T (*C)[W], const T (*SG)[W], T (*O)[W]) {
+  T N[3][W], MH[3][3][W], G[3][3][W], R[3][W], OK[W];
+  TB_LANES_AGG(W) {
+    V3<T> p0{P[0][l], P[1][l], P[2][l]}, p1{P[3][l], P[4][l], P[5][l]}, p2{P[6][l], P[7][l], P[8][l]};
+    V3<T> ev[3] = {sub3(p2, p1), sub3(p0, p2), sub3(p1, p0)};
+    Tri<T> t = tri_frame(ev[0], ev[1], ev[2]);
+    const bool valid = t.valid != T(0);
+    const T ee[3] = {valid ? t.ee0 : T(1), valid ? t.ee1 : T(1), valid ? t.ee2 : T(1)};
+    N[0][l] = t.N.x; N[1][l] = t.N.y; N[2][l] = t.N.z;
+    MH[0][0][l] = t.mh0.x; MH[0][1][l] = t.mh0.y; MH[0][2][l] = t.mh0.z;
+    MH[1][0][l] = t.mh1.x; MH[1][1][l] = t.mh1.y; MH[1][2][l] = t.mh1.z;
+    MH[2][0][l] = t.mh2.x; MH[2][1][l] = t.mh2.y; MH[2][2][l] = t.mh2.z;
+    T s[3];
+    for (int k = 0; k < 3; ++k) {
+      T elen = tb_sqrt(ee[k]);
+      s[k] = C[k][l] / elen;
+      R[k][l] = C[k][l] / (ee[k] * elen);
+    }
+    for (int i = 0; i < 3; ++i) {
+      T D = -((dot3(ev[i], ev[0]) * s[0] + dot3(ev[i], ev[1]) * s[1]) + dot3(ev[i], ev[2]) * s[2]) / t.nn;
+      G[i][0][l] = D * t.N.x; G[i][1][l] = D * t.N.y; G[i][2][l] = D * t.N.z;
+    }
+    OK[l] = t.valid;
   }
-  T R[3][3][3];  // R_k = c_k n (e_k x n)^T / |e_k|^3 = (c_k / |e_k|^3) N mh_k^T
-  for (int k = 0; k < 3; ++k) {
-    T r = c[k] / (ee[k] * elen[k]);
+  // R_k = (c_k / |e_k|^3) N mh_k^T (RN) and R_k or R_k^T as the triangle runs edge k along or against its global
+  // direction (RF; RT its transpose)
+  T RN[3][3][3][W], RF[3][3][3][W], RT[3][3][3][W];
+  for (int k = 0; k < 3; ++k)
     for (int p = 0; p < 3; ++p)
-      for (int q = 0; q < 3; ++q) R[k][p][q] = r * N[p] * mh[k][q];
-  }
+      for (int q = 0; q < 3; ++q) TB_LANES(W) {
+        T a = R[k][l] * N[p][l] * MH[k][q][l], b = R[k][l] * N[q][l] * MH[k][p][l];
+        bool along = SG[k][l] > T(0);
+        RN[k][p][q][l] = a;
+        RF[k][p][q][l] = along ? a : b;
+        RT[k][p][q][l] = along ? b : a;
+      }
   for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j)
+    for (int j = 0; j < 3; ++j) {
+      // j = i + 1: edge k = i + 2 runs p_i -> p_{i+1} (RF); j = i - 1: edge k = i + 1, the transpose of block (j, i)
+      // (RT); j = i: minus R of the two other edges
+      const int k1 = (i + 1) % 3, k2 = (i + 2) % 3;
       for (int p = 0; p < 3; ++p)
         for (int q = 0; q < 3; ++q) {
-          T v = mh[j][p] * G[i][q] + G[j][p] * mh[i][q];
-          if (i == j) {
-            v -= R[(i + 1) % 3][p][q] + R[(i + 2) % 3][p][q];
-          } else if (j == (i + 1) % 3) {  // edge k = i + 2 runs p_i -> p_{i+1}: R, or R^T if reversed
-            int k = (i + 2) % 3;
-            v += sg[k] > 0 ? R[k][p][q] : R[k][q][p];
-          } else {  // j = i - 1: the transpose of block (j, i) of edge k = i + 1
-            int k = (i + 1) % 3;
-            v += sg[k] > 0 ? R[k][q][p] : R[k][p][q];
+          const T(*E)[W] = i == j ? nullptr : (j == k1 ? RF[k2][p] : RT[k1][p]);
+          TB_LANES(W) {
+            T v = MH[j][p][l] * G[i][q][l] + G[j][p][l] * MH[i][q][l];
+            v = E ? v + E[q][l] : v - (RN[k1][p][q][l] + RN[k2][p][q][l]);
+            O[(3 * i + p) * 9 + 3 * j + q][l] = OK[l] != T(0) ? v : T(0);
           }
-          o[(3 * i + p) * 9 + 3 * j + q] = v;
         }
+    }
 }
 
 }  // namespace torchbend
