@@ -121,6 +121,10 @@ class _Pattern:
         self.block_pos = as_dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
         self.free_vertices = as_dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
         self.scipy_indices = (keys % nf, crow)
+        # the same as 32-bit integers where they fit: scipy then takes them as they are (with 64-bit ones it scans
+        # both arrays for their range on every matrix it wraps)
+        small = self.nnz < 2**31 - 1
+        self.wrap_indices = tuple(a.astype(np.int32) if small else a for a in self.scipy_indices)
         self.factor: pardiso.SymmetricFactor | None = None  # built on first use (direct solves with MKL)
         self.single_factor: pardiso.SymmetricFactor | None = None  # idem, single precision (reused factorisations)
 
@@ -264,7 +268,7 @@ class FreeHessian:
     def to_scipy(self, A: Tensor) -> sp.csr_matrix:
         """An assembled free Hessian as ``scipy.sparse`` CSR float64 (copied to the CPU)."""
         assert self._pattern is not None, "assemble() first"
-        col, crow = self._pattern.scipy_indices
+        col, crow = self._pattern.wrap_indices
         n = self._pattern.n
         return sp.csr_matrix((A.values().detach().cpu().double().numpy(), col, crow), shape=(n, n))
 
