@@ -181,6 +181,42 @@ def test_self_contact_gradient_and_hessian_match_differences_and_autograd():
     assert float(g.sum(0).norm()) <= 1e-10 * float(g.norm())  # internal forces: no net force
 
 
+def test_stencil_sum_adds_every_stencil_block_and_leaves_body_vertices_out():
+    from torchbend.sim.self_contact import stencil_sum
+
+    gen = torch.Generator().manual_seed(3)
+    V, Vb = 30, 5  # 30 cloth vertices, 5 of a body (indices 30..34: not unknowns)
+    st = torch.stack([torch.randperm(V + Vb, generator=gen)[:4] for _ in range(60)])
+    H = torch.randn(60, 12, 12, generator=gen, dtype=F64)
+    ref = torch.zeros(3 * (V + Vb), 3 * (V + Vb), dtype=F64)
+    dof = (3 * st[:, :, None] + torch.arange(3)).reshape(-1, 12)
+    for m in range(60):
+        ref.index_put_((dof[m][:, None].expand(12, 12), dof[m][None, :].expand(12, 12)), H[m], accumulate=True)
+    A = stencil_sum(st, H, V)
+    assert A.is_coalesced() and A.shape == (3 * V, 3 * V)
+    torch.testing.assert_close(A.to_dense(), ref[: 3 * V, : 3 * V], rtol=1e-15, atol=1e-14)
+    assert tb.sim.terms.as_csr(A).layout == torch.sparse_csr
+    empty = stencil_sum(torch.zeros(0, 4, dtype=torch.int64), torch.zeros(0, 12, 12, dtype=F64), V)
+    assert empty.shape == (3 * V, 3 * V) and empty._nnz() == 0
+
+
+def test_contact_blocks_projected_by_the_compiled_jacobi_match_eigh():
+    """The pairs' clamp/abs projections (compiled Jacobi in the translations' complement on the CPU) against eigh of
+    the same blocks, within eps of the blocks' largest entry."""
+    from torchbend.sim.self_contact import _project
+
+    model, x, sc, V = two_sheets(gap=1.2e-3)
+    xa = x.detach()
+    blocks = torch.cat([sc._pair_hessians(xa[st].reshape(-1, 12), kind, eps) for st, kind, eps in sc._groups(x)])
+    assert blocks.shape[0] > 10
+    for proj in (tb.Projection.CLAMP, tb.Projection.ABS):
+        w, Q = torch.linalg.eigh(0.5 * (blocks + blocks.transpose(-1, -2)))
+        w = w.abs() if proj is tb.Projection.ABS else w.clamp_min(0)
+        ref = (Q * w[:, None, :]) @ Q.transpose(-1, -2)
+        scale = blocks.abs().amax((-1, -2), keepdim=True)
+        assert float(((_project(blocks, proj) - ref).abs() / scale).max()) < 1e-12
+
+
 def test_self_contact_step_bound_keeps_every_path_free_of_intersections():
     model, x, sc, V = two_sheets(gap=1.5e-3)
     topo = model.topology

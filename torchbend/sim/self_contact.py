@@ -45,6 +45,7 @@ import torch
 from torch import Tensor
 
 from .._checks import nonnegative, positive
+from ..backends import native
 from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..ops.distance import (
     PT_E01,
@@ -63,7 +64,8 @@ from ..ops.distance import (
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
-__all__ = ["SelfContact", "MeshCollider", "candidate_pairs"]
+__all__ = ["SelfContact", "MeshCollider", "candidate_pairs", "stencil_sum"]
+
 
 def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
     """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad``.
@@ -440,31 +442,20 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         return (H @ v.reshape(-1, 1).to(H.dtype)).reshape(x.shape).to(x.dtype)
 
     def hessian(self, x: Tensor, ctx: StepContext, projection: Projection | None = None) -> Tensor:
-        V = x.shape[0]
-        rows, cols, vals = [], [], []
         proj = Projection.NONE if projection is None else Projection.parse(projection)
         xa = self._points(x).detach()
-
-        def add(st: Tensor, H: Tensor) -> None:
-            dof = (3 * st[:, :, None] + torch.arange(3, device=x.device)).reshape(-1, 12)
-            r, c, v = (dof[:, :, None].expand(-1, 12, 12).reshape(-1), dof[:, None, :].expand(-1, 12, 12).reshape(-1),
-                       H.reshape(-1))
-            own = (r < 3 * V) & (c < 3 * V)  # a body's vertices are not unknowns
-            rows.append(r[own])
-            cols.append(c[own])
-            vals.append(v[own])
-
+        stencils, blocks = [], []
         for st, kind, eps in self._groups(x):
-            add(st, _project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
+            stencils.append(st)
+            blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
         fb = self._friction_blocks(x, ctx)
         if fb is not None:  # positive semi-definite: the same for every projection
-            add(*fb)
-        if not vals:
-            return torch.sparse_coo_tensor(torch.zeros((2, 0), dtype=torch.int64, device=x.device),
-                                           x.new_zeros(0), (3 * V, 3 * V), check_invariants=False).coalesce()
-        idx = torch.stack([torch.cat(rows), torch.cat(cols)])
-        return torch.sparse_coo_tensor(idx, torch.cat(vals).to(x.dtype), (3 * V, 3 * V),
-                                       check_invariants=False).coalesce()
+            stencils.append(fb[0])
+            blocks.append(fb[1])
+        if not blocks:
+            return stencil_sum(x.new_zeros(0, 4, dtype=torch.int64), x.new_zeros(0, 12, 12), x.shape[0])
+        return stencil_sum(torch.cat(stencils), torch.cat(blocks).to(x.dtype), x.shape[0])
+
 
 class MeshCollider(SelfContact):
     """A rigid triangle-mesh body (``vertices (Vb, 3)`` [m], ``faces (Fb, 3)``) the cloth cannot pass through: the
@@ -550,9 +541,45 @@ def _distinct(st: Tensor, kind: int) -> Tensor:
 
 
 def _project(H: Tensor, proj: Projection) -> Tensor:
-    if proj is Projection.NONE:
+    """The pairs' Hessians ``(N, 12, 12)`` projected to PSD (``clamp``; ``abs``): in the complement of the
+    translations, which every pair's energy ignores, by the compiled Jacobi of the hinge blocks on the CPU, else by
+    ``eigh``."""
+    if proj is Projection.NONE or H.shape[0] == 0:
         return H
-    w, Q = torch.linalg.eigh(H)
+    mode = "abs" if proj is Projection.ABS else "clamp"
+    if H.device.type == "cpu" and H.dtype in (torch.float32, torch.float64) and native.load() is not None:
+        return native.project_blocks(H.contiguous(), mode, hinge=True)
+    w, Q = torch.linalg.eigh(0.5 * (H + H.transpose(-1, -2)))
     w = w.abs() if proj is Projection.ABS else w.clamp_min(0)
     return (Q * w[:, None, :]) @ Q.transpose(-1, -2)
 
+
+def stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
+    """The ``(3V, 3V)`` torch sparse (COO, coalesced, in CSR order) sum of the Hessians ``H (M, 12, 12)`` of four-vertex stencils
+    ``stencils (M, 4)`` (entry ``(3 a + p, 3 b + q)`` of a stencil: vertices ``stencils[a]``, ``stencils[b]``,
+    axes ``p``, ``q``); vertices ``>= V`` (a body's) are not unknowns and are left out.  The 3x3 vertex blocks are
+    summed per vertex pair (one sort of the pairs' keys) and laid out row by row."""
+    dev, M = H.device, stencils.shape[0]
+    vi = stencils[:, :, None].expand(M, 4, 4).reshape(-1)
+    vj = stencils[:, None, :].expand(M, 4, 4).reshape(-1)
+    own = (vi < V) & (vj < V)
+    B = H.reshape(M, 4, 3, 4, 3).transpose(2, 3).reshape(-1, 3, 3)[own]
+    keys, inverse = torch.unique(vi[own] * V + vj[own], sorted=True, return_inverse=True)
+    U = keys.shape[0]
+    blocks = H.new_zeros(U, 3, 3).index_add_(0, inverse, B)
+    bi, bj = keys // V, keys % V
+    nb = torch.bincount(bi, minlength=V)  # blocks per block row
+    start = torch.cumsum(nb, 0) - nb  # the first block of each block row
+    j = torch.arange(U, device=dev) - start[bi]  # each block's place in its block row
+    ax = torch.arange(3, device=dev)
+    # entry (p, q) of block u (row bi, place j): scalar row 3 bi + p holds the row's 3 nb entries in block order
+    pos = ((9 * start[bi] + 3 * j)[:, None, None] + (3 * nb[bi])[:, None, None] * ax[:, None] + ax).reshape(-1)
+    values = H.new_empty(9 * U)
+    values[pos] = blocks.reshape(-1)
+    cols = torch.empty(9 * U, dtype=torch.int64, device=dev)
+    cols[pos] = (3 * bj[:, None, None] + ax).expand(U, 3, 3).reshape(-1)
+    rows = torch.empty(9 * U, dtype=torch.int64, device=dev)
+    rows[pos] = (3 * bi[:, None, None] + ax[:, None]).expand(U, 3, 3).reshape(-1)
+    # row-major and unique by construction: coalesced (sums and differences of such matrices work as for any COO)
+    return torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (3 * V, 3 * V), is_coalesced=True,
+                                   check_invariants=False)
