@@ -46,7 +46,7 @@ REQUIRED: dict[str, dict[str, int]] = {
     "cpu_blocks.cpp": {"theta_tile": 1, "halves_tile": 1, "half_tile": 1, "block_lane": 1, "block_tile": 7,
                        "complete_tile": 2, "hessian_tiles": 2},
     "cpu_projection.cpp": {"project_hinge_tile": 6, "jacobi_project": 9},
-    "cpu_assembly.cpp": {"theta_tile": 1, "half_tile": 1, "grad_tile": 1, "block_tile": 7, "face_block_tile": 3},
+    "cpu_assembly.cpp": {"theta_tile": 1, "half_tile": 1, "grad_of_halves": 1, "block_tile": 7, "face_block_tile": 3},
 }
 
 _REPORT = re.compile(r"^(?P<file>[^:\s]+):(?P<line>\d+):\d+: optimized: loop vectorized using (?P<bytes>\d+) byte vectors")

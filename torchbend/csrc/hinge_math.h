@@ -341,16 +341,22 @@ template <typename T, int W> TB_HD static inline void block_lane(const Blocks<T,
     }
 }
 
-// angle gradients of W hinges (G[3 * vertex + axis][lane])
-template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
-  Half<T, W> hA, hB;
-  halves_tile<T, W>(X, hA, hB);
+// angle gradients G[3 * vertex + axis][lane] from the two half-hinges: T'_A - T'_B (g_k = t_k N per half)
+template <typename T, int W>
+TB_HD static inline void grad_of_halves(const Half<T, W>& hA, const Half<T, W>& hB, T (*G)[W]) {
   for (int p = 0; p < 3; ++p) TB_LANES(W) {
     G[p][l] = hA.t[0][l] * hA.N[p][l] - hB.t[0][l] * hB.N[p][l];
     G[3 + p][l] = hA.t[1][l] * hA.N[p][l] - hB.t[1][l] * hB.N[p][l];
     G[6 + p][l] = hA.t[2][l] * hA.N[p][l];
     G[9 + p][l] = -hB.t[2][l] * hB.N[p][l];
   }
+}
+
+// angle gradients of W hinges (G[3 * vertex + axis][lane])
+template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
+  Half<T, W> hA, hB;
+  halves_tile<T, W>(X, hA, hB);
+  grad_of_halves<T, W>(hA, hB, G);
 }
 
 // ---- per-triangle blocks (triangle assembly) -----------------------------------------------------

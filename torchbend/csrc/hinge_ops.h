@@ -164,17 +164,7 @@ TB_HD static inline void psi_second(const HingeArgs<T>& p, int64_t b, int64_t h,
   }
 }
 
-// ---- closed-form angle gradient and H_theta v of a tile (torchbend.ops.hinge) ------------------------
-// angle gradients G[3 * vertex + axis][lane] from the two half-hinges: T'_A - T'_B (g_k = t_k N per half)
-template <typename T, int W>
-TB_HD static inline void grad_of_halves(const Half<T, W>& hA, const Half<T, W>& hB, T (*G)[W]) {
-  for (int p = 0; p < 3; ++p) TB_LANES(W) {
-    G[p][l] = hA.t[0][l] * hA.N[p][l] - hB.t[0][l] * hB.N[p][l];
-    G[3 + p][l] = hA.t[1][l] * hA.N[p][l] - hB.t[1][l] * hB.N[p][l];
-    G[6 + p][l] = hA.t[2][l] * hA.N[p][l];
-    G[9 + p][l] = -hB.t[2][l] * hB.N[p][l];
-  }
-}
+// ---- closed-form H_theta v of a tile (torchbend.ops.hinge; the angle gradients: grad_of_halves, hinge_math.h) -
 
 // T'' v of one half-hinge (a, b, c) in lane l (torchbend.ops.hinge._HalfHinge.hvp):
 // (H v)_k = t_k mu + (mh_k . nu) N + [B terms],  mu = sum_k mh_k (N . v_k),  nu = sum_k t_k v_k,
