@@ -15,8 +15,7 @@ namespace cpu {
 
 // values += the local (3m x 3m) matrix `loc` of an element with vertices v[0..m): vertex block (a, b) starts at
 // CSR position base[m a + b], its row p at base + p row_len[v[a]] (torchbend.energies.sparse.StencilPattern)
-// (entry i of `loc` at loc[S i]: S = 1 a row-major matrix, S = W one lane of a tile [entry][lane])
-template <typename T, int m, int S = 1>
+template <typename T, int m>
 static inline void scatter_blocks(T* values, const int64_t* base, const int64_t* v, const int64_t* row_len,
                                   const T* loc) {
   for (int a = 0; a < m; ++a) {
@@ -24,8 +23,8 @@ static inline void scatter_blocks(T* values, const int64_t* base, const int64_t*
     for (int b = 0; b < m; ++b) {
       T* dst = values + base[m * a + b];
       for (int p = 0; p < 3; ++p, dst += rl) {
-        const T* src = loc + S * (3 * m * (3 * a + p) + 3 * b);
-        dst[0] += src[0]; dst[1] += src[S]; dst[2] += src[2 * S];
+        const T* src = loc + 3 * m * (3 * a + p) + 3 * b;
+        dst[0] += src[0]; dst[1] += src[1]; dst[2] += src[2];
       }
     }
   }

@@ -102,9 +102,7 @@ from .curvature import curvature_tolerance, smallest_eigenpair
 from .damping import Damping
 from .directions import NewtonDirections
 from .line_search import LineSearchResult, armijo_backtracking
-from .linear import (
-    FreeHessian,
-)
+from .linear import FreeHessian
 from .model import ClothModel, ClothState
 from .options import (
     UNSET,
