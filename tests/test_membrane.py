@@ -378,21 +378,27 @@ def test_compiled_energy_and_gradient_match_the_eager_path(model, dtype):
 
 
 @pytest.mark.parametrize("scale", [1e-170, 1e-30, 1e30, 1e150])
-@pytest.mark.parametrize("model", ["arap", "symmetric_dirichlet", "neohookean"])
-def test_lane_stress_at_extreme_scales(model, scale):
-    """ARAP's, symmetric Dirichlet's and neo-Hookean's gradients run their thin SVD over the lanes of a tile
-    (cpu_membrane.cpp lane_stress: both hypot forms computed and selected; log J by tb_logv): where squares would
-    underflow or overflow the scaled form is taken, and the gradient stays within a few ulps of the eager path's (or
-    raises its error)."""
+@pytest.mark.parametrize("model", MODELS)
+def test_lane_kernels_at_extreme_scales(model, scale):
+    """The gradients of ARAP, symmetric Dirichlet and neo-Hookean and every projected or non-StVK HVP run the thin
+    SVD and the eigensystem over the lanes of a tile (cpu_membrane.cpp lane_svd, lane_density: hypot by a
+    power-of-two scaling where squares would underflow or overflow; log J by tb_logv): the results stay within a few
+    ulps of the eager path's (or raise its error)."""
     mem, x, _ = _compiled_case(model, F64, seed=3, collapse=False)
-    try:
-        ge = mem.gradient(x * scale, backend="eager")
-    except ValueError as e:  # the model is undefined or overflows there: the compiled path says the same
-        with pytest.raises(ValueError, match=re.escape(str(e).split(":")[0])):
-            mem.gradient(x * scale)
-        return
-    g = mem.gradient(x * scale)
-    assert float((g - ge).abs().max()) <= 8 * torch.finfo(F64).eps * float(ge.abs().max())
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
+    y = x * scale
+    ops = [lambda backend, p=p: mem.hvp(y, v, projection=p, backend=backend) for p in ("none", "clamp", "abs")]
+    if model != "stvk":
+        ops.append(lambda backend: mem.gradient(y, backend=backend))
+    for op in ops:
+        try:
+            ref = op("eager")
+        except ValueError as e:  # the model is undefined or overflows there: the compiled path says the same
+            with pytest.raises(ValueError, match=re.escape(str(e).split(":")[0])):
+                op("auto")
+            continue
+        got = op("auto")
+        assert float((got - ref).abs().max()) <= 16 * torch.finfo(F64).eps * float(ref.abs().max())
 
 
 @pytest.mark.parametrize("model", MODELS)

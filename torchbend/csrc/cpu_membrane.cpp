@@ -42,53 +42,75 @@ static int64_t prepare_membrane(const char* op, Tensor& x, Tensor& faces, Tensor
   return x.numel() / std::max<int64_t>(V * 3, 1);
 }
 
-// ---- the thin SVD and stress of ARAP, symmetric Dirichlet and neo-Hookean over the lanes of a tile --------------
+// ---- the thin SVD, stress and eigensystem of every model over the lanes of a tile ---------------------------------
 // The scalar membrane_math.h functions call the C library's hypot (and log) and branch.  These lane versions compute
 // both the fast and the scaled hypot and select, select instead of branching, and take neo-Hookean's log J from
-// vector_math.h's tb_logv (no library call); the formulas and their order are mem_thin_svd's and mem_density's
-// (order 1).  GCC does not vectorize the lane loop ("control flow in loop"), but the branch-free, call-free code
-// runs ARAP's and symmetric Dirichlet's gradient 2.6x faster than the scalar functions (bm_membrane.py --operators).
-// StVK has its own closed form.
+// vector_math.h's tb_logv (no library call); the formulas are mem_thin_svd's and mem_density's, so that GCC
+// vectorizes the lane loops (tools/check_vectorization.py requires it).  The gradient of ARAP, symmetric Dirichlet
+// and neo-Hookean and every HVP but unprojected StVK's (which has its own closed form) run here.
 constexpr int kLanes = 8;
 
-template <typename T>
-static inline T lane_hypot(T a, T b) {
-  const T aa = std::abs(a), bb = std::abs(b);
-  const T big = aa > bb ? aa : bb, small = aa > bb ? bb : aa;
-  const T q = small / (big > T(0) ? big : T(1));
-  const T slow = big * std::sqrt(T(1) + q * q);
-  return mem_squares_safe(big) ? std::sqrt(a * a + b * b) : slow;
+// A power of two s (and 1 / s) that brings the largest magnitude `big` into the range where squares neither
+// overflow nor underflow (mem_squares_safe); 1 inside it.  Scaling by s is exact, so hypot(a, b) =
+// sqrt((s a)^2 + (s b)^2) / s is the fast formula's result wherever that one is safe, without a division.
+static TB_FORCEINLINE double lane_scale(double big, double& inv) {
+  const bool up = !(big > 0x1p-490), down = big >= 0x1p490;
+  inv = up ? 0x1p-600 : (down ? 0x1p600 : 1.0);
+  return up ? 0x1p600 : (down ? 0x1p-600 : 1.0);
+}
+static TB_FORCEINLINE float lane_scale(float big, float& inv) {
+  const bool up = !(big > 0x1p-60f), down = big >= 0x1p60f;
+  inv = up ? 0x1p-100f : (down ? 0x1p80f : 1.0f);
+  return up ? 0x1p100f : (down ? 0x1p-80f : 1.0f);
 }
 
 template <typename T>
-static inline T lane_hypot3(T a, T b, T c) {
-  const T big = std::max(std::max(std::abs(a), std::abs(b)), std::abs(c));
-  const T inv = T(1) / (big > T(0) ? big : T(1));
-  const T sa = a * inv, sb = b * inv, sc = c * inv;
-  const T slow = big * std::sqrt(sa * sa + sb * sb + sc * sc);
-  return mem_squares_safe(big) ? std::sqrt(a * a + b * b + c * c) : slow;
+static TB_FORCEINLINE T lane_hypot(T a, T b) {
+  T inv;
+  const T sc = lane_scale(std::max(std::abs(a), std::abs(b)), inv);
+  const T sa = a * sc, sb = b * sc;
+  return std::sqrt(sa * sa + sb * sb) * inv;
 }
 
-// psi and P = dPsi/dF (row-major, P[j] for j = 2 a + b) of one triangle of ARAP, symmetric Dirichlet or neo-Hookean
-// (log J by tb_logv, no library call) from F and N
-template <typename T, int Model>
-static inline T lane_stress(const T (&F)[6], const T (&N)[3], T mu, T lam, T* P) {
+template <typename T>
+static TB_FORCEINLINE T lane_hypot3(T a, T b, T c) {
+  T inv;
+  const T sc = lane_scale(std::max(std::max(std::abs(a), std::abs(b)), std::abs(c)), inv);
+  const T sa = a * sc, sb = b * sc, sd = c * sc;
+  return std::sqrt(sa * sa + sb * sb + sd * sd) * inv;
+}
+
+// The unit eigenvector (c, s) of [[m + d, h12], [h12, m - d]] for its eigenvalue m + r (mem_unit_eigvec)
+template <typename T>
+static TB_FORCEINLINE void lane_eigvec(T d, T h12, T r, T& c, T& s) {
+  const bool pos = d >= T(0);
+  const T ex = pos ? d + r : h12, ey = pos ? h12 : r - d;
+  const T nrm = lane_hypot(ex, ey);
+  const T inv = T(1) / (nrm > T(0) ? nrm : T(1));
+  c = nrm > T(0) ? ex * inv : T(1);
+  s = nrm > T(0) ? ey * inv : T(0);
+}
+
+// The thin SVD F = U diag(s1, s2) V^T of one triangle (mem_thin_svd): v1 = (cp, sp), u1, u2 and the unit normal n
+template <typename T>
+struct LaneSvd {
+  T s1, s2, cp, sp, u1[3], u2[3], n[3];
+};
+
+template <typename T>
+static TB_FORCEINLINE LaneSvd<T> lane_svd(const T (&F)[6], const T (&N)[3]) {
+  LaneSvd<T> o;
   const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
   const T b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
   const T c = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
   const T d = T(0.5) * a - T(0.5) * c;
   const T r = lane_hypot(d, b);
-  const T s1 = std::sqrt((T(0.5) * a + T(0.5) * c) + r);
+  o.s1 = std::sqrt((T(0.5) * a + T(0.5) * c) + r);
   const T J = lane_hypot3(N[0], N[1], N[2]);
-  const T s2 = s1 > T(0) ? J / (s1 > T(0) ? s1 : T(1)) : T(0);
-  // v1 = (cp, sp) (mem_unit_eigvec)
-  const bool pos = d >= T(0);
-  const T ex = pos ? d + r : b, ey = pos ? b : r - d;
-  const T nrm = lane_hypot(ex, ey);
-  const T inv = T(1) / (nrm > T(0) ? nrm : T(1));
-  const T cp = nrm > T(0) ? ex * inv : T(1), sp = nrm > T(0) ? ey * inv : T(0);
+  o.s2 = o.s1 > T(0) ? J / (o.s1 > T(0) ? o.s1 : T(1)) : T(0);
+  lane_eigvec(d, b, r, o.cp, o.sp);
   // u1 = F v1 / |F v1|
-  const T w0 = F[0] * cp + F[1] * sp, w1 = F[2] * cp + F[3] * sp, w2 = F[4] * cp + F[5] * sp;
+  const T w0 = F[0] * o.cp + F[1] * o.sp, w1 = F[2] * o.cp + F[3] * o.sp, w2 = F[4] * o.cp + F[5] * o.sp;
   const T nw = lane_hypot3(w0, w1, w2);
   const T iw = T(1) / (nw > T(0) ? nw : T(1));
   const T u10 = nw > T(0) ? w0 * iw : T(1), u11 = nw > T(0) ? w1 * iw : T(0), u12 = nw > T(0) ? w2 * iw : T(0);
@@ -103,74 +125,301 @@ static inline T lane_stress(const T (&F)[6], const T (&N)[3], T mu, T lam, T* P)
   const T q0 = -u12 * al1, q1 = u12 * al0, q2 = u10 * al1 - u11 * al0;  // u1 x (al0, al1, 0)
   const T iq = T(1) / std::sqrt(q0 * q0 + q1 * q1 + q2 * q2);
   const T n0 = okn ? m0 * im : q0 * iq, n1 = okn ? m1 * im : q1 * iq, n2 = okn ? m2 * im : q2 * iq;
-  const T u20 = n1 * u12 - n2 * u11, u21 = n2 * u10 - n0 * u12, u22 = n0 * u11 - n1 * u10;
-  // the density in the singular values (mem_density, order 1)
-  T psi, p1, p2;
+  o.u1[0] = u10, o.u1[1] = u11, o.u1[2] = u12;
+  o.n[0] = n0, o.n[1] = n1, o.n[2] = n2;
+  o.u2[0] = n1 * u12 - n2 * u11, o.u2[1] = n2 * u10 - n0 * u12, o.u2[2] = n0 * u11 - n1 * u10;
+  return o;
+}
+
+// A model's density in the singular values (mem_density): psi, p = (dPsi/ds1, dPsi/ds2) and, with Second, the six
+// eigenvalues l (scaling 1, scaling 2, twist, flip, normal 1, normal 2) and (c, s) the first scaling eigenvector;
+// both sides of every branch computed and selected
+template <typename T, int Model, bool Second>
+static TB_FORCEINLINE T lane_density(T s1, T s2, T mu, T lam, T (&p)[2], T (&l)[6], T& c, T& s) {
+  if (Model == kStvk) {
+    const T q1 = (s1 - T(1)) * (s1 + T(1)), q2 = (s2 - T(1)) * (s2 + T(1));
+    const T S = T(0.5) * (q1 + q2);
+    const T psi = T(0.25) * mu * (q1 * q1 + q2 * q2) + T(0.5) * lam * S * S;
+    const T c1 = mu * q1 + lam * S, c2 = mu * q2 + lam * S;
+    p[0] = c1 * s1;
+    p[1] = c2 * s2;
+    if (!Second) return psi;
+    const T k = T(2) * mu + lam;
+    const T h11 = c1 + k * s1 * s1, h12 = lam * s1 * s2, h22 = c2 + k * s2 * s2;  // mem_eig2
+    const T m = T(0.5) * h11 + T(0.5) * h22, d = T(0.5) * h11 - T(0.5) * h22;
+    const T r = lane_hypot(d, h12);
+    const T big = m + std::copysign(r, m);
+    const T sb = big != T(0) ? big : T(1);
+    const T other = big != T(0) ? h11 * (h22 / sb) - h12 * (h12 / sb) : T(0);
+    l[0] = m >= T(0) ? big : other;
+    l[1] = m >= T(0) ? other : big;
+    lane_eigvec(d, h12, r, c, s);
+    l[2] = lam * S + mu * (q1 + s2 * (s2 - s1));
+    l[3] = lam * S + mu * (q1 + s2 * (s2 + s1));
+    l[4] = c1;
+    l[5] = c2;
+    return psi;
+  }
   if (Model == kArap) {
     const T d1 = s1 - T(1), d2 = s2 - T(1);
-    psi = mu * (d1 * d1 + d2 * d2);
+    const T psi = mu * (d1 * d1 + d2 * d2);
     const T two = T(2) * mu;
-    p1 = two * d1;
-    p2 = two * d2;
-  } else if (Model == kNeohookean) {
-    const T lj = tb_logv(s1) + tb_logv(s2);  // log J (J = s1 s2 may underflow where s1, s2 do not)
-    const T q1 = (s1 - T(1)) * (s1 + T(1)), q2 = (s2 - T(1)) * (s2 + T(1));
-    psi = T(0.5) * mu * (q1 + q2) - mu * lj + T(0.5) * lam * lj * lj;
-    const T i1 = T(1) / s1, i2 = T(1) / s2;
-    p1 = (mu * q1 + lam * lj) * i1;
-    p2 = (mu * q2 + lam * lj) * i2;
-  } else {  // symmetric Dirichlet
+    p[0] = two * d1;
+    p[1] = two * d2;
+    if (!Second) return psi;
+    const T floor = tb_eps(T(0));
+    const T t1 = s1 < floor ? floor : s1, t2 = s2 < floor ? floor : s2;
+    l[0] = two, l[1] = two, c = T(1), s = T(0);  // mem_eig2_diagonal(two, two)
+    l[2] = two * (d1 + d2) / (t1 + s2);
+    l[3] = two;
+    l[4] = two * (t1 - T(1)) / t1;
+    l[5] = two * (t2 - T(1)) / t2;
+    return psi;
+  }
+  if (Model == kSymmetricDirichlet) {
     const T i1 = T(1) / s1, i2 = T(1) / s2;
     const T d1 = (s1 - T(1)) * (s1 + T(1)) * i1, d2 = (s2 - T(1)) * (s2 + T(1)) * i2;
-    psi = (mu * d1) * d1 + (mu * d2) * d2;
+    const T psi = (mu * d1) * d1 + (mu * d2) * d2;
     const T two = T(2) * mu;
-    p1 = (two * d1) * (T(1) + i1 * i1);
-    p2 = (two * d2) * (T(1) + i2 * i2);
+    p[0] = (two * d1) * (T(1) + i1 * i1);
+    p[1] = (two * d2) * (T(1) + i2 * i2);
+    if (!Second) return psi;
+    const T six = T(6) * mu;
+    const T h11 = two + (((six * i1) * i1) * i1) * i1, h22 = two + (((six * i2) * i2) * i2) * i2;
+    const bool first = h11 >= h22;  // mem_eig2_diagonal
+    l[0] = first ? h11 : h22;
+    l[1] = first ? h22 : h11;
+    c = first ? T(1) : T(0);
+    s = first ? T(0) : T(1);
+    l[3] = two + ((two * i1) * i2) * (i1 * i1 + i1 * i2 + i2 * i2);
+    l[2] = s2 < T(0.5) ? two - ((two * i1) * i2) * (i1 * i1 - i1 * i2 + i2 * i2) : (p[0] + p[1]) / (s1 + s2);
+    l[4] = p[0] * i1;
+    l[5] = p[1] * i2;
+    return psi;
   }
-  P[0] = p1 * u10 * cp - p2 * u20 * sp;
-  P[1] = p1 * u10 * sp + p2 * u20 * cp;
-  P[2] = p1 * u11 * cp - p2 * u21 * sp;
-  P[3] = p1 * u11 * sp + p2 * u21 * cp;
-  P[4] = p1 * u12 * cp - p2 * u22 * sp;
-  P[5] = p1 * u12 * sp + p2 * u22 * cp;
+  // neo-Hookean (log J by tb_logv: J = s1 s2 may underflow where s1, s2 do not)
+  const T lj = tb_logv(s1) + tb_logv(s2);
+  const T q1 = (s1 - T(1)) * (s1 + T(1)), q2 = (s2 - T(1)) * (s2 + T(1));
+  const T psi = T(0.5) * mu * (q1 + q2) - mu * lj + T(0.5) * lam * lj * lj;
+  const T i1 = T(1) / s1, i2 = T(1) / s2;
+  p[0] = (mu * q1 + lam * lj) * i1;
+  p[1] = (mu * q2 + lam * lj) * i2;
+  if (!Second) return psi;
+  const T A = mu + lam * (T(1) - lj);
+  const T rho = s2 * i1;
+  const T k11 = A * rho * rho, k12 = lam * rho;
+  const T m = T(0.5) * k11 + T(0.5) * A, d = T(0.5) * k11 - T(0.5) * A;
+  const T r = lane_hypot(d, k12);
+  const T big = m + std::copysign(r, m);
+  const T sb = big != T(0) ? big : T(1);
+  const T other = big != T(0) ? ((((mu - lam * lj) * (A + lam)) / sb) * i1) * i1 : T(0);
+  const T l_big = mu + (big * i2) * i2, l_other = mu + other;
+  l[0] = m >= T(0) ? l_big : l_other;
+  l[1] = m >= T(0) ? l_other : l_big;
+  lane_eigvec(d, k12, r, c, s);
+  const T jm1 = (s1 - T(1)) + (s2 - T(1)) + (s1 - T(1)) * (s2 - T(1));
+  l[2] = ((mu * jm1 + lam * lj) * i1) * i2;
+  l[3] = ((mu * (s1 * s2 + T(1)) - lam * lj) * i1) * i2;
+  l[4] = p[0] * i1;
+  l[5] = p[1] * i2;
   return psi;
 }
 
+// psi and P = dPsi/dF (row-major, P[j] for j = 2 a + b) of one triangle of ARAP, symmetric Dirichlet or neo-Hookean
+// from F and N: P = U diag(p) V^T
+template <typename T, int Model>
+static TB_FORCEINLINE T lane_stress(const T (&F)[6], const T (&N)[3], T mu, T lam, T* P) {
+  const LaneSvd<T> o = lane_svd(F, N);
+  T p[2], l[6], c, s;
+  const T psi = lane_density<T, Model, false>(o.s1, o.s2, mu, lam, p, l, c, s);
+  for (int a = 0; a < 3; ++a) {
+    P[2 * a] = p[0] * o.u1[a] * o.cp - p[1] * o.u2[a] * o.sp;
+    P[2 * a + 1] = p[0] * o.u1[a] * o.sp + p[1] * o.u2[a] * o.cp;
+  }
+  return psi;
+}
+
+// The (projected) Hessian of one triangle's density applied to dF, in the SVD's frame (membrane_face_hvp without
+// forming the modes): A = U^T dF V (U = [u1 u2 n], V = [v1 v2]), the modes' coordinates of dF from A, scaled by
+// the projected eigenvalues, mapped back to dP = U B V^T; returns P : dF = p1 A11 + p2 A22
+template <typename T, int Model, int Proj>
+static TB_FORCEINLINE T lane_hvp(const T (&F)[6], const T (&N)[3], const T (&dF)[6], T mu, T lam, T* dP) {
+  const LaneSvd<T> o = lane_svd(F, N);
+  T p[2], l[6], c, s;
+  lane_density<T, Model, true>(o.s1, o.s2, mu, lam, p, l, c, s);
+  T g1[3], g2[3];  // dF v1, dF v2
+  for (int a = 0; a < 3; ++a) {
+    g1[a] = dF[2 * a] * o.cp + dF[2 * a + 1] * o.sp;
+    g2[a] = dF[2 * a + 1] * o.cp - dF[2 * a] * o.sp;
+  }
+  const T a11 = o.u1[0] * g1[0] + o.u1[1] * g1[1] + o.u1[2] * g1[2];
+  const T a12 = o.u1[0] * g2[0] + o.u1[1] * g2[1] + o.u1[2] * g2[2];
+  const T a21 = o.u2[0] * g1[0] + o.u2[1] * g1[1] + o.u2[2] * g1[2];
+  const T a22 = o.u2[0] * g2[0] + o.u2[1] * g2[1] + o.u2[2] * g2[2];
+  const T a31 = o.n[0] * g1[0] + o.n[1] * g1[1] + o.n[2] * g1[2];
+  const T a32 = o.n[0] * g2[0] + o.n[1] * g2[1] + o.n[2] * g2[2];
+  const T h = T(0.70710678118654752440);
+  const T ck[6] = {c * a11 + s * a22, c * a22 - s * a11, h * (a21 - a12), h * (a21 + a12), a31, a32};
+  T w[6];  // the modes' coordinates times the projected eigenvalues
+  for (int k = 0; k < 6; ++k)
+    w[k] = (Proj == kProjectClamp ? std::max(l[k], T(0)) : Proj == kProjectAbs ? std::abs(l[k]) : l[k]) * ck[k];
+  const T b11 = c * w[0] - s * w[1], b22 = s * w[0] + c * w[1];
+  const T b21 = h * (w[2] + w[3]), b12 = h * (w[3] - w[2]);
+  for (int a = 0; a < 3; ++a) {
+    const T r1 = o.u1[a] * b11 + o.u2[a] * b21 + o.n[a] * w[4];  // (U B)[a, 1]
+    const T r2 = o.u1[a] * b12 + o.u2[a] * b22 + o.n[a] * w[5];  // (U B)[a, 2]
+    dP[2 * a] = r1 * o.cp - r2 * o.sp;
+    dP[2 * a + 1] = r1 * o.sp + r2 * o.cp;
+  }
+  return p[0] * a11 + p[1] * a22;
+}
+
+// The inputs of the triangles [e0, e0 + nl) of one sample (nl <= kLanes) over the lanes of a tile: the edge vectors
+// e1 = p1 - p0, e2 = p2 - p0 of positions x (and of a direction v), D's six entries and coef; idle lanes a right
+// triangle at rest (F = [I; 0]) with no weight.  The gather is scalar, what follows runs over the lanes.
+template <typename T>
+struct MembraneTile {
+  alignas(64) T E[6][kLanes];  // e1 (0..2), e2 (3..5) of x
+  alignas(64) T dE[6][kLanes];  // of the direction (HVP only)
+  alignas(64) T D[6][kLanes];
+  alignas(64) T c[kLanes];
+};
+
+template <typename T>
+static TB_FORCEINLINE void gather_edges(const T* xb, const int64_t* fc, int64_t e0, int nl, T (&E)[6][kLanes]) {
+  for (int l = 0; l < kLanes; ++l) {
+    if (l < nl) {
+      const int64_t* t = fc + 3 * (e0 + l);
+      const T *p0 = xb + 3 * t[0], *p1 = xb + 3 * t[1], *p2 = xb + 3 * t[2];
+      for (int i = 0; i < 3; ++i) E[i][l] = p1[i] - p0[i], E[3 + i][l] = p2[i] - p0[i];
+    } else {
+      for (int i = 0; i < 6; ++i) E[i][l] = (i == 0 || i == 4) ? T(1) : T(0);
+    }
+  }
+}
+
+template <typename T>
+static TB_FORCEINLINE void gather_tile(MembraneTile<T>& g, const T* xb, const T* vb, const int64_t* fc, const T* d,
+                                       const T* c, int64_t e0, int nl) {
+  gather_edges(xb, fc, e0, nl, g.E);
+  if (vb != nullptr) gather_edges(vb, fc, e0, nl, g.dE);
+  for (int l = 0; l < kLanes; ++l) {
+    const T* De = d + 6 * (e0 + l);
+    for (int j = 0; j < 6; ++j) g.D[j][l] = l < nl ? De[j] : (j == 2 || j == 5 ? T(1) : T(0));
+    g.c[l] = l < nl ? c[e0 + l] : T(0);
+  }
+}
+
+// F (3 x 2, row-major) from the edges and W = D's rows 1, 2 (face_deformation), in lane l
+template <typename T>
+static TB_FORCEINLINE void lane_deformation(const T (&E)[6][kLanes], const T (&D)[6][kLanes], int l, T (&F)[6]) {
+  for (int i = 0; i < 3; ++i) {
+    F[2 * i] = E[i][l] * D[2][l] + E[3 + i][l] * D[4][l];
+    F[2 * i + 1] = E[i][l] * D[3][l] + E[3 + i][l] * D[5][l];
+  }
+}
+
+// N = det(W) (e1 x e2), the cross product in double below double (face_normal), in lane l
+template <typename T>
+static TB_FORCEINLINE void lane_normal(const T (&E)[6][kLanes], const T (&D)[6][kLanes], int l, T (&N)[3]) {
+  const double a0 = E[0][l], a1 = E[1][l], a2 = E[2][l], b0 = E[3][l], b1 = E[4][l], b2 = E[5][l];
+  const T detW = D[2][l] * D[5][l] - D[3][l] * D[4][l];
+  N[0] = T(a1 * b2 - a2 * b1) * detW;
+  N[1] = T(a2 * b0 - a0 * b2) * detW;
+  N[2] = T(a0 * b1 - a1 * b0) * detW;
+}
+
+// out (3 vertices x 3 axes, as out[3 k + i][l]) = coef G D_k of a (3 x 2) G in lane l: forces from P, HVPs from dP
+template <typename T>
+static TB_FORCEINLINE void lane_pull_back(const T (&G)[6], const T (&D)[6][kLanes], T ce, int l, T (&out)[9][kLanes]) {
+  for (int i = 0; i < 3; ++i) {
+    const T G0 = ce * G[2 * i], G1 = ce * G[2 * i + 1];
+    for (int k = 0; k < 3; ++k) out[3 * k + i][l] = G0 * D[2 * k][l] + G1 * D[2 * k + 1][l];
+  }
+}
+
 // energies (coef psi) and forces of the triangles [e0, e0 + nl) of one sample, nl <= kLanes: gathered per lane,
-// the SVD and stress over the lanes, the forces written per triangle
+// the deformation, SVD, stress and forces over the lanes, written per triangle
 template <typename T, int Model>
 static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0, int nl,
                         T* psi, T* forces) {
-  alignas(64) T Fs[6][kLanes], Ns[3][kLanes], Ps[6][kLanes], ps[kLanes];
-  for (int l = 0; l < kLanes; ++l) {
-    T F[6] = {T(1), T(0), T(0), T(1), T(0), T(0)}, N[3] = {T(0), T(0), T(1)};  // idle lanes: at rest
-    if (l < nl) {
-      const int64_t e = e0 + l;
-      const int64_t* t = fc + 3 * e;
-      face_deformation(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, F);
-      face_normal(xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, N);
-    }
-    for (int j = 0; j < 6; ++j) Fs[j][l] = F[j];
-    for (int j = 0; j < 3; ++j) Ns[j][l] = N[j];
-  }
+  MembraneTile<T> g;
+  gather_tile<T>(g, xb, nullptr, fc, d, c, e0, nl);
+  alignas(64) T fs[9][kLanes], ps[kLanes];
   TB_LANES_AGG(kLanes) {
-    const T F[6] = {Fs[0][l], Fs[1][l], Fs[2][l], Fs[3][l], Fs[4][l], Fs[5][l]};
-    const T N[3] = {Ns[0][l], Ns[1][l], Ns[2][l]};
-    T P[6];
-    ps[l] = lane_stress<T, Model>(F, N, mu, lam, P);
-    Ps[0][l] = P[0]; Ps[1][l] = P[1]; Ps[2][l] = P[2]; Ps[3][l] = P[3]; Ps[4][l] = P[4]; Ps[5][l] = P[5];
+    T F[6], N[3], P[6];
+    lane_deformation(g.E, g.D, l, F);
+    lane_normal(g.E, g.D, l, N);
+    const T ce = g.c[l];
+    ps[l] = ce * lane_stress<T, Model>(F, N, mu, lam, P);
+    lane_pull_back(P, g.D, ce, l, fs);
   }
   for (int l = 0; l < nl; ++l) {
-    const int64_t e = e0 + l;
-    const T ce = c[e];
-    psi[e] = ce * ps[l];
-    if (forces == nullptr) continue;
-    const T* De = d + 6 * e;
-    for (int i = 0; i < 3; ++i) {
-      const T P0 = ce * Ps[2 * i][l], P1 = ce * Ps[2 * i + 1][l];
-      for (int k = 0; k < 3; ++k) forces[9 * e + 3 * k + i] = P0 * De[2 * k] + P1 * De[2 * k + 1];
-    }
+    psi[e0 + l] = ps[l];
+    if (forces != nullptr)
+      for (int j = 0; j < 9; ++j) forces[9 * (e0 + l) + j] = fs[j][l];
   }
+}
+
+// Hessian-vector products h (coef dP D_k per vertex) and coef P : dF of the triangles [e0, e0 + nl) of one sample
+// (nl <= kLanes) through the eigensystem: gathered per lane, lane_hvp over the lanes, written per triangle
+template <typename T, int Model, int Proj>
+static void hvp_tile(const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0,
+                     int nl, T* dots, T* h) {
+  MembraneTile<T> g;
+  gather_tile<T>(g, xb, vb, fc, d, c, e0, nl);
+  alignas(64) T hs[9][kLanes], ds[kLanes];
+  TB_LANES_AGG(kLanes) {
+    T F[6], N[3], dF[6], dP[6];
+    lane_deformation(g.E, g.D, l, F);
+    lane_normal(g.E, g.D, l, N);
+    lane_deformation(g.dE, g.D, l, dF);
+    const T ce = g.c[l];
+    ds[l] = ce * lane_hvp<T, Model, Proj>(F, N, dF, mu, lam, dP);
+    lane_pull_back(dP, g.D, ce, l, hs);
+  }
+  for (int l = 0; l < nl; ++l) {
+    dots[e0 + l] = ds[l];
+    for (int j = 0; j < 9; ++j) h[9 * (e0 + l) + j] = hs[j][l];
+  }
+}
+
+// the tiles of a model and projection (each its own lane loop: a select on a projection chosen at run time keeps GCC
+// from vectorizing)
+template <typename T, int Model, int Proj>
+static void hvp_tiles(const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t T_,
+                      T* dots, T* h) {
+  const int64_t tiles = (T_ + kLanes - 1) / kLanes;
+  at::parallel_for(0, tiles, 256, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g) {
+      const int64_t e0 = g * kLanes;
+      hvp_tile<T, Model, Proj>(xb, vb, fc, d, c, mu, lam, e0, int(std::min<int64_t>(kLanes, T_ - e0)), dots, h);
+    }
+  });
+}
+
+template <typename T, int Model>
+static void hvp_tiles(int projection, const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam,
+                      int64_t T_, T* dots, T* h) {
+  if (projection == kProjectClamp)
+    hvp_tiles<T, Model, kProjectClamp>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
+  else if (projection == kProjectAbs)
+    hvp_tiles<T, Model, kProjectAbs>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
+  else
+    hvp_tiles<T, Model, kProjectNone>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
+}
+
+template <typename T>
+static void hvp_tiles(int64_t model, int projection, const T* xb, const T* vb, const int64_t* fc, const T* d,
+                      const T* c, T mu, T lam, int64_t T_, T* dots, T* h) {
+  if (model == kStvk)
+    hvp_tiles<T, kStvk>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
+  else if (model == kArap)
+    hvp_tiles<T, kArap>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
+  else if (model == kNeohookean)
+    hvp_tiles<T, kNeohookean>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
+  else
+    hvp_tiles<T, kSymmetricDirichlet>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
 }
 
 static void check_model(const char* op, int64_t model, int64_t projection) {
@@ -196,18 +445,19 @@ std::tuple<Tensor, Tensor> membrane_energy_gradient(Tensor x, Tensor faces, Tens
     std::vector<scalar_t> psi(T), forces(gradient ? 9 * T : 0);
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
-      if (gradient && model != kStvk) {  // the thin SVD over the lanes of tiles (branch-free, no library calls)
+      if (model != kStvk) {  // the thin SVD over the lanes of tiles (branch-free, no library calls)
+        scalar_t* f = gradient ? forces.data() : nullptr;
         const int64_t tiles = (T + kLanes - 1) / kLanes;
         at::parallel_for(0, tiles, 256, [&](int64_t begin, int64_t end) {
           for (int64_t g = begin; g < end; ++g) {
             const int64_t e0 = g * kLanes;
             const int nl = int(std::min<int64_t>(kLanes, T - e0));
             if (model == kArap)
-              stress_tile<scalar_t, kArap>(xb, fc, d, c, m, la, e0, nl, psi.data(), forces.data());
+              stress_tile<scalar_t, kArap>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
             else if (model == kNeohookean)
-              stress_tile<scalar_t, kNeohookean>(xb, fc, d, c, m, la, e0, nl, psi.data(), forces.data());
+              stress_tile<scalar_t, kNeohookean>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
             else
-              stress_tile<scalar_t, kSymmetricDirichlet>(xb, fc, d, c, m, la, e0, nl, psi.data(), forces.data());
+              stress_tile<scalar_t, kSymmetricDirichlet>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
           }
         });
       } else {
@@ -254,14 +504,17 @@ std::tuple<Tensor, Tensor> membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
       const scalar_t* vb = v.data_ptr<scalar_t>() + b * V * 3;
-      at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
-        for (int64_t e = begin; e < end; ++e) {
-          const int64_t* t = fc + 3 * e;
-          dots[e] = membrane_face_hvp<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1],
-                                                xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1], vb + 3 * t[2], d + 6 * e,
-                                                m, la, c[e], h.data() + 9 * e);
-        }
-      });
+      if (model != kStvk || projection != kProjectNone)  // the eigensystem over the lanes of tiles
+        hvp_tiles<scalar_t>(model, int(projection), xb, vb, fc, d, c, m, la, T, dots.data(), h.data());
+      else  // unprojected StVK in closed form, per triangle
+        at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
+          for (int64_t e = begin; e < end; ++e) {
+            const int64_t* t = fc + 3 * e;
+            dots[e] = membrane_face_hvp<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1],
+                                                  xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1], vb + 3 * t[2], d + 6 * e,
+                                                  m, la, c[e], h.data() + 9 * e);
+          }
+        });
       const scalar_t w = weight.data_ptr<scalar_t>()[b];
       scalar_t* hb = hv.data_ptr<scalar_t>() + b * V * 3;
       scalar_t total = 0;

@@ -175,26 +175,29 @@ TB_HD static TB_FORCEINLINE double tb_logv(double x) {
   const double ln2_hi = 6.93147180369123816490e-01, ln2_lo = 1.90821492927058770002e-10;
   const bool sub = x < 2.2250738585072014e-308;
   const double xs = sub ? x * 18014398509481984.0 : x;  // 2^54
+  // in 64-bit integer lanes only (no int32 <-> int64 or int -> double conversions, which AVX2 lacks): the
+  // exponent becomes a double through the 2^52 bias
   uint64_t b;
   __builtin_memcpy(&b, &xs, sizeof b);
-  int32_t hx = int32_t(b >> 32);
-  int32_t k = ((hx >> 20) & 0x7ff) - 1023 - (sub ? 54 : 0);
-  hx &= 0x000fffff;
-  const int32_t i = (hx + 0x95f64) & 0x100000;
-  const uint64_t nb = (uint64_t(uint32_t(hx | (i ^ 0x3ff00000))) << 32) | (b & 0xffffffffull);
+  const int64_t hx = int64_t((b >> 32) & 0x000fffffull), e = int64_t((b >> 52) & 0x7ffull);
+  const int64_t i = (hx + 0x95f64) & 0x100000;
+  const uint64_t nb = (uint64_t(hx | (i ^ 0x3ff00000)) << 32) | (b & 0xffffffffull);
   double m;
   __builtin_memcpy(&m, &nb, sizeof m);  // x or x / 2 normalized into [sqrt(2)/2, sqrt(2))
-  k += i >> 20;
+  const uint64_t kb = 0x4330000000000000ull | uint64_t(e + (i >> 20));  // 2^52 + biased exponent
+  double kd;
+  __builtin_memcpy(&kd, &kb, sizeof kd);
+  const double dk = (kd - 4503599627370496.0) - (sub ? 1077.0 : 1023.0);  // exact
   const double f = m - 1.0;
-  const double s = f / (2.0 + f), dk = double(k), z = s * s, w = z * z;
+  const double s = f / (2.0 + f), z = s * s, w = z * z;
   const double t1 = w * (Lg2 + w * (Lg4 + w * Lg6)), t2 = z * (Lg1 + w * (Lg3 + w * (Lg5 + w * Lg7)));
   const double R = t2 + t1, hfsq = 0.5 * f * f;
   const double wide = dk * ln2_hi - ((hfsq - (s * (hfsq + R) + dk * ln2_lo)) - f);
   const double narrow = dk * ln2_hi - ((s * (f - R) - dk * ln2_lo) - f);
-  double r = ((hx - 0x6147a) | (0x6b851 - hx)) > 0 ? wide : narrow;
+  double r = (hx >= 0x6147a) & (hx <= 0x6b851) ? wide : narrow;
   r = x == 0.0 ? -HUGE_VAL : r;
   r = x > 1.7976931348623157e308 ? x : r;  // +inf
-  return (x < 0.0) | (x != x) ? NAN : r;
+  return x >= 0.0 ? r : NAN;  // one comparison: false for negatives and NaN
 }
 TB_HD static TB_FORCEINLINE float tb_logv(float x) { return float(tb_logv(double(x))); }
 
