@@ -555,9 +555,10 @@ def _host(fn: Callable[[np.ndarray], np.ndarray], like: Tensor) -> Apply:
     return apply
 
 
-def ilu(A: sp.spmatrix, like: Tensor, *, drop_tol: float = 1e-4, fill_factor: float = 10.0) -> Apply | None:
+def ilu_solver(A: sp.spmatrix, *, drop_tol: float = 1e-4,
+               fill_factor: float = 10.0) -> Callable[[np.ndarray], np.ndarray] | None:
     """Incomplete ``L |D| L^T`` factorisation of the free Hessian ``A`` as a symmetric positive definite
-    preconditioner on torch vectors like ``like`` (CPU work); ``None`` if the factorisation fails.
+    preconditioner on NumPy vectors; ``None`` if the factorisation fails.
 
     ``scipy.sparse.linalg.spilu`` (symmetric ordering, no pivoting: ``P A P^T ~ L U``) supplies the unit lower
     factor ``L`` and the pivots ``D = diag(U)``; the preconditioner is ``P^T (L |D| L^T)^-1 P``.  The
@@ -584,13 +585,18 @@ def ilu(A: sp.spmatrix, like: Tensor, *, drop_tol: float = 1e-4, fill_factor: fl
         w = spla.spsolve_triangular(upper, y, lower=False, unit_diagonal=True)
         return w[perm]  # P^T w
 
-    return _host(solve, like)
+    return solve
 
 
-def amg(A: sp.spmatrix, like: Tensor) -> Apply | None:
+def ilu(A: sp.spmatrix, like: Tensor, *, drop_tol: float = 1e-4, fill_factor: float = 10.0) -> Apply | None:
+    """:func:`ilu_solver` on torch vectors like ``like`` (CPU work); ``None`` if the factorisation fails."""
+    solve = ilu_solver(A, drop_tol=drop_tol, fill_factor=fill_factor)
+    return None if solve is None else _host(solve, like)
+
+
+def amg_cycle(A: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray] | None:
     """Smoothed-aggregation AMG (``pyamg``; one V-cycle per application, 3x3 vertex blocks) of the free
-    Hessian ``A`` as a preconditioner on torch vectors like ``like`` (CPU work); ``None`` without
-    ``pyamg`` or if the setup fails."""
+    Hessian ``A`` as a preconditioner on NumPy vectors; ``None`` without ``pyamg`` or if the setup fails."""
     if _pyamg is None:
         return None
     try:
@@ -598,7 +604,25 @@ def amg(A: sp.spmatrix, like: Tensor) -> Apply | None:
     except (ValueError, RuntimeError, np.linalg.LinAlgError):
         return None
     M = ml.aspreconditioner(cycle="V")
-    return _host(lambda r: M @ r, like)
+    return lambda r: M @ r
+
+
+def amg(A: sp.spmatrix, like: Tensor) -> Apply | None:
+    """:func:`amg_cycle` on torch vectors like ``like`` (CPU work); ``None`` without ``pyamg`` or if the setup
+    fails."""
+    cycle = amg_cycle(A)
+    return None if cycle is None else _host(cycle, like)
+
+
+def diagonal_blocks(A: sp.spmatrix) -> np.ndarray:
+    """The ``(n / 3, 3, 3)`` diagonal vertex blocks of a SciPy matrix ``A (n, n)`` (zero where a block is absent)."""
+    bsr = sp.bsr_matrix(sp.csr_matrix(A), blocksize=(3, 3))
+    bsr.sum_duplicates()
+    rows = np.repeat(np.arange(bsr.shape[0] // 3), np.diff(bsr.indptr))
+    on = bsr.indices == rows
+    out = np.zeros((bsr.shape[0] // 3, 3, 3), dtype=bsr.dtype)
+    out[rows[on]] = bsr.data[on]
+    return out
 
 
 def make_preconditioner(kind: Preconditioner | str, A: Tensor, fh: FreeHessian) -> tuple[Apply, Preconditioner]:

@@ -13,6 +13,8 @@ import torch
 from scipy.sparse.linalg import LinearOperator, aslinearoperator
 from torch import Tensor
 
+from .linear import Preconditioner, amg_cycle, block_jacobi, diagonal_blocks, ilu_solver
+
 __all__ = ["LinearizedHessian"]
 
 
@@ -66,6 +68,32 @@ class LinearizedHessian:
     def as_linear_operator(self, free: bool = False) -> LinearOperator:
         """A SciPy ``LinearOperator`` over all DOFs (``free=True``: the free DOFs only)."""
         return aslinearoperator(self.free if free else self.matrix)
+
+    def preconditioner(self, kind: str = "auto", free: bool = True) -> LinearOperator:
+        """A preconditioner for SciPy's Krylov solvers on this matrix (``free=True``: on the free DOFs), built once,
+        symmetric positive definite also for an indefinite Hessian: ``M=`` of ``scipy.sparse.linalg.cg``.  ``kind``
+        as the solver's ``preconditioner`` option (:class:`torchbend.sim.linear.Preconditioner`): ``auto`` and
+        ``ilu`` the incomplete ``L |D| L^T`` the solver's CG uses, ``amg`` (needs ``pyamg``), ``block_jacobi`` (the
+        inverted 3x3 vertex blocks, eigenvalues in absolute value); ``ilu``/``amg`` fall back to block-Jacobi where
+        they fail, as in the solver.  Rebuild it when the matrix changes much (each Newton iteration, say); a
+        Levenberg-Marquardt shift of the matrix can keep the unshifted one's."""
+        A = self.free if free else self.matrix
+        choice = Preconditioner.parse(kind)
+        solve = None
+        if choice in (Preconditioner.AUTO, Preconditioner.ILU):
+            solve = ilu_solver(A)
+        elif choice is Preconditioner.AMG:
+            solve = amg_cycle(A)
+        if solve is None:
+            apply = block_jacobi(torch.from_numpy(diagonal_blocks(A)))
+
+            def solve(r: np.ndarray) -> np.ndarray:
+                return apply(torch.from_numpy(np.ascontiguousarray(r, dtype=np.float64))).numpy()
+
+        def matvec(r: np.ndarray, solve=solve) -> np.ndarray:
+            return solve(np.asarray(r).reshape(-1)).reshape(np.shape(r))
+
+        return LinearOperator(A.shape, matvec=matvec, dtype=A.dtype)  # pyright: ignore[reportCallIssue]
 
     def __repr__(self) -> str:
         return f"LinearizedHessian({self.shape[0]}x{self.shape[1]}, nnz={self.matrix.nnz})"
