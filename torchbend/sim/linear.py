@@ -618,10 +618,12 @@ def diagonal_blocks(A: sp.spmatrix) -> np.ndarray:
     """The ``(n / 3, 3, 3)`` diagonal vertex blocks of a SciPy matrix ``A (n, n)`` (zero where a block is absent)."""
     bsr = sp.bsr_matrix(sp.csr_matrix(A), blocksize=(3, 3))
     bsr.sum_duplicates()
-    rows = np.repeat(np.arange(bsr.shape[0] // 3), np.diff(bsr.indptr))
-    on = bsr.indices == rows
-    out = np.zeros((bsr.shape[0] // 3, 3, 3), dtype=bsr.dtype)
-    out[rows[on]] = bsr.data[on]
+    indptr, indices, data = np.asarray(bsr.indptr), np.asarray(bsr.indices), np.asarray(bsr.data)
+    n = A.shape[0] // 3  # pyright: ignore[reportOptionalSubscript]
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    on = indices == rows
+    out = np.zeros((n, 3, 3), dtype=data.dtype)
+    out[rows[on]] = data[on]
     return out
 
 

@@ -7,6 +7,8 @@ a handful of products at one state (or a batch of states); use the linearised op
 of products of a Krylov solve at one state (``benchmarks/bm_linearize.py`` measures both)."""
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -79,7 +81,7 @@ class LinearizedHessian:
         Levenberg-Marquardt shift of the matrix can keep the unshifted one's."""
         A = self.free if free else self.matrix
         choice = Preconditioner.parse(kind)
-        solve = None
+        solve: Callable[[np.ndarray], np.ndarray] | None = None
         if choice in (Preconditioner.AUTO, Preconditioner.ILU):
             solve = ilu_solver(A)
         elif choice is Preconditioner.AMG:
@@ -87,8 +89,10 @@ class LinearizedHessian:
         if solve is None:
             apply = block_jacobi(torch.from_numpy(diagonal_blocks(A)))
 
-            def solve(r: np.ndarray) -> np.ndarray:
+            def jacobi(r: np.ndarray) -> np.ndarray:
                 return apply(torch.from_numpy(np.ascontiguousarray(r, dtype=np.float64))).numpy()
+
+            solve = jacobi
 
         def matvec(r: np.ndarray, solve=solve) -> np.ndarray:
             return solve(np.asarray(r).reshape(-1)).reshape(np.shape(r))
