@@ -1,4 +1,5 @@
 """Membrane energies: derivatives, closed-form eigensystems, projections, invariance, bad input."""
+import functools
 import math
 import re
 
@@ -387,9 +388,10 @@ def test_lane_kernels_at_extreme_scales(model, scale):
     mem, x, _ = _compiled_case(model, F64, seed=3, collapse=False)
     v = torch.randn(x.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
     y = x * scale
-    ops = [lambda backend, p=p: mem.hvp(y, v, projection=p, backend=backend) for p in ("none", "clamp", "abs")]
+    ops = [functools.partial(lambda backend, p: mem.hvp(y, v, projection=p, backend=backend), p=p)
+           for p in ("none", "clamp", "abs")]
     if model != "stvk":
-        ops.append(lambda backend: mem.gradient(y, backend=backend))
+        ops.append(functools.partial(lambda backend: mem.gradient(y, backend=backend)))
     for op in ops:
         try:
             ref = op("eager")
