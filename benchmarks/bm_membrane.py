@@ -3,6 +3,7 @@
     python benchmarks/bm_membrane.py                # projected blocks, 1e3, 1e4, 1e5 triangles, float64
     python benchmarks/bm_membrane.py --model-hessian  # the drape's Newton matrix, membrane blocks eager vs compiled
     python benchmarks/bm_membrane.py --operators      # energy, gradient, HVP vs autograd, torch.func (1e3-1e6)
+    python benchmarks/bm_membrane.py --operators --with-compile --sizes 100000   # and vs torch.compile
     python benchmarks/bm_membrane.py --compile        # bending + membrane under torch.compile(fullgraph) vs eager
 
 Per size and model, the time to produce PSD-projected element Hessians (T, 9, 9):
@@ -110,11 +111,13 @@ def model_hessians(sizes: list[int], repeat: int) -> None:
               f"{he * 1e3:26.2f}ms {hc * 1e3:7.2f}ms {he / hc:5.1f}x  max rel. diff {err:.1e}", flush=True)
 
 
-def operators(sizes: list[int], dtype: torch.dtype, repeat: int, models: list[str]) -> None:
+def operators(sizes: list[int], dtype: torch.dtype, repeat: int, models: list[str], with_compile: bool = False) -> None:
     """Energy, gradient and HVP of MembraneEnergy (compiled on the CPU) against eager autograd of
-    :func:`plain_energy` (its backward, its double backward) and torch.func (grad, jvp of grad), one mesh."""
+    :func:`plain_energy` (its backward, its double backward), torch.func (grad, jvp of grad) and, with
+    ``with_compile``, ``torch.compile`` of the plain energy (:func:`compiled_plain`), one mesh."""
+    extra = f" {'compile':>10s} {'x compile':>9s}" if with_compile else ""
     print(f"{'triangles':>10s} {'model':>20s} {'op':>9s} {'torchbend':>11s} {'autograd':>10s} {'torch.func':>11s} "
-          f"{'x autograd':>10s} {'x func':>8s}  check")
+          f"{'x autograd':>10s} {'x func':>8s}{extra}  check")
     for T in sizes:
         n = max(3, round((T / 2) ** 0.5) + 1)
         rest, faces = tb.scenes.random_curved_sheet(n, n, amplitude=0.2, seed=0, dtype=dtype)
@@ -123,10 +126,65 @@ def operators(sizes: list[int], dtype: torch.dtype, repeat: int, models: list[st
         v = torch.randn(rest.shape, generator=gen, dtype=torch.float64).to(dtype)
         for model in models:
             mem = MembraneEnergy(faces, rest, model=model, young=1e5, poisson=0.3, thickness=1e-3).to(dtype)
-            operator_rows(mem, x, v, repeat)
+            operator_rows(mem, x, v, repeat, with_compile)
 
 
-def operator_rows(mem: MembraneEnergy, x: torch.Tensor, v: torch.Tensor, repeat: int) -> None:
+def compiled_plain(f, x: torch.Tensor, v: torch.Tensor) -> dict:
+    """``{op: (strategy, callable) or (error, None)}``: the energy, gradient and HVP of the plain energy ``f`` by
+    ``torch.compile`` (inductor, ``dynamic=False``), the first strategy that compiles (as bm_throughput.py: a
+    compiled ``autograd.grad``, else the compiled backward; a compiled double ``autograd.grad``, else a compiled
+    ``jvp(grad)``); each callable has run once (compiled)."""
+    torch._dynamo.reset()  # a fresh cache per mesh and model: no recompile limit reached, no stale guards
+    C = lambda g: torch.compile(g, dynamic=False, fullgraph=True)  # noqa: E731
+
+    def grad_fn(y):
+        y = y.detach().requires_grad_()
+        return torch.autograd.grad(f(y), y)[0]
+
+    def hvp_fn(y, w):
+        y = y.detach().requires_grad_()
+        (g,) = torch.autograd.grad(f(y), y, create_graph=True)
+        return torch.autograd.grad(g, y, w)[0]
+
+    def compiled_backward():
+        cp = torch.compile(f, dynamic=False)
+
+        def run():
+            y = x.detach().requires_grad_()
+            return torch.autograd.grad(cp(y), y)[0]
+        return run
+
+    def jvp_grad():
+        cf = C(lambda y, w: torch.func.jvp(torch.func.grad(f), (y,), (w,))[1])
+        return lambda: cf(x, v)
+
+    def bound(g, *args):
+        cg = C(g)
+        return lambda: cg(*args)
+
+    strategies = {
+        "energy": [("compile(E)", lambda: bound(f, x))],
+        "gradient": [("compile(autograd.grad)", lambda: bound(grad_fn, x)), ("compiled backward", compiled_backward)],
+        "hvp": [("compile(double autograd.grad)", lambda: bound(hvp_fn, x, v)), ("compile(jvp(grad))", jvp_grad)],
+    }
+    out = {}
+    for op, tries in strategies.items():
+        errors = []
+        for name, build in tries:
+            try:
+                fn = build()
+                fn()
+                out[op] = (name, fn)
+                break
+            except Exception as e:  # noqa: BLE001  (a strategy that does not compile is reported, not raised)
+                errors.append(f"{name}: {type(e).__name__}")
+        else:
+            out[op] = ("; ".join(errors), None)
+    return out
+
+
+def operator_rows(mem: MembraneEnergy, x: torch.Tensor, v: torch.Tensor, repeat: int,
+                  with_compile: bool = False) -> None:
     """The energy, gradient and HVP rows of one membrane."""
     f = lambda y, mem=mem: plain_energy(mem, y)  # noqa: E731
 
@@ -146,12 +204,19 @@ def operator_rows(mem: MembraneEnergy, x: torch.Tensor, v: torch.Tensor, repeat:
         "hvp": (lambda mem=mem, x=x, v=v: mem.hvp(x, v), ag_hvp,
                 lambda g=gfun, x=x, v=v: torch.func.jvp(g, (x,), (v,))[1]),
     }
+    compiled = compiled_plain(f, x, v) if with_compile else {}
     for op, (ours, ag, fu) in rows.items():
         t0, t1, t2 = timeit(ours, repeat), timeit(ag, repeat), timeit(fu, repeat)
         ref = ag()
         err = float((ours() - ref).abs().max() / ref.abs().max())
+        extra = ""
+        if with_compile:
+            name, cfn = compiled[op]
+            tc = timeit(cfn, repeat) if cfn is not None else None
+            extra = f" {tc * 1e3:8.3f}ms {tc / t0:8.1f}x" if tc is not None else f" {'failed':>10s} {'':>9s}"
+            extra += f"  [{name}]"
         print(f"{mem.face_count:>10d} {mem.model.value:>20s} {op:>9s} {t0 * 1e3:9.3f}ms {t1 * 1e3:8.3f}ms "
-              f"{t2 * 1e3:9.3f}ms {t1 / t0:9.1f}x {t2 / t0:7.1f}x  max rel. diff {err:.1e}", flush=True)
+              f"{t2 * 1e3:9.3f}ms {t1 / t0:9.1f}x {t2 / t0:7.1f}x{extra}  max rel. diff {err:.1e}", flush=True)
 
 
 def compiled_cloth(sizes: list[int], repeat: int, models: list[str]) -> None:
@@ -196,6 +261,8 @@ def main(argv=None) -> None:
                    help="the solver's Newton matrix of the N x N drape instead (default N: 41 81 161)")
     p.add_argument("--operators", action="store_true",
                    help="energy, gradient and HVP against eager autograd and torch.func instead")
+    p.add_argument("--with-compile", action="store_true",
+                   help="with --operators: also torch.compile of the plain energy (minutes of compiling)")
     p.add_argument("--compile", action="store_true",
                    help="bending + membrane under torch.compile(fullgraph=True) against eager instead")
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
@@ -206,7 +273,8 @@ def main(argv=None) -> None:
     dtype = getattr(torch, a.dtype)
     print("machine:", machine())
     if a.operators:
-        operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat, a.models)
+        operators(a.sizes + ([1000000] if a.sizes == [1000, 10000, 100000] else []), dtype, a.repeat, a.models,
+                  a.with_compile)
         return
     if a.compile:
         compiled_cloth(a.sizes, a.repeat, a.models)
