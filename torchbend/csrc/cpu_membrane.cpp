@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cmath>
 #include <initializer_list>
+#include <type_traits>
 #include <vector>
 
 #include "cpu_membrane.h"
@@ -339,13 +340,30 @@ static TB_FORCEINLINE void lane_pull_back(const T (&G)[6], const T (&D)[6][kLane
 }
 
 // energies (coef psi) and forces of the triangles [e0, e0 + nl) of one sample, nl <= kLanes: gathered per lane,
-// the deformation, SVD, stress and forces over the lanes, written per triangle
+// the deformation, SVD, stress and forces over the lanes, written per triangle; without forces (nullptr) the
+// singular values alone (mem_energy_density: the Gram matrix's eigenvalues, no singular vectors)
 template <typename T, int Model>
 static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0, int nl,
                         T* psi, T* forces) {
   MembraneTile<T> g;
   gather_tile<T>(g, xb, nullptr, fc, d, c, e0, nl);
   alignas(64) T fs[9][kLanes], ps[kLanes];
+  if (forces == nullptr) {
+    TB_LANES_AGG(kLanes) {
+      T F[6], N[3], p[2], lv[6], cs, sn;
+      lane_deformation(g.E, g.D, l, F);
+      lane_normal(g.E, g.D, l, N);
+      const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
+      const T b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
+      const T cc = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
+      const T r = lane_hypot(T(0.5) * a - T(0.5) * cc, b);
+      const T s1 = std::sqrt((T(0.5) * a + T(0.5) * cc) + r);
+      const T s2 = s1 > T(0) ? lane_hypot3(N[0], N[1], N[2]) / (s1 > T(0) ? s1 : T(1)) : T(0);
+      ps[l] = g.c[l] * lane_density<T, Model, false>(s1, s2, mu, lam, p, lv, cs, sn);
+    }
+    for (int l = 0; l < nl; ++l) psi[e0 + l] = ps[l];
+    return;
+  }
   TB_LANES_AGG(kLanes) {
     T F[6], N[3], P[6];
     lane_deformation(g.E, g.D, l, F);
@@ -356,8 +374,7 @@ static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, 
   }
   for (int l = 0; l < nl; ++l) {
     psi[e0 + l] = ps[l];
-    if (forces != nullptr)
-      for (int j = 0; j < 9; ++j) forces[9 * (e0 + l) + j] = fs[j][l];
+    for (int j = 0; j < 9; ++j) forces[9 * (e0 + l) + j] = fs[j][l];
   }
 }
 
@@ -386,40 +403,150 @@ static void hvp_tile(const T* xb, const T* vb, const int64_t* fc, const T* d, co
 
 // the tiles of a model and projection (each its own lane loop: a select on a projection chosen at run time keeps GCC
 // from vectorizing)
+// The (projected) Hessian blocks (81 per triangle, flat (3 k + i) x (3 l + j), membrane_face_block's layout and
+// formulas) of the triangles [e0, e0 + nl) of one sample (nl <= kLanes), written to out (81 nl values): the thin SVD,
+// the eigenvalues and the six modes over the lanes, coef sum_k proj(l_k) z_k z_k^T for vertices 1, 2, vertex 0's
+// rows and columns from the translations' null space.  Returns whether every value written is finite.
 template <typename T, int Model, int Proj>
-static void hvp_tiles(const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t T_,
-                      T* dots, T* h) {
-  const int64_t tiles = (T_ + kLanes - 1) / kLanes;
-  at::parallel_for(0, tiles, 256, [&](int64_t begin, int64_t end) {
-    for (int64_t g = begin; g < end; ++g) {
-      const int64_t e0 = g * kLanes;
-      hvp_tile<T, Model, Proj>(xb, vb, fc, d, c, mu, lam, e0, int(std::min<int64_t>(kLanes, T_ - e0)), dots, h);
+static bool block_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0, int nl,
+                       T* out) {
+  MembraneTile<T> g;
+  gather_tile<T>(g, xb, nullptr, fc, d, c, e0, nl);
+  alignas(64) T Hs[81][kLanes];
+  TB_LANES_AGG(kLanes) {
+    T F[6], N[3];
+    lane_deformation(g.E, g.D, l, F);
+    lane_normal(g.E, g.D, l, N);
+    const LaneSvd<T> o = lane_svd(F, N);
+    T p[2], lv[6], cs, sn;
+    lane_density<T, Model, true>(o.s1, o.s2, mu, lam, p, lv, cs, sn);
+    const T ce = g.c[l];
+    #pragma GCC unroll 6
+    for (int k = 0; k < 6; ++k)
+      lv[k] = ce * (Proj == kProjectClamp ? std::max(lv[k], T(0)) : Proj == kProjectAbs ? std::abs(lv[k]) : lv[k]);
+    T w1[2], w2[2];  // (W v1)[m], (W v2)[m] for the vertices m = 1, 2
+    #pragma GCC unroll 6
+    for (int m = 0; m < 2; ++m) {
+      const T d0 = g.D[2 * (m + 1)][l], d1 = g.D[2 * (m + 1) + 1][l];
+      w1[m] = d0 * o.cp + d1 * o.sp;
+      w2[m] = d1 * o.cp - d0 * o.sp;
     }
+    const T h = T(0.70710678118654752440);
+    T z[6][6];  // the six modes over (vertex m = 1, 2; axis a): index 3 (m - 1) + a
+    #pragma GCC unroll 6
+    for (int m = 0; m < 2; ++m)
+      #pragma GCC unroll 6
+      for (int a = 0; a < 3; ++a) {
+        const T o11 = o.u1[a] * w1[m], o22 = o.u2[a] * w2[m], o21 = o.u2[a] * w1[m], o12 = o.u1[a] * w2[m];
+        const int j = 3 * m + a;
+        z[0][j] = cs * o11 + sn * o22;
+        z[1][j] = cs * o22 - sn * o11;
+        z[2][j] = h * (o21 - o12);
+        z[3][j] = h * (o21 + o12);
+        z[4][j] = o.n[a] * w1[m];
+        z[5][j] = o.n[a] * w2[m];
+      }
+    T R[6][6];  // vertices 1, 2
+    #pragma GCC unroll 6
+    for (int r = 0; r < 6; ++r) {
+      T lz[6];
+      #pragma GCC unroll 6
+      for (int k = 0; k < 6; ++k) lz[k] = lv[k] * z[k][r];
+      #pragma GCC unroll 6
+      for (int q = r; q < 6; ++q) {
+        T acc = T(0);
+        #pragma GCC unroll 6
+        for (int k = 0; k < 6; ++k) acc += lz[k] * z[k][q];
+        R[r][q] = acc;
+        R[q][r] = acc;
+      }
+    }
+    T C[3][6];  // vertex 0 against vertices 1, 2: minus the column sums over vertices 1, 2
+    #pragma GCC unroll 6
+    for (int a = 0; a < 3; ++a)
+      #pragma GCC unroll 6
+      for (int q = 0; q < 6; ++q) C[a][q] = -(R[a][q] + R[3 + a][q]);
+    #pragma GCC unroll 6
+    for (int a = 0; a < 3; ++a)
+      #pragma GCC unroll 6
+      for (int b = a; b < 3; ++b) {
+        const T v = -(C[a][b] + C[a][3 + b]);  // vertex 0 against itself
+        Hs[9 * a + b][l] = v;
+        Hs[9 * b + a][l] = v;
+      }
+    #pragma GCC unroll 6
+    for (int a = 0; a < 3; ++a)
+      #pragma GCC unroll 6
+      for (int q = 0; q < 6; ++q) {
+        Hs[9 * a + 3 + q][l] = C[a][q];
+        Hs[9 * (3 + q) + a][l] = C[a][q];
+      }
+    #pragma GCC unroll 6
+    for (int r = 0; r < 6; ++r)
+      #pragma GCC unroll 6
+      for (int q = 0; q < 6; ++q) Hs[9 * (3 + r) + 3 + q][l] = R[r][q];
+  }
+  for (int l = 0; l < nl; ++l)
+    for (int j = 0; j < 81; ++j) out[81 * l + j] = Hs[j][l];
+  return all_finite(out, 81 * int64_t(nl));
+}
+
+// f(model, projection) with both as compile-time constants (std::integral_constant): one lane loop per model and
+// projection (a select on a projection chosen at run time keeps GCC from vectorizing)
+template <typename F>
+static void with_model_projection(int64_t model, int64_t projection, F&& f) {
+  auto proj = [&](auto m) {
+    if (projection == kProjectClamp)
+      f(m, std::integral_constant<int, kProjectClamp>{});
+    else if (projection == kProjectAbs)
+      f(m, std::integral_constant<int, kProjectAbs>{});
+    else
+      f(m, std::integral_constant<int, kProjectNone>{});
+  };
+  if (model == kStvk)
+    proj(std::integral_constant<int, kStvk>{});
+  else if (model == kArap)
+    proj(std::integral_constant<int, kArap>{});
+  else if (model == kNeohookean)
+    proj(std::integral_constant<int, kNeohookean>{});
+  else
+    proj(std::integral_constant<int, kSymmetricDirichlet>{});
+}
+
+// the HVP tiles of all triangles of one sample, in parallel
+template <typename T>
+static void hvp_tiles(int64_t model, int64_t projection, const T* xb, const T* vb, const int64_t* fc, const T* d,
+                      const T* c, T mu, T lam, int64_t T_, T* dots, T* h) {
+  with_model_projection(model, projection, [&](auto m, auto p) {
+    at::parallel_for(0, (T_ + kLanes - 1) / kLanes, 256, [&](int64_t begin, int64_t end) {
+      for (int64_t g = begin; g < end; ++g) {
+        const int64_t e0 = g * kLanes;
+        hvp_tile<T, decltype(m)::value, decltype(p)::value>(xb, vb, fc, d, c, mu, lam, e0,
+                                                           int(std::min<int64_t>(kLanes, T_ - e0)), dots, h);
+      }
+    });
   });
 }
 
-template <typename T, int Model>
-static void hvp_tiles(int projection, const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam,
-                      int64_t T_, T* dots, T* h) {
-  if (projection == kProjectClamp)
-    hvp_tiles<T, Model, kProjectClamp>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
-  else if (projection == kProjectAbs)
-    hvp_tiles<T, Model, kProjectAbs>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
-  else
-    hvp_tiles<T, Model, kProjectNone>(xb, vb, fc, d, c, mu, lam, T_, dots, h);
-}
-
+// the blocks of the triangles [f0, f0 + n) of one sample into out (81 n values), in parallel over tiles; returns
+// whether every value is finite
 template <typename T>
-static void hvp_tiles(int64_t model, int projection, const T* xb, const T* vb, const int64_t* fc, const T* d,
-                      const T* c, T mu, T lam, int64_t T_, T* dots, T* h) {
-  if (model == kStvk)
-    hvp_tiles<T, kStvk>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
-  else if (model == kArap)
-    hvp_tiles<T, kArap>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
-  else if (model == kNeohookean)
-    hvp_tiles<T, kNeohookean>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
-  else
-    hvp_tiles<T, kSymmetricDirichlet>(projection, xb, vb, fc, d, c, mu, lam, T_, dots, h);
+static bool block_tiles(int64_t model, int64_t projection, const T* xb, const int64_t* fc, const T* d, const T* c,
+                        T mu, T lam, int64_t f0, int64_t n, T* out) {
+  std::atomic<bool> finite{true};
+  with_model_projection(model, projection, [&](auto m, auto p) {
+    at::parallel_for(0, (n + kLanes - 1) / kLanes, 32, [&](int64_t begin, int64_t end) {
+      bool ok = true;
+      for (int64_t g = begin; g < end; ++g) {
+        const int64_t i0 = g * kLanes;
+        ok = block_tile<T, decltype(m)::value, decltype(p)::value>(xb, fc, d, c, mu, lam, f0 + i0,
+                                                                  int(std::min<int64_t>(kLanes, n - i0)),
+                                                                  out + 81 * i0) && ok;
+      }
+      if (!ok) finite.store(false, std::memory_order_relaxed);
+    });
+  });
+  return finite.load();
 }
 
 static void check_model(const char* op, int64_t model, int64_t projection) {
@@ -547,6 +674,10 @@ std::tuple<Tensor, bool> membrane_blocks(Tensor x, Tensor faces, Tensor D, Tenso
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
       scalar_t* o = out.data_ptr<scalar_t>() + b * T * 81;
+      if (model != kStvk || projection != kProjectNone) {  // the eigensystem over the lanes of tiles
+        if (!block_tiles<scalar_t>(model, projection, xb, fc, d, c, m, la, 0, T, o)) finite.store(false);
+        continue;
+      }
       at::parallel_for(0, T, 1024, [&](int64_t begin, int64_t end) {
         bool ok = true;
         for (int64_t e = begin; e < end; ++e) {
@@ -600,18 +731,22 @@ Tensor membrane_assemble(Tensor x, Tensor faces, Tensor D, Tensor coef, Tensor m
     for (int64_t c0 = 0; c0 < T; c0 += kChunk) {
       const int64_t n = std::min(kChunk, T - c0);
       std::atomic<bool> ok{true};
-      at::parallel_for(0, n, 256, [&](int64_t begin, int64_t end) {
-        bool good = true;
-        for (int64_t i = begin; i < end; ++i) {
-          const int64_t e = c0 + i;
-          const int64_t* t = fc + 3 * e;
-          scalar_t* H = buf.data() + 81 * i;
-          membrane_face_block<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
-                                        d + 6 * e, m, la, c[e], H);
-          good = all_finite(H, 81) && good;
-        }
-        if (!good) ok.store(false, std::memory_order_relaxed);
-      });
+      if (model != kStvk || projection != kProjectNone) {  // the eigensystem over the lanes of tiles
+        ok.store(block_tiles<scalar_t>(model, projection, xb, fc, d, c, m, la, c0, n, buf.data()));
+      } else {  // unprojected StVK in closed form, per triangle
+        at::parallel_for(0, n, 256, [&](int64_t begin, int64_t end) {
+          bool good = true;
+          for (int64_t i = begin; i < end; ++i) {
+            const int64_t e = c0 + i;
+            const int64_t* t = fc + 3 * e;
+            scalar_t* H = buf.data() + 81 * i;
+            membrane_face_block<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
+                                          d + 6 * e, m, la, c[e], H);
+            good = all_finite(H, 81) && good;
+          }
+          if (!good) ok.store(false, std::memory_order_relaxed);
+        });
+      }
       finite = finite && ok.load();
       for (int64_t i = 0; i < n; ++i) {
         const int64_t e = c0 + i;
