@@ -50,6 +50,7 @@ static int64_t prepare_membrane(const char* op, Tensor& x, Tensor& faces, Tensor
 // vectorizes the lane loops (tools/check_vectorization.py requires it).  The gradient of ARAP, symmetric Dirichlet
 // and neo-Hookean and every HVP but unprojected StVK's (which has its own closed form) run here.
 constexpr int kLanes = 8;
+constexpr int64_t kFaceChunk = 4096;  // faces per pass of the energy, gradient and HVP (a multiple of kLanes)
 
 // A power of two s (and 1 / s) that brings the largest magnitude `big` into the range where squares neither
 // overflow nor underflow (mem_squares_safe); 1 inside it.  Scaling by s is exact, so hypot(a, b) =
@@ -340,11 +341,11 @@ static TB_FORCEINLINE void lane_pull_back(const T (&G)[6], const T (&D)[6][kLane
 }
 
 // energies (coef psi) and forces of the triangles [e0, e0 + nl) of one sample, nl <= kLanes: gathered per lane,
-// the deformation, SVD, stress and forces over the lanes, written per triangle; without forces (nullptr) the
+// the deformation, SVD, stress and forces over the lanes, written per triangle (at e - base); without forces (nullptr) the
 // singular values alone (mem_energy_density: the Gram matrix's eigenvalues, no singular vectors)
 template <typename T, int Model>
 static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0, int nl,
-                        T* psi, T* forces) {
+                        int64_t base, T* psi, T* forces) {
   MembraneTile<T> g;
   gather_tile<T>(g, xb, nullptr, fc, d, c, e0, nl);
   alignas(64) T fs[9][kLanes], ps[kLanes];
@@ -361,7 +362,7 @@ static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, 
       const T s2 = s1 > T(0) ? lane_hypot3(N[0], N[1], N[2]) / (s1 > T(0) ? s1 : T(1)) : T(0);
       ps[l] = g.c[l] * lane_density<T, Model, false>(s1, s2, mu, lam, p, lv, cs, sn);
     }
-    for (int l = 0; l < nl; ++l) psi[e0 + l] = ps[l];
+    for (int l = 0; l < nl; ++l) psi[e0 - base + l] = ps[l];
     return;
   }
   TB_LANES_AGG(kLanes) {
@@ -373,16 +374,17 @@ static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, 
     lane_pull_back(P, g.D, ce, l, fs);
   }
   for (int l = 0; l < nl; ++l) {
-    psi[e0 + l] = ps[l];
-    for (int j = 0; j < 9; ++j) forces[9 * (e0 + l) + j] = fs[j][l];
+    psi[e0 - base + l] = ps[l];
+    for (int j = 0; j < 9; ++j) forces[9 * (e0 - base + l) + j] = fs[j][l];
   }
 }
 
 // Hessian-vector products h (coef dP D_k per vertex) and coef P : dF of the triangles [e0, e0 + nl) of one sample
-// (nl <= kLanes) through the eigensystem: gathered per lane, lane_hvp over the lanes, written per triangle
+// (nl <= kLanes) through the eigensystem: gathered per lane, lane_hvp over the lanes, written per triangle (at
+// e - base)
 template <typename T, int Model, int Proj>
 static void hvp_tile(const T* xb, const T* vb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0,
-                     int nl, T* dots, T* h) {
+                     int nl, int64_t base, T* dots, T* h) {
   MembraneTile<T> g;
   gather_tile<T>(g, xb, vb, fc, d, c, e0, nl);
   alignas(64) T hs[9][kLanes], ds[kLanes];
@@ -396,8 +398,8 @@ static void hvp_tile(const T* xb, const T* vb, const int64_t* fc, const T* d, co
     lane_pull_back(dP, g.D, ce, l, hs);
   }
   for (int l = 0; l < nl; ++l) {
-    dots[e0 + l] = ds[l];
-    for (int j = 0; j < 9; ++j) h[9 * (e0 + l) + j] = hs[j][l];
+    dots[e0 - base + l] = ds[l];
+    for (int j = 0; j < 9; ++j) h[9 * (e0 - base + l) + j] = hs[j][l];
   }
 }
 
@@ -513,19 +515,40 @@ static void with_model_projection(int64_t model, int64_t projection, F&& f) {
     proj(std::integral_constant<int, kSymmetricDirichlet>{});
 }
 
-// the HVP tiles of all triangles of one sample, in parallel
+// the HVP tiles of the triangles [f0, f0 + n) of one sample into dots (n) and h (9 n), in parallel
 template <typename T>
 static void hvp_tiles(int64_t model, int64_t projection, const T* xb, const T* vb, const int64_t* fc, const T* d,
-                      const T* c, T mu, T lam, int64_t T_, T* dots, T* h) {
+                      const T* c, T mu, T lam, int64_t f0, int64_t n, T* dots, T* h) {
   with_model_projection(model, projection, [&](auto m, auto p) {
-    at::parallel_for(0, (T_ + kLanes - 1) / kLanes, 256, [&](int64_t begin, int64_t end) {
-      for (int64_t g = begin; g < end; ++g) {
-        const int64_t e0 = g * kLanes;
-        hvp_tile<T, decltype(m)::value, decltype(p)::value>(xb, vb, fc, d, c, mu, lam, e0,
-                                                           int(std::min<int64_t>(kLanes, T_ - e0)), dots, h);
-      }
+    at::parallel_for(0, (n + kLanes - 1) / kLanes, 64, [&](int64_t begin, int64_t end) {
+      for (int64_t g = begin; g < end; ++g)
+        hvp_tile<T, decltype(m)::value, decltype(p)::value>(xb, vb, fc, d, c, mu, lam, f0 + g * kLanes,
+                                                           int(std::min<int64_t>(kLanes, n - g * kLanes)), f0, dots, h);
     });
   });
+}
+
+// the energies (and forces) of the triangles [f0, f0 + n) of one sample into psi (n) and forces (9 n, or nullptr)
+// for ARAP, symmetric Dirichlet and neo-Hookean (StVK has its closed form), in parallel
+template <typename T, int Model>
+static void stress_tiles(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t f0, int64_t n,
+                         T* psi, T* forces) {
+  at::parallel_for(0, (n + kLanes - 1) / kLanes, 64, [&](int64_t begin, int64_t end) {
+    for (int64_t g = begin; g < end; ++g)
+      stress_tile<T, Model>(xb, fc, d, c, mu, lam, f0 + g * kLanes, int(std::min<int64_t>(kLanes, n - g * kLanes)), f0,
+                            psi, forces);
+  });
+}
+
+template <typename T>
+static void stress_tiles(int64_t model, const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam,
+                         int64_t f0, int64_t n, T* psi, T* forces) {
+  if (model == kArap)
+    stress_tiles<T, kArap>(xb, fc, d, c, mu, lam, f0, n, psi, forces);
+  else if (model == kNeohookean)
+    stress_tiles<T, kNeohookean>(xb, fc, d, c, mu, lam, f0, n, psi, forces);
+  else
+    stress_tiles<T, kSymmetricDirichlet>(xb, fc, d, c, mu, lam, f0, n, psi, forces);
 }
 
 // the blocks of the triangles [f0, f0 + n) of one sample into out (81 n values), in parallel over tiles; returns
@@ -569,43 +592,34 @@ std::tuple<Tensor, Tensor> membrane_energy_gradient(Tensor x, Tensor faces, Tens
     const scalar_t* d = D.data_ptr<scalar_t>();
     const scalar_t* c = coef.data_ptr<scalar_t>();
     const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
-    std::vector<scalar_t> psi(T), forces(gradient ? 9 * T : 0);
+    const int64_t cap = std::min(T, kFaceChunk);  // the chunk's energies and forces stay in cache for the sums
+    std::vector<scalar_t> psi(cap), forces(gradient ? 9 * cap : 0);
+    scalar_t* f = gradient ? forces.data() : nullptr;
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
-      if (model != kStvk) {  // the thin SVD over the lanes of tiles (branch-free, no library calls)
-        scalar_t* f = gradient ? forces.data() : nullptr;
-        const int64_t tiles = (T + kLanes - 1) / kLanes;
-        at::parallel_for(0, tiles, 256, [&](int64_t begin, int64_t end) {
-          for (int64_t g = begin; g < end; ++g) {
-            const int64_t e0 = g * kLanes;
-            const int nl = int(std::min<int64_t>(kLanes, T - e0));
-            if (model == kArap)
-              stress_tile<scalar_t, kArap>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
-            else if (model == kNeohookean)
-              stress_tile<scalar_t, kNeohookean>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
-            else
-              stress_tile<scalar_t, kSymmetricDirichlet>(xb, fc, d, c, m, la, e0, nl, psi.data(), f);
-          }
-        });
-      } else {
-        at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
-          for (int64_t e = begin; e < end; ++e) {
-            const int64_t* t = fc + 3 * e;
-            psi[e] = membrane_face<scalar_t>(int(model), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2], d + 6 * e, m,
-                                             la, c[e], gradient ? forces.data() + 9 * e : nullptr);
-          }
-        });
+      const scalar_t w = gradient ? weight.data_ptr<scalar_t>()[b] : scalar_t(0);
+      scalar_t* gb = gradient ? grad.data_ptr<scalar_t>() + b * V * 3 : nullptr;
+      scalar_t total = 0;
+      for (int64_t c0 = 0; c0 < T; c0 += kFaceChunk) {
+        const int64_t n = std::min(kFaceChunk, T - c0);
+        if (model != kStvk) {  // the thin SVD over the lanes of tiles (branch-free, no library calls)
+          stress_tiles<scalar_t>(model, xb, fc, d, c, m, la, c0, n, psi.data(), f);
+        } else {
+          at::parallel_for(0, n, 512, [&](int64_t begin, int64_t end) {
+            for (int64_t i = begin; i < end; ++i) {
+              const int64_t* t = fc + 3 * (c0 + i);
+              psi[i] = membrane_face<scalar_t>(int(model), xb + 3 * t[0], xb + 3 * t[1], xb + 3 * t[2],
+                                               d + 6 * (c0 + i), m, la, c[c0 + i], f == nullptr ? f : f + 9 * i);
+            }
+          });
+        }
+        for (int64_t i = 0; i < n; ++i) total += psi[i];  // in face order: deterministic
+        if (gradient)  // the scatter in face order: deterministic, whatever the threads
+          for (int64_t i = 0; i < n; ++i)
+            for (int k = 0; k < 3; ++k)
+              for (int a = 0; a < 3; ++a) gb[3 * fc[3 * (c0 + i) + k] + a] += w * forces[9 * i + 3 * k + a];
       }
-      scalar_t total = 0;  // in face order: deterministic
-      for (int64_t e = 0; e < T; ++e) total += psi[e];
       energy.data_ptr<scalar_t>()[b] = total;
-      if (gradient) {  // the scatter in face order: deterministic, whatever the threads
-        const scalar_t w = weight.data_ptr<scalar_t>()[b];
-        scalar_t* gb = grad.data_ptr<scalar_t>() + b * V * 3;
-        for (int64_t e = 0; e < T; ++e)
-          for (int k = 0; k < 3; ++k)
-            for (int i = 0; i < 3; ++i) gb[3 * fc[3 * e + k] + i] += w * forces[9 * e + 3 * k + i];
-      }
     }
   });
   return {energy, grad};
@@ -627,28 +641,34 @@ std::tuple<Tensor, Tensor> membrane_hvp(Tensor x, Tensor v, Tensor faces, Tensor
     const scalar_t* d = D.data_ptr<scalar_t>();
     const scalar_t* c = coef.data_ptr<scalar_t>();
     const scalar_t m = mu.item<scalar_t>(), la = lam.item<scalar_t>();
-    std::vector<scalar_t> h(9 * T), dots(T);
+    const int64_t cap = std::min(T, kFaceChunk);  // the chunk's products stay in cache for the scatter
+    std::vector<scalar_t> h(9 * cap), dots(cap);
     for (int64_t b = 0; b < B; ++b) {
       const scalar_t* xb = x.data_ptr<scalar_t>() + b * V * 3;
       const scalar_t* vb = v.data_ptr<scalar_t>() + b * V * 3;
-      if (model != kStvk || projection != kProjectNone)  // the eigensystem over the lanes of tiles
-        hvp_tiles<scalar_t>(model, int(projection), xb, vb, fc, d, c, m, la, T, dots.data(), h.data());
-      else  // unprojected StVK in closed form, per triangle
-        at::parallel_for(0, T, 2048, [&](int64_t begin, int64_t end) {
-          for (int64_t e = begin; e < end; ++e) {
-            const int64_t* t = fc + 3 * e;
-            dots[e] = membrane_face_hvp<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1],
-                                                  xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1], vb + 3 * t[2], d + 6 * e,
-                                                  m, la, c[e], h.data() + 9 * e);
-          }
-        });
       const scalar_t w = weight.data_ptr<scalar_t>()[b];
       scalar_t* hb = hv.data_ptr<scalar_t>() + b * V * 3;
       scalar_t total = 0;
-      for (int64_t e = 0; e < T; ++e) {  // in face order: deterministic
-        total += dots[e];
-        for (int k = 0; k < 3; ++k)
-          for (int i = 0; i < 3; ++i) hb[3 * fc[3 * e + k] + i] += w * h[9 * e + 3 * k + i];
+      for (int64_t c0 = 0; c0 < T; c0 += kFaceChunk) {
+        const int64_t n = std::min(kFaceChunk, T - c0);
+        if (model != kStvk || projection != kProjectNone) {  // the eigensystem over the lanes of tiles
+          hvp_tiles<scalar_t>(model, projection, xb, vb, fc, d, c, m, la, c0, n, dots.data(), h.data());
+        } else {  // unprojected StVK in closed form, per triangle
+          at::parallel_for(0, n, 512, [&](int64_t begin, int64_t end) {
+            for (int64_t i = begin; i < end; ++i) {
+              const int64_t e = c0 + i;
+              const int64_t* t = fc + 3 * e;
+              dots[i] = membrane_face_hvp<scalar_t>(int(model), int(projection), xb + 3 * t[0], xb + 3 * t[1],
+                                                    xb + 3 * t[2], vb + 3 * t[0], vb + 3 * t[1], vb + 3 * t[2],
+                                                    d + 6 * e, m, la, c[e], h.data() + 9 * i);
+            }
+          });
+        }
+        for (int64_t i = 0; i < n; ++i) {  // in face order: deterministic
+          total += dots[i];
+          for (int k = 0; k < 3; ++k)
+            for (int a = 0; a < 3; ++a) hb[3 * fc[3 * (c0 + i) + k] + a] += w * h[9 * i + 3 * k + a];
+        }
       }
       dot.data_ptr<scalar_t>()[b] = total;
     }
