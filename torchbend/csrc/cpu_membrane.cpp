@@ -45,8 +45,8 @@ static int64_t prepare_membrane(const char* op, Tensor& x, Tensor& faces, Tensor
 }
 
 // energies (coef psi) and forces of the triangles [e0, e0 + nl) of one sample, nl <= kLanes: gathered per lane,
-// the deformation, SVD, stress and forces over the lanes, written per triangle (at e - base); without forces (nullptr) the
-// singular values alone (mem_energy_density: the Gram matrix's eigenvalues, no singular vectors)
+// the deformation, SVD, stress and forces over the lanes, written per triangle (at e - base); without forces
+// (nullptr) the singular values alone (mem_energy_density: the Gram matrix's eigenvalues, no singular vectors)
 template <typename T, int Model>
 static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, T mu, T lam, int64_t e0, int nl,
                         int64_t base, T* psi, T* forces) {

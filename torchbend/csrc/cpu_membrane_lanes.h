@@ -13,11 +13,11 @@ namespace torchbend {
 namespace cpu {
 
 // ---- the thin SVD, stress and eigensystem of every model over the lanes of a tile ---------------------------------
-// The scalar membrane_math.h functions call the C library's hypot (and log) and branch.  These lane versions compute
-// both the fast and the scaled hypot and select, select instead of branching, and take neo-Hookean's log J from
+// The scalar membrane_math.h functions call the C library's hypot (and log) and branch.  These lane versions take
+// hypot by a power-of-two scaling (lane_scale), select instead of branching, and take neo-Hookean's log J from
 // vector_math.h's tb_logv (no library call); the formulas are mem_thin_svd's and mem_density's, so that GCC
-// vectorizes the lane loops (tools/check_vectorization.py requires it).  The gradient of ARAP, symmetric Dirichlet
-// and neo-Hookean and every HVP but unprojected StVK's (which has its own closed form) run here.
+// vectorizes the lane loops (tools/check_vectorization.py requires it).  Every energy, gradient, HVP and block but
+// unprojected StVK's (which has its own closed form) runs here.
 constexpr int kLanes = 8;
 constexpr int64_t kFaceChunk = 4096;  // faces per pass of the energy, gradient and HVP (a multiple of kLanes)
 
