@@ -51,8 +51,8 @@ REQUIRED: dict[str, dict[str, int]] = {
 }
 # Template lane loops whose every instantiation must vectorize: translation unit -> function -> how many vectorized
 # instances of its loops (one report per instantiation): the membrane's stress tile (energy and forces: 2 loops x
-# 3 models x 2 dtypes), HVP and block tiles (4 models x 3 projections x 2 dtypes each).  A loop that vectorizes for one model but not another counts once in
-# REQUIRED; here the lost instance shows.
+# 3 models x 2 dtypes), HVP and block tiles (4 models x 3 projections x 2 dtypes each).  A loop that vectorizes for
+# one model but not another counts once in REQUIRED; here the lost instance shows.
 INSTANCES: dict[str, dict[str, int]] = {
     "cpu_membrane.cpp": {"stress_tile": 12, "hvp_tile": 24, "block_tile": 24},
 }

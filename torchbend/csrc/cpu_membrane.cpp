@@ -55,15 +55,10 @@ static void stress_tile(const T* xb, const int64_t* fc, const T* d, const T* c, 
   alignas(64) T fs[9][kLanes], ps[kLanes];
   if (forces == nullptr) {
     TB_LANES_AGG(kLanes) {
-      T F[6], N[3], p[2], lv[6], cs, sn;
+      T F[6], N[3], p[2], lv[6], cs, sn, s1, s2, dd, b, r;
       lane_deformation(g.E, g.D, l, F);
       lane_normal(g.E, g.D, l, N);
-      const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
-      const T b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
-      const T cc = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
-      const T r = lane_hypot(T(0.5) * a - T(0.5) * cc, b);
-      const T s1 = std::sqrt((T(0.5) * a + T(0.5) * cc) + r);
-      const T s2 = s1 > T(0) ? lane_hypot3(N[0], N[1], N[2]) / (s1 > T(0) ? s1 : T(1)) : T(0);
+      lane_singular_values(F, N, s1, s2, dd, b, r);
       ps[l] = g.c[l] * lane_density<T, Model, false>(s1, s2, mu, lam, p, lv, cs, sn);
     }
     for (int l = 0; l < nl; ++l) psi[e0 - base + l] = ps[l];
@@ -107,8 +102,6 @@ static void hvp_tile(const T* xb, const T* vb, const int64_t* fc, const T* d, co
   }
 }
 
-// the tiles of a model and projection (each its own lane loop: a select on a projection chosen at run time keeps GCC
-// from vectorizing)
 // The (projected) Hessian blocks (81 per triangle, flat (3 k + i) x (3 l + j), membrane_face_block's layout and
 // formulas) of the triangles [e0, e0 + nl) of one sample (nl <= kLanes), written to out (81 nl values): the thin SVD,
 // the eigenvalues and the six modes over the lanes, coef sum_k proj(l_k) z_k z_k^T for vertices 1, 2, vertex 0's

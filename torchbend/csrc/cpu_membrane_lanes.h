@@ -68,17 +68,25 @@ struct LaneSvd {
   T s1, s2, cp, sp, u1[3], u2[3], n[3];
 };
 
+// The singular values s1 >= s2 >= 0 of F with N = f0 x f1 (mem_gram); d, b, r: the Gram matrix's half-difference,
+// off-diagonal and their hypot
+template <typename T>
+static TB_FORCEINLINE void lane_singular_values(const T (&F)[6], const T (&N)[3], T& s1, T& s2, T& d, T& b, T& r) {
+  const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
+  const T c = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
+  b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
+  d = T(0.5) * a - T(0.5) * c;
+  r = lane_hypot(d, b);
+  s1 = std::sqrt((T(0.5) * a + T(0.5) * c) + r);
+  const T J = lane_hypot3(N[0], N[1], N[2]);
+  s2 = s1 > T(0) ? J / (s1 > T(0) ? s1 : T(1)) : T(0);
+}
+
 template <typename T>
 static TB_FORCEINLINE LaneSvd<T> lane_svd(const T (&F)[6], const T (&N)[3]) {
   LaneSvd<T> o;
-  const T a = F[0] * F[0] + F[2] * F[2] + F[4] * F[4];
-  const T b = F[0] * F[1] + F[2] * F[3] + F[4] * F[5];
-  const T c = F[1] * F[1] + F[3] * F[3] + F[5] * F[5];
-  const T d = T(0.5) * a - T(0.5) * c;
-  const T r = lane_hypot(d, b);
-  o.s1 = std::sqrt((T(0.5) * a + T(0.5) * c) + r);
-  const T J = lane_hypot3(N[0], N[1], N[2]);
-  o.s2 = o.s1 > T(0) ? J / (o.s1 > T(0) ? o.s1 : T(1)) : T(0);
+  T d, b, r;
+  lane_singular_values(F, N, o.s1, o.s2, d, b, r);
   lane_eigvec(d, b, r, o.cp, o.sp);
   // u1 = F v1 / |F v1|
   const T w0 = F[0] * o.cp + F[1] * o.sp, w1 = F[2] * o.cp + F[3] * o.sp, w2 = F[4] * o.cp + F[5] * o.sp;
