@@ -31,6 +31,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from . import _build_config as cfg
@@ -40,7 +41,8 @@ from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CO
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
+           "project_blocks", "contact_box_pairs", "contact_distances", "contact_barrier",
+           "contact_stencil_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
@@ -148,6 +150,48 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
     complement of the translations (the same matrix, 0.42 of the work); ``"reduced"`` (hinge blocks only) is that
     function's structured projection."""
     return _module().project_blocks(M, PROJECTION_CODE[mode], hinge)
+
+
+def contact_box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float, upper: bool = False,
+                      ids_a: Tensor | None = None, ids_b: Tensor | None = None) -> Tensor:
+    """Index pairs ``(K, 2)`` of boxes ``(lo, hi)`` of A and B (``(n, 3)`` each) that overlap when each is padded by
+    ``pad``: a uniform grid of cells one box plus ``2 pad`` wide, hashed, each box of B filed under its lower
+    corner's cell and each box of A tested against the 27 cells around its own (cost: the boxes and the pairs).
+    ``upper`` (A = B): pairs ``a < b`` only; ``ids_a (Na, ka)``, ``ids_b (Nb, kb)`` (int64): pairs whose rows share
+    a value are left out.  Each box's partners in increasing order."""
+    none = torch.zeros(0, 0, dtype=torch.int64)
+    return _module().contact_box_pairs(lo_a, hi_a, lo_b, hi_b, float(pad), bool(upper),
+                                       none if ids_a is None else ids_a, none if ids_b is None else ids_b)
+
+
+def contact_distances(x: Tensor, stencils: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:
+    """``(types (N,) int64, squared distances (N,))`` of point-triangle (``p, t0, t1, t2``) or edge-edge
+    (``a0, a1, b0, b1``) stencils ``(N, 4)`` over the points ``x (n, 3)``: the compiled
+    :func:`torchbend.ops.distance.point_triangle_type` / ``edge_edge_type`` and ``typed_distance_sq``."""
+    return _module().contact_distances(x, stencils, bool(edge_edge))
+
+
+def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float, kappa: float,
+                    want: int = 2, projection: str = "none") -> tuple[Tensor, Tensor, Tensor]:
+    """``(E (N,), g (N, 12), H (N, 12, 12))``: IPC's barrier ``b(D)`` (times the mollifier of an edge-edge pair,
+    ``eps (N,)`` its thresholds; None for point-triangle stencils) of stencils ``(N, 4)`` of the given distance
+    types, with its gradient (``want >= 1``, else an empty tensor) and Hessian (``want >= 2``) in the stencil's
+    12 coordinates, closed form; ``projection`` ``"clamp"`` or ``"abs"``: the Hessians projected to PSD in each
+    type's reduced coordinates (a 3x3, 6x6 or 9x9 Jacobi eigenproblem).  ``D <= 0``: ``E = inf``, zero
+    derivatives."""
+    mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
+    e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
+    return _module().contact_barrier(x, stencils, types, e, float(dhat_sq), float(kappa), int(want), mode)
+
+
+def contact_stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
+    """The ``(3V, 3V)`` torch sparse COO (coalesced, row-major) sum of 12x12 blocks ``H (M, 12, 12)`` of
+    four-vertex stencils ``(M, 4)`` (entry ``(3 a + p, 3 b + q)``: vertices ``stencils[a]``, ``stencils[b]``);
+    vertices ``>= V`` are left out; the blocks of one vertex pair are added in stencil order
+    (:func:`torchbend.sim.self_contact.stencil_sum`, compiled)."""
+    _, rows, cols, val = _module().contact_stencil_csr(stencils, H, int(V))
+    return torch.sparse_coo_tensor(torch.stack([rows, cols]), val, (3 * V, 3 * V), is_coalesced=True,
+                                   check_invariants=False)
 
 
 def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,

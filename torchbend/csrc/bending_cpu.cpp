@@ -2,11 +2,13 @@
 // _build_config.NATIVE_SOURCES).  The driver is split by role: cpu_tiles.h / cpu_tiles.cpp (tiles of hinges,
 // argument checks, status words, output buffers), cpu_scatter.h (per-vertex sums), cpu_first_order.cpp (energy,
 // gradient), cpu_second_order.cpp (Hessian-vector and second-order products), cpu_blocks.cpp (per-hinge 12x12
-// blocks), cpu_assembly.cpp (sparse assembly), cpu_projection.cpp (PSD projection of blocks); the per-hinge
+// blocks), cpu_assembly.cpp (sparse assembly), cpu_projection.cpp (PSD projection of blocks),
+// cpu_contact.cpp (contact: broad phase, distances, barrier, block sums); the per-hinge
 // mathematics is in hinge_math.h and hinge_ops.h, shared with the CUDA driver.  The same operators are registered
 // with the dispatcher as torch.ops.torchbend.* in cpu_registration.cpp.
 #include <torch/extension.h>
 
+#include "cpu_contact.h"
 #include "cpu_membrane.h"
 #include "cpu_ops.h"
 #include "op_registration.h"
@@ -33,6 +35,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("membrane_hvp", &op::membrane_hvp,
         "the (projected) Hessian-vector product of each sample of any membrane model, weighted, and the directional "
         "derivative of its energy");
+  m.def("contact_box_pairs", &op::contact_box_pairs,
+        "pairs of overlapping padded boxes (a hashed uniform grid), without pairs that share an id");
+  m.def("contact_distances", &op::contact_distances, "distance types and squared distances of contact stencils");
+  m.def("contact_barrier", &op::contact_barrier,
+        "barrier energies, gradients and (projected) Hessians of contact stencils, closed form");
+  m.def("contact_stencil_csr", &op::contact_stencil_csr, "the CSR sum of 12x12 stencil blocks");
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");

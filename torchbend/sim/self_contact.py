@@ -48,6 +48,7 @@ from .._checks import nonnegative, positive
 from ..backends import native
 from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..ops.distance import (
+    EE_A0B0,
     PT_E01,
     PT_E12,
     PT_E20,
@@ -64,7 +65,7 @@ from ..ops.distance import (
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
-__all__ = ["SelfContact", "MeshCollider", "candidate_pairs", "stencil_sum"]
+__all__ = ["SelfContact", "MeshCollider", "box_pairs", "candidate_pairs", "stencil_sum"]
 
 
 def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
@@ -106,6 +107,27 @@ def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: floa
     return torch.stack([ia[hit], ib[hit]], 1)
 
 
+def _native_ok(t: Tensor) -> bool:
+    """Whether the compiled contact operators take ``t`` (a CPU float32/float64 tensor, the extension built)."""
+    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and native.load() is not None
+
+
+def box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float, upper: bool = False,
+              ids_a: Tensor | None = None, ids_b: Tensor | None = None) -> Tensor:
+    """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad``; ``upper`` (A = B):
+    each pair once (``a < b``); ``ids_a (Na, ka)``, ``ids_b (Nb, kb)``: leave out the pairs whose rows share a value
+    (primitives with a common vertex).  Compiled on the CPU (a uniform grid whose cells are hashed: cost flat per
+    box and per pair), else :func:`_box_pairs` and the filters in torch."""
+    if _native_ok(lo_a):
+        return native.contact_box_pairs(lo_a, hi_a, lo_b, hi_b, pad, upper, ids_a, ids_b)
+    p = _box_pairs(lo_a, hi_a, lo_b, hi_b, pad)
+    if upper:
+        p = p[p[:, 0] < p[:, 1]]
+    if ids_a is not None and ids_b is not None and p.shape[0]:
+        p = p[(ids_a[p[:, 0]][:, :, None] != ids_b[p[:, 1]][:, None, :]).all(-1).all(-1)]
+    return p
+
+
 def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
     """Point-triangle stencils ``(P, 4)`` (vertex, face's three), edge-edge stencils ``(Q, 4)`` (each edge pair
     once) and their edge indices ``(Q, 2)``, of the primitives whose boxes lie within ``radius`` [m], without
@@ -114,15 +136,25 @@ def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> t
     V = x.shape[0]
     idx = torch.arange(V, device=x.device)
     tri = x[faces]
-    pt = _box_pairs(x, x, tri.amin(1), tri.amax(1), 0.5 * radius)
-    pt = pt[(faces[pt[:, 1]] != idx[pt[:, 0], None]).all(-1)]
+    pt = box_pairs(x, x, tri.amin(1), tri.amax(1), 0.5 * radius, ids_a=idx[:, None], ids_b=faces)
     pt = torch.cat([pt[:, :1], faces[pt[:, 1]]], 1)
     seg = x[edges]
-    ee = _box_pairs(seg.amin(1), seg.amax(1), seg.amin(1), seg.amax(1), 0.5 * radius)
-    ee = ee[ee[:, 0] < ee[:, 1]]
-    ea, eb = edges[ee[:, 0]], edges[ee[:, 1]]
-    disjoint = (ea[:, :, None] != eb[:, None, :]).all(-1).all(-1)
-    return pt, torch.cat([ea[disjoint], eb[disjoint]], 1), ee[disjoint]
+    lo, hi = seg.amin(1), seg.amax(1)
+    ee = box_pairs(lo, hi, lo, hi, 0.5 * radius, upper=True, ids_a=edges, ids_b=edges)
+    return pt, torch.cat([edges[ee[:, 0]], edges[ee[:, 1]]], 1), ee
+
+
+def _distances(xa: Tensor, st: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:
+    """``(types (N,), squared distances (N,))`` of point-triangle or edge-edge stencils ``st (N, 4)`` over the
+    points ``xa`` (compiled on the CPU; else :mod:`torchbend.ops.distance`)."""
+    if _native_ok(xa):
+        return native.contact_distances(xa.detach(), st, edge_edge)
+    X = xa.detach()[st]
+    types = edge_edge_type(X) if edge_edge else point_triangle_type(X)
+    D = X.new_empty(st.shape[0])
+    for _, sel, d in by_type(X, types):
+        D[sel] = d
+    return types, D
 
 
 class _ContactPairs:
@@ -137,6 +169,7 @@ class _ContactPairs:
     edges: Tensor | None
     _rest_len_sq: Tensor | None
     _cache: tuple | None
+    _close_cache: tuple | None
 
     def _mesh(self) -> tuple[Tensor, Tensor]:
         if self.faces is None or self.edges is None:
@@ -161,40 +194,63 @@ class _ContactPairs:
         """The candidate pairs within ``radius`` (default ``dhat``) of ``x`` and the edge pairs' mollifier
         thresholds.  The pairs found for a larger radius ``R`` at ``x_ref`` (by :meth:`max_step`) serve every
         ``x`` within ``(R - radius) / 2`` of it (no pair can have come closer), so a line search and the next
-        iterate reuse them."""
+        iterate reuse them (a body's vertices count as moved points too)."""
         r_need = self.dhat if radius is None else radius
         c = self._cache
-        if c is not None and c[0].shape == x.shape and c[0].device == x.device and c[0].dtype == x.dtype:
-            moved = float((x.detach() - c[0]).norm(dim=-1).max()) if x.shape[0] else 0.0
+        xa = self._points(x).detach()
+        if c is not None and c[0].shape == xa.shape and c[0].device == xa.device and c[0].dtype == xa.dtype:
+            moved = float((xa - c[0]).norm(dim=-1).max()) if xa.shape[0] else 0.0
             if 2 * moved <= c[1] - r_need:
                 return c[2], c[3], c[4]
-        pt, ee, pairs = self._candidates(self._points(x).detach(), r_need)
+        pt, ee, pairs = self._candidates(xa, r_need)
         assert self._rest_len_sq is not None
         r = self._rest_len_sq.to(device=x.device, dtype=x.dtype)
         eps = 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
         if radius is not None:
-            self._cache = (x.detach().clone(), r_need, pt, ee, eps)
+            self._cache = (xa.clone(), r_need, pt, ee, eps)
         return pt, ee, eps
 
-    def _groups(self, x: Tensor):
-        """``[(stencils (N, 4), kind, eps_x or None)]`` of the pairs within ``dhat``, grouped by distance type."""
+    def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (each vertex-edge or
+        vertex-vertex contact once, :func:`_distinct`; ``eps_x = 0``) then the edge-edge pairs (with their
+        mollifier thresholds) closer than ``dhat`` at ``x``.  The last ``x``'s are kept: a Newton iteration asks
+        for the energy, the gradient and the Hessian at one ``x``."""
+        xa = self._points(x).detach()  # a body's vertices too: a body may move between steps
+        c = self._close_cache
+        if c is not None and c[0].shape == xa.shape and c[0].dtype == xa.dtype and c[0].device == xa.device \
+                and c[1] is self._cache and bool(torch.equal(c[0], xa)):
+            return c[2]
         pt, ee, eps = self._active(x)
-        xa = self._points(x).detach()
-        out = []
         dh2 = self.dhat ** 2
-        for st, classify, thresholds in ((pt, point_triangle_type, None), (ee, edge_edge_type, eps)):
+        parts = []
+        for st, edge_edge, thresholds in ((pt, False, None), (ee, True, eps)):
             if not st.shape[0]:
                 continue
-            X = xa[st]
-            for kind, sel, D in by_type(X, classify(X)):
-                keep = D < dh2
-                if not bool(keep.any()):
-                    continue
-                close = st[sel][keep]
-                if thresholds is None:
-                    out.append((_distinct(close, kind), kind, None))
-                else:
-                    out.append((close, kind, thresholds[sel][keep]))
+            types, D = _distances(xa, st, edge_edge)
+            keep = D < dh2
+            st, types = st[keep], types[keep]
+            if edge_edge:
+                assert thresholds is not None
+                parts.append((st, types, thresholds[keep].to(xa.dtype)))
+            else:
+                st, types = _distinct_pairs(st, types)
+                parts.append((st, types, xa.new_zeros(st.shape[0])))
+        if parts:
+            out = tuple(torch.cat(p) for p in zip(*parts))
+        else:
+            out = (torch.zeros(0, 4, dtype=torch.int64, device=xa.device),
+                   torch.zeros(0, dtype=torch.int64, device=xa.device), xa.new_zeros(0))
+        self._close_cache = (xa.clone(), self._cache, out)
+        return out
+
+    def _groups(self, x: Tensor):
+        """``[(stencils (N, 4), kind, eps_x or None)]`` of the pairs within ``dhat``, grouped by distance type
+        (``eps_x`` None for point-triangle pairs)."""
+        st, types, eps = self._close(x)
+        out = []
+        for kind in torch.unique(types).tolist():
+            sel = types == kind
+            out.append((st[sel], int(kind), None if kind < EE_A0B0 else eps[sel]))
         return out
 
     def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
@@ -209,11 +265,7 @@ class _ContactPairs:
         for st in (pt, ee):
             if not st.shape[0]:
                 continue
-            X = xa[st]
-            types = point_triangle_type(X) if st is pt else edge_edge_type(X)
-            d = torch.empty(st.shape[0], dtype=x.dtype, device=x.device)
-            for _, sel, D in by_type(X, types):
-                d[sel] = D.clamp_min(0).sqrt()
+            d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
             mv = move[st]
             rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
             ok = rate > 0
@@ -226,15 +278,11 @@ class _ContactPairs:
         ``inf``; the number of pairs closer than ``dhat``)."""
         pt, ee, _ = self._active(x, radius=radius)
         xa = self._points(x).detach()
-        best, count = math.inf, 0
-        for st, classify in ((pt, point_triangle_type), (ee, edge_edge_type)):
-            if not st.shape[0]:
-                continue
-            X = xa[st]
-            for kind, sel, D in by_type(X, classify(X)):
-                best = min(best, float(D.min().clamp_min(0).sqrt()))
-                close = st[sel][D < self.dhat ** 2]
-                count += int((_distinct(close, kind) if classify is point_triangle_type else close).shape[0])
+        best = math.inf
+        for st in (pt, ee):
+            if st.shape[0]:
+                best = min(best, float(_distances(xa, st, st is ee)[1].min().clamp_min(0).sqrt()))
+        count = int(self._close(x)[0].shape[0]) if best < self.dhat else 0
         return best, count
 
     def contact_stats(self, x: Tensor) -> tuple[float, int]:
@@ -356,6 +404,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         self.edges: Tensor | None = None
         self._rest_len_sq: Tensor | None = None
         self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
+        self._close_cache: tuple | None = None  # (points, _cache, the pairs within dhat) of the last x (_close)
         self._V = 0
         self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
         self._last_min = math.inf
@@ -370,7 +419,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
         ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
         faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
-        self.faces, self.edges, self._cache = faces, edges, None
+        self.faces, self.edges, self._cache, self._close_cache = faces, edges, None, None
         self._V = rest.shape[0]
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
         self._rest_len_sq = (e * e).sum(-1)
@@ -401,6 +450,20 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             total = total + self._pair_energy(xa[st], kind, eps).sum()
         return total
 
+    def _compiled(self, x: Tensor) -> bool:
+        """Whether the compiled pair kernels serve ``x``: a CPU float tensor, no graph to keep (neither ``x`` nor a
+        body's vertices require grad while grad is enabled)."""
+        graph = torch.is_grad_enabled() and (x.requires_grad or self._points_require_grad())
+        return not graph and x.ndim == 2 and _native_ok(x)
+
+    def _pair_terms(self, x: Tensor, want: int, projection: str = "none") -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(stencils (N, 4), E (N,), g (N, 12), H (N, 12, 12))`` of the pairs within ``dhat`` by the compiled
+        kernels (:func:`torchbend.backends.native.contact_barrier`)."""
+        st, types, eps = self._close(x)  # (a term without a mesh says so here)
+        assert self.stiffness is not None
+        return (st, *native.contact_barrier(self._points(x).detach(), st, types, eps, self.dhat ** 2, self.stiffness,
+                                            want, projection))
+
     def adapt_stiffness(self, x: Tensor) -> None:
         """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
         if self._kappa0 is None or self.faces is None or self.stiffness is None:
@@ -418,7 +481,10 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             self._lag_friction(ctx)
 
     def energy(self, x: Tensor, ctx: StepContext) -> Tensor:
-        total = self._barrier_energy(x)
+        if self._compiled(x):
+            total = self._pair_terms(x, 0)[1].sum()
+        else:
+            total = self._barrier_energy(x)
         s = self._slip(x, ctx)
         if s is not None:
             f, delta = s
@@ -428,6 +494,12 @@ class SelfContact(_LaggedFriction, EnergyTerm):
     def gradient(self, x: Tensor, ctx: StepContext) -> Tensor:
         # a body mesh whose vertices require grad (the adjoint's parameters): the gradient keeps its graph to them
         graph = torch.is_grad_enabled() and self._points_require_grad()
+        if self._compiled(x.detach()) and not graph:
+            st, _, G, _ = self._pair_terms(x, 1)
+            g = torch.zeros(self._points(x).shape[0], 3, dtype=x.dtype).index_add_(0, st.reshape(-1), G.reshape(-1, 3))
+            g = g[:x.shape[0]]
+            friction = self._friction_force(x, ctx, g)
+            return g if friction is None else g + friction
         with torch.enable_grad():
             y = x.detach().requires_grad_(True)
             e = self._barrier_energy(y)
@@ -445,7 +517,13 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         proj = Projection.NONE if projection is None else Projection.parse(projection)
         xa = self._points(x).detach()
         stencils, blocks = [], []
-        for st, kind, eps in self._groups(x):
+        compiled = self._compiled(x.detach())
+        if compiled:  # as _project: every projection but none and abs clamps
+            mode = "abs" if proj is Projection.ABS else ("none" if proj is Projection.NONE else "clamp")
+            st, _, _, H = self._pair_terms(x, 2, mode)
+            stencils.append(st)
+            blocks.append(H)
+        for st, kind, eps in ([] if compiled else self._groups(x)):
             stencils.append(st)
             blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
         fb = self._friction_blocks(x, ctx)
@@ -454,7 +532,9 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             blocks.append(fb[1])
         if not blocks:
             return stencil_sum(x.new_zeros(0, 4, dtype=torch.int64), x.new_zeros(0, 12, 12), x.shape[0])
-        return stencil_sum(torch.cat(stencils), torch.cat(blocks).to(x.dtype), x.shape[0])
+        st, H = (stencils[0], blocks[0]) if len(blocks) == 1 else (torch.cat(stencils), torch.cat(blocks))
+        H = H.to(x.dtype)
+        return native.contact_stencil_sum(st, H, x.shape[0]) if _native_ok(H) else stencil_sum(st, H, x.shape[0])
 
 
 class MeshCollider(SelfContact):
@@ -508,11 +588,11 @@ class MeshCollider(SelfContact):
         cloth, body = xa[:V], xa[V:]
         tb_, tc = xa[bf], xa[faces]
         half = 0.5 * radius
-        a = _box_pairs(cloth, cloth, tb_.amin(1), tb_.amax(1), half)  # cloth vertex - body triangle
-        b = _box_pairs(body, body, tc.amin(1), tc.amax(1), half)  # body vertex - cloth triangle
+        a = box_pairs(cloth, cloth, tb_.amin(1), tb_.amax(1), half)  # cloth vertex - body triangle
+        b = box_pairs(body, body, tc.amin(1), tc.amax(1), half)  # body vertex - cloth triangle
         pt = torch.cat([torch.cat([a[:, :1], bf[a[:, 1]]], 1), torch.cat([b[:, :1] + V, faces[b[:, 1]]], 1)])
         sc, sb = xa[edges], xa[be]
-        ee = _box_pairs(sc.amin(1), sc.amax(1), sb.amin(1), sb.amax(1), half)
+        ee = box_pairs(sc.amin(1), sc.amax(1), sb.amin(1), sb.amax(1), half)
         stencils = torch.cat([edges[ee[:, 0]], be[ee[:, 1]]], 1)
         return pt, stencils, torch.stack([ee[:, 0], ee[:, 1] + edges.shape[0]], 1)
 
@@ -538,6 +618,24 @@ def _distinct(st: Tensor, kind: int) -> Tensor:
     first = torch.full((int(inverse.max()) + 1,), st.shape[0], dtype=torch.int64, device=st.device)
     first = first.scatter_reduce(0, inverse, torch.arange(st.shape[0], device=st.device), reduce="amin")
     return st[first]
+
+
+def _distinct_pairs(st: Tensor, types: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_distinct` over point-triangle stencils ``st (N, 4)`` of any types ``(N,)``: each vertex-edge and
+    vertex-vertex contact once (the first stencil of each, in order)."""
+    sub = torch.isin(types, torch.tensor(list(_PT_SUB), device=types.device))
+    if int(sub.sum()) < 2:
+        return st, types
+    keep = ~sub
+    for kind in torch.unique(types[sub]).tolist():
+        idx = (types == kind).nonzero()[:, 0]
+        cols = torch.tensor(_PT_SUB[int(kind)], device=st.device)
+        key = torch.cat([st[idx, :1], st[idx][:, cols].sort(1).values], 1)
+        _, inverse = torch.unique(key, dim=0, return_inverse=True)
+        first = torch.full((int(inverse.max()) + 1,), idx.shape[0], dtype=torch.int64, device=st.device)
+        first = first.scatter_reduce(0, inverse, torch.arange(idx.shape[0], device=st.device), reduce="amin")
+        keep[idx[first]] = True
+    return st[keep], types[keep]
 
 
 def _project(H: Tensor, proj: Projection) -> Tensor:

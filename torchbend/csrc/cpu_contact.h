@@ -1,0 +1,30 @@
+// The compiled contact operators of the CPU extension (cpu_contact.cpp; bound to Python in bending_cpu.cpp).
+#pragma once
+#include <torch/extension.h>
+
+#include <tuple>
+
+namespace torchbend {
+namespace cpu {
+
+// (K, 2) index pairs (a, b) of boxes of A and B that overlap when each is padded by `pad`, without pairs whose
+// rows of ids_a and ids_b (int64, one row per box; empty: none) share a value; upper: A = B, pairs a < b only
+torch::Tensor contact_box_pairs(torch::Tensor lo_a, torch::Tensor hi_a, torch::Tensor lo_b, torch::Tensor hi_b,
+                                double pad, bool upper, torch::Tensor ids_a, torch::Tensor ids_b);
+// (types (N,) int64, squared distances (N,)) of point-triangle (edge_edge false) or edge-edge stencils (N, 4)
+// over the points x (n, 3)
+std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torch::Tensor stencils, bool edge_edge);
+// (energies (N,), gradients (N, 12) if want >= 1, Hessians (N, 12, 12) if want >= 2: unprojected (mode -1),
+// clamped (0) or abs (1)) of the barrier of stencils (N, 4) of the given types; eps: the edge-edge pairs'
+// mollifier thresholds (N,) or empty (point-triangle pairs)
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::Tensor x, torch::Tensor stencils,
+                                                                        torch::Tensor types, torch::Tensor eps,
+                                                                        double dhat_sq, double kappa, int64_t want,
+                                                                        int64_t mode);
+// (crow (3 V + 1,), row, col, values) of the (3V, 3V) sum of blocks H (M, 12, 12) of stencils (M, 4), row-major
+// (CSR, and COO by the row of each entry); vertices >= V are left out
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> contact_stencil_csr(torch::Tensor stencils,
+                                                                                           torch::Tensor H, int64_t V);
+
+}  // namespace cpu
+}  // namespace torchbend
