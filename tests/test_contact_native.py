@@ -1,0 +1,210 @@
+"""The compiled contact operators (torchbend/csrc/contact_math.h, cpu_contact.cpp) against the eager reference
+(torchbend.ops.distance, SelfContact's per-type formulas under autograd, eigh's projection), central differences
+and brute force: distance types, squared distances, barrier energies, gradients and (projected) Hessians of every
+type (mollified edge pairs included), the broad phase, the stencil sum, bad input and SelfContact's two paths."""
+import pytest
+import torch
+
+import torchbend as tb
+from torchbend.backends import native
+from torchbend.ops import distance as dist
+from torchbend.sim import self_contact as scm
+
+pytestmark = pytest.mark.skipif(native.load() is None, reason="the CPU extension is not built")
+F64 = torch.float64
+
+
+def stencils(n: int, seed: int, dtype=F64, parallel: bool = False):
+    """Random stencils ``(n, 4, 3)`` whose second primitive lies near the first (every distance type occurs);
+    ``parallel``: the second edge nearly parallel to the first."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.randn(n, 4, 3, generator=g, dtype=F64)
+    X[:, 1:] = X[:, :1] + 0.5 * (X[:, 1:] - X[:, :1])
+    if parallel:
+        X[:, 3] = X[:, 2] + (X[:, 1] - X[:, 0]) * (1 + 0.1 * torch.rand(n, 1, generator=g, dtype=F64)) \
+            + 1e-4 * torch.randn(n, 3, generator=g, dtype=F64)
+    return X.to(dtype)
+
+
+def flat(X):
+    return X.reshape(-1, 3).contiguous(), torch.arange(X.shape[0] * 4).reshape(-1, 4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("edge_edge", [False, True])
+def test_types_and_squared_distances_are_the_eager_ones(edge_edge, dtype):
+    X = torch.cat([stencils(3000, 1, dtype), stencils(500, 2, dtype, parallel=True)]) if edge_edge \
+        else stencils(3000, 1, dtype)
+    xa, st = flat(X)
+    types, D = native.contact_distances(xa, st, edge_edge)
+    ref = dist.edge_edge_type(X) if edge_edge else dist.point_triangle_type(X)
+    assert torch.equal(types, ref)  # the same rounding: a stencil on a boundary gets the eager type
+    assert len(torch.unique(types)) == (9 if edge_edge else 7)
+    Dref = dist._by_type(X, ref)
+    tol = 1e-12 if dtype == F64 else 1e-4
+    torch.testing.assert_close(D, Dref, rtol=tol, atol=tol * float(Dref.abs().max()))
+
+
+def eager_pair(X, kind, eps, dhat, kappa):
+    """(energy, gradient (N, 12), Hessian (N, 12, 12)) of SelfContact's per-type formulas under autograd."""
+    sc = tb.SelfContact(dhat=dhat, stiffness=kappa)
+    Z = X.clone().requires_grad_(True)
+    E = sc._pair_energy(Z, kind, eps)
+    g = torch.autograd.grad(E.sum(), Z)[0].reshape(-1, 12)
+    H = sc._pair_hessians(X.reshape(-1, 12), kind, eps)
+    return E.detach(), g, H
+
+
+def psd(H, mode):
+    w, Q = torch.linalg.eigh(H)
+    w = w.abs() if mode == "abs" else w.clamp_min(0)
+    return (Q * w[:, None, :]) @ Q.transpose(1, 2)
+
+
+@pytest.mark.parametrize("mollified", [False, True])
+@pytest.mark.parametrize("edge_edge", [False, True])
+def test_barrier_energy_gradient_and_hessians_match_autograd_of_the_eager_formulas(edge_edge, mollified):
+    if mollified and not edge_edge:
+        pytest.skip("point-triangle pairs have no mollifier")
+    X = torch.cat([stencils(1500, 3), stencils(300, 4, parallel=True)]) if edge_edge else stencils(1500, 3)
+    xa, st = flat(X)
+    types, D = native.contact_distances(xa, st, edge_edge)
+    dhat, kappa = float(D.median().sqrt()) * 1.5, 3.0
+    eps = None
+    if edge_edge:
+        a, b = X[:, 1] - X[:, 0], X[:, 3] - X[:, 2]
+        # |a x b|^2 <= |a|^2 |b|^2: every pair mollified with the second, none but the near-parallel with the first
+        eps = (a * a).sum(-1) * (b * b).sum(-1) * (1.0 if mollified else 1e-3)
+    E, G, H = native.contact_barrier(xa, st, types, eps, dhat ** 2, kappa, 2, "none")
+    _, _, Hc = native.contact_barrier(xa, st, types, eps, dhat ** 2, kappa, 2, "clamp")
+    _, _, Ha = native.contact_barrier(xa, st, types, eps, dhat ** 2, kappa, 2, "abs")
+    E0, G0, _ = native.contact_barrier(xa, st, types, eps, dhat ** 2, kappa, 0, "none")
+    assert torch.equal(E0, E) and G0.numel() == 0
+    active = 0
+    for kind in torch.unique(types).tolist():
+        sel = types == kind
+        Er, gr, Hr = eager_pair(X[sel], kind, None if eps is None else eps[sel], dhat, kappa)
+        scale = Hr.abs().amax((1, 2), keepdim=True).clamp_min(1e-300)
+        torch.testing.assert_close(E[sel], Er, rtol=1e-10, atol=1e-10 * float(Er.abs().max()))
+        torch.testing.assert_close(G[sel] / scale[:, 0], gr / scale[:, 0], rtol=0, atol=1e-10)
+        torch.testing.assert_close(H[sel] / scale, Hr / scale, rtol=0, atol=1e-10)
+        torch.testing.assert_close(Hc[sel] / scale, psd(Hr, "clamp") / scale, rtol=0, atol=1e-10)
+        torch.testing.assert_close(Ha[sel] / scale, psd(Hr, "abs") / scale, rtol=0, atol=1e-10)
+        active += int((Er > 0).sum())
+    assert active > 500
+    # invariants: no net force; translations in the Hessians' null space
+    assert float(G.reshape(-1, 4, 3).sum(1).abs().max()) <= 1e-10 * float(G.abs().max())
+    t = torch.eye(3, dtype=F64).repeat(1, 4)  # (3, 12): the three translations
+    for M in (H, Hc, Ha):
+        assert float((M @ t.T).abs().max()) <= 1e-10 * float(M.abs().max())
+
+
+def test_barrier_gradient_and_hessian_are_central_differences_of_the_energy():
+    X = stencils(200, 5)
+    xa, st = flat(X)
+    for edge_edge in (False, True):
+        types, D = native.contact_distances(xa, st, edge_edge)
+        dh2 = float(D.max()) * 2
+        a, b = X[:, 1] - X[:, 0], X[:, 3] - X[:, 2]
+        eps = (a * a).sum(-1) * (b * b).sum(-1) * 0.5 if edge_edge else None
+        E, G, H = native.contact_barrier(xa, st, types, eps, dh2, 1.0, 2, "none")
+        best_g, best_h = float("inf"), float("inf")
+        for h in (1e-4, 1e-5, 1e-6):
+            d = torch.randn(X.shape, generator=torch.Generator().manual_seed(9), dtype=F64) * h
+            # the same types along the small step (the difference of each type's smooth formula)
+            Ep, Gp, _ = native.contact_barrier(xa + d.reshape(-1, 3), st, types, eps, dh2, 1.0, 1, "none")
+            Em, Gm, _ = native.contact_barrier(xa - d.reshape(-1, 3), st, types, eps, dh2, 1.0, 1, "none")
+            dv = d.reshape(-1, 12)
+            fd_g, an_g = (Ep - Em) / 2, (G * dv).sum(1)
+            fd_h, an_h = (Gp - Gm) / 2, (H @ dv[:, :, None])[:, :, 0]
+            best_g = min(best_g, float(((fd_g - an_g).abs() / an_g.abs().clamp_min(1e-300)).median()))
+            best_h = min(best_h, float(((fd_h - an_h).norm(dim=1) / an_h.norm(dim=1).clamp_min(1e-300)).median()))
+        assert best_g < 1e-7 and best_h < 1e-7
+
+
+def test_touching_pairs_have_infinite_energy_and_no_nan():
+    X = stencils(4, 6)
+    X[:, 0] = X[:, 1]  # the point on a corner of the triangle
+    xa, st = flat(X)
+    types, D = native.contact_distances(xa, st, False)
+    E, G, H = native.contact_barrier(xa, st, types, None, 1.0, 1.0, 2, "clamp")
+    assert bool((D == 0).all()) and bool(torch.isinf(E).all())
+    assert bool((G == 0).all()) and bool((H == 0).all())
+
+
+def brute_box_pairs(lo_a, hi_a, lo_b, hi_b, pad):
+    ok = ((lo_a[:, None] <= hi_b[None] + 2 * pad) & (hi_a[:, None] + 2 * pad >= lo_b[None])).all(-1)
+    return ok.nonzero()
+
+
+def test_box_pairs_are_those_of_brute_force_without_shared_ids():
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(400, 3, generator=g, dtype=F64)
+    faces = torch.randint(0, 400, (300, 3), generator=g)
+    tri = x[faces]
+    lo, hi = tri.amin(1), tri.amax(1)
+    got = native.contact_box_pairs(x, x, lo, hi, 0.01, ids_a=torch.arange(400)[:, None], ids_b=faces)
+    ref = brute_box_pairs(x, x, lo, hi, 0.01)
+    ref = ref[(faces[ref[:, 1]] != ref[:, :1]).all(-1)]
+    assert torch.equal(got, ref)  # row-major: each box's partners in order
+    up = native.contact_box_pairs(lo, hi, lo, hi, 0.02, upper=True)
+    ref = brute_box_pairs(lo, hi, lo, hi, 0.02)
+    assert torch.equal(up, ref[ref[:, 0] < ref[:, 1]])
+    far = native.contact_box_pairs(x, x, x + 1e6, x + 1e6, 0.01)  # huge offsets: nothing, and no overflow
+    assert far.shape == (0, 2)
+
+
+def test_stencil_sum_is_the_eager_one():
+    g = torch.Generator().manual_seed(8)
+    V = 30
+    st = torch.randint(0, V + 5, (200, 4), generator=g)  # some body vertices (>= V)
+    H = torch.randn(200, 12, 12, generator=g, dtype=F64)
+    got = native.contact_stencil_sum(st, H, V)
+    ref = scm.stencil_sum(st, H, V)
+    assert got.is_coalesced()
+    torch.testing.assert_close(got.to_dense(), ref.to_dense(), rtol=1e-14, atol=1e-13)
+    assert torch.equal(got.indices(), ref.indices())
+
+
+def test_bad_arguments_are_value_errors_naming_them():
+    xa, st = flat(stencils(3, 1))
+    with pytest.raises(ValueError, match=r"stencils\[2, 1\] = 99 is out of range"):
+        bad = st.clone()
+        bad[2, 1] = 99
+        native.contact_distances(xa, bad, False)
+    types, _ = native.contact_distances(xa, st, False)
+    with pytest.raises(ValueError, match="types"):
+        native.contact_barrier(xa, st, types + 40, None, 1.0, 1.0, 2, "clamp")
+    with pytest.raises(ValueError, match="dhat_sq"):
+        native.contact_barrier(xa, st, types, None, -1.0, 1.0, 2, "clamp")
+    with pytest.raises(ValueError, match="finite"):
+        lo = torch.zeros(2, 3, dtype=F64)
+        lo[1, 0] = float("nan")
+        native.contact_box_pairs(lo, lo, lo, lo, 0.1)
+
+
+def folded(n=12):
+    rest, faces = tb.scenes.grid(n, n, (0.1, 0.1), dtype=F64)
+    h = 0.1 / (n - 1)
+    x = torch.cat([rest, rest + torch.tensor([h / 3, h / 5, 1e-3], dtype=F64)])
+    return x, torch.cat([faces, faces + rest.shape[0]])
+
+
+def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
+    x, f = folded()
+    sc = tb.SelfContact(dhat=2e-3, stiffness=1e3)
+    tb.ClothModel(f, x, terms=[sc])
+    ctx = tb.StepContext()
+    fast = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, "clamp").to_dense(),
+            sc.hessian(x, ctx, "none").to_dense(), sc.min_distance(x)]
+    dx = torch.zeros_like(x)
+    dx[x.shape[0] // 2:, 2] = -1e-3
+    step = sc.max_step(x, dx, ctx)
+    monkeypatch.setattr(scm, "_native_ok", lambda t: False)
+    sc._cache = sc._close_cache = None
+    slow = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, "clamp").to_dense(),
+            sc.hessian(x, ctx, "none").to_dense(), sc.min_distance(x)]
+    assert fast[4] == slow[4] and fast[4][1] > 300
+    for a, b in zip(fast[:4], slow[:4]):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
+    assert sc.max_step(x, dx, ctx) == pytest.approx(step, rel=1e-12)
