@@ -5,8 +5,10 @@ edge so every distance type occurs), ``dhat`` 2 mm: every vertex of one layer is
 For each: the contacts' barrier energy, gradient and PSD-projected Hessian (ipctk: ``NormalCollisions.build``
 with its default broad phase, ``BarrierPotential`` with clamp projection; torchbend: the term's ``energy``,
 ``gradient`` and ``hessian(projection="clamp")``, which find their own pairs), one thread, best of
-``--repeats``, and the microseconds per contact.  The step bound (``max_step``) of a step of 1 mm is timed
-beside.
+``--repeats``, and the microseconds per contact.  Beside: the broad phase alone (the candidate pairs within
+``dhat``), the step bound (``max_step``) of a step of 1 mm, and a Newton iteration's contact work (energy,
+gradient and Hessian at a new iterate, the step bound of its step, and the energy at two trial points of its line
+search).
 
     python benchmarks/bm_contact.py                      # 20x20 and 50x50 grids
     python benchmarks/bm_contact.py --sizes 20 50 80 --repeats 3
@@ -58,8 +60,26 @@ def run_torchbend(x, f, dhat, repeats):
     dx = torch.zeros_like(x)
     dx[x.shape[0] // 2:, 2] = -1e-3
     seconds = best(work, repeats)
-    bound = best(lambda: sc.max_step(x, dx, ctx), repeats)
-    return count, seconds, bound
+
+    def bound_fresh():
+        sc._cache = None  # a new step's bound searches its pairs
+        sc.max_step(x, dx, ctx)
+
+    bound = best(bound_fresh, repeats)
+    broad = best(lambda: sc._candidates(x, dhat), repeats)
+
+    def iteration():
+        y = next(shifted)
+        sc.energy(y, ctx)
+        sc.gradient(y, ctx)
+        sc.hessian(y, ctx, tb.Projection.CLAMP)
+        sc._cache = None
+        sc.max_step(y, 0.1 * dx, ctx)
+        sc.energy(y + 0.1 * dx, ctx)
+        sc.energy(y + 0.05 * dx, ctx)
+
+    newton = best(iteration, repeats)
+    return count, seconds, bound, broad, newton
 
 
 def run_ipctk(x, f, dhat, repeats):
@@ -86,7 +106,7 @@ def run_ipctk(x, f, dhat, repeats):
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="*", default=[20, 50])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[20, 50], help="grid sizes n (about 13 n^2 contacts)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--dhat", type=float, default=2e-3)
     args = ap.parse_args(argv)
@@ -94,17 +114,18 @@ def main(argv=None) -> None:
     print(machine())
     print(f"one thread, float64, dhat {args.dhat:g} m, best of {args.repeats}; energy + gradient + clamp-projected Hessian "
           f"with each code's own pair search\n")
-    print(f"{'grid':>6} {'V':>6} | {'torchbend pairs':>15} {'s':>8} {'us/pair':>8} {'max_step s':>10} | "
-          f"{'ipctk pairs':>11} {'s':>8} {'us/pair':>8} | ratio")
+    print(f"{'grid':>6} {'V':>6} | {'torchbend pairs':>15} {'s':>8} {'us/pair':>8} {'broad s':>8} {'max_step s':>10} "
+          f"{'newton it s':>11} | {'ipctk pairs':>11} {'s':>8} {'us/pair':>8} | ratio")
     for n in args.sizes:
         x, f = folded(n)
-        count, sec, bound = run_torchbend(x, f, args.dhat, args.repeats)
+        count, sec, bound, broad, newton = run_torchbend(x, f, args.dhat, args.repeats)
         try:
             ic, isec = run_ipctk(x, f, args.dhat, args.repeats)
             tail = f"{ic:>11} {isec:8.3f} {1e6 * isec / max(ic, 1):8.1f} | {sec / isec * ic / max(count, 1):5.2f}x (torchbend / ipctk per pair)"
         except ImportError:
             tail = "ipctk not installed (pip install ipctk)"
-        print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.3f} {1e6 * sec / max(count, 1):8.1f} {bound:10.4f} | {tail}")
+        print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.4f} {1e6 * sec / max(count, 1):8.2f} {broad:8.4f} "
+              f"{bound:10.4f} {newton:11.4f} | {tail}")
 
 
 if __name__ == "__main__":
