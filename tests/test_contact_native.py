@@ -195,15 +195,15 @@ def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
     sc = tb.SelfContact(dhat=2e-3, stiffness=1e3)
     tb.ClothModel(f, x, terms=[sc])
     ctx = tb.StepContext()
-    fast = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, "clamp").to_dense(),
-            sc.hessian(x, ctx, "none").to_dense(), sc.min_distance(x)]
+    fast = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, tb.Projection.CLAMP).to_dense(),
+            sc.hessian(x, ctx, tb.Projection.NONE).to_dense(), sc.min_distance(x)]
     dx = torch.zeros_like(x)
     dx[x.shape[0] // 2:, 2] = -1e-3
     step = sc.max_step(x, dx, ctx)
     monkeypatch.setattr(scm, "_native_ok", lambda t: False)
     sc._cache = sc._close_cache = None
-    slow = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, "clamp").to_dense(),
-            sc.hessian(x, ctx, "none").to_dense(), sc.min_distance(x)]
+    slow = [sc.energy(x, ctx), sc.gradient(x, ctx), sc.hessian(x, ctx, tb.Projection.CLAMP).to_dense(),
+            sc.hessian(x, ctx, tb.Projection.NONE).to_dense(), sc.min_distance(x)]
     assert fast[4] == slow[4] and fast[4][1] > 300
     for a, b in zip(fast[:4], slow[:4]):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))

@@ -236,7 +236,7 @@ class _ContactPairs:
                 st, types = _distinct_pairs(st, types)
                 parts.append((st, types, xa.new_zeros(st.shape[0])))
         if parts:
-            out = tuple(torch.cat(p) for p in zip(*parts))
+            out = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts]))
         else:
             out = (torch.zeros(0, 4, dtype=torch.int64, device=xa.device),
                    torch.zeros(0, dtype=torch.int64, device=xa.device), xa.new_zeros(0))
