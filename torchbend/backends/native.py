@@ -41,8 +41,8 @@ from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CO
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "contact_box_pairs", "contact_distances", "contact_barrier",
-           "contact_stencil_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
+           "project_blocks", "contact_box_pairs", "contact_distances", "contact_close", "contact_barrier",
+           "contact_stencil_sum", "contact_hessian_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
@@ -171,6 +171,15 @@ def contact_distances(x: Tensor, stencils: Tensor, edge_edge: bool) -> tuple[Ten
     return _module().contact_distances(x, stencils, bool(edge_edge))
 
 
+def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
+                  distinct: bool = False) -> tuple[Tensor, Tensor]:
+    """``(index (K,), types (K,))``: the stencils ``(N, 4)`` (point-triangle or edge-edge) closer than
+    ``sqrt(dhat_sq)`` and their distance types, in order (a box test skips the pairs whose primitives' boxes are
+    that far apart); ``distinct`` (point-triangle): each vertex-edge and vertex-vertex contact once, the first
+    stencil that finds it (:func:`torchbend.sim.self_contact._distinct_pairs`)."""
+    return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq), bool(distinct))
+
+
 def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float, kappa: float,
                     want: int = 2, projection: str = "none") -> tuple[Tensor, Tensor, Tensor]:
     """``(E (N,), g (N, 12), H (N, 12, 12))``: IPC's barrier ``b(D)`` (times the mollifier of an edge-edge pair,
@@ -184,14 +193,25 @@ def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | No
     return _module().contact_barrier(x, stencils, types, e, float(dhat_sq), float(kappa), int(want), mode)
 
 
+def _coo(indices: Tensor, values: Tensor, V: int) -> Tensor:
+    return torch.sparse_coo_tensor(indices, values, (3 * V, 3 * V), is_coalesced=True, check_invariants=False)
+
+
 def contact_stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
     """The ``(3V, 3V)`` torch sparse COO (coalesced, row-major) sum of 12x12 blocks ``H (M, 12, 12)`` of
     four-vertex stencils ``(M, 4)`` (entry ``(3 a + p, 3 b + q)``: vertices ``stencils[a]``, ``stencils[b]``);
     vertices ``>= V`` are left out; the blocks of one vertex pair are added in stencil order
     (:func:`torchbend.sim.self_contact.stencil_sum`, compiled)."""
-    _, rows, cols, val = _module().contact_stencil_csr(stencils, H, int(V))
-    return torch.sparse_coo_tensor(torch.stack([rows, cols]), val, (3 * V, 3 * V), is_coalesced=True,
-                                   check_invariants=False)
+    return _coo(*_module().contact_stencil_sum(stencils, H, int(V)), V)
+
+
+def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float,
+                        kappa: float, projection: str, V: int) -> Tensor:
+    """:func:`contact_stencil_sum` of the Hessians of :func:`contact_barrier` (``want=2``, ``projection``), each
+    pair's added from its reduced coordinates without forming its 12x12 block."""
+    mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
+    e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
+    return _coo(*_module().contact_hessian_sum(x, stencils, types, e, float(dhat_sq), float(kappa), mode, int(V)), V)
 
 
 def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,

@@ -38,9 +38,13 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("contact_box_pairs", &op::contact_box_pairs,
         "pairs of overlapping padded boxes (a hashed uniform grid), without pairs that share an id");
   m.def("contact_distances", &op::contact_distances, "distance types and squared distances of contact stencils");
+  m.def("contact_close", &op::contact_close,
+        "the contact stencils closer than dhat with their types, each vertex-edge and vertex-vertex contact once");
   m.def("contact_barrier", &op::contact_barrier,
         "barrier energies, gradients and (projected) Hessians of contact stencils, closed form");
-  m.def("contact_stencil_csr", &op::contact_stencil_csr, "the CSR sum of 12x12 stencil blocks");
+  m.def("contact_stencil_sum", &op::contact_stencil_sum, "the row-major sum of 12x12 stencil blocks");
+  m.def("contact_hessian_sum", &op::contact_hessian_sum,
+        "the row-major sum of the contact pairs' (projected) barrier Hessians, without forming the blocks");
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");

@@ -3,11 +3,15 @@
 //   contact_box_pairs   the broad phase: pairs of overlapping padded boxes by a uniform grid whose cells are
 //                       hashed (cost: the boxes and the pairs), without pairs that share a vertex
 //   contact_distances   the distance type and squared distance of point-triangle or edge-edge stencils
+//   contact_close       the stencils closer than dhat (each vertex-edge and vertex-vertex contact once)
 //   contact_barrier     the pairs' barrier energies, gradients and (PSD-projected) Hessians
-//   contact_stencil_csr the sum of 12x12 stencil blocks as a CSR matrix
+//   contact_hessian_sum the pairs' (projected) Hessians summed into the (3V, 3V) matrix, without the blocks
+//   contact_stencil_sum the sum of given 12x12 stencil blocks
 // The per-stencil mathematics is contact_math.h (shared with a CUDA driver).
 #include <algorithm>
+#include <array>
 #include <cstdint>
+#include <unordered_set>
 #include <vector>
 
 #include "contact_math.h"
@@ -178,6 +182,14 @@ torch::Tensor stencil_tensor(const char* op, const torch::Tensor& x, torch::Tens
   return st;
 }
 
+struct KeyHash {
+  size_t operator()(const std::array<int64_t, 3>& k) const {
+    uint64_t h = 1469598103934665603ull;
+    for (int64_t v : k) h = (h ^ uint64_t(v)) * 1099511628211ull;
+    return size_t(h ^ (h >> 29));
+  }
+};
+
 template <typename T> inline void gather(const T* x, const int64_t* s, T X[4][3]) {
   for (int v = 0; v < 4; ++v)
     for (int i = 0; i < 3; ++i) X[v][i] = x[3 * s[v] + i];
@@ -216,15 +228,84 @@ std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torc
   return {types, D};
 }
 
+// the pairs of candidate stencils closer than sqrt(dhat_sq) (a box test first: pairs whose primitives' boxes are
+// that far apart are skipped), with their types, in order; `distinct` (point-triangle): each vertex-edge and
+// vertex-vertex contact once, the first of the stencils that find it
+std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
+                                                       double dhat_sq, bool distinct) {
+  const char* op = "contact_close";
+  stencils = stencil_tensor(op, x, stencils);
+  ck::require(dhat_sq > 0 && std::isfinite(dhat_sq), op, "dhat_sq must be finite and > 0, got ", dhat_sq);
+  x = x.contiguous();
+  const int64_t N = stencils.size(0);
+  std::vector<int8_t> type(N, -1);
+  const int64_t* ps = stencils.data_ptr<int64_t>();
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    const T* px = x.data_ptr<T>();
+    const T dh2 = T(dhat_sq);
+    at::parallel_for(0, N, 2048, [&](int64_t n0, int64_t n1) {
+      for (int64_t n = n0; n < n1; ++n) {
+        T X[4][3];
+        gather(px, ps + 4 * n, X);
+        const int split = edge_edge ? 2 : 1;  // side A: corners [0, split), side B: [split, 4)
+        T gap = 0;
+        for (int i = 0; i < 3; ++i) {
+          T loA = X[0][i], hiA = X[0][i], loB = X[split][i], hiB = X[split][i];
+          for (int v = 1; v < split; ++v) { loA = std::min(loA, X[v][i]); hiA = std::max(hiA, X[v][i]); }
+          for (int v = split + 1; v < 4; ++v) { loB = std::min(loB, X[v][i]); hiB = std::max(hiB, X[v][i]); }
+          T g = std::max(loB - hiA, loA - hiB);
+          if (g > 0) gap += g * g;
+        }
+        if (gap >= dh2) continue;  // the distance is at least the boxes' gap
+        int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
+                          : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
+        int formula;
+        signed char C[3][4] = {};
+        int r = cm::type_rows(t, &formula, C);
+        T y[9];
+        cm::reduce(C, r, X, y);
+        if (cm::typed_derivs<T>(formula, y, nullptr, nullptr) < dh2) type[n] = int8_t(t);
+      }
+    });
+  });
+  std::vector<int64_t> keep;
+  std::unordered_set<std::array<int64_t, 3>, KeyHash> seen;
+  for (int64_t n = 0; n < N; ++n) {
+    const int t = type[n];
+    if (t < 0) continue;
+    if (distinct && t < cm::PT_FACE) {  // a vertex-vertex (PT_P*) or vertex-edge (PT_E*) contact
+      const int64_t* s = ps + 4 * n;
+      std::array<int64_t, 3> key{s[0], -1, -1};
+      if (t <= cm::PT_P2) key[1] = s[1 + t];
+      else {
+        const int e0[3] = {1, 2, 3}, e1[3] = {2, 3, 1};
+        int64_t u = s[e0[t - cm::PT_E01]], w = s[e1[t - cm::PT_E01]];
+        key[1] = std::min(u, w); key[2] = std::max(u, w);
+      }
+      if (!seen.insert(key).second) continue;
+    }
+    keep.push_back(n);
+  }
+  auto idx = torch::empty({int64_t(keep.size())}, stencils.options());
+  auto types = torch::empty({int64_t(keep.size())}, stencils.options());
+  for (size_t i = 0; i < keep.size(); ++i) {
+    idx.data_ptr<int64_t>()[i] = keep[i];
+    types.data_ptr<int64_t>()[i] = type[keep[i]];
+  }
+  return {idx, types};
+}
+
 // ---- the pairs' barrier: energies, gradients, Hessians ------------------------------------------------
 namespace {
 
 constexpr int kPairChunk = 256;
 
-// project the pairs `idx` (all with 3 r reduced coordinates) of a chunk, W at a time, and write their 12x12 blocks
+// project the pairs `idx` (all with N = 3 r reduced coordinates) of a chunk, W at a time: P = R^-T proj(R^T H R)
+// R^-1 back into terms[i].H, or (H12 given) expanded to the pairs' 12x12 blocks there
 template <typename T, int N>
-void project_group(const std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
-                   T* H) {
+void project_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
+                   T* H12) {
   constexpr int r = N / 3;
   for (size_t t0 = 0; t0 < idx.size(); t0 += W) {
     const int nl = int(std::min<size_t>(W, idx.size() - t0));
@@ -244,13 +325,61 @@ void project_group(const std::vector<cm::PairTerms<T>>& terms, const std::vector
     }
     jacobi_project<T, N>(A, abs_mode);
     for (int l = 0; l < nl; ++l) {
-      const auto& p = terms[idx[t0 + l]];
-      T M[81], P[81];
+      auto& p = terms[idx[t0 + l]];
+      T M[81];
       for (int i = 0; i < N; ++i) for (int j = 0; j < N; ++j) M[N * i + j] = A[i][j][l];
-      cm::congruence(Ri[l], r, M, P);
-      cm::expand_hessian(p.C, r, P, H + 144 * (base + idx[t0 + l]));
+      cm::congruence(Ri[l], r, M, p.H);
+      if (H12) cm::expand_hessian(p.C, r, p.H, H12 + 144 * (base + idx[t0 + l]));
     }
   }
+}
+
+// the pairs base .. base + n - 1: their terms (Hessians in reduced coordinates, projected unless mode < 0) and,
+// where given, their energies, 12-gradients and 12x12 Hessians
+template <typename T>
+void pair_chunk(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, T dh2, T kappa, int want, int64_t mode,
+                int64_t base, int64_t n, std::vector<cm::PairTerms<T>>& terms, T* pE, T* pG, T* pH) {
+  std::vector<int> by_r[3];
+  for (int64_t i = 0; i < n; ++i) {
+    T X[4][3];
+    gather(px, ps + 4 * (base + i), X);
+    auto& p = terms[i];
+    cm::pair_terms<T>(X, int(pt[base + i]), pe ? pe[base + i] : T(0), dh2, kappa, want, &p);
+    if (pE) pE[base + i] = p.E;
+    if (pG) cm::expand_gradient(p.C, p.r, p.g, pG + 12 * (base + i));
+    if (want >= 2) {
+      if (mode >= 0) by_r[p.r - 1].push_back(int(i));
+      else if (pH) cm::expand_hessian(p.C, p.r, p.H, pH + 144 * (base + i));
+    }
+  }
+  if (want >= 2 && mode >= 0) {
+    project_group<T, 3>(terms, by_r[0], base, mode == 1, pH);
+    project_group<T, 6>(terms, by_r[1], base, mode == 1, pH);
+    project_group<T, 9>(terms, by_r[2], base, mode == 1, pH);
+  }
+}
+
+// the checked stencils, types and thresholds (in x's dtype; empty: none) of the barrier operators
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> barrier_args(const char* op, const torch::Tensor& x,
+                                                                     torch::Tensor stencils, torch::Tensor types,
+                                                                     torch::Tensor eps, double dhat_sq, double kappa,
+                                                                     int64_t want, int64_t mode) {
+  stencils = stencil_tensor(op, x, stencils);
+  const int64_t N = stencils.size(0);
+  types = ck::index_tensor(op, "types", types, x.device());
+  ck::require(types.dim() == 1 && types.size(0) == N, op, "types must have one entry per stencil, got ",
+              ck::shape_str(types));
+  ck::check_range(op, "types", types, 0, cm::NUM_TYPES, "the distance types");
+  if (eps.numel() > 0) {
+    ck::require(eps.dim() == 1 && eps.size(0) == N && eps.device().is_cpu(), op,
+                "eps must be empty or hold one threshold per stencil, got ", ck::shape_str(eps));
+    eps = eps.to(x.scalar_type()).contiguous();
+  }
+  ck::require(dhat_sq > 0 && std::isfinite(dhat_sq) && kappa >= 0 && std::isfinite(kappa), op,
+              "dhat_sq must be finite and > 0 and kappa finite and >= 0, got ", dhat_sq, " and ", kappa);
+  ck::require(want >= 0 && want <= 2 && mode >= -1 && mode <= 1, op,
+              "want must be 0 (energy), 1 (+ gradient) or 2 (+ Hessian) and mode -1 (none), 0 (clamp) or 1 (abs)");
+  return {stencils, types, eps};
 }
 
 }  // namespace
@@ -260,59 +389,28 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
                                                                         double dhat_sq, double kappa, int64_t want,
                                                                         int64_t mode) {
   const char* op = "contact_barrier";
-  stencils = stencil_tensor(op, x, stencils);
-  const int64_t N = stencils.size(0);
-  types = ck::index_tensor(op, "types", types, x.device());
-  ck::require(types.dim() == 1 && types.size(0) == N, op, "types must have one entry per stencil, got ",
-              ck::shape_str(types));
-  ck::check_range(op, "types", types, 0, cm::NUM_TYPES, "the distance types");
-  const bool mollified = eps.numel() > 0;
-  if (mollified) {
-    ck::require(eps.dim() == 1 && eps.size(0) == N && eps.device().is_cpu(), op,
-                "eps must be empty or hold one threshold per stencil, got ", ck::shape_str(eps));
-    eps = eps.to(x.scalar_type()).contiguous();
-  }
-  ck::require(dhat_sq > 0 && std::isfinite(dhat_sq) && kappa >= 0 && std::isfinite(kappa), op,
-              "dhat_sq must be finite and > 0 and kappa finite and >= 0, got ", dhat_sq, " and ", kappa);
-  ck::require(want >= 0 && want <= 2 && mode >= -1 && mode <= 1, op,
-              "want must be 0 (energy), 1 (+ gradient) or 2 (+ Hessian) and mode -1 (none), 0 (clamp) or 1 (abs)");
+  auto [st, ty, ep] = barrier_args(op, x, stencils, types, eps, dhat_sq, kappa, want, mode);
   x = x.contiguous();
+  const int64_t N = st.size(0);
   auto E = torch::empty({N}, x.options());
   auto G = torch::empty({want >= 1 ? N : 0, 12}, x.options());
   auto H = torch::empty({want >= 2 ? N : 0, 12, 12}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
     using T = scalar_t;
     const T* px = x.data_ptr<T>();
-    const int64_t* ps = stencils.data_ptr<int64_t>();
-    const int64_t* pt = types.data_ptr<int64_t>();
-    const T* pe = mollified ? eps.data_ptr<T>() : nullptr;
+    const int64_t* ps = st.data_ptr<int64_t>();
+    const int64_t* pt = ty.data_ptr<int64_t>();
+    const T* pe = ep.numel() ? ep.data_ptr<T>() : nullptr;
     T* pE = E.data_ptr<T>();
     T* pG = want >= 1 ? G.data_ptr<T>() : nullptr;
     T* pH = want >= 2 ? H.data_ptr<T>() : nullptr;
     const int64_t chunks = (N + kPairChunk - 1) / kPairChunk;
     at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
       std::vector<cm::PairTerms<T>> terms(kPairChunk);
-      std::vector<int> by_r[3];
       for (int64_t c = c0; c < c1; ++c) {
-        const int64_t base = c * kPairChunk, n = std::min<int64_t>(kPairChunk, N - base);
-        for (auto& v : by_r) v.clear();
-        for (int64_t i = 0; i < n; ++i) {
-          T X[4][3];
-          gather(px, ps + 4 * (base + i), X);
-          auto& p = terms[i];
-          cm::pair_terms<T>(X, int(pt[base + i]), pe ? pe[base + i] : T(0), T(dhat_sq), T(kappa), int(want), &p);
-          pE[base + i] = p.E;
-          if (want >= 1) cm::expand_gradient(p.C, p.r, p.g, pG + 12 * (base + i));
-          if (want >= 2) {
-            if (mode < 0) cm::expand_hessian(p.C, p.r, p.H, pH + 144 * (base + i));
-            else by_r[p.r - 1].push_back(int(i));
-          }
-        }
-        if (want >= 2 && mode >= 0) {
-          project_group<T, 3>(terms, by_r[0], base, mode == 1, pH);
-          project_group<T, 6>(terms, by_r[1], base, mode == 1, pH);
-          project_group<T, 9>(terms, by_r[2], base, mode == 1, pH);
-        }
+        const int64_t base = c * kPairChunk;
+        pair_chunk<T>(px, ps, pt, pe, T(dhat_sq), T(kappa), int(want), mode, base,
+                      std::min<int64_t>(kPairChunk, N - base), terms, pE, pG, pH);
       }
     });
   });
@@ -320,19 +418,21 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
 }
 
 // ---- the sum of stencil blocks -------------------------------------------------------------------------
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> contact_stencil_csr(torch::Tensor stencils,
-                                                                                           torch::Tensor H, int64_t V) {
-  const char* op = "contact_stencil_csr";
-  ck::require(H.device().is_cpu() && H.dim() == 3 && H.size(1) == 12 && H.size(2) == 12 && H.is_floating_point(), op,
-              "H must be a CPU (M, 12, 12) float tensor, got ", ck::shape_str(H));
-  stencils = ck::index_tensor(op, "stencils", stencils, H.device(), 4);
-  ck::require(stencils.size(0) == H.size(0), op, "stencils and H must have one row per stencil");
-  ck::require(V >= 0, op, "V must be >= 0");
-  ck::check_range(op, "stencils", stencils, 0, std::numeric_limits<int64_t>::max(), "vertex indices");
-  H = H.contiguous();
-  const int64_t M = stencils.size(0);
-  const int64_t* ps = stencils.data_ptr<int64_t>();
-  // the entries (column vertex, 16 m + 4 a + b) of each block row vi < V (counting sort by vi)
+namespace {
+
+// Where each 3x3 block of a set of four-vertex stencils goes in the row-major (3V, 3V) sum: block row v holds
+// nb[v] blocks (distinct column vertices, in increasing order) from 9 first[v]; scalar row 3 v + p holds their
+// 3 nb[v] entries.  at[16 m + 4 a + b]: the offset 9 first[v] + 3 j of the block of stencil m's vertices a, b
+// (v = st[m][a], j its place in the row), -1 when either vertex is >= V (a body's, not an unknown).
+struct BlockPattern {
+  std::vector<int64_t> first, nb, at;
+  int64_t U = 0;
+  torch::Tensor indices;  // (2, 9 U): the entries' rows and columns
+  int64_t value_index(int64_t v, int64_t e, int p, int s) const { return at[e] + p * 3 * nb[v] + s; }
+};
+
+BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch::TensorOptions& index_options) {
+  BlockPattern P;
   std::vector<int64_t> count(V + 1, 0);
   for (int64_t m = 0; m < M; ++m)
     for (int a = 0; a < 4; ++a)
@@ -340,14 +440,13 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> contact_s
         for (int b = 0; b < 4; ++b) count[ps[4 * m + a] + 1] += ps[4 * m + b] < V;
   for (int64_t v = 0; v < V; ++v) count[v + 1] += count[v];
   std::vector<int64_t> fill(count.begin(), count.end() - 1);
-  std::vector<std::pair<int64_t, int64_t>> entry(count[V]);
+  std::vector<std::pair<int64_t, int64_t>> entry(count[V]);  // (column vertex, 16 m + 4 a + b) per block row
   for (int64_t m = 0; m < M; ++m)
     for (int a = 0; a < 4; ++a)
       if (ps[4 * m + a] < V)
         for (int b = 0; b < 4; ++b)
           if (ps[4 * m + b] < V) entry[fill[ps[4 * m + a]]++] = {ps[4 * m + b], 16 * m + 4 * a + b};
-  // per block row: the entries sorted by (column vertex, stencil): the blocks of one vertex pair in stencil order
-  std::vector<int64_t> nb(V, 0);
+  P.nb.assign(V, 0);
   at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
     for (int64_t v = v0; v < v1; ++v) {
       auto b = entry.begin() + count[v], e = entry.begin() + count[v + 1];
@@ -355,48 +454,129 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> contact_s
       int64_t k = 0, last = -1;
       for (auto it = b; it != e; ++it)
         if (it->first != last) { last = it->first; ++k; }
-      nb[v] = k;
+      P.nb[v] = k;
     }
   });
-  std::vector<int64_t> first(V + 1, 0);  // the first block of each block row
-  for (int64_t v = 0; v < V; ++v) first[v + 1] = first[v] + nb[v];
-  const int64_t U = first[V];
-  auto crow = torch::empty({3 * V + 1}, stencils.options());
-  auto col = torch::empty({9 * U}, stencils.options());
-  auto rows = torch::empty({9 * U}, stencils.options());
-  auto val = torch::empty({9 * U}, H.options());
-  int64_t* pc = crow.data_ptr<int64_t>();
-  int64_t* pcol = col.data_ptr<int64_t>();
-  int64_t* prow = rows.data_ptr<int64_t>();
-  for (int64_t v = 0; v < V; ++v)
-    for (int p = 0; p < 3; ++p) pc[3 * v + p] = 9 * first[v] + 3 * p * nb[v];
-  pc[3 * V] = 9 * U;
-  AT_DISPATCH_FLOATING_TYPES(H.scalar_type(), "contact", [&] {
-    using T = scalar_t;
-    const T* ph = H.data_ptr<T>();
-    T* pv = val.data_ptr<T>();
-    at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
-      for (int64_t v = v0; v < v1; ++v) {
-        int64_t j = -1, last = -1;
-        const int64_t row = 9 * first[v], len = 3 * nb[v];
-        for (int64_t q = count[v]; q < count[v + 1]; ++q) {
-          const int64_t w = entry[q].first, e = entry[q].second;
-          if (w != last) {
-            last = w; ++j;
-            for (int p = 0; p < 3; ++p)
-              for (int s = 0; s < 3; ++s) {
-                const int64_t at = row + p * len + 3 * j + s;
-                pv[at] = 0; pcol[at] = 3 * w + s; prow[at] = 3 * v + p;
-              }
-          }
-          const int64_t m = e >> 4, a = (e >> 2) & 3, b = e & 3;
+  P.first.assign(V + 1, 0);
+  for (int64_t v = 0; v < V; ++v) P.first[v + 1] = P.first[v] + P.nb[v];
+  P.U = P.first[V];
+  P.at.assign(16 * M, -1);
+  P.indices = torch::empty({2, 9 * P.U}, index_options);
+  int64_t* prow = P.indices.data_ptr<int64_t>();
+  int64_t* pcol = prow + 9 * P.U;
+  at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
+    for (int64_t v = v0; v < v1; ++v) {
+      int64_t j = -1, last = -1;
+      const int64_t len = 3 * P.nb[v];
+      for (int64_t q = count[v]; q < count[v + 1]; ++q) {
+        const int64_t w = entry[q].first;
+        if (w != last) {
+          last = w; ++j;
           for (int p = 0; p < 3; ++p)
-            for (int s = 0; s < 3; ++s) pv[row + p * len + 3 * j + s] += ph[144 * m + 12 * (3 * a + p) + 3 * b + s];
+            for (int s = 0; s < 3; ++s) {
+              const int64_t i = 9 * P.first[v] + 3 * j + p * len + s;
+              prow[i] = 3 * v + p; pcol[i] = 3 * w + s;
+            }
+        }
+        P.at[entry[q].second] = 9 * P.first[v] + 3 * j;
+      }
+    }
+  });
+  return P;
+}
+
+void check_block_args(const char* op, const torch::Tensor& stencils, int64_t V) {
+  ck::require(V >= 0, op, "V must be >= 0, got ", V);
+  ck::check_range(op, "stencils", stencils, 0, std::numeric_limits<int64_t>::max(), "vertex indices");
+}
+
+}  // namespace
+
+std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stencils, torch::Tensor H, int64_t V) {
+  const char* op = "contact_stencil_sum";
+  ck::require(H.device().is_cpu() && H.dim() == 3 && H.size(1) == 12 && H.size(2) == 12 && H.is_floating_point(), op,
+              "H must be a CPU (M, 12, 12) float tensor, got ", ck::shape_str(H));
+  stencils = ck::index_tensor(op, "stencils", stencils, H.device(), 4);
+  ck::require(stencils.size(0) == H.size(0), op, "stencils and H must have one row per stencil");
+  check_block_args(op, stencils, V);
+  H = H.contiguous();
+  const int64_t M = stencils.size(0);
+  const int64_t* ps = stencils.data_ptr<int64_t>();
+  BlockPattern P = block_pattern(ps, M, V, stencils.options());
+  auto val = torch::zeros({9 * P.U}, H.options());
+  AT_DISPATCH_FLOATING_TYPES(H.scalar_type(), "contact", [&] {
+    const scalar_t* ph = H.data_ptr<scalar_t>();
+    scalar_t* pv = val.data_ptr<scalar_t>();
+    for (int64_t m = 0; m < M; ++m)  // in stencil order: the same sums for any number of threads
+      for (int a = 0; a < 4; ++a)
+        for (int b = 0; b < 4; ++b) {
+          const int64_t e = 16 * m + 4 * a + b;
+          if (P.at[e] < 0) continue;
+          for (int p = 0; p < 3; ++p)
+            for (int s = 0; s < 3; ++s)
+              pv[P.value_index(ps[4 * m + a], e, p, s)] += ph[144 * m + 12 * (3 * a + p) + 3 * b + s];
+        }
+  });
+  return {P.indices, val};
+}
+
+std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, torch::Tensor stencils,
+                                                             torch::Tensor types, torch::Tensor eps, double dhat_sq,
+                                                             double kappa, int64_t mode, int64_t V) {
+  const char* op = "contact_hessian_sum";
+  auto [st, ty, ep] = barrier_args(op, x, stencils, types, eps, dhat_sq, kappa, 2, mode);
+  check_block_args(op, st, V);
+  x = x.contiguous();
+  const int64_t N = st.size(0);
+  const int64_t* ps = st.data_ptr<int64_t>();
+  BlockPattern P = block_pattern(ps, N, V, st.options());
+  auto val = torch::zeros({9 * P.U}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    const T* px = x.data_ptr<T>();
+    const int64_t* pt = ty.data_ptr<int64_t>();
+    const T* pe = ep.numel() ? ep.data_ptr<T>() : nullptr;
+    T* pv = val.data_ptr<T>();
+    // waves of one chunk per thread: the chunks' pairs computed and projected in parallel, then added to the sum
+    // in pair order (the same sums for any number of threads)
+    const int64_t chunks = (N + kPairChunk - 1) / kPairChunk;
+    const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), chunks));
+    std::vector<std::vector<cm::PairTerms<T>>> terms(threads, std::vector<cm::PairTerms<T>>(kPairChunk));
+    for (int64_t wave = 0; wave < chunks; wave += threads) {
+      const int64_t nc = std::min(threads, chunks - wave);
+      at::parallel_for(0, nc, 1, [&](int64_t c0, int64_t c1) {
+        for (int64_t c = c0; c < c1; ++c)
+          pair_chunk<T>(px, ps, pt, pe, T(dhat_sq), T(kappa), 2, mode, (wave + c) * kPairChunk,
+                        std::min<int64_t>(kPairChunk, N - (wave + c) * kPairChunk), terms[c], nullptr, nullptr,
+                        nullptr);
+      });
+      for (int64_t c = 0; c < nc; ++c) {
+        const int64_t base = (wave + c) * kPairChunk, n = std::min<int64_t>(kPairChunk, N - base);
+        for (int64_t i = 0; i < n; ++i) {
+          const auto& q = terms[c][i];
+          const int64_t m = base + i, k = 3 * q.r;
+          for (int a = 0; a < 4; ++a)
+            for (int b = 0; b < 4; ++b) {
+              const int64_t e = 16 * m + 4 * a + b;
+              if (P.at[e] < 0) continue;
+              T blk[3][3] = {};
+              for (int ra = 0; ra < q.r; ++ra) {
+                if (q.C[ra][a] == 0) continue;
+                for (int rb = 0; rb < q.r; ++rb) {
+                  if (q.C[rb][b] == 0) continue;
+                  const T w = T(q.C[ra][a] * q.C[rb][b]);
+                  for (int p = 0; p < 3; ++p)
+                    for (int s = 0; s < 3; ++s) blk[p][s] += w * q.H[k * (3 * ra + p) + 3 * rb + s];
+                }
+              }
+              for (int p = 0; p < 3; ++p)
+                for (int s = 0; s < 3; ++s) pv[P.value_index(ps[4 * m + a], e, p, s)] += blk[p][s];
+            }
         }
       }
-    });
+    }
   });
-  return {crow, rows, col, val};
+  return {P.indices, val};
 }
 
 }  // namespace cpu

@@ -14,6 +14,10 @@ torch::Tensor contact_box_pairs(torch::Tensor lo_a, torch::Tensor hi_a, torch::T
 // (types (N,) int64, squared distances (N,)) of point-triangle (edge_edge false) or edge-edge stencils (N, 4)
 // over the points x (n, 3)
 std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torch::Tensor stencils, bool edge_edge);
+// (indices into stencils (K,), types (K,)) of the stencils closer than sqrt(dhat_sq), in order; distinct
+// (point-triangle stencils): each vertex-edge and vertex-vertex contact once, the first stencil that finds it
+std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
+                                                       double dhat_sq, bool distinct);
 // (energies (N,), gradients (N, 12) if want >= 1, Hessians (N, 12, 12) if want >= 2: unprojected (mode -1),
 // clamped (0) or abs (1)) of the barrier of stencils (N, 4) of the given types; eps: the edge-edge pairs'
 // mollifier thresholds (N,) or empty (point-triangle pairs)
@@ -21,10 +25,13 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
                                                                         torch::Tensor types, torch::Tensor eps,
                                                                         double dhat_sq, double kappa, int64_t want,
                                                                         int64_t mode);
-// (crow (3 V + 1,), row, col, values) of the (3V, 3V) sum of blocks H (M, 12, 12) of stencils (M, 4), row-major
-// (CSR, and COO by the row of each entry); vertices >= V are left out
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> contact_stencil_csr(torch::Tensor stencils,
-                                                                                           torch::Tensor H, int64_t V);
+// (indices (2, nnz), values (nnz,)): the (3V, 3V) sum, row-major (a coalesced COO matrix), of blocks H (M, 12, 12)
+// of stencils (M, 4); vertices >= V are left out; the blocks of one vertex pair added in stencil order
+std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stencils, torch::Tensor H, int64_t V);
+// the same sum of the barrier Hessians of contact_barrier (want 2, mode) without forming the 12x12 blocks
+std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, torch::Tensor stencils,
+                                                             torch::Tensor types, torch::Tensor eps, double dhat_sq,
+                                                             double kappa, int64_t mode, int64_t V);
 
 }  // namespace cpu
 }  // namespace torchbend

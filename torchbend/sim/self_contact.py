@@ -49,11 +49,7 @@ from ..backends import native
 from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..ops.distance import (
     EE_A0B0,
-    PT_E01,
-    PT_E12,
-    PT_E20,
-    PT_P0,
-    PT_P1,
+    PT_FACE,
     PT_P2,
     barrier,
     by_type,
@@ -212,7 +208,7 @@ class _ContactPairs:
 
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (each vertex-edge or
-        vertex-vertex contact once, :func:`_distinct`; ``eps_x = 0``) then the edge-edge pairs (with their
+        vertex-vertex contact once, :func:`_distinct_pairs`; ``eps_x = 0``) then the edge-edge pairs (with their
         mollifier thresholds) closer than ``dhat`` at ``x``.  The last ``x``'s are kept: a Newton iteration asks
         for the energy, the gradient and the Hessian at one ``x``."""
         xa = self._points(x).detach()  # a body's vertices too: a body may move between steps
@@ -226,14 +222,20 @@ class _ContactPairs:
         for st, edge_edge, thresholds in ((pt, False, None), (ee, True, eps)):
             if not st.shape[0]:
                 continue
-            types, D = _distances(xa, st, edge_edge)
-            keep = D < dh2
-            st, types = st[keep], types[keep]
+            if _native_ok(xa):
+                keep, types = native.contact_close(xa, st, edge_edge, dh2, distinct=not edge_edge)
+                st = st[keep]
+            else:
+                types, D = _distances(xa, st, edge_edge)
+                keep = D < dh2
+                st, types = st[keep], types[keep]
+                if not edge_edge:
+                    st, types = _distinct_pairs(st, types)
+                    keep = None
             if edge_edge:
                 assert thresholds is not None
                 parts.append((st, types, thresholds[keep].to(xa.dtype)))
             else:
-                st, types = _distinct_pairs(st, types)
                 parts.append((st, types, xa.new_zeros(st.shape[0])))
         if parts:
             out = (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts]))
@@ -518,15 +520,19 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         xa = self._points(x).detach()
         stencils, blocks = [], []
         compiled = self._compiled(x.detach())
+        fb = self._friction_blocks(x, ctx)
         if compiled:  # as _project: every projection but none and abs clamps
             mode = "abs" if proj is Projection.ABS else ("none" if proj is Projection.NONE else "clamp")
+            if fb is None:  # summed from the pairs' reduced coordinates, no 12x12 blocks
+                st, types, eps = self._close(x)
+                assert self.stiffness is not None
+                return native.contact_hessian_sum(xa, st, types, eps, self.dhat ** 2, self.stiffness, mode, x.shape[0])
             st, _, _, H = self._pair_terms(x, 2, mode)
             stencils.append(st)
             blocks.append(H)
         for st, kind, eps in ([] if compiled else self._groups(x)):
             stencils.append(st)
             blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
-        fb = self._friction_blocks(x, ctx)
         if fb is not None:  # positive semi-definite: the same for every projection
             stencils.append(fb[0])
             blocks.append(fb[1])
@@ -603,38 +609,25 @@ class MeshCollider(SelfContact):
         return "" if d > 0 else f"{self.name}: the cloth touches the body mesh (distance {d:.3g} m): start apart"
 
 
-_PT_SUB = {PT_P0: [1], PT_P1: [2], PT_P2: [3], PT_E01: [1, 2], PT_E12: [2, 3], PT_E20: [3, 1]}
-
-
-def _distinct(st: Tensor, kind: int) -> Tensor:
-    """The point-triangle stencils of one type with each vertex-vertex or vertex-edge contact once: a vertex
-    nearest an edge (or a corner) is so for every triangle around it, and the contact is counted once (as
-    IPC's collision sets do); vertex-face contacts are distinct already."""
-    sub = _PT_SUB.get(kind)
-    if sub is None or st.shape[0] < 2:
-        return st
-    key = torch.cat([st[:, :1], st[:, sub].sort(1).values], 1)
-    _, inverse = torch.unique(key, dim=0, return_inverse=True)
-    first = torch.full((int(inverse.max()) + 1,), st.shape[0], dtype=torch.int64, device=st.device)
-    first = first.scatter_reduce(0, inverse, torch.arange(st.shape[0], device=st.device), reduce="amin")
-    return st[first]
-
-
 def _distinct_pairs(st: Tensor, types: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`_distinct` over point-triangle stencils ``st (N, 4)`` of any types ``(N,)``: each vertex-edge and
-    vertex-vertex contact once (the first stencil of each, in order)."""
-    sub = torch.isin(types, torch.tensor(list(_PT_SUB), device=types.device))
+    """Point-triangle stencils ``st (N, 4)`` of types ``(N,)`` with each vertex-edge and vertex-vertex contact once
+    (as IPC's collision sets count them): a vertex nearest an edge (or a corner) is so for every triangle around
+    it, whatever the edge's place in each; the first stencil of each contact, in order, is kept."""
+    sub = types < PT_FACE
     if int(sub.sum()) < 2:
         return st, types
+    idx = sub.nonzero()[:, 0]
+    t = types[idx]
+    # (vertex, the sub-primitive's vertices sorted, -1 for a corner's second)
+    cols = torch.tensor([[1, 1], [2, 2], [3, 3], [1, 2], [2, 3], [3, 1]], device=st.device)[t]
+    ends = st[idx[:, None], cols].sort(1).values
+    ends[t <= PT_P2, 1] = -1
+    key = torch.cat([st[idx, :1], ends], 1)
+    _, inverse = torch.unique(key, dim=0, return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1,), idx.shape[0], dtype=torch.int64, device=st.device)
+    first = first.scatter_reduce(0, inverse, torch.arange(idx.shape[0], device=st.device), reduce="amin")
     keep = ~sub
-    for kind in torch.unique(types[sub]).tolist():
-        idx = (types == kind).nonzero()[:, 0]
-        cols = torch.tensor(_PT_SUB[int(kind)], device=st.device)
-        key = torch.cat([st[idx, :1], st[idx][:, cols].sort(1).values], 1)
-        _, inverse = torch.unique(key, dim=0, return_inverse=True)
-        first = torch.full((int(inverse.max()) + 1,), idx.shape[0], dtype=torch.int64, device=st.device)
-        first = first.scatter_reduce(0, inverse, torch.arange(idx.shape[0], device=st.device), reduce="amin")
-        keep[idx[first]] = True
+    keep[idx[first]] = True
     return st[keep], types[keep]
 
 
