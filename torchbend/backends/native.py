@@ -202,7 +202,8 @@ def contact_stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
     four-vertex stencils ``(M, 4)`` (entry ``(3 a + p, 3 b + q)``: vertices ``stencils[a]``, ``stencils[b]``);
     vertices ``>= V`` are left out; the blocks of one vertex pair are added in stencil order
     (:func:`torchbend.sim.self_contact.stencil_sum`, compiled)."""
-    return _coo(*_module().contact_stencil_sum(stencils, H, int(V)), V)
+    indices, values = _module().contact_stencil_sum(stencils, H, int(V))
+    return _coo(indices, values, V)
 
 
 def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float,
@@ -211,7 +212,8 @@ def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor 
     pair's added from its reduced coordinates without forming its 12x12 block."""
     mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
     e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
-    return _coo(*_module().contact_hessian_sum(x, stencils, types, e, float(dhat_sq), float(kappa), mode, int(V)), V)
+    indices, values = _module().contact_hessian_sum(x, stencils, types, e, float(dhat_sq), float(kappa), mode, int(V))
+    return _coo(indices, values, V)
 
 
 def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,
