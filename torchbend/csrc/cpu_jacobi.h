@@ -64,15 +64,18 @@ static void jacobi_project(T (&A)[N][N][W], bool abs_mode) {
           T apq = A[p][q][l];
           A[p][p][l] -= t[l] * apq;
           A[q][q][l] += t[l] * apq;
-          A[p][q][l] = A[q][p][l] = T(0);
+          A[p][q][l] = T(0);
         }
+        // only the upper triangle is kept up to date (the sweeps read no other entry): half the stores
         for (int k = 0; k < N; ++k) {
           if (k == p || k == q) continue;
+          T* kp = k < p ? A[k][p] : A[p][k];
+          T* kq = k < q ? A[k][q] : A[q][k];
 #pragma omp simd
           for (int l = 0; l < W; ++l) {
-            T akp = A[k][p][l], akq = A[k][q][l];
-            A[k][p][l] = A[p][k][l] = c[l] * akp - sn[l] * akq;
-            A[k][q][l] = A[q][k][l] = sn[l] * akp + c[l] * akq;
+            T akp = kp[l], akq = kq[l];
+            kp[l] = c[l] * akp - sn[l] * akq;
+            kq[l] = sn[l] * akp + c[l] * akq;
           }
         }
         for (int k = 0; k < N; ++k) {

@@ -328,6 +328,20 @@ class _LaggedFriction(_ContactPairs):
             lam = lam * mollifier(X.detach(), eps)
         return w, n, lam
 
+    def _compiled(self, x: Tensor) -> bool:
+        """Whether the compiled pair kernels serve ``x``: a CPU float tensor, no graph to keep (neither ``x`` nor a
+        body's vertices require grad while grad is enabled)."""
+        graph = torch.is_grad_enabled() and (x.requires_grad or self._points_require_grad())
+        return not graph and x.ndim == 2 and _native_ok(x)
+
+    def _pair_terms(self, x: Tensor, want: int, projection: str = "none") -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(stencils (N, 4), E (N,), g (N, 12), H (N, 12, 12))`` of the pairs within ``dhat`` by the compiled
+        kernels (:func:`torchbend.backends.native.contact_barrier`)."""
+        st, types, eps = self._close(x)  # (a term without a mesh says so here)
+        assert self.stiffness is not None
+        return (st, *native.contact_barrier(self._points(x).detach(), st, types, eps, self.dhat ** 2, self.stiffness,
+                                            want, projection))
+
     def _lag_friction(self, ctx: StepContext) -> None:
         """Store the friction pairs of the step's start ``ctx.x_prev`` (those pushing, ``lam > 0``) in
         ``ctx.lagged[name]``: stencils, closest-point weights, normals, ``mu lam`` and ``eps = eps_v dt``."""
@@ -451,20 +465,6 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         for st, kind, eps in self._groups(x):
             total = total + self._pair_energy(xa[st], kind, eps).sum()
         return total
-
-    def _compiled(self, x: Tensor) -> bool:
-        """Whether the compiled pair kernels serve ``x``: a CPU float tensor, no graph to keep (neither ``x`` nor a
-        body's vertices require grad while grad is enabled)."""
-        graph = torch.is_grad_enabled() and (x.requires_grad or self._points_require_grad())
-        return not graph and x.ndim == 2 and _native_ok(x)
-
-    def _pair_terms(self, x: Tensor, want: int, projection: str = "none") -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(stencils (N, 4), E (N,), g (N, 12), H (N, 12, 12))`` of the pairs within ``dhat`` by the compiled
-        kernels (:func:`torchbend.backends.native.contact_barrier`)."""
-        st, types, eps = self._close(x)  # (a term without a mesh says so here)
-        assert self.stiffness is not None
-        return (st, *native.contact_barrier(self._points(x).detach(), st, types, eps, self.dhat ** 2, self.stiffness,
-                                            want, projection))
 
     def adapt_stiffness(self, x: Tensor) -> None:
         """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
