@@ -238,3 +238,27 @@ def test_close_pairs_are_the_eager_ones_each_contact_once():
     ty = dist.point_triangle_type(X[st])
     assert set(ty.tolist()) == {dist.PT_E01, dist.PT_E12} and idx.tolist() == [0]
     assert scm._distinct_pairs(st, ty)[0].tolist() == [[0, 1, 2, 3]]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("n", [3, 6, 9])
+def test_the_contact_eigensolver_projects_as_eigh_on_hard_matrices(n, dtype):
+    """The tridiagonal QL projection of the contact kernels (cpu_symeig.h) against eigh: random matrices, repeated
+    and zero eigenvalues, rank one, zero and diagonal blocks, tiny and huge scales (clamp and abs)."""
+    g = torch.Generator().manual_seed(n)
+    A = torch.randn(300, n, n, generator=g, dtype=F64)
+    A = A + A.transpose(1, 2)
+    Q = torch.linalg.qr(torch.randn(300, n, n, generator=g, dtype=F64))[0]
+    w = torch.randn(300, n, generator=g, dtype=F64).round()  # repeated integers, zeros among them
+    B = (Q * w[:, None]) @ Q.transpose(1, 2)
+    u = torch.randn(20, n, 1, generator=g, dtype=F64)
+    M = torch.cat([A, B, u @ u.transpose(1, 2), -u @ u.transpose(1, 2), torch.zeros(3, n, n, dtype=F64),
+                   torch.diag_embed(torch.randn(5, n, generator=g, dtype=F64)), 1e-30 * A[:9], 1e30 * A[:9]])
+    M = M.to(dtype)
+    w, V = torch.linalg.eigh(M.double())
+    for mode, f in ((0, w.clamp_min(0)), (1, w.abs())):
+        P = native._module().contact_project_blocks(M, mode)
+        ref = (V * f[:, None, :]) @ V.transpose(1, 2)
+        scale = M.double().abs().amax((1, 2)).clamp_min(1e-300)
+        err = float(((P.double() - ref).abs().amax((1, 2)) / scale).max())
+        assert err <= (50 if dtype == F64 else 20) * torch.finfo(dtype).eps * n, err

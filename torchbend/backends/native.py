@@ -186,7 +186,7 @@ def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | No
     ``eps (N,)`` its thresholds; None for point-triangle stencils) of stencils ``(N, 4)`` of the given distance
     types, with its gradient (``want >= 1``, else an empty tensor) and Hessian (``want >= 2``) in the stencil's
     12 coordinates, closed form; ``projection`` ``"clamp"`` or ``"abs"``: the Hessians projected to PSD in each
-    type's reduced coordinates (a 3x3, 6x6 or 9x9 Jacobi eigenproblem).  ``D <= 0``: ``E = inf``, zero
+    type's reduced coordinates (a 3x3, 6x6 or 9x9 eigenproblem: Householder tridiagonalization and implicit QL, ``cpu_symeig.h``).  ``D <= 0``: ``E = inf``, zero
     derivatives."""
     mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
     e = torch.zeros(0, dtype=x.dtype) if eps is None else eps

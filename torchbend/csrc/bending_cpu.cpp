@@ -42,6 +42,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the contact stencils closer than dhat with their types, each vertex-edge and vertex-vertex contact once");
   m.def("contact_barrier", &op::contact_barrier,
         "barrier energies, gradients and (projected) Hessians of contact stencils, closed form");
+  m.def("contact_project_blocks", &op::contact_project_blocks,
+        "PSD projection of symmetric 3x3, 6x6 or 9x9 blocks by the contact kernels' eigensolver (tridiagonal QL)");
   m.def("contact_stencil_sum", &op::contact_stencil_sum, "the row-major sum of 12x12 stencil blocks");
   m.def("contact_hessian_sum", &op::contact_hessian_sum,
         "the row-major sum of the contact pairs' (projected) barrier Hessians, without forming the blocks");

@@ -17,7 +17,7 @@
 // the two edges): it is written in the line-line coordinates whatever its type (the type's own y are T y_lines).
 // The gradient and Hessian in x are L^T g and L^T H L, L = C (x) I3; the PSD projection of L^T H L is
 // L^T R^-T proj(R^T H R) R^-1 L with R R^T = C C^T (Cholesky; Q = L^T R^-T has orthonormal columns), a k x k
-// eigenproblem (k = 3, 6 or 9) instead of 12 x 12.
+// eigenproblem (k = 3, 6 or 9) instead of 12 x 12 (cpu_symeig.h on the CPU).
 #pragma once
 
 #include "vector_math.h"

@@ -16,7 +16,7 @@
 
 #include "contact_math.h"
 #include "cpu_contact.h"
-#include "cpu_jacobi.h"
+#include "cpu_symeig.h"
 #include "cpu_tiles.h"
 
 namespace torchbend {
@@ -301,17 +301,20 @@ namespace {
 
 constexpr int kPairChunk = 256;
 
-// project the pairs `idx` (all with N = 3 r reduced coordinates) of a chunk, W at a time: P = R^-T proj(R^T H R)
+// project the pairs `idx` (all with N = 3 r reduced coordinates) of a chunk, kLanes at a time: P = R^-T proj(R^T H R)
 // R^-1 back into terms[i].H, or (H12 given) expanded to the pairs' 12x12 blocks there
+// the lanes of a projection tile (two vectors of lanes measured no faster: the QL iterations go by the slowest lane)
+constexpr int kLanes = W;
+
 template <typename T, int N>
 void project_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
                    T* H12) {
   constexpr int r = N / 3;
-  for (size_t t0 = 0; t0 < idx.size(); t0 += W) {
-    const int nl = int(std::min<size_t>(W, idx.size() - t0));
-    alignas(64) T A[N][N][W];
-    T Ri[W][3][3];
-    for (int l = 0; l < W; ++l) {
+  for (size_t t0 = 0; t0 < idx.size(); t0 += kLanes) {
+    const int nl = int(std::min<size_t>(kLanes, idx.size() - t0));
+    alignas(64) T A[N][N][kLanes];
+    T Ri[kLanes][3][3];
+    for (int l = 0; l < kLanes; ++l) {
       if (l >= nl) {
         for (int i = 0; i < N; ++i) for (int j = 0; j < N; ++j) A[i][j][l] = 0;
         continue;
@@ -323,7 +326,7 @@ void project_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>&
       for (int i = 0; i < N; ++i)
         for (int j = 0; j < N; ++j) A[i][j][l] = T(0.5) * (M[N * i + j] + M[N * j + i]);
     }
-    jacobi_project<T, N>(A, abs_mode);
+    ql_project<T, N, kLanes>(A, abs_mode);
     for (int l = 0; l < nl; ++l) {
       auto& p = terms[idx[t0 + l]];
       T M[81];
@@ -415,6 +418,43 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
     });
   });
   return {E, G, H};
+}
+
+// the PSD projection of symmetric blocks M (..., n, n), n 3, 6 or 9, by the contact kernels' eigensolver (mode 0:
+// clamp, 1: abs): the tests' access to it
+torch::Tensor contact_project_blocks(torch::Tensor M, int64_t mode) {
+  const char* op = "contact_project_blocks";
+  ck::require(M.device().is_cpu() && M.dim() >= 2 && M.size(-1) == M.size(-2) &&
+              (M.size(-1) == 3 || M.size(-1) == 6 || M.size(-1) == 9) && M.is_floating_point(), op,
+              "M must be a CPU (..., n, n) float tensor with n 3, 6 or 9, got ", ck::shape_str(M));
+  ck::require(mode == 0 || mode == 1, op, "mode must be 0 (clamp) or 1 (abs)");
+  M = M.contiguous();
+  auto out = torch::empty_like(M);
+  const int64_t n = M.size(-1), count = M.numel() / (n * n);
+  AT_DISPATCH_FLOATING_TYPES(M.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    auto run = [&](auto N_) {
+      constexpr int N = decltype(N_)::value;
+      const T* in = M.data_ptr<T>();
+      T* o = out.data_ptr<T>();
+      for (int64_t t = 0; t < count; t += kLanes) {
+        const int nl = int(std::min<int64_t>(kLanes, count - t));
+        alignas(64) T A[N][N][kLanes];
+        for (int l = 0; l < kLanes; ++l)
+          for (int i = 0; i < N; ++i)
+            for (int j = 0; j < N; ++j)
+              A[i][j][l] = l < nl ? T(0.5) * (in[(t + l) * N * N + i * N + j] + in[(t + l) * N * N + j * N + i]) : T(0);
+        ql_project<T, N, kLanes>(A, mode == 1);
+        for (int l = 0; l < nl; ++l)
+          for (int i = 0; i < N; ++i)
+            for (int j = 0; j < N; ++j) o[(t + l) * N * N + i * N + j] = A[i][j][l];
+      }
+    };
+    if (n == 3) run(std::integral_constant<int, 3>{});
+    else if (n == 6) run(std::integral_constant<int, 6>{});
+    else run(std::integral_constant<int, 9>{});
+  });
+  return out;
 }
 
 // ---- the sum of stencil blocks -------------------------------------------------------------------------

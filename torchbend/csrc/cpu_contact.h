@@ -25,6 +25,9 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
                                                                         torch::Tensor types, torch::Tensor eps,
                                                                         double dhat_sq, double kappa, int64_t want,
                                                                         int64_t mode);
+// the PSD projection (mode 0: clamp, 1: abs) of symmetric blocks (..., n, n), n 3, 6 or 9, by the eigensolver of
+// the contact kernels (cpu_symeig.h)
+torch::Tensor contact_project_blocks(torch::Tensor M, int64_t mode);
 // (indices (2, nnz), values (nnz,)): the (3V, 3V) sum, row-major (a coalesced COO matrix), of blocks H (M, 12, 12)
 // of stencils (M, 4); vertices >= V are left out; the blocks of one vertex pair added in stencil order
 std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stencils, torch::Tensor H, int64_t V);
