@@ -49,7 +49,7 @@ def run_torchbend(x, f, dhat, repeats):
     _, count = sc.min_distance(x)
 
     # each call at positions of its own (a picometre apart, as a new Newton iterate is): the term finds its pairs
-    shifted = iter([x + 1e-12 * k for k in range(1, 2 * repeats + 3)])
+    shifted = (x + 1e-12 * k for k in range(1, 10 * repeats + 10))
 
     def work():
         y = next(shifted)

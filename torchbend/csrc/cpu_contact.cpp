@@ -73,23 +73,52 @@ void box_pairs_impl(const T* loA, const T* hiA, int64_t nA, const T* loB, const 
   auto key = [](int64_t cx, int64_t cy, int64_t cz) {
     return ((cx + 1) & 0x1fffff) << 42 | ((cy + 1) & 0x1fffff) << 21 | ((cz + 1) & 0x1fffff);
   };
+  // the cells of B's boxes: a dense table of the grid's cells where it is small (a flat cloth's grid is), else an
+  // open-addressing hash of the cell keys; each maps a cell to the range of its boxes in `order`
+  int64_t lo_c[3] = {INT64_MAX, INT64_MAX, INT64_MAX}, hi_c[3] = {INT64_MIN, INT64_MIN, INT64_MIN};
+  std::vector<int64_t> cb(3 * nB);
+  for (int64_t b = 0; b < nB; ++b) {
+    cell(loB + 3 * b, &cb[3 * b]);
+    for (int i = 0; i < 3; ++i) { lo_c[i] = std::min(lo_c[i], cb[3 * b + i]); hi_c[i] = std::max(hi_c[i], cb[3 * b + i]); }
+  }
+  int64_t dims[3];
+  double cells = 1;
+  for (int i = 0; i < 3; ++i) { dims[i] = hi_c[i] - lo_c[i] + 1; cells *= double(dims[i]); }
+  const bool dense = cells <= double(4 * (nA + nB) + 4096);
   std::vector<int64_t> kb(nB), order(nB);
   for (int64_t b = 0; b < nB; ++b) {
-    int64_t c[3];
-    cell(loB + 3 * b, c);
-    kb[b] = key(c[0], c[1], c[2]);
+    const int64_t* c = &cb[3 * b];
+    kb[b] = dense ? ((c[0] - lo_c[0]) * dims[1] + (c[1] - lo_c[1])) * dims[2] + (c[2] - lo_c[2]) : key(c[0], c[1], c[2]);
     order[b] = b;
   }
   std::sort(order.begin(), order.end(), [&](int64_t u, int64_t v) { return kb[u] < kb[v] || (kb[u] == kb[v] && u < v); });
   CellMap map;
-  map.init(nB);
+  std::vector<int64_t> dstart, dend;
+  if (dense) { dstart.assign(int64_t(cells), 0); dend.assign(int64_t(cells), 0); }
+  else map.init(nB);
   for (int64_t i = 0; i < nB;) {
     int64_t j = i, k = kb[order[i]];
     while (j < nB && kb[order[j]] == k) ++j;
-    int64_t s = map.slot(k);
-    map.keys[s] = k; map.start[s] = i; map.end[s] = j;
+    if (dense) { dstart[k] = i; dend[k] = j; }
+    else {
+      int64_t s = map.slot(k);
+      map.keys[s] = k; map.start[s] = i; map.end[s] = j;
+    }
     i = j;
   }
+  // the range of B's boxes filed under cell (cx, cy, cz): false if none
+  auto range = [&](int64_t cx, int64_t cy, int64_t cz, int64_t& q0, int64_t& q1) {
+    if (dense) {
+      if (cx < lo_c[0] || cx > hi_c[0] || cy < lo_c[1] || cy > hi_c[1] || cz < lo_c[2] || cz > hi_c[2]) return false;
+      const int64_t k = ((cx - lo_c[0]) * dims[1] + (cy - lo_c[1])) * dims[2] + (cz - lo_c[2]);
+      q0 = dstart[k]; q1 = dend[k];
+      return q1 > q0;
+    }
+    int64_t s = map.slot(key(cx, cy, cz));
+    if (map.keys[s] == INT64_MIN) return false;
+    q0 = map.start[s]; q1 = map.end[s];
+    return true;
+  };
   const T two_pad = 2 * pad;
   const int nt = std::max(1, std::min<int>(at::get_num_threads(), int((nA + 1023) / 1024)));
   std::vector<std::vector<int64_t>> parts(nt);
@@ -105,9 +134,9 @@ void box_pairs_impl(const T* loA, const T* hiA, int64_t nA, const T* loB, const 
         for (int dx = -1; dx <= 1; ++dx)
           for (int dy = -1; dy <= 1; ++dy)
             for (int dz = -1; dz <= 1; ++dz) {
-              int64_t s = map.slot(key(c[0] + dx, c[1] + dy, c[2] + dz));
-              if (map.keys[s] == INT64_MIN) continue;
-              for (int64_t q = map.start[s]; q < map.end[s]; ++q) {
+              int64_t q0, q1;
+              if (!range(c[0] + dx, c[1] + dy, c[2] + dz, q0, q1)) continue;
+              for (int64_t q = q0; q < q1; ++q) {
                 int64_t b = order[q];
                 if (upper && b <= a) continue;
                 const T *la = loA + 3 * a, *ha = hiA + 3 * a, *lb = loB + 3 * b, *hb = hiB + 3 * b;
