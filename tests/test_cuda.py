@@ -159,3 +159,27 @@ def test_cuda_membrane_matches_the_cpu_kernels(model, dtype):
     (h,) = torch.autograd.grad((g * vc).sum(), xg)
     close(g.detach(), mem.gradient(x))
     close(h, mem.hvp(x, v))
+
+
+@pytest.mark.gpu
+@requires_gpu
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cuda_contact_barrier_matches_the_cpu_kernels(dtype):
+    """One thread per stencil over contact_math.h (bending_cuda.cu) against the CPU driver (cpu_contact.cpp), which
+    the CPU tests compare with the eager reference: energies, gradients and unprojected Hessians of every type."""
+    from torchbend.backends import native
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(2000, 4, 3, generator=g, dtype=torch.float64)
+    X[:, 1:] = X[:, :1] + 0.5 * (X[:, 1:] - X[:, :1])
+    xa, st = X.reshape(-1, 3).to(dtype), torch.arange(8000).reshape(-1, 4)
+    for edge_edge in (False, True):
+        types, D = native.contact_distances(xa, st, edge_edge)
+        a, b = X[:, 1] - X[:, 0], X[:, 3] - X[:, 2]
+        eps = ((a * a).sum(-1) * (b * b).sum(-1) * 0.5).to(dtype) if edge_edge else None
+        dh2 = float(D.double().median()) * 2
+        ref = native.contact_barrier(xa, st, types, eps, dh2, 1.0, 2, "none")
+        got = cuda.contact_barrier(xa.cuda(), st.cuda(), types.cuda(), None if eps is None else eps.cuda(), dh2, 1.0, 2)
+        tol = 1e-10 if dtype == torch.float64 else 1e-3
+        for r, c in zip(ref, got):
+            fin = torch.isfinite(r)
+            torch.testing.assert_close(c.cpu()[fin], r[fin], rtol=tol, atol=tol * float(r[fin].abs().max()))

@@ -75,7 +75,10 @@ built (:mod:`torchbend.backends.ops`)."""
 
 MEMBRANE_CUDA_KERNELS: tuple[str, ...] = ("membrane_energy_gradient", "membrane_hvp", "membrane_blocks")
 """The membrane's kernels of the CUDA driver (called by the membrane's Python paths, not registered as operators)."""
-CUDA_KERNELS: tuple[str, ...] = tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None)) + MEMBRANE_CUDA_KERNELS
+CONTACT_CUDA_KERNELS: tuple[str, ...] = ("contact_barrier",)
+"""The contact kernels of the CUDA driver (:func:`torchbend.backends.cuda.contact_barrier`)."""
+CUDA_KERNELS: tuple[str, ...] = (tuple(dict.fromkeys(k for k in OPERATORS.values() if k is not None))
+                                 + MEMBRANE_CUDA_KERNELS + CONTACT_CUDA_KERNELS)
 """The kernels of the CUDA driver (``csrc/bending_cuda.cu``), each compiled for float32 and float64."""
 
 MODEL_CODE = {"quadratic": 0, "tan": 1, "sin": 2}

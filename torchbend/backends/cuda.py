@@ -35,7 +35,7 @@ from ._table import CUDA_KERNELS, MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE,
 
 __all__ = ["load", "build_error", "build_info", "available", "kernels", "bending_energy", "bending_gradient",
            "bending_energy_gradient", "bending_hvp", "bending_hessians", "membrane_energy_gradient", "membrane_hvp",
-           "membrane_blocks"]
+           "membrane_blocks", "contact_barrier"]
 
 KERNELS = CUDA_KERNELS
 """The operations the CUDA driver implements, each for float32 and float64 (:data:`torchbend.backends._table.OPERATORS`
@@ -232,6 +232,16 @@ def membrane_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, m
     hv, dots = _module().membrane_hvp(x.detach(), v.detach(), faces, D, coef, float(mu), float(lam), weight.detach(),
                                       MEMBRANE_MODEL_CODE[model], MEMBRANE_PROJECTION_CODE[projection], _stream(x))
     return hv, dots.sum(-1)
+
+
+def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float, kappa: float,
+                    want: int = 2) -> tuple[Tensor, Tensor, Tensor]:
+    """As :func:`torchbend.backends.native.contact_barrier` without projection, on CUDA tensors (one thread per
+    stencil over ``contact_math.h``): ``(E (N,), g (N, 12), H (N, 12, 12))``; project with
+    :func:`torchbend.ops.projection.project_blocks` (``eigh``)."""
+    e = torch.zeros(0, dtype=x.dtype, device=x.device) if eps is None else eps
+    return _module().contact_barrier(x.detach(), stencils, types, e, float(dhat_sq), float(kappa), int(want),
+                                     _stream(x))
 
 
 def membrane_blocks(x: Tensor, faces: Tensor, D: Tensor, coef: Tensor, mu: Tensor, lam: Tensor, model: str,

@@ -3,7 +3,7 @@
 // argument checks, status words, output buffers), cpu_scatter.h (per-vertex sums), cpu_first_order.cpp (energy,
 // gradient), cpu_second_order.cpp (Hessian-vector and second-order products), cpu_blocks.cpp (per-hinge 12x12
 // blocks), cpu_assembly.cpp (sparse assembly), cpu_projection.cpp (PSD projection of blocks),
-// cpu_contact.cpp (contact: broad phase, distances, barrier, block sums); the per-hinge
+// cpu_contact.cpp, cpu_broad_phase.cpp (contact: broad phase, distances, barrier, block sums); the per-hinge
 // mathematics is in hinge_math.h and hinge_ops.h, shared with the CUDA driver.  The same operators are registered
 // with the dispatcher as torch.ops.torchbend.* in cpu_registration.cpp.
 #include <torch/extension.h>

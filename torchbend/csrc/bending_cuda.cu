@@ -1,4 +1,4 @@
-// CUDA driver of torchbend's compiled bending and membrane operations: one thread per (sample, hinge) or (sample,
+// CUDA driver of torchbend's compiled bending, membrane and contact operations: one thread per (sample, hinge) or (sample,
 // triangle); the membrane's per-triangle mathematics is membrane_math.h, as on the CPU (cpu_membrane.cpp).  The per-hinge
 // mathematics of hinge_math.h / hinge_ops.h with W = 1 (the same functions the CPU driver runs in tiles
 // of 8 lanes, which the CPU tests compare against the eager reference), atomic scatter of the per-vertex
@@ -6,6 +6,7 @@
 #include <cuda_runtime.h>
 
 #include "bending_cuda.h"
+#include "contact_math.h"
 #include "hinge_ops.h"
 #include "membrane_math.h"
 
@@ -268,11 +269,38 @@ template <typename T> int membrane_blocks(const void* x, const int64_t* faces, i
   return int(cudaGetLastError());
 }
 
+// one contact stencil per thread: contact_math.h's pair terms, back to the stencil's 12 coordinates
+template <typename T>
+__global__ void contact_barrier_kernel(const T* x, const int64_t* stencils, const int64_t* types, const T* eps,
+                                       int64_t N, T dh2, T kappa, int want, T* E, T* G, T* H) {
+  int64_t n = thread_index();
+  if (n >= N) return;
+  T X[4][3];
+  for (int v = 0; v < 4; ++v)
+    for (int i = 0; i < 3; ++i) X[v][i] = x[3 * stencils[4 * n + v] + i];
+  contact::PairTerms<T> p;
+  contact::pair_terms<T>(X, int(types[n]), eps ? eps[n] : T(0), dh2, kappa, want, &p);
+  E[n] = p.E;
+  if (want >= 1) contact::expand_gradient(p.C, p.r, p.g, G + 12 * n);
+  if (want >= 2) contact::expand_hessian(p.C, p.r, p.H, H + 144 * n);
+}
+
+template <typename T> int contact_barrier(const void* x, const int64_t* stencils, const int64_t* types, const void* eps,
+                                          int64_t N, double dh2, double kappa, int want, void* E, void* G, void* H,
+                                          cudaStream_t s) {
+  if (N == 0) return 0;
+  contact_barrier_kernel<T><<<grid(N), kThreads, 0, s>>>(
+      static_cast<const T*>(x), stencils, types, static_cast<const T*>(eps), N, T(dh2), T(kappa), want,
+      static_cast<T*>(E), static_cast<T*>(G), static_cast<T*>(H));
+  return int(cudaGetLastError());
+}
+
 const char* const kKernels[] = {"energy_f32", "energy_f64", "gradient_f32", "gradient_f64",
                                 "hvp_f32", "hvp_f64", "hinge_hessians_f32", "hinge_hessians_f64",
                                 "second_order_f32", "second_order_f64",
                                 "membrane_energy_gradient_f32", "membrane_energy_gradient_f64",
-                                "membrane_hvp_f32", "membrane_hvp_f64", "membrane_blocks_f32", "membrane_blocks_f64"};
+                                "membrane_hvp_f32", "membrane_hvp_f64", "membrane_blocks_f32", "membrane_blocks_f64",
+                                "contact_barrier_f32", "contact_barrier_f64"};
 
 }  // namespace
 
@@ -334,6 +362,13 @@ int tb_cuda_membrane_blocks(int dtype, const void* x, const int64_t* faces, int6
   auto s = static_cast<cudaStream_t>(stream);
   return dtype ? membrane_blocks<double>(x, faces, B, V, T, args, blocks, s)
                : membrane_blocks<float>(x, faces, B, V, T, args, blocks, s);
+}
+
+int tb_cuda_contact_barrier(int dtype, const void* x, const int64_t* stencils, const int64_t* types, const void* eps,
+                            int64_t N, double dhat_sq, double kappa, int want, void* E, void* G, void* H, void* stream) {
+  auto s = static_cast<cudaStream_t>(stream);
+  return dtype ? contact_barrier<double>(x, stencils, types, eps, N, dhat_sq, kappa, want, E, G, H, s)
+               : contact_barrier<float>(x, stencils, types, eps, N, dhat_sq, kappa, want, E, G, H, s);
 }
 
 const char* tb_cuda_error_string(int code) { return cudaGetErrorString(cudaError_t(code)); }

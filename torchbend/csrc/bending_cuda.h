@@ -40,6 +40,10 @@ int tb_cuda_membrane_hvp(int dtype, const void* x, const void* v, const int64_t*
 // blocks (B, T, 81): the (projected) Hessian of each triangle
 int tb_cuda_membrane_blocks(int dtype, const void* x, const int64_t* faces, int64_t B, int64_t V, int64_t T,
                             tb_membrane_args args, void* blocks, void* stream);
+// the barrier of contact stencils (N, 4) of the given distance types (contact_math.h; eps (N,) the edge-edge pairs'
+// mollifier thresholds, or null): E (N,), with want >= 1 G (N, 12), with want >= 2 H (N, 12, 12), unprojected
+int tb_cuda_contact_barrier(int dtype, const void* x, const int64_t* stencils, const int64_t* types, const void* eps,
+                            int64_t N, double dhat_sq, double kappa, int want, void* E, void* G, void* H, void* stream);
 const char* tb_cuda_error_string(int code);
 // the names of the kernels this build holds (one per operation and dtype), for the registration check
 int tb_cuda_kernel_count();

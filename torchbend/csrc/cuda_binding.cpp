@@ -11,6 +11,7 @@
 
 #include "bending_cuda.h"
 #include "checks.h"
+#include "contact_math.h"
 #include "op_registration.h"
 
 namespace {
@@ -195,6 +196,44 @@ torch::Tensor membrane_blocks(torch::Tensor x, torch::Tensor faces, torch::Tenso
                                 blocks.data_ptr(), as_stream(stream)),
         "membrane_blocks");
   return blocks;
+}
+
+// (E (N,), G (N, 12) or empty, H (N, 12, 12) or empty): the barrier of contact stencils (N, 4) of the given types
+// over the points x (n, 3), unprojected (contact_math.h); eps: the edge-edge pairs' mollifier thresholds or empty
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::Tensor x, torch::Tensor stencils,
+                                                                        torch::Tensor types, torch::Tensor eps,
+                                                                        double dhat_sq, double kappa, int64_t want,
+                                                                        int64_t stream) {
+  namespace ck = torchbend::checks;
+  const char* op = "contact_barrier";
+  c10::DeviceGuard guard(x.device());
+  ck::require(x.is_cuda() && x.dim() == 2 && x.size(1) == 3 &&
+              (x.scalar_type() == torch::kFloat || x.scalar_type() == torch::kDouble), op,
+              "x must be a CUDA (n, 3) float32 or float64 tensor, got ", ck::shape_str(x), " ", x.scalar_type());
+  auto st = ck::index_tensor(op, "stencils", stencils, x.device(), 4);
+  ck::check_range(op, "stencils", st, 0, x.size(0), "x has n = " + std::to_string(x.size(0)) + " points");
+  const int64_t N = st.size(0);
+  auto ty = ck::index_tensor(op, "types", types, x.device());
+  ck::require(ty.dim() == 1 && ty.size(0) == N, op, "types must have one entry per stencil, got ", ck::shape_str(ty));
+  ck::check_range(op, "types", ty, 0, torchbend::contact::NUM_TYPES, "the distance types");
+  const bool mollified = eps.numel() > 0;
+  if (mollified) {
+    ck::require(eps.dim() == 1 && eps.size(0) == N && eps.device() == x.device(), op,
+                "eps must be empty or hold one threshold per stencil on x's device, got ", ck::shape_str(eps));
+    eps = eps.to(x.scalar_type()).contiguous();
+  }
+  ck::require(dhat_sq > 0 && std::isfinite(dhat_sq) && kappa >= 0 && std::isfinite(kappa) && want >= 0 && want <= 2,
+              op, "dhat_sq must be finite and > 0, kappa finite and >= 0 and want 0, 1 or 2");
+  auto xc = x.contiguous();
+  auto E = torch::empty({N}, x.options());
+  auto G = torch::empty({want >= 1 ? N : 0, 12}, x.options());
+  auto H = torch::empty({want >= 2 ? N : 0, 12, 12}, x.options());
+  check(tb_cuda_contact_barrier(dtype_code(xc), xc.data_ptr(), st.data_ptr<int64_t>(), ty.data_ptr<int64_t>(),
+                                mollified ? eps.data_ptr() : nullptr, N, dhat_sq, kappa, int(want), E.data_ptr(),
+                                want >= 1 ? G.data_ptr() : nullptr, want >= 2 ? H.data_ptr() : nullptr,
+                                as_stream(stream)),
+        op);
+  return {E, G, H};
 }
 
 // (w dE/dx, w dpsi/dparams or empty, psi or empty, theta); with `energy` the per-hinge energies psi come from the
@@ -392,6 +431,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "per-triangle membrane energies and, optionally, the weighted gradient (CUDA)");
   m.def("membrane_hvp", &membrane_hvp, "the (projected) membrane Hessian-vector product, weighted (CUDA)");
   m.def("membrane_blocks", &membrane_blocks, "the (projected) membrane Hessian of each triangle (CUDA)");
+  m.def("contact_barrier", &contact_barrier,
+        "barrier energies, gradients and Hessians of contact stencils, closed form, unprojected (CUDA)");
   m.def("kernels", &kernels, "the names of the CUDA kernels in this build");
   m.def("set_status_handler", &torchbend::reg::set_status_handler,
         "the Python function raising the ValueError of a status word in the registered operators");
