@@ -13,12 +13,11 @@ namespace cpu {
 // the 12x12 hinge blocks), and rebuilt as sum_k f(l_k) v_k v_k^T.  Jacobi's eigenvalues are accurate to the
 // block's norm times eps, as eigh's.
 
-// A (N x N per lane, symmetric) <- its projection, in place
-template <typename T, int N>
-static void jacobi_project(T (&A)[N][N][W], bool abs_mode) {
-  alignas(64) T V[N][N][W];
-  T scale[W];
-  for (int l = 0; l < W; ++l) {
+// Each lane's block scaled by its largest entry (scale[l]; 1 for a zero or non-finite block), V = I: the start of
+// both eigensolvers (this one and cpu_symeig.h's)
+template <typename T, int N, int WL>
+static inline void lanes_scale(T (&A)[N][N][WL], T (&V)[N][N][WL], T (&scale)[WL]) {
+  for (int l = 0; l < WL; ++l) {
     T mx = T(0);
     for (int i = 0; i < N; ++i)
       for (int j = 0; j < N; ++j) mx = std::max(mx, std::abs(A[i][j][l]));
@@ -27,10 +26,43 @@ static void jacobi_project(T (&A)[N][N][W], bool abs_mode) {
   for (int i = 0; i < N; ++i)
     for (int j = 0; j < N; ++j)
 #pragma omp simd
-      for (int l = 0; l < W; ++l) {
+      for (int l = 0; l < WL; ++l) {
         A[i][j][l] /= scale[l];
         V[i][j][l] = i == j ? T(1) : T(0);
       }
+}
+
+// A <- V f(L) V^T with the eigenvalues L[k] and eigenvectors V[:, k] of the scaled block: f = max(., 0) (clamp)
+// or |.| (abs), times the scale back
+template <typename T, int N, int WL>
+static inline void lanes_rebuild(T (&A)[N][N][WL], const T (&V)[N][N][WL], const T (&L)[N][WL], const T (&scale)[WL],
+                                 bool abs_mode) {
+  T f[N][WL];
+  for (int k = 0; k < N; ++k)
+#pragma omp simd
+    for (int l = 0; l < WL; ++l) {
+      T lk = L[k][l];
+      f[k][l] = (abs_mode ? std::abs(lk) : std::max(lk, T(0))) * scale[l];
+    }
+  for (int i = 0; i < N; ++i)
+    for (int j = i; j < N; ++j) {
+      T acc[WL];
+#pragma omp simd
+      for (int l = 0; l < WL; ++l) acc[l] = T(0);
+      for (int k = 0; k < N; ++k)
+#pragma omp simd
+        for (int l = 0; l < WL; ++l) acc[l] += V[i][k][l] * f[k][l] * V[j][k][l];
+#pragma omp simd
+      for (int l = 0; l < WL; ++l) A[i][j][l] = A[j][i][l] = acc[l];
+    }
+}
+
+// A (N x N per lane, symmetric) <- its projection, in place
+template <typename T, int N>
+static void jacobi_project(T (&A)[N][N][W], bool abs_mode) {
+  alignas(64) T V[N][N][W];
+  T scale[W];
+  lanes_scale(A, V, scale);
   // rotations of |a_pq| <= skip (the blocks are scaled to entries of at most 1, so |A| >= 1) are left out: they
   // change the result by less than eps / 1000 of |A|; the sweeps stop when the off-diagonal part is below
   // eps / 100 of |A| in every lane (the skipped entries together stay below that: N^2 skip^2 < 1e-4 eps^2)
@@ -88,24 +120,11 @@ static void jacobi_project(T (&A)[N][N][W], bool abs_mode) {
         }
       }
   }
-  T f[N][W];
+  T L[N][W];
   for (int k = 0; k < N; ++k)
 #pragma omp simd
-    for (int l = 0; l < W; ++l) {
-      T lk = A[k][k][l];
-      f[k][l] = (abs_mode ? std::abs(lk) : std::max(lk, T(0))) * scale[l];
-    }
-  for (int i = 0; i < N; ++i)
-    for (int j = i; j < N; ++j) {
-      T acc[W];
-#pragma omp simd
-      for (int l = 0; l < W; ++l) acc[l] = T(0);
-      for (int k = 0; k < N; ++k)
-#pragma omp simd
-        for (int l = 0; l < W; ++l) acc[l] += V[i][k][l] * f[k][l] * V[j][k][l];
-#pragma omp simd
-      for (int l = 0; l < W; ++l) A[i][j][l] = A[j][i][l] = acc[l];
-    }
+    for (int l = 0; l < W; ++l) L[k][l] = A[k][k][l];
+  lanes_rebuild(A, V, L, scale, abs_mode);
 }
 }  // namespace cpu
 }  // namespace torchbend

@@ -3,9 +3,9 @@
 // arithmetic for 6x6 and 9x9 blocks.  Every step runs across the lanes of a tile: the Householder reflections and
 // the eigenvector updates vectorized, the QL chase lane by lane with selects (a lane whose eigenvalue has
 // converged, or whose chase ends earlier, takes identity rotations).  Each block is scaled by its largest entry
-// first (cpu_jacobi.h), so that entries below eps / 1000 count as zero.
+// first (lanes_scale, cpu_jacobi.h), so that entries below eps / 1000 count as zero.
 #pragma once
-#include "cpu_tiles.h"
+#include "cpu_jacobi.h"
 
 namespace torchbend {
 namespace cpu {
@@ -16,19 +16,7 @@ static void ql_project(T (&A)[N][N][WL], bool abs_mode) {
   static_assert(N >= 2, "blocks of at least 2 x 2");
   alignas(64) T Z[N][N][WL];
   T scale[WL], d[N][WL], e[N][WL];
-  for (int l = 0; l < WL; ++l) {
-    T mx = T(0);
-    for (int i = 0; i < N; ++i)
-      for (int j = 0; j < N; ++j) mx = std::max(mx, std::abs(A[i][j][l]));
-    scale[l] = mx > T(0) && std::isfinite(mx) ? mx : T(1);
-  }
-  for (int i = 0; i < N; ++i)
-    for (int j = 0; j < N; ++j)
-#pragma omp simd
-      for (int l = 0; l < WL; ++l) {
-        A[i][j][l] /= scale[l];
-        Z[i][j][l] = i == j ? T(1) : T(0);
-      }
+  lanes_scale(A, Z, scale);
   // ---- tridiagonalization: H_k = I - beta v v^T maps column k below the diagonal to (alpha, 0, ...)
   // (every lane loop innermost, with the sums in per-lane accumulators: each loop vectorizes)
   for (int k = 0; k < N - 2; ++k) {
@@ -164,24 +152,7 @@ static void ql_project(T (&A)[N][N][WL], bool abs_mode) {
       }
     }
   }
-  T f[N][WL];
-  for (int k = 0; k < N; ++k)
-#pragma omp simd
-    for (int l = 0; l < WL; ++l) {
-      T lk = d[k][l];
-      f[k][l] = (abs_mode ? std::abs(lk) : std::max(lk, T(0))) * scale[l];
-    }
-  for (int i = 0; i < N; ++i)
-    for (int j = i; j < N; ++j) {
-      T acc[WL];
-#pragma omp simd
-      for (int l = 0; l < WL; ++l) acc[l] = T(0);
-      for (int k = 0; k < N; ++k)
-#pragma omp simd
-        for (int l = 0; l < WL; ++l) acc[l] += Z[i][k][l] * f[k][l] * Z[j][k][l];
-#pragma omp simd
-      for (int l = 0; l < WL; ++l) A[i][j][l] = A[j][i][l] = acc[l];
-    }
+  lanes_rebuild(A, Z, d, scale, abs_mode);
 }
 
 }  // namespace cpu
