@@ -262,3 +262,23 @@ def test_the_contact_eigensolver_projects_as_eigh_on_hard_matrices(n, dtype):
         scale = M.double().abs().amax((1, 2)).clamp_min(1e-300)
         err = float(((P.double() - ref).abs().amax((1, 2)) / scale).max())
         assert err <= (50 if dtype == F64 else 20) * torch.finfo(dtype).eps * n, err
+
+
+def test_step_bound_is_the_eager_one():
+    """contact_step_bound (the box gap skips stencils that cannot set the bound) against 0.9 d / (m_A + m_B) over
+    every stencil, eager, for random moves of every size."""
+    x, f = folded(10)
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    pt, ee, _ = scm.candidate_pairs(x, f, edges, 0.05)
+    g = torch.Generator().manual_seed(4)
+    for scale in (1e-5, 1e-3, 1e-1):
+        move = scale * torch.rand(x.shape[0], generator=g, dtype=F64)
+        move[::7] = 0.0
+        for st, edge_edge in ((pt, False), (ee, True)):
+            got = native.contact_step_bound(x, st, edge_edge, move)
+            d = dist._by_type(x[st], dist.edge_edge_type(x[st]) if edge_edge else dist.point_triangle_type(x[st]))
+            split = 2 if edge_edge else 1
+            rate = move[st][:, :split].amax(1) + move[st][:, split:].amax(1)
+            ok = rate > 0
+            ref = min(1.0, float((0.9 * d[ok].clamp_min(0).sqrt() / rate[ok]).min()))
+            assert got == pytest.approx(ref, rel=1e-12)

@@ -41,7 +41,8 @@ from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CO
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "contact_box_pairs", "contact_distances", "contact_close", "contact_barrier",
+           "project_blocks", "contact_box_pairs", "contact_distances", "contact_close",
+           "contact_step_bound", "contact_barrier",
            "contact_stencil_sum", "contact_hessian_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
@@ -178,6 +179,14 @@ def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
     that far apart); ``distinct`` (point-triangle): each vertex-edge and vertex-vertex contact once, the first
     stencil that finds it (:func:`torchbend.sim.self_contact._distinct_pairs`)."""
     return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq), bool(distinct))
+
+
+def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tensor) -> float:
+    """The conservative step bound of point-triangle or edge-edge stencils ``(N, 4)`` over the points ``x (n, 3)``
+    whose points move at most ``move (n,)`` along a step: ``min(1, 0.9 d / (m_A + m_B))`` over the stencils (``d``
+    the distance, ``m_A``, ``m_B`` the largest moves of each side; :meth:`torchbend.SelfContact.max_step`); stencils
+    whose boxes' gap alone bounds them above the smallest so far are not measured."""
+    return float(_module().contact_step_bound(x, stencils, bool(edge_edge), move))
 
 
 def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float, kappa: float,

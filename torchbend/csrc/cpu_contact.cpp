@@ -3,6 +3,7 @@
 //   contact_box_pairs   the broad phase (cpu_broad_phase.cpp)
 //   contact_distances   the distance type and squared distance of point-triangle or edge-edge stencils
 //   contact_close       the stencils closer than dhat (each vertex-edge and vertex-vertex contact once)
+//   contact_step_bound  the conservative step bound of candidate stencils
 //   contact_barrier     the pairs' barrier energies, gradients and (PSD-projected) Hessians
 //   contact_hessian_sum the pairs' (projected) Hessians summed into the (3V, 3V) matrix, without the blocks
 //   contact_stencil_sum the sum of given 12x12 stencil blocks
@@ -148,6 +149,65 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
     types.data_ptr<int64_t>()[i] = type[keep[i]];
   }
   return {idx, types};
+}
+
+// The conservative step bound of stencils whose vertices move at most move[v] along a step (torchbend.sim.
+// self_contact: 0.9 d / (m_A + m_B), at most 1): the smallest over the stencils; a stencil whose primitives' boxes
+// are so far apart that their gap alone bounds it above the smallest so far is skipped (its distance is at least
+// the gap)
+double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move) {
+  const char* op = "contact_step_bound";
+  stencils = stencil_tensor(op, x, stencils);
+  ck::require(move.device().is_cpu() && move.dim() == 1 && move.size(0) == x.size(0) &&
+              move.scalar_type() == x.scalar_type(), op, "move must hold one distance per point of x, in x's dtype");
+  x = x.contiguous();
+  move = move.contiguous();
+  const int64_t N = stencils.size(0);
+  const int64_t* ps = stencils.data_ptr<int64_t>();
+  double alpha = 1.0;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    const T* px = x.data_ptr<T>();
+    const T* pm = move.data_ptr<T>();
+    const int split = edge_edge ? 2 : 1;
+    const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (N + 4095) / 4096));
+    std::vector<double> best(chunks, 1.0);
+    at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        double a = 1.0;
+        for (int64_t n = N * c / chunks; n < N * (c + 1) / chunks; ++n) {
+          const int64_t* s = ps + 4 * n;
+          T mA = 0, mB = 0;
+          for (int v = 0; v < 4; ++v) (v < split ? mA : mB) = std::max(v < split ? mA : mB, pm[s[v]]);
+          const double rate = double(mA) + double(mB);
+          if (!(rate > 0)) continue;
+          T X[4][3];
+          gather(px, s, X);
+          double gap = 0;
+          for (int i = 0; i < 3; ++i) {
+            T loA = X[0][i], hiA = X[0][i], loB = X[split][i], hiB = X[split][i];
+            for (int v = 1; v < split; ++v) { loA = std::min(loA, X[v][i]); hiA = std::max(hiA, X[v][i]); }
+            for (int v = split + 1; v < 4; ++v) { loB = std::min(loB, X[v][i]); hiB = std::max(hiB, X[v][i]); }
+            double g = std::max(double(loB) - double(hiA), double(loA) - double(hiB));
+            if (g > 0) gap += g * g;
+          }
+          if (0.9 * std::sqrt(gap) * (1 - 1e-9) / rate >= a) continue;
+          int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
+                            : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
+          int formula;
+          signed char C[3][4] = {};
+          int r = cm::type_rows(t, &formula, C);
+          T y[9];
+          cm::reduce(C, r, X, y);
+          T D = cm::typed_derivs<T>(formula, y, nullptr, nullptr);
+          a = std::min(a, 0.9 * double(std::sqrt(std::max(D, T(0)))) / rate);
+        }
+        best[c] = a;
+      }
+    });
+    for (double b : best) alpha = std::min(alpha, b);
+  });
+  return std::max(alpha, 0.0);
 }
 
 // ---- the pairs' barrier: energies, gradients, Hessians ------------------------------------------------

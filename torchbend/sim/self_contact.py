@@ -267,6 +267,9 @@ class _ContactPairs:
         for st in (pt, ee):
             if not st.shape[0]:
                 continue
+            if _native_ok(xa):
+                alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, move.to(xa.dtype)))
+                continue
             d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
             mv = move[st]
             rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
