@@ -112,7 +112,7 @@ def box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float
               ids_a: Tensor | None = None, ids_b: Tensor | None = None) -> Tensor:
     """Index pairs ``(K, 2)`` of boxes of A and B that overlap after padding each by ``pad``; ``upper`` (A = B):
     each pair once (``a < b``); ``ids_a (Na, ka)``, ``ids_b (Nb, kb)``: leave out the pairs whose rows share a value
-    (primitives with a common vertex).  Compiled on the CPU (a uniform grid whose cells are hashed: cost flat per
+    (primitives with a common vertex).  Compiled on the CPU (a uniform grid, its cells in a table or hashed: cost flat per
     box and per pair), else :func:`_box_pairs` and the filters in torch."""
     if _native_ok(lo_a):
         return native.contact_box_pairs(lo_a, hi_a, lo_b, hi_b, pad, upper, ids_a, ids_b)
