@@ -50,6 +50,33 @@ template <typename T> inline void gather(const T* x, const int64_t* s, T X[4][3]
     for (int i = 0; i < 3; ++i) X[v][i] = x[3 * s[v] + i];
 }
 
+// the squared distance of a stencil and (type) its distance type
+template <typename T> T stencil_distance_sq(const T X[4][3], bool edge_edge, int* type) {
+  const int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
+                          : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
+  int formula;
+  signed char C[3][4] = {};
+  const int r = cm::type_rows(t, &formula, C);
+  T y[9];
+  cm::reduce(C, r, X, y);
+  *type = t;
+  return cm::typed_derivs<T>(formula, y, nullptr, nullptr);
+}
+
+// the squared gap (in A arithmetic) between the boxes of a stencil's two sides, corners [0, split) and [split, 4):
+// a lower bound of its squared distance
+template <typename A, typename T> A box_gap_sq(const T X[4][3], int split) {
+  A gap = 0;
+  for (int i = 0; i < 3; ++i) {
+    T loA = X[0][i], hiA = X[0][i], loB = X[split][i], hiB = X[split][i];
+    for (int v = 1; v < split; ++v) { loA = std::min(loA, X[v][i]); hiA = std::max(hiA, X[v][i]); }
+    for (int v = split + 1; v < 4; ++v) { loB = std::min(loB, X[v][i]); hiB = std::max(hiB, X[v][i]); }
+    A g = std::max(A(loB) - A(hiA), A(loA) - A(hiB));
+    if (g > 0) gap += g * g;
+  }
+  return gap;
+}
+
 }  // namespace
 
 std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torch::Tensor stencils, bool edge_edge) {
@@ -68,15 +95,9 @@ std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torc
       for (int64_t n = n0; n < n1; ++n) {
         scalar_t X[4][3];
         gather(px, ps + 4 * n, X);
-        int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], scalar_t(1e-10))
-                          : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
-        int formula;
-        signed char C[3][4];
-        int r = cm::type_rows(t, &formula, C);
-        scalar_t y[9];
-        cm::reduce(C, r, X, y);
+        int t;
+        pd[n] = stencil_distance_sq(X, edge_edge, &t);
         pt[n] = t;
-        pd[n] = cm::typed_derivs<scalar_t>(formula, y, nullptr, nullptr);
       }
     });
   });
@@ -103,24 +124,9 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
       for (int64_t n = n0; n < n1; ++n) {
         T X[4][3];
         gather(px, ps + 4 * n, X);
-        const int split = edge_edge ? 2 : 1;  // side A: corners [0, split), side B: [split, 4)
-        T gap = 0;
-        for (int i = 0; i < 3; ++i) {
-          T loA = X[0][i], hiA = X[0][i], loB = X[split][i], hiB = X[split][i];
-          for (int v = 1; v < split; ++v) { loA = std::min(loA, X[v][i]); hiA = std::max(hiA, X[v][i]); }
-          for (int v = split + 1; v < 4; ++v) { loB = std::min(loB, X[v][i]); hiB = std::max(hiB, X[v][i]); }
-          T g = std::max(loB - hiA, loA - hiB);
-          if (g > 0) gap += g * g;
-        }
-        if (gap >= dh2) continue;  // the distance is at least the boxes' gap
-        int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
-                          : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
-        int formula;
-        signed char C[3][4] = {};
-        int r = cm::type_rows(t, &formula, C);
-        T y[9];
-        cm::reduce(C, r, X, y);
-        if (cm::typed_derivs<T>(formula, y, nullptr, nullptr) < dh2) type[n] = int8_t(t);
+        if (box_gap_sq<T>(X, edge_edge ? 2 : 1) >= dh2) continue;  // the distance is at least the boxes' gap
+        int t;
+        if (stencil_distance_sq(X, edge_edge, &t) < dh2) type[n] = int8_t(t);
       }
     });
   });
@@ -183,23 +189,9 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
           if (!(rate > 0)) continue;
           T X[4][3];
           gather(px, s, X);
-          double gap = 0;
-          for (int i = 0; i < 3; ++i) {
-            T loA = X[0][i], hiA = X[0][i], loB = X[split][i], hiB = X[split][i];
-            for (int v = 1; v < split; ++v) { loA = std::min(loA, X[v][i]); hiA = std::max(hiA, X[v][i]); }
-            for (int v = split + 1; v < 4; ++v) { loB = std::min(loB, X[v][i]); hiB = std::max(hiB, X[v][i]); }
-            double g = std::max(double(loB) - double(hiA), double(loA) - double(hiB));
-            if (g > 0) gap += g * g;
-          }
-          if (0.9 * std::sqrt(gap) * (1 - 1e-9) / rate >= a) continue;
-          int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
-                            : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
-          int formula;
-          signed char C[3][4] = {};
-          int r = cm::type_rows(t, &formula, C);
-          T y[9];
-          cm::reduce(C, r, X, y);
-          T D = cm::typed_derivs<T>(formula, y, nullptr, nullptr);
+          if (0.9 * std::sqrt(box_gap_sq<double>(X, split)) * (1 - 1e-9) / rate >= a) continue;
+          int t;
+          T D = stencil_distance_sq(X, edge_edge, &t);
           a = std::min(a, 0.9 * double(std::sqrt(std::max(D, T(0)))) / rate);
         }
         best[c] = a;
