@@ -282,3 +282,30 @@ def test_step_bound_is_the_eager_one():
             ok = rate > 0
             ref = min(1.0, float((0.9 * d[ok].clamp_min(0).sqrt() / rate[ok]).min()))
             assert got == pytest.approx(ref, rel=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("case", ["tiny_gap", "tiny_scale", "huge_scale", "offset"])
+def test_projection_in_the_normal_frame_holds_at_the_extremes(case, dtype):
+    """The clamp and abs projections in the pairs' normal frame (contact_frame.h: a 4x4 or 5x5 eigenproblem) against
+    eigh of the same unprojected Hessians (in float64): gaps a millionth of the edges, coordinates at 1e-3 and 1e3 m,
+    and stencils 1e3 m from the origin; the error relative to the block's largest entry, as eigh's."""
+    X = stencils(600, 7)
+    scale, offset = {"tiny_scale": (1e-3, 0.0), "huge_scale": (1e3, 0.0), "offset": (1.0, 1e3)}.get(case, (1.0, 0.0))
+    if case == "tiny_gap":  # the point a millionth of the triangle's size above its centroid
+        X = X.clone()
+        n = torch.linalg.cross(X[:, 2] - X[:, 1], X[:, 3] - X[:, 1])
+        X[:, 0] = X[:, 1:].mean(1) + 1e-6 * n / n.norm(dim=-1, keepdim=True)
+    xa, st = flat(X * scale + offset)
+    xa = xa.to(dtype)
+    for edge_edge in (False, True):
+        types, D = native.contact_distances(xa, st, edge_edge)
+        dhat = float(D.double().median().sqrt()) * 1.5
+        _, _, H = native.contact_barrier(xa, st, types, None, dhat ** 2, 1.0, 2, "none")
+        H = H.double()
+        active = H.abs().amax((1, 2)) > 0
+        assert int(active.sum()) > 100
+        for mode in ("clamp", "abs"):
+            P = native.contact_barrier(xa, st, types, None, dhat ** 2, 1.0, 2, mode)[2].double()
+            err = ((P - psd(H, mode)).abs() / H.abs().amax((1, 2), keepdim=True).clamp_min(1e-300)).amax((1, 2))
+            assert float(err[active].max()) <= 200 * torch.finfo(dtype).eps, (edge_edge, mode, float(err.max()))

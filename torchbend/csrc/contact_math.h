@@ -259,6 +259,7 @@ template <typename T> TB_HD static inline T mollifier(T c, T eps, T* m1, T* m2) 
 template <typename T> struct PairTerms {
   signed char C[3][4];
   int r;
+  bool mollified;  // an edge-edge pair below its mollifier's threshold (written in line-line coordinates)
   T E, D;
   T g[9], H[81];
 };
@@ -287,6 +288,7 @@ template <typename T> TB_HD static inline void pair_terms(const T x[4][3], int t
   T y[9], gD[9], HD[81];
   T D = typed_derivs(formula, (reduce(C, r, x, y), y), want >= 1 ? gD : (T*)0, want >= 2 ? HD : (T*)0);
   out->D = D;
+  out->mollified = false;
   const int k = 3 * r;
   if (!(D > 0)) {
     out->E = T(1) / T(0);
@@ -316,6 +318,7 @@ template <typename T> TB_HD static inline void pair_terms(const T x[4][3], int t
     return;
   }
   // mollified: everything in the line-line coordinates (9)
+  out->mollified = true;
   out->E = m * bE;
   out->r = 3;
   int fl;

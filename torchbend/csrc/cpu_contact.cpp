@@ -14,6 +14,7 @@
 #include <unordered_set>
 #include <vector>
 
+#include "contact_frame.h"
 #include "contact_math.h"
 #include "cpu_contact.h"
 #include "cpu_symeig.h"
@@ -243,12 +244,62 @@ void project_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>&
   }
 }
 
+// project the unmollified pairs `idx` with r = 2 or 3 rows in their normal frame (contact_frame.h): S = Lb^T H Lb
+// (m x m), proj(S) by lanes, U proj(S) U^T back into terms[i].H (and expanded to 12x12 blocks where H12 is given)
+template <typename T, int r>
+void frame_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
+                 T* H12) {
+  constexpr int k = 3 * r, m = r + 2;
+  for (size_t t0 = 0; t0 < idx.size(); t0 += kLanes) {
+    const int nl = int(std::min<size_t>(kLanes, idx.size() - t0));
+    alignas(64) T A[m][m][kLanes];
+    T U[kLanes][k * m];
+    for (int l = 0; l < kLanes; ++l) {
+      for (int i = 0; i < m; ++i) for (int j = 0; j < m; ++j) A[i][j][l] = 0;
+      if (l >= nl) continue;
+      const auto& p = terms[idx[t0 + l]];
+      T Lb[k * m], HL[k * m];
+      cm::pair_frame(p.C, r, p.g, Lb, U[l]);
+      for (int i = 0; i < k; ++i)
+        for (int j = 0; j < m; ++j) {
+          T s = 0;
+          for (int c = 0; c < k; ++c) s += p.H[k * i + c] * Lb[m * c + j];
+          HL[m * i + j] = s;
+        }
+      for (int i = 0; i < m; ++i)
+        for (int j = i; j < m; ++j) {
+          T s = 0, t = 0;
+          for (int c = 0; c < k; ++c) { s += Lb[m * c + i] * HL[m * c + j]; t += Lb[m * c + j] * HL[m * c + i]; }
+          A[i][j][l] = A[j][i][l] = T(0.5) * (s + t);
+        }
+    }
+    ql_project<T, m, kLanes>(A, abs_mode);
+    for (int l = 0; l < nl; ++l) {
+      auto& p = terms[idx[t0 + l]];
+      T US[k * m];
+      for (int i = 0; i < k; ++i)
+        for (int j = 0; j < m; ++j) {
+          T s = 0;
+          for (int c = 0; c < m; ++c) s += U[l][m * i + c] * A[c][j][l];
+          US[m * i + j] = s;
+        }
+      for (int i = 0; i < k; ++i)
+        for (int j = i; j < k; ++j) {
+          T s = 0;
+          for (int c = 0; c < m; ++c) s += US[m * i + c] * U[l][m * j + c];
+          p.H[k * i + j] = p.H[k * j + i] = s;
+        }
+      if (H12) cm::expand_hessian(p.C, r, p.H, H12 + 144 * (base + idx[t0 + l]));
+    }
+  }
+}
+
 // the pairs base .. base + n - 1: their terms (Hessians in reduced coordinates, projected unless mode < 0) and,
 // where given, their energies, 12-gradients and 12x12 Hessians
 template <typename T>
 void pair_chunk(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, T dh2, T kappa, int want, int64_t mode,
                 int64_t base, int64_t n, std::vector<cm::PairTerms<T>>& terms, T* pE, T* pG, T* pH) {
-  std::vector<int> by_r[3];
+  std::vector<int> by_r[3], framed[2];  // by rows: the full eigenproblem; (r = 2, 3): in the normal frame
   for (int64_t i = 0; i < n; ++i) {
     T X[4][3];
     gather(px, ps + 4 * (base + i), X);
@@ -257,7 +308,7 @@ void pair_chunk(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, 
     if (pE) pE[base + i] = p.E;
     if (pG) cm::expand_gradient(p.C, p.r, p.g, pG + 12 * (base + i));
     if (want >= 2) {
-      if (mode >= 0) by_r[p.r - 1].push_back(int(i));
+      if (mode >= 0) (p.r >= 2 && !p.mollified && cm::frame_ok(p.g) ? framed[p.r - 2] : by_r[p.r - 1]).push_back(int(i));
       else if (pH) cm::expand_hessian(p.C, p.r, p.H, pH + 144 * (base + i));
     }
   }
@@ -265,6 +316,8 @@ void pair_chunk(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, 
     project_group<T, 3>(terms, by_r[0], base, mode == 1, pH);
     project_group<T, 6>(terms, by_r[1], base, mode == 1, pH);
     project_group<T, 9>(terms, by_r[2], base, mode == 1, pH);
+    frame_group<T, 2>(terms, framed[0], base, mode == 1, pH);
+    frame_group<T, 3>(terms, framed[1], base, mode == 1, pH);
   }
 }
 
