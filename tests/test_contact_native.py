@@ -154,6 +154,28 @@ def test_box_pairs_are_those_of_brute_force_without_shared_ids():
     assert far.shape == (0, 2)
 
 
+@pytest.mark.parametrize("spread", [1.0, 1e4])
+def test_box_pairs_of_mixed_sizes_are_those_of_brute_force(spread):
+    """Long boxes (a step's swept boxes) among small ones, on a dense grid of cells (one cluster) and on hashed
+    cells (two clusters ``spread`` apart: most of the grid empty): every overlapping pair once, in order."""
+    g = torch.Generator().manual_seed(11)
+    n = 500
+    far = (torch.arange(n) % 2 == 1)[:, None] * spread if spread > 1 else torch.zeros(n, 1)
+    lo = torch.rand(n, 3, generator=g, dtype=F64) + far
+    ext = 0.1 * torch.rand(n, 3, generator=g, dtype=F64)
+    long = torch.rand(n, generator=g) < 0.2  # a fifth swept along one axis, up to half the cluster
+    axis = torch.randint(0, 3, (n,), generator=g)
+    ext[long, axis[long]] = 0.5 * torch.rand(int(long.sum()), generator=g, dtype=F64)
+    hi = lo + ext
+    pts = torch.rand(n, 3, generator=g, dtype=F64) + far
+    for pad in (0.0, 0.01):
+        got = native.contact_box_pairs(pts, pts, lo, hi, pad)
+        assert torch.equal(got, brute_box_pairs(pts, pts, lo, hi, pad)) and got.shape[0] > 20
+        up = native.contact_box_pairs(lo, hi, lo, hi, pad, upper=True)
+        ref = brute_box_pairs(lo, hi, lo, hi, pad)
+        assert torch.equal(up, ref[ref[:, 0] < ref[:, 1]]) and up.shape[0] > 50
+
+
 def test_stencil_sum_is_the_eager_one():
     g = torch.Generator().manual_seed(8)
     V = 30

@@ -1,6 +1,8 @@
 // The broad phase of the compiled contact operators (contact_box_pairs, cpu_contact.h): pairs of overlapping padded
-// boxes by a uniform grid (a dense table of its cells where it is small, else a hash of the cell keys), each box of
-// B filed under its lower corner's cell and each box of A tested against the 27 cells around its own.
+// boxes by a uniform grid (a dense table of its cells where it is small, else a hash of the cell keys) of about the
+// boxes' mean size, each box of B filed under every cell it covers and each box of A tested against those of the
+// cells it covers, each pair in the first cell the two share.  Long boxes (a step's swept boxes) cover more cells
+// and leave the others' cost alone.
 #include <algorithm>
 #include <cstdint>
 #include <limits>
@@ -46,60 +48,95 @@ struct CellMap {
 template <typename T>
 void box_pairs_impl(const T* loA, const T* hiA, int64_t nA, const T* loB, const T* hiB, int64_t nB, T pad, bool upper,
                     const int64_t* idsA, int64_t kA, const int64_t* idsB, int64_t kB, std::vector<int64_t>& out) {
-  T ext = 0, org[3];
-  for (int i = 0; i < 3; ++i) org[i] = std::numeric_limits<T>::max();
-  for (int64_t a = 0; a < nA; ++a)
-    for (int i = 0; i < 3; ++i) { ext = std::max(ext, hiA[3 * a + i] - loA[3 * a + i]); org[i] = std::min(org[i], loA[3 * a + i]); }
-  for (int64_t b = 0; b < nB; ++b)
-    for (int i = 0; i < 3; ++i) { ext = std::max(ext, hiB[3 * b + i] - loB[3 * b + i]); org[i] = std::min(org[i], loB[3 * b + i]); }
-  double h = double(ext) + 2 * double(pad);
-  if (!(h > 0)) h = 1;
-  auto cell = [&](const T* lo, int64_t c[3]) {
-    for (int i = 0; i < 3; ++i) c[i] = int64_t(std::floor((double(lo[i]) - double(org[i])) / h));
+  // the cell size: B's boxes' mean largest extent (at least a 32nd of the largest box's) plus 2 pad, so that long
+  // boxes (a step's swept boxes) span a few cells instead of setting the size of all
+  double ext_sum = 0, ext_max = 0, org[3];
+  for (int i = 0; i < 3; ++i) org[i] = std::numeric_limits<double>::max();
+  auto scan = [&](const T* lo, const T* hi, int64_t n) {
+    for (int64_t b = 0; b < n; ++b) {
+      double e = 0;
+      for (int i = 0; i < 3; ++i) {
+        e = std::max(e, double(hi[3 * b + i]) - double(lo[3 * b + i]));
+        org[i] = std::min(org[i], double(lo[3 * b + i]));
+      }
+      ext_sum += e;
+      ext_max = std::max(ext_max, e);
+    }
   };
-  // the cells' keys: (c + 1) in [0, 2^21) per axis (a grid of more cells per axis falls back to hashing
-  // the wrapped coordinates: equal keys then only mean more candidates, never lost ones)
+  scan(loB, hiB, nB);
+  const double ext_b = ext_sum / double(nB);
+  scan(loA, hiA, nA);
+  // cells cover the boxes padded by a little more than pad: a pair that overlaps after padding shares a cell
+  const double cpad = double(pad) * (1 + 1e-6) + 1e-300;
+  double h = std::max(ext_b, ext_max / 32) + 2 * cpad;
+  if (!(h > 0) || !std::isfinite(h)) h = 1;
+  for (int i = 0; i < 3; ++i) org[i] -= 2 * cpad;
+  auto cells_of = [&](const T* lo, const T* hi, int64_t c[6]) {
+    for (int i = 0; i < 3; ++i) {
+      c[i] = int64_t(std::floor((double(lo[i]) - cpad - org[i]) / h));
+      c[3 + i] = int64_t(std::floor((double(hi[i]) + cpad - org[i]) / h));
+    }
+  };
+  // the cells' keys: c in [0, 2^21) per axis (a grid of more cells per axis falls back to hashing the wrapped
+  // coordinates: equal keys then only mean more candidates, never lost ones)
   auto key = [](int64_t cx, int64_t cy, int64_t cz) {
-    return ((cx + 1) & 0x1fffff) << 42 | ((cy + 1) & 0x1fffff) << 21 | ((cz + 1) & 0x1fffff);
+    return (cx & 0x1fffff) << 42 | (cy & 0x1fffff) << 21 | (cz & 0x1fffff);
   };
-  // the cells of B's boxes: a dense table of the grid's cells where it is small (a flat cloth's grid is), else an
-  // open-addressing hash of the cell keys; each maps a cell to the range of its boxes in `order`
-  int64_t lo_c[3] = {INT64_MAX, INT64_MAX, INT64_MAX}, hi_c[3] = {INT64_MIN, INT64_MIN, INT64_MIN};
-  std::vector<int64_t> cb(3 * nB);
+  // B's boxes filed under every cell they cover: a dense table of the grid's cells where it is small (a flat
+  // cloth's grid is), else an open-addressing hash of the cell keys; each maps a cell to its range in `order`
+  std::vector<int64_t> cb(6 * nB);
+  int64_t hi_c[3] = {0, 0, 0}, entries = 0;
   for (int64_t b = 0; b < nB; ++b) {
-    cell(loB + 3 * b, &cb[3 * b]);
-    for (int i = 0; i < 3; ++i) { lo_c[i] = std::min(lo_c[i], cb[3 * b + i]); hi_c[i] = std::max(hi_c[i], cb[3 * b + i]); }
+    int64_t* c = &cb[6 * b];
+    cells_of(loB + 3 * b, hiB + 3 * b, c);
+    int64_t k = 1;
+    for (int i = 0; i < 3; ++i) { hi_c[i] = std::max(hi_c[i], c[3 + i]); k *= c[3 + i] - c[i] + 1; }
+    entries += k;
   }
   int64_t dims[3];
   double cells = 1;
-  for (int i = 0; i < 3; ++i) { dims[i] = hi_c[i] - lo_c[i] + 1; cells *= double(dims[i]); }
-  const bool dense = cells <= double(4 * (nA + nB) + 4096);
-  std::vector<int64_t> kb(nB), order(nB);
-  for (int64_t b = 0; b < nB; ++b) {
-    const int64_t* c = &cb[3 * b];
-    kb[b] = dense ? ((c[0] - lo_c[0]) * dims[1] + (c[1] - lo_c[1])) * dims[2] + (c[2] - lo_c[2]) : key(c[0], c[1], c[2]);
-    order[b] = b;
-  }
-  std::sort(order.begin(), order.end(), [&](int64_t u, int64_t v) { return kb[u] < kb[v] || (kb[u] == kb[v] && u < v); });
+  for (int i = 0; i < 3; ++i) { dims[i] = hi_c[i] + 1; cells *= double(dims[i]); }
+  const bool dense = cells <= double(4 * (nA + entries) + 4096);
+  auto cell_key = [&](int64_t cx, int64_t cy, int64_t cz) {
+    return dense ? (cx * dims[1] + cy) * dims[2] + cz : key(cx, cy, cz);
+  };
+  // `filed`: the boxes by cell (counting sort over the dense table; sorted keys for the hash)
+  std::vector<int64_t> filed(size_t(entries), 0);
   CellMap map;
   std::vector<int64_t> dstart, dend;
-  if (dense) { dstart.assign(int64_t(cells), 0); dend.assign(int64_t(cells), 0); }
-  else map.init(nB);
-  for (int64_t i = 0; i < nB;) {
-    int64_t j = i, k = kb[order[i]];
-    while (j < nB && kb[order[j]] == k) ++j;
-    if (dense) { dstart[k] = i; dend[k] = j; }
-    else {
+  auto each_entry = [&](auto&& f) {
+    for (int64_t b = 0; b < nB; ++b) {
+      const int64_t* c = &cb[6 * b];
+      for (int64_t x = c[0]; x <= c[3]; ++x)
+        for (int64_t y = c[1]; y <= c[4]; ++y)
+          for (int64_t z = c[2]; z <= c[5]; ++z) f(cell_key(x, y, z), b);
+    }
+  };
+  if (dense) {
+    dstart.assign(int64_t(cells) + 1, 0);
+    each_entry([&](int64_t k, int64_t) { ++dstart[k + 1]; });
+    for (int64_t k = 0; k < int64_t(cells); ++k) dstart[k + 1] += dstart[k];
+    dend.assign(dstart.begin(), dstart.end() - 1);
+    each_entry([&](int64_t k, int64_t b) { filed[size_t(dend[k]++)] = b; });
+  } else {
+    std::vector<std::pair<int64_t, int64_t>> kb;  // (cell key, box)
+    kb.reserve(size_t(entries));
+    each_entry([&](int64_t k, int64_t b) { kb.emplace_back(k, b); });
+    std::sort(kb.begin(), kb.end());
+    map.init(entries);
+    for (int64_t i = 0; i < entries;) {
+      int64_t j = i, k = kb[size_t(i)].first;
+      for (; j < entries && kb[size_t(j)].first == k; ++j) filed[size_t(j)] = kb[size_t(j)].second;
       int64_t s = map.slot(k);
       map.keys[s] = k; map.start[s] = i; map.end[s] = j;
+      i = j;
     }
-    i = j;
   }
   // the range of B's boxes filed under cell (cx, cy, cz): false if none
   auto range = [&](int64_t cx, int64_t cy, int64_t cz, int64_t& q0, int64_t& q1) {
     if (dense) {
-      if (cx < lo_c[0] || cx > hi_c[0] || cy < lo_c[1] || cy > hi_c[1] || cz < lo_c[2] || cz > hi_c[2]) return false;
-      const int64_t k = ((cx - lo_c[0]) * dims[1] + (cy - lo_c[1])) * dims[2] + (cz - lo_c[2]);
+      if (cx > hi_c[0] || cy > hi_c[1] || cz > hi_c[2]) return false;
+      const int64_t k = cell_key(cx, cy, cz);
       q0 = dstart[k]; q1 = dend[k];
       return q1 > q0;
     }
@@ -117,17 +154,20 @@ void box_pairs_impl(const T* loA, const T* hiA, int64_t nA, const T* loB, const 
       int64_t a0 = nA * t / nt, a1 = nA * (t + 1) / nt;
       std::vector<int64_t> hits;
       for (int64_t a = a0; a < a1; ++a) {
-        int64_t c[3];
-        cell(loA + 3 * a, c);
+        int64_t c[6];
+        cells_of(loA + 3 * a, hiA + 3 * a, c);
         hits.clear();
-        for (int dx = -1; dx <= 1; ++dx)
-          for (int dy = -1; dy <= 1; ++dy)
-            for (int dz = -1; dz <= 1; ++dz) {
+        for (int64_t cx = c[0]; cx <= c[3]; ++cx)
+          for (int64_t cy = c[1]; cy <= c[4]; ++cy)
+            for (int64_t cz = c[2]; cz <= c[5]; ++cz) {
               int64_t q0, q1;
-              if (!range(c[0] + dx, c[1] + dy, c[2] + dz, q0, q1)) continue;
+              if (!range(cx, cy, cz, q0, q1)) continue;
               for (int64_t q = q0; q < q1; ++q) {
-                int64_t b = order[q];
+                const int64_t b = filed[size_t(q)];
                 if (upper && b <= a) continue;
+                // each pair once: in the first cell both cover (every pair that overlaps after padding shares it)
+                const int64_t* d = &cb[6 * b];
+                if (std::max(c[0], d[0]) != cx || std::max(c[1], d[1]) != cy || std::max(c[2], d[2]) != cz) continue;
                 const T *la = loA + 3 * a, *ha = hiA + 3 * a, *lb = loB + 3 * b, *hb = hiB + 3 * b;
                 if (!(la[0] <= hb[0] + two_pad && ha[0] + two_pad >= lb[0] && la[1] <= hb[1] + two_pad &&
                       ha[1] + two_pad >= lb[1] && la[2] <= hb[2] + two_pad && ha[2] + two_pad >= lb[2]))
