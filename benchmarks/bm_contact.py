@@ -8,7 +8,8 @@ with its default broad phase, ``BarrierPotential`` with clamp projection; torchb
 ``--repeats``, and the microseconds per contact.  Beside: the broad phase alone (the candidate pairs within
 ``dhat``), the step bound (``max_step``) of a step of 1 mm, and a Newton iteration's contact work (energy,
 gradient and Hessian at a new iterate, the step bound of its step, and the energy at two trial points of its line
-search).
+search).  Then a static solve per size: the upper layer sags under its weight onto the pinned lower one, and the
+contact term's time per Newton iteration of it (whatever its steps and line searches asked for).
 
     python benchmarks/bm_contact.py                      # 20x20 and 50x50 grids
     python benchmarks/bm_contact.py --sizes 20 50 80 --repeats 3
@@ -25,6 +26,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import machine  # noqa: E402
 
 import torchbend as tb  # noqa: E402
+from torchbend.sim.self_contact import vertex_boxes  # noqa: E402
 from torchbend.testing import call_times  # noqa: E402
 
 
@@ -53,6 +55,7 @@ def run_torchbend(x, f, dhat, repeats):
 
     def work():
         y = next(shifted)
+        sc._cache = None  # its own broad phase, as ipctk's build
         sc.energy(y, ctx)
         sc.gradient(y, ctx)
         sc.hessian(y, ctx, tb.Projection.CLAMP)
@@ -66,7 +69,7 @@ def run_torchbend(x, f, dhat, repeats):
         sc.max_step(x, dx, ctx)
 
     bound = best(bound_fresh, repeats)
-    broad = best(lambda: sc._candidates(x, dhat), repeats)
+    broad = best(lambda: sc._candidates(*vertex_boxes(x), dhat), repeats)
 
     def iteration():
         y = next(shifted)
@@ -80,6 +83,37 @@ def run_torchbend(x, f, dhat, repeats):
 
     newton = best(iteration, repeats)
     return count, seconds, bound, broad, newton
+
+
+def run_solve(x, f, dhat):
+    """A static solve of the folded grid: the upper layer, free, sags under its weight onto the pinned lower one
+    (StVK membrane, bending, adaptive barrier stiffness).  Returns (Newton iterations, the contact term's seconds
+    per iteration, the solve's seconds, the contacts at the end)."""
+    import time
+
+    n = x.shape[0] // 2
+    sc = tb.SelfContact(dhat=dhat)
+    spent = [0.0]
+    for name in ("energy", "gradient", "hessian", "max_step"):
+        method = getattr(sc, name)
+
+        def timed(*a, _m=method, **k):
+            t0 = time.perf_counter()
+            try:
+                return _m(*a, **k)
+            finally:
+                spent[0] += time.perf_counter() - t0
+        setattr(sc, name, timed)
+    pinned = torch.arange(2 * n) < n
+    model = tb.ClothModel(f, x, bending=tb.BendingEnergy(f, x, stiffness=1e-6), density=0.2, pinned=pinned,
+                          membrane=tb.MembraneEnergy(f, x, model="stvk", young=1e5, poisson=0.3, thickness=5e-4),
+                          terms=[sc])
+    t0 = time.perf_counter()
+    _, info = tb.solve_static(model, x)
+    total = time.perf_counter() - t0
+    if not info.converged:
+        raise RuntimeError(f"the benchmark's solve did not converge: {info.message}")
+    return info.iterations, spent[0] / max(info.iterations, 1), total, info.contact_count
 
 
 def run_ipctk(x, f, dhat, repeats):
@@ -109,6 +143,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", type=int, nargs="*", default=[20, 50], help="grid sizes n (about 13 n^2 contacts)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--dhat", type=float, default=2e-3)
+    ap.add_argument("--no-solve", dest="solve", action="store_false", help="skip the static solves")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     print(machine())
@@ -126,6 +161,14 @@ def main(argv=None) -> None:
             tail = "ipctk not installed (pip install ipctk)"
         print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.4f} {1e6 * sec / max(count, 1):8.2f} {broad:8.4f} "
               f"{bound:10.4f} {newton:11.4f} | {tail}")
+    if args.solve:
+        print("\nstatic solve: the upper layer sags onto the pinned lower one (gravity, adaptive stiffness); the contact"
+              " term's time per Newton iteration")
+        print(f"{'grid':>6} {'V':>6} | {'iterations':>10} {'contact s/it':>12} {'solve s':>8} {'contacts':>9}")
+        for n in args.sizes:
+            x, f = folded(n)
+            its, per, total, contacts = run_solve(x, f, args.dhat)
+            print(f"{n:>4}^2 {x.shape[0]:>6} | {its:>10} {per:12.4f} {total:8.2f} {contacts:>9}")
 
 
 if __name__ == "__main__":

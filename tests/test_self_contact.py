@@ -233,6 +233,30 @@ def test_self_contact_step_bound_keeps_every_path_free_of_intersections():
         assert alpha < 1  # the whole step would have pushed the sheet through
 
 
+def test_a_long_step_searches_its_swept_boxes_and_a_short_one_afterwards_searches_afresh():
+    """The step bound's pairs come from the boxes swept along the step: a sheet moved 5 cm down onto another 1.5 mm
+    below has about its neighbours' candidates (not every pair within 10 cm), the bound stops it short of the lower
+    sheet, and a short step afterwards does not keep the long step's candidates."""
+    from torchbend.sim.self_contact import candidate_pairs
+
+    model, x, sc, V = two_sheets(n=12, gap=1.5e-3)
+    topo = model.topology
+    dx = torch.zeros_like(x)
+    dx[V:, 2] = -0.05
+    alpha = sc.max_step(x, dx, tb.StepContext())
+    swept = sum(int(t.shape[0]) for t in sc._cache[4:6])
+    everything = sum(int(t.shape[0]) for t in candidate_pairs(x, topo.faces, topo.edges, 0.1 + sc.dhat)[:2])
+    assert swept < everything / 10, (swept, everything)
+    assert 0 < alpha < 1.5e-3 / 0.05  # 0.9 of the time to cover the gap
+    for t in torch.linspace(0, 1, 21, dtype=F64).tolist():
+        assert not intersects(x + t * alpha * dx, topo.faces, topo.edges)
+    y = x + alpha * dx
+    short = 1e-2 * dx
+    sc.max_step(y, short, tb.StepContext())
+    fresh = sum(int(t.shape[0]) for t in candidate_pairs(y, topo.faces, topo.edges, sc.dhat, short, 0.05 * sc.dhat)[:2])
+    assert sum(int(t.shape[0]) for t in sc._cache[4:6]) == fresh
+
+
 def test_a_sheet_falls_onto_another_and_rests_apart_in_every_step():
     model, x, sc, V = two_sheets(gap=6e-3)
     topo = model.topology

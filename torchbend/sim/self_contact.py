@@ -20,7 +20,7 @@ each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a p
 **Step bound** (:meth:`SelfContact.max_step`): along ``x + t dx`` every point of a primitive moves at most as
 far as the farthest of its vertices, so two primitives at distance ``d`` whose vertices move at most ``m_A``
 and ``m_B`` cannot meet before ``t = d / (m_A + m_B)``; the bound is ``0.9`` of the smallest such time over
-the pairs within ``dhat`` plus the farthest motion (pairs farther apart cannot meet in the step), at most 1.
+the pairs whose boxes swept along the step come within ``dhat`` (other pairs cannot meet in the step), at most 1.
 No intersection can appear along a step so bounded (distances stay above a tenth of their start).
 
 **Friction** (``friction = mu > 0``, time steps only): IPC's lagged smooth Coulomb friction per pair in
@@ -61,7 +61,7 @@ from ..ops.distance import (
 from ..options import Projection
 from .terms import EnergyTerm, StepContext
 
-__all__ = ["SelfContact", "MeshCollider", "box_pairs", "candidate_pairs", "stencil_sum"]
+__all__ = ["SelfContact", "MeshCollider", "box_pairs", "candidate_pairs", "vertex_boxes", "stencil_sum"]
 
 
 def _box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float) -> Tensor:
@@ -124,19 +124,30 @@ def box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float
     return p
 
 
-def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+def candidate_pairs(x: Tensor, faces: Tensor, edges: Tensor, radius: float, dx: Tensor | None = None,
+                    slack: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """Point-triangle stencils ``(P, 4)`` (vertex, face's three), edge-edge stencils ``(Q, 4)`` (each edge pair
     once) and their edge indices ``(Q, 2)``, of the primitives whose boxes lie within ``radius`` [m], without
-    the pairs that share a vertex."""
+    the pairs that share a vertex.  With ``dx (V, 3)``: the boxes swept along ``x + t dx``, ``t`` in ``[0, 1]``
+    (every pair that comes within ``radius`` on the way); ``slack`` [m] widens every vertex's box."""
+    return _box_candidates(*vertex_boxes(x, dx, slack), faces, edges, radius)
+
+
+def vertex_boxes(x: Tensor, dx: Tensor | None = None, slack: float = 0.0) -> tuple[Tensor, Tensor]:
+    """Each vertex's box ``(lo, hi)``, each ``(V, 3)``: around ``x``, or swept along ``x + t dx`` (``t`` in
+    ``[0, 1]``), widened by ``slack`` on every side."""
     x = x.detach()
-    V = x.shape[0]
-    idx = torch.arange(V, device=x.device)
-    tri = x[faces]
-    pt = box_pairs(x, x, tri.amin(1), tri.amax(1), 0.5 * radius, ids_a=idx[:, None], ids_b=faces)
+    end = x if dx is None else x + dx.detach()
+    return torch.minimum(x, end) - slack, torch.maximum(x, end) + slack
+
+
+def _box_candidates(lo: Tensor, hi: Tensor, faces: Tensor, edges: Tensor, radius: float):
+    """:func:`candidate_pairs` over the vertices' boxes ``lo``, ``hi`` (a primitive's box holds its vertices')."""
+    idx = torch.arange(lo.shape[0], device=lo.device)
+    pt = box_pairs(lo, hi, lo[faces].amin(1), hi[faces].amax(1), 0.5 * radius, ids_a=idx[:, None], ids_b=faces)
     pt = torch.cat([pt[:, :1], faces[pt[:, 1]]], 1)
-    seg = x[edges]
-    lo, hi = seg.amin(1), seg.amax(1)
-    ee = box_pairs(lo, hi, lo, hi, 0.5 * radius, upper=True, ids_a=edges, ids_b=edges)
+    elo, ehi = lo[edges].amin(1), hi[edges].amax(1)
+    ee = box_pairs(elo, ehi, elo, ehi, 0.5 * radius, upper=True, ids_a=edges, ids_b=edges)
     return pt, torch.cat([edges[ee[:, 0]], edges[ee[:, 1]]], 1), ee
 
 
@@ -155,9 +166,9 @@ def _distances(xa: Tensor, st: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]
 
 class _ContactPairs:
     """The pairs of non-adjacent primitives of a mesh (the cloth's own, with a body's for :class:`MeshCollider`)
-    within a distance: the broad phase (:func:`candidate_pairs`, reused within a radius), the pairs within ``dhat``
-    grouped by distance type, the conservative step bound and the smallest distance (module docstring).  The
-    geometry of :class:`SelfContact`; ``bind`` sets the mesh."""
+    within a distance: the broad phase (:func:`candidate_pairs`, reused while the points stay in their boxes), the
+    pairs within ``dhat`` grouped by distance type, the conservative step bound and the smallest distance (module
+    docstring).  The geometry of :class:`SelfContact`; ``bind`` sets the mesh."""
 
     dhat: float
     name: str
@@ -180,30 +191,39 @@ class _ContactPairs:
         """Whether positions other than the cloth's (a body's vertices) require grad."""
         return False
 
-    def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
-        """Point-triangle and edge-edge stencils within ``radius`` over :meth:`_points` and the edge pairs'
-        indices into the rest lengths (:func:`candidate_pairs` over the cloth's own mesh)."""
+    def _candidates(self, lo: Tensor, hi: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Point-triangle and edge-edge stencils whose boxes (over the boxes ``lo``, ``hi`` of :meth:`_points`) lie
+        within ``radius``, and the edge pairs' indices into the rest lengths (:func:`candidate_pairs` over the
+        cloth's own mesh)."""
         faces, edges = self._mesh()
-        return candidate_pairs(xa, faces.to(xa.device), edges.to(xa.device), radius)
+        return _box_candidates(lo, hi, faces.to(lo.device), edges.to(lo.device), radius)
 
-    def _active(self, x: Tensor, radius: float | None = None):
-        """The candidate pairs within ``radius`` (default ``dhat``) of ``x`` and the edge pairs' mollifier
-        thresholds.  The pairs found for a larger radius ``R`` at ``x_ref`` (by :meth:`max_step`) serve every
-        ``x`` within ``(R - radius) / 2`` of it (no pair can have come closer), so a line search and the next
-        iterate reuse them (a body's vertices count as moved points too)."""
+    def _active(self, x: Tensor, dx: Tensor | None = None, radius: float | None = None):
+        """The candidate pairs within ``radius`` (default ``dhat``) of ``x``, or of any point along ``x + t dx``
+        (``t`` in ``[0, 1]``: the step bound's), and the edge pairs' mollifier thresholds.  Found over the points'
+        boxes (swept along ``dx``, widened by a twentieth of ``dhat``), they serve every later ``x`` whose points
+        all lie in their boxes (no other pair can be that close): a line search and the next iterate reuse the
+        step's (a body's vertices count as points too).  A step whose boxes are far smaller than the kept ones
+        searches afresh (one long step's boxes would otherwise hold on to its many candidates)."""
         r_need = self.dhat if radius is None else radius
         c = self._cache
         xa = self._points(x).detach()
-        if c is not None and c[0].shape == xa.shape and c[0].device == xa.device and c[0].dtype == xa.dtype:
-            moved = float((xa - c[0]).norm(dim=-1).max()) if xa.shape[0] else 0.0
-            if 2 * moved <= c[1] - r_need:
-                return c[2], c[3], c[4]
-        pt, ee, pairs = self._candidates(xa, r_need)
+        end = xa
+        if dx is not None:
+            end = xa + torch.cat([dx.detach(), dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa.dtype)
+        if c is not None and c[0].shape == xa.shape and c[0].device == xa.device and c[0].dtype == xa.dtype \
+                and c[2] >= r_need:
+            lo, hi = c[0], c[1]
+            inside = bool(((xa >= lo) & (xa <= hi)).all()) and (dx is None or bool(((end >= lo) & (end <= hi)).all()))
+            if inside and (dx is None or float((hi - lo).amax()) <= 2 * float((end - xa).abs().amax()) + 4 * c[3]):
+                return c[4], c[5], c[6]
+        slack = 0.05 * self.dhat
+        lo, hi = torch.minimum(xa, end) - slack, torch.maximum(xa, end) + slack
+        pt, ee, pairs = self._candidates(lo, hi, r_need)
         assert self._rest_len_sq is not None
         r = self._rest_len_sq.to(device=x.device, dtype=x.dtype)
         eps = 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
-        if radius is not None:
-            self._cache = (xa.clone(), r_need, pt, ee, eps)
+        self._cache = (lo, hi, r_need, slack, pt, ee, eps)
         return pt, ee, eps
 
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -260,7 +280,7 @@ class _ContactPairs:
         m = float(move.max()) if move.numel() else 0.0
         if m == 0:
             return 1.0
-        pt, ee, _ = self._active(x, radius=self.dhat + 2 * m)
+        pt, ee, _ = self._active(x, dx)
         xa = self._points(x).detach()
         move = torch.cat([move, move.new_zeros(xa.shape[0] - x.shape[0])])  # a body is still during a step
         alpha = 1.0
@@ -422,7 +442,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         self.faces: Tensor | None = None
         self.edges: Tensor | None = None
         self._rest_len_sq: Tensor | None = None
-        self._cache: tuple | None = None  # (x_ref, radius, pairs...) of the last max_step (_active)
+        self._cache: tuple | None = None  # (boxes lo, hi, radius, slack, pairs...) of _active
         self._close_cache: tuple | None = None  # (points, _cache, the pairs within dhat) of the last x (_close)
         self._V = 0
         self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
@@ -588,20 +608,17 @@ class MeshCollider(SelfContact):
     def _points_require_grad(self) -> bool:
         return self.vertices.requires_grad
 
-    def _candidates(self, xa: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+    def _candidates(self, lo: Tensor, hi: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
         faces, edges = self._mesh()
-        faces, edges = faces.to(xa.device), edges.to(xa.device)
+        faces, edges = faces.to(lo.device), edges.to(lo.device)
         V = self._V
-        bf = self.body_faces.to(xa.device) + V
-        be = self.body_edges.to(xa.device) + V
-        cloth, body = xa[:V], xa[V:]
-        tb_, tc = xa[bf], xa[faces]
+        bf = self.body_faces.to(lo.device) + V
+        be = self.body_edges.to(lo.device) + V
         half = 0.5 * radius
-        a = box_pairs(cloth, cloth, tb_.amin(1), tb_.amax(1), half)  # cloth vertex - body triangle
-        b = box_pairs(body, body, tc.amin(1), tc.amax(1), half)  # body vertex - cloth triangle
+        a = box_pairs(lo[:V], hi[:V], lo[bf].amin(1), hi[bf].amax(1), half)  # cloth vertex - body triangle
+        b = box_pairs(lo[V:], hi[V:], lo[faces].amin(1), hi[faces].amax(1), half)  # body vertex - cloth triangle
         pt = torch.cat([torch.cat([a[:, :1], bf[a[:, 1]]], 1), torch.cat([b[:, :1] + V, faces[b[:, 1]]], 1)])
-        sc, sb = xa[edges], xa[be]
-        ee = box_pairs(sc.amin(1), sc.amax(1), sb.amin(1), sb.amax(1), half)
+        ee = box_pairs(lo[edges].amin(1), hi[edges].amax(1), lo[be].amin(1), hi[be].amax(1), half)
         stencils = torch.cat([edges[ee[:, 0]], be[ee[:, 1]]], 1)
         return pt, stencils, torch.stack([ee[:, 0], ee[:, 1] + edges.shape[0]], 1)
 
