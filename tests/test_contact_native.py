@@ -176,6 +176,29 @@ def test_box_pairs_of_mixed_sizes_are_those_of_brute_force(spread):
         assert torch.equal(up, ref[ref[:, 0] < ref[:, 1]]) and up.shape[0] > 50
 
 
+@pytest.mark.parametrize("swept", [False, True])
+def test_mesh_candidates_are_those_of_the_box_pairs(swept):
+    """contact_candidates (one call) against its definition by two box-pair searches over the primitives' boxes:
+    a crumpled grid, its vertices' boxes around the points or swept along a random step."""
+    rest, faces = tb.scenes.grid(12, 12, (0.2, 0.2), dtype=F64)
+    g = torch.Generator().manual_seed(3)
+    x = rest + 0.02 * torch.randn(rest.shape, generator=g, dtype=F64)
+    edges = tb.ClothModel(faces, x).topology.edges
+    dx = 0.05 * torch.randn(x.shape, generator=g, dtype=F64) if swept else None
+    lo, hi = scm.vertex_boxes(x, dx, 1e-4)
+    pt, ee, pairs = native.contact_candidates(lo, hi, faces, edges, 0.01)
+    idx = torch.arange(x.shape[0])
+    ref_pt = native.contact_box_pairs(lo, hi, lo[faces].amin(1), hi[faces].amax(1), 0.005, ids_a=idx[:, None],
+                                      ids_b=faces)
+    assert torch.equal(pt, torch.cat([ref_pt[:, :1], faces[ref_pt[:, 1]]], 1))
+    elo, ehi = lo[edges].amin(1), hi[edges].amax(1)
+    ref_ee = native.contact_box_pairs(elo, ehi, elo, ehi, 0.005, upper=True, ids_a=edges, ids_b=edges)
+    assert torch.equal(pairs, ref_ee) and torch.equal(ee, torch.cat([edges[ref_ee[:, 0]], edges[ref_ee[:, 1]]], 1))
+    assert pt.shape[0] > 100 and ee.shape[0] > 100
+    with pytest.raises(ValueError, match="faces"):
+        native.contact_candidates(lo, hi, faces + x.shape[0], edges, 0.01)
+
+
 def test_stencil_sum_is_the_eager_one():
     g = torch.Generator().manual_seed(8)
     V = 30

@@ -41,7 +41,7 @@ from ._table import MEMBRANE_MODEL_CODE, MEMBRANE_PROJECTION_CODE, PROJECTION_CO
 
 __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_arrays", "incidence", "bending_energy",
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
-           "project_blocks", "contact_box_pairs", "contact_distances", "contact_close",
+           "project_blocks", "contact_box_pairs", "contact_candidates", "contact_distances", "contact_close",
            "contact_step_bound", "contact_barrier",
            "contact_stencil_sum", "contact_hessian_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
@@ -156,13 +156,23 @@ def project_blocks(M: Tensor, mode: str, hinge: bool = False) -> Tensor:
 def contact_box_pairs(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, pad: float, upper: bool = False,
                       ids_a: Tensor | None = None, ids_b: Tensor | None = None) -> Tensor:
     """Index pairs ``(K, 2)`` of boxes ``(lo, hi)`` of A and B (``(n, 3)`` each) that overlap when each is padded by
-    ``pad``: a uniform grid of cells one box plus ``2 pad`` wide, hashed, each box of B filed under its lower
-    corner's cell and each box of A tested against the 27 cells around its own (cost: the boxes and the pairs).
+    ``pad``: a uniform grid of cells about B's mean box plus ``2 pad`` wide (a dense table, hashed where sparse),
+    each box of B filed under every cell it covers and each box of A tested against those of its cells, each pair
+    in the first cell the two share (cost: the boxes' cells and the pairs; long boxes do not enlarge the cells).
     ``upper`` (A = B): pairs ``a < b`` only; ``ids_a (Na, ka)``, ``ids_b (Nb, kb)`` (int64): pairs whose rows share
     a value are left out.  Each box's partners in increasing order."""
     none = torch.zeros(0, 0, dtype=torch.int64)
     return _module().contact_box_pairs(lo_a, hi_a, lo_b, hi_b, float(pad), bool(upper),
                                        none if ids_a is None else ids_a, none if ids_b is None else ids_b)
+
+
+def contact_candidates(lo: Tensor, hi: Tensor, faces: Tensor, edges: Tensor, radius: float
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(point-triangle stencils (P, 4), edge-edge stencils (Q, 4), their edges' indices (Q, 2))`` of a mesh over
+    its vertices' boxes ``lo``, ``hi`` ``(V, 3)``: each vertex against each face without it and each edge against
+    each later edge that shares no vertex with it, whose boxes (a primitive's holds its vertices') come within
+    ``radius``; each vertex's and edge's partners in order (:func:`contact_box_pairs` twice, in one call)."""
+    return _module().contact_candidates(lo, hi, faces, edges, float(radius))
 
 
 def contact_distances(x: Tensor, stencils: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:

@@ -36,7 +36,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the (projected) Hessian-vector product of each sample of any membrane model, weighted, and the directional "
         "derivative of its energy");
   m.def("contact_box_pairs", &op::contact_box_pairs,
-        "pairs of overlapping padded boxes (a hashed uniform grid), without pairs that share an id");
+        "pairs of overlapping padded boxes (a uniform grid, hashed where sparse), without pairs that share an id");
+  m.def("contact_candidates", &op::contact_candidates,
+        "the candidate point-triangle and edge-edge stencils of a mesh over its vertices' boxes");
   m.def("contact_distances", &op::contact_distances, "distance types and squared distances of contact stencils");
   m.def("contact_close", &op::contact_close,
         "the contact stencils closer than dhat with their types, each vertex-edge and vertex-vertex contact once");

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <limits>
+#include <tuple>
 #include <vector>
 
 #include "cpu_contact.h"
@@ -226,6 +227,73 @@ torch::Tensor contact_box_pairs(torch::Tensor lo_a, torch::Tensor hi_a, torch::T
   auto out = torch::empty({int64_t(pairs.size() / 2), 2}, lo_a.options().dtype(torch::kLong));
   std::copy(pairs.begin(), pairs.end(), out.data_ptr<int64_t>());
   return out;
+}
+
+// the candidate stencils of a mesh over its vertices' boxes (lo, hi): each vertex against each face without it and
+// each edge against each later edge sharing no vertex, whose boxes (a primitive's: its vertices') come within radius
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_candidates(torch::Tensor lo, torch::Tensor hi,
+                                                                           torch::Tensor faces, torch::Tensor edges,
+                                                                           double radius) {
+  const char* op = "contact_candidates";
+  ck::require(lo.device().is_cpu() && lo.dim() == 2 && lo.size(1) == 3 && lo.is_floating_point() &&
+              hi.sizes() == lo.sizes() && hi.scalar_type() == lo.scalar_type() && hi.device().is_cpu(), op,
+              "lo and hi must be CPU (V, 3) float tensors of one dtype, got ", ck::shape_str(lo), " and ",
+              ck::shape_str(hi));
+  ck::require(radius >= 0 && std::isfinite(radius), op, "radius must be finite and >= 0, got ", radius);
+  const int64_t V = lo.size(0);
+  faces = ck::index_tensor(op, "faces", faces, lo.device());
+  edges = ck::index_tensor(op, "edges", edges, lo.device());
+  ck::require(faces.dim() == 2 && faces.size(1) == 3 && edges.dim() == 2 && edges.size(1) == 2, op,
+              "faces must be (F, 3) and edges (E, 2), got ", ck::shape_str(faces), " and ", ck::shape_str(edges));
+  ck::check_range(op, "faces", faces, 0, V, "vertex indices");
+  ck::check_range(op, "edges", edges, 0, V, "vertex indices");
+  lo = lo.contiguous(); hi = hi.contiguous();
+  ck::require(finite_status(lo, 1) == 0 && finite_status(hi, 1) == 0, op, "the boxes' corners must be finite");
+  const int64_t F = faces.size(0), E = edges.size(0);
+  const int64_t* pf = faces.data_ptr<int64_t>();
+  const int64_t* pe = edges.data_ptr<int64_t>();
+  std::vector<int64_t> pt, ee;
+  AT_DISPATCH_FLOATING_TYPES(lo.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    const T* pl = lo.data_ptr<T>();
+    const T* ph = hi.data_ptr<T>();
+    auto boxes = [&](const int64_t* prim, int64_t n, int k, std::vector<T>& bl, std::vector<T>& bh) {
+      bl.resize(3 * n); bh.resize(3 * n);
+      for (int64_t i = 0; i < n; ++i)
+        for (int c = 0; c < 3; ++c) {
+          T a = pl[3 * prim[k * i] + c], b = ph[3 * prim[k * i] + c];
+          for (int j = 1; j < k; ++j) {
+            a = std::min(a, pl[3 * prim[k * i + j] + c]);
+            b = std::max(b, ph[3 * prim[k * i + j] + c]);
+          }
+          bl[3 * i + c] = a; bh[3 * i + c] = b;
+        }
+    };
+    std::vector<T> fl, fh, el, eh;
+    boxes(pf, F, 3, fl, fh);
+    boxes(pe, E, 2, el, eh);
+    std::vector<int64_t> ids(V);
+    for (int64_t v = 0; v < V; ++v) ids[v] = v;
+    const T pad = T(0.5 * radius);
+    if (V > 0 && F > 0) box_pairs_impl<T>(pl, ph, V, fl.data(), fh.data(), F, pad, false, ids.data(), 1, pf, 3, pt);
+    if (E > 0) box_pairs_impl<T>(el.data(), eh.data(), E, el.data(), eh.data(), E, pad, true, pe, 2, pe, 2, ee);
+  });
+  const int64_t P = int64_t(pt.size() / 2), Q = int64_t(ee.size() / 2);
+  auto opt = faces.options();
+  auto st_pt = torch::empty({P, 4}, opt), st_ee = torch::empty({Q, 4}, opt), pairs = torch::empty({Q, 2}, opt);
+  int64_t* a = st_pt.data_ptr<int64_t>();
+  for (int64_t i = 0; i < P; ++i) {
+    const int64_t f = pt[2 * i + 1];
+    a[4 * i] = pt[2 * i]; a[4 * i + 1] = pf[3 * f]; a[4 * i + 2] = pf[3 * f + 1]; a[4 * i + 3] = pf[3 * f + 2];
+  }
+  int64_t* b = st_ee.data_ptr<int64_t>();
+  int64_t* c = pairs.data_ptr<int64_t>();
+  for (int64_t i = 0; i < Q; ++i) {
+    const int64_t e0 = ee[2 * i], e1 = ee[2 * i + 1];
+    b[4 * i] = pe[2 * e0]; b[4 * i + 1] = pe[2 * e0 + 1]; b[4 * i + 2] = pe[2 * e1]; b[4 * i + 3] = pe[2 * e1 + 1];
+    c[2 * i] = e0; c[2 * i + 1] = e1;
+  }
+  return {st_pt, st_ee, pairs};
 }
 
 }  // namespace cpu

@@ -17,7 +17,7 @@
 #include "contact_frame.h"
 #include "contact_math.h"
 #include "cpu_contact.h"
-#include "cpu_symeig.h"
+#include "cpu_contact_lanes.h"
 #include "cpu_tiles.h"
 
 namespace torchbend {
@@ -208,92 +208,6 @@ namespace {
 
 constexpr int kPairChunk = 256;
 
-// project the pairs `idx` (all with N = 3 r reduced coordinates) of a chunk, kLanes at a time: P = R^-T proj(R^T H R)
-// R^-1 back into terms[i].H, or (H12 given) expanded to the pairs' 12x12 blocks there
-// the lanes of a projection tile (two vectors of lanes measured no faster: the QL iterations go by the slowest lane)
-constexpr int kLanes = W;
-
-template <typename T, int N>
-void project_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
-                   T* H12) {
-  constexpr int r = N / 3;
-  for (size_t t0 = 0; t0 < idx.size(); t0 += kLanes) {
-    const int nl = int(std::min<size_t>(kLanes, idx.size() - t0));
-    alignas(64) T A[N][N][kLanes];
-    T Ri[kLanes][3][3];
-    for (int l = 0; l < kLanes; ++l) {
-      if (l >= nl) {
-        for (int i = 0; i < N; ++i) for (int j = 0; j < N; ++j) A[i][j][l] = 0;
-        continue;
-      }
-      const auto& p = terms[idx[t0 + l]];
-      T R[3][3], M[81];
-      cm::gram_cholesky(p.C, r, R, Ri[l]);
-      cm::congruence(R, r, p.H, M);
-      for (int i = 0; i < N; ++i)
-        for (int j = 0; j < N; ++j) A[i][j][l] = T(0.5) * (M[N * i + j] + M[N * j + i]);
-    }
-    ql_project<T, N, kLanes>(A, abs_mode);
-    for (int l = 0; l < nl; ++l) {
-      auto& p = terms[idx[t0 + l]];
-      T M[81];
-      for (int i = 0; i < N; ++i) for (int j = 0; j < N; ++j) M[N * i + j] = A[i][j][l];
-      cm::congruence(Ri[l], r, M, p.H);
-      if (H12) cm::expand_hessian(p.C, r, p.H, H12 + 144 * (base + idx[t0 + l]));
-    }
-  }
-}
-
-// project the unmollified pairs `idx` with r = 2 or 3 rows in their normal frame (contact_frame.h): S = Lb^T H Lb
-// (m x m), proj(S) by lanes, U proj(S) U^T back into terms[i].H (and expanded to 12x12 blocks where H12 is given)
-template <typename T, int r>
-void frame_group(std::vector<cm::PairTerms<T>>& terms, const std::vector<int>& idx, int64_t base, bool abs_mode,
-                 T* H12) {
-  constexpr int k = 3 * r, m = r + 2;
-  for (size_t t0 = 0; t0 < idx.size(); t0 += kLanes) {
-    const int nl = int(std::min<size_t>(kLanes, idx.size() - t0));
-    alignas(64) T A[m][m][kLanes];
-    T U[kLanes][k * m];
-    for (int l = 0; l < kLanes; ++l) {
-      for (int i = 0; i < m; ++i) for (int j = 0; j < m; ++j) A[i][j][l] = 0;
-      if (l >= nl) continue;
-      const auto& p = terms[idx[t0 + l]];
-      T Lb[k * m], HL[k * m];
-      cm::pair_frame(p.C, r, p.g, Lb, U[l]);
-      for (int i = 0; i < k; ++i)
-        for (int j = 0; j < m; ++j) {
-          T s = 0;
-          for (int c = 0; c < k; ++c) s += p.H[k * i + c] * Lb[m * c + j];
-          HL[m * i + j] = s;
-        }
-      for (int i = 0; i < m; ++i)
-        for (int j = i; j < m; ++j) {
-          T s = 0, t = 0;
-          for (int c = 0; c < k; ++c) { s += Lb[m * c + i] * HL[m * c + j]; t += Lb[m * c + j] * HL[m * c + i]; }
-          A[i][j][l] = A[j][i][l] = T(0.5) * (s + t);
-        }
-    }
-    ql_project<T, m, kLanes>(A, abs_mode);
-    for (int l = 0; l < nl; ++l) {
-      auto& p = terms[idx[t0 + l]];
-      T US[k * m];
-      for (int i = 0; i < k; ++i)
-        for (int j = 0; j < m; ++j) {
-          T s = 0;
-          for (int c = 0; c < m; ++c) s += U[l][m * i + c] * A[c][j][l];
-          US[m * i + j] = s;
-        }
-      for (int i = 0; i < k; ++i)
-        for (int j = i; j < k; ++j) {
-          T s = 0;
-          for (int c = 0; c < m; ++c) s += US[m * i + c] * U[l][m * j + c];
-          p.H[k * i + j] = p.H[k * j + i] = s;
-        }
-      if (H12) cm::expand_hessian(p.C, r, p.H, H12 + 144 * (base + idx[t0 + l]));
-    }
-  }
-}
-
 // the pairs base .. base + n - 1: their terms (Hessians in reduced coordinates, projected unless mode < 0) and,
 // where given, their energies, 12-gradients and 12x12 Hessians
 template <typename T>
@@ -445,14 +359,16 @@ BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch:
       if (ps[4 * m + a] < V)
         for (int b = 0; b < 4; ++b)
           if (ps[4 * m + b] < V) entry[fill[ps[4 * m + a]]++] = {ps[4 * m + b], 16 * m + 4 * a + b};
+  // each row's distinct columns by a mark per column vertex (the rows' entries are many, their columns few)
   P.nb.assign(V, 0);
   at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
+    std::vector<int64_t> mark(V, -1);
     for (int64_t v = v0; v < v1; ++v) {
-      auto b = entry.begin() + count[v], e = entry.begin() + count[v + 1];
-      std::sort(b, e);
-      int64_t k = 0, last = -1;
-      for (auto it = b; it != e; ++it)
-        if (it->first != last) { last = it->first; ++k; }
+      int64_t k = 0;
+      for (int64_t q = count[v]; q < count[v + 1]; ++q) {
+        const int64_t w = entry[q].first;
+        if (mark[w] != v) { mark[w] = v; ++k; }
+      }
       P.nb[v] = k;
     }
   });
@@ -464,21 +380,24 @@ BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch:
   int64_t* prow = P.indices.data_ptr<int64_t>();
   int64_t* pcol = prow + 9 * P.U;
   at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
+    std::vector<int64_t> mark(V, -1), pos(V, 0), cols;
     for (int64_t v = v0; v < v1; ++v) {
-      int64_t j = -1, last = -1;
-      const int64_t len = 3 * P.nb[v];
+      cols.clear();
       for (int64_t q = count[v]; q < count[v + 1]; ++q) {
         const int64_t w = entry[q].first;
-        if (w != last) {
-          last = w; ++j;
-          for (int p = 0; p < 3; ++p)
-            for (int s = 0; s < 3; ++s) {
-              const int64_t i = 9 * P.first[v] + 3 * j + p * len + s;
-              prow[i] = 3 * v + p; pcol[i] = 3 * w + s;
-            }
-        }
-        P.at[entry[q].second] = 9 * P.first[v] + 3 * j;
+        if (mark[w] != v) { mark[w] = v; cols.push_back(w); }
       }
+      std::sort(cols.begin(), cols.end());  // row-major: the columns in order
+      const int64_t len = 3 * P.nb[v];
+      for (size_t j = 0; j < cols.size(); ++j) {
+        pos[cols[j]] = int64_t(j);
+        for (int p = 0; p < 3; ++p)
+          for (int s = 0; s < 3; ++s) {
+            const int64_t i = 9 * P.first[v] + 3 * int64_t(j) + p * len + s;
+            prow[i] = 3 * v + p; pcol[i] = 3 * cols[j] + s;
+          }
+      }
+      for (int64_t q = count[v]; q < count[v + 1]; ++q) P.at[entry[q].second] = 9 * P.first[v] + 3 * pos[entry[q].first];
     }
   });
   return P;

@@ -11,6 +11,12 @@ namespace cpu {
 // rows of ids_a and ids_b (int64, one row per box; empty: none) share a value; upper: A = B, pairs a < b only
 torch::Tensor contact_box_pairs(torch::Tensor lo_a, torch::Tensor hi_a, torch::Tensor lo_b, torch::Tensor hi_b,
                                 double pad, bool upper, torch::Tensor ids_a, torch::Tensor ids_b);
+// (point-triangle stencils (P, 4), edge-edge stencils (Q, 4), their edges' indices (Q, 2)) of a mesh over its vertices'
+// boxes lo, hi (V, 3): each vertex against each face without it, each edge against each later edge sharing no vertex,
+// whose boxes (a primitive's holds its vertices') come within radius
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_candidates(torch::Tensor lo, torch::Tensor hi,
+                                                                           torch::Tensor faces, torch::Tensor edges,
+                                                                           double radius);
 // (types (N,) int64, squared distances (N,)) of point-triangle (edge_edge false) or edge-edge stencils (N, 4)
 // over the points x (n, 3)
 std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torch::Tensor stencils, bool edge_edge);

@@ -143,12 +143,30 @@ def vertex_boxes(x: Tensor, dx: Tensor | None = None, slack: float = 0.0) -> tup
 
 def _box_candidates(lo: Tensor, hi: Tensor, faces: Tensor, edges: Tensor, radius: float):
     """:func:`candidate_pairs` over the vertices' boxes ``lo``, ``hi`` (a primitive's box holds its vertices')."""
+    if _native_ok(lo):
+        return native.contact_candidates(lo, hi, faces, edges, radius)
     idx = torch.arange(lo.shape[0], device=lo.device)
     pt = box_pairs(lo, hi, lo[faces].amin(1), hi[faces].amax(1), 0.5 * radius, ids_a=idx[:, None], ids_b=faces)
     pt = torch.cat([pt[:, :1], faces[pt[:, 1]]], 1)
     elo, ehi = lo[edges].amin(1), hi[edges].amax(1)
     ee = box_pairs(elo, ehi, elo, ehi, 0.5 * radius, upper=True, ids_a=edges, ids_b=edges)
     return pt, torch.cat([edges[ee[:, 0]], edges[ee[:, 1]]], 1), ee
+
+
+def _covers(cache: tuple | None, xa: Tensor, end: Tensor | None, radius: float) -> bool:
+    """Whether the kept candidates ``cache`` (:meth:`_ContactPairs._active`'s: boxes ``lo``, ``hi``, their
+    radius and slack, ...) serve the points ``xa``, and the step's ends ``end`` (given for a step bound): every
+    point in its box, and a step's boxes not far smaller than the kept ones."""
+    if cache is None or cache[0].shape != xa.shape or cache[0].device != xa.device or cache[0].dtype != xa.dtype \
+            or cache[2] < radius:
+        return False
+    lo, hi = cache[0], cache[1]
+    if not bool(((xa >= lo) & (xa <= hi)).all()):
+        return False
+    if end is None:
+        return True
+    return bool(((end >= lo) & (end <= hi)).all()) and \
+        float((hi - lo).amax()) <= 2 * float((end - xa).abs().amax()) + 4 * cache[3]
 
 
 def _distances(xa: Tensor, st: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:
@@ -205,18 +223,10 @@ class _ContactPairs:
         all lie in their boxes (no other pair can be that close): a line search and the next iterate reuse the
         step's (a body's vertices count as points too).  A step whose boxes are far smaller than the kept ones
         searches afresh (one long step's boxes would otherwise hold on to its many candidates)."""
-        r_need = self.dhat if radius is None else radius
-        c = self._cache
-        xa = self._points(x).detach()
-        end = xa
-        if dx is not None:
-            end = xa + torch.cat([dx.detach(), dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa.dtype)
-        if c is not None and c[0].shape == xa.shape and c[0].device == xa.device and c[0].dtype == xa.dtype \
-                and c[2] >= r_need:
-            lo, hi = c[0], c[1]
-            inside = bool(((xa >= lo) & (xa <= hi)).all()) and (dx is None or bool(((end >= lo) & (end <= hi)).all()))
-            if inside and (dx is None or float((hi - lo).amax()) <= 2 * float((end - xa).abs().amax()) + 4 * c[3]):
-                return c[4], c[5], c[6]
+        r_need, c, xa = self.dhat if radius is None else radius, self._cache, self._points(x).detach()
+        end = xa if dx is None else xa + torch.cat([dx.detach(), dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa)
+        if _covers(c, xa, None if dx is None else end, r_need):
+            return c[4], c[5], c[6]
         slack = 0.05 * self.dhat
         lo, hi = torch.minimum(xa, end) - slack, torch.maximum(xa, end) + slack
         pt, ee, pairs = self._candidates(lo, hi, r_need)
