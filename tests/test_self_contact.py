@@ -244,6 +244,7 @@ def test_a_long_step_searches_its_swept_boxes_and_a_short_one_afterwards_searche
     dx = torch.zeros_like(x)
     dx[V:, 2] = -0.05
     alpha = sc.max_step(x, dx, tb.StepContext())
+    assert sc._cache is not None
     swept = sum(int(t.shape[0]) for t in sc._cache[4:6])
     everything = sum(int(t.shape[0]) for t in candidate_pairs(x, topo.faces, topo.edges, 0.1 + sc.dhat)[:2])
     assert swept < everything / 10, (swept, everything)
@@ -254,7 +255,7 @@ def test_a_long_step_searches_its_swept_boxes_and_a_short_one_afterwards_searche
     short = 1e-2 * dx
     sc.max_step(y, short, tb.StepContext())
     fresh = sum(int(t.shape[0]) for t in candidate_pairs(y, topo.faces, topo.edges, sc.dhat, short, 0.05 * sc.dhat)[:2])
-    assert sum(int(t.shape[0]) for t in sc._cache[4:6]) == fresh
+    assert sc._cache is not None and sum(int(t.shape[0]) for t in sc._cache[4:6]) == fresh
 
 
 def test_a_sheet_falls_onto_another_and_rests_apart_in_every_step():

@@ -225,7 +225,7 @@ class _ContactPairs:
         searches afresh (one long step's boxes would otherwise hold on to its many candidates)."""
         r_need, c, xa = self.dhat if radius is None else radius, self._cache, self._points(x).detach()
         end = xa if dx is None else xa + torch.cat([dx.detach(), dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa)
-        if _covers(c, xa, None if dx is None else end, r_need):
+        if c is not None and _covers(c, xa, None if dx is None else end, r_need):
             return c[4], c[5], c[6]
         slack = 0.05 * self.dhat
         lo, hi = torch.minimum(xa, end) - slack, torch.maximum(xa, end) + slack
