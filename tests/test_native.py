@@ -300,6 +300,34 @@ def _scatter_case(n: int, perm: bool, batch: tuple = ()):
     return run, reference
 
 
+@pytest.mark.parametrize("shuffled", [False, True])
+@pytest.mark.parametrize("assembly", ["triangle", "hinge"])
+def test_native_assembly_in_parts_same_bits_for_any_thread_count(assembly, shuffled):
+    """The C++ assembly runs in parts over the block rows, one per thread (a mesh of 33k+ hinges has two): each
+    value is added to by one part in one order, so 1 and 2 threads give the same bits, hinges in mesh order or
+    shuffled (every hinge then straddles the parts), and the eager assembly's values to round-off."""
+    rest, faces = tb.scenes.random_curved_sheet(110, 110, amplitude=0.3, seed=6, dtype=F64)
+    if shuffled:  # vertices renumbered at random: most hinges straddle the two parts
+        perm = torch.randperm(rest.shape[0], generator=torch.Generator().manual_seed(7))
+        inv = torch.empty_like(perm)
+        inv[perm] = torch.arange(perm.shape[0])
+        rest, faces = rest[perm], inv[faces]
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2)
+    assert bend.hinge_count >= 2 * 16384
+    x = rest + 1e-4 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(8), dtype=F64)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = bend.hessian(x, assembly=assembly).values()
+        torch.set_num_threads(2)
+        two = bend.hessian(x, assembly=assembly).values()
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+    ref = bend.hessian(x, assembly=assembly, backend="eager").values()
+    assert rel(one, ref) <= 1e-14
+
+
 @pytest.mark.parametrize("perm", [False, True])
 @pytest.mark.parametrize("batch", [(), (2,)])
 def test_native_vertex_sums_deterministic_across_threads(kernel, perm, batch):
