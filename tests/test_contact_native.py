@@ -199,6 +199,23 @@ def test_mesh_candidates_are_those_of_the_box_pairs(swept):
         native.contact_candidates(lo, hi, faces + x.shape[0], edges, 0.01)
 
 
+def test_box_pairs_in_float32_far_from_the_origin_are_those_of_brute_force():
+    """float32 boxes about 1e3 m from the origin whose gaps are 2 pad rounded in float32 (the test's sum rounds up to
+    an overlap): each such pair is found whatever cell boundary falls in the gap (the grid's margin covers the final
+    test's rounding)."""
+    g = torch.Generator().manual_seed(12)
+    n, pad, w = 3000, 1e-3, 1e-3  # boxes a millimetre wide: cells of a few millimetres, float32's ulp 3e-5-1e-4 m
+    hb = (500 + 1000 * torch.rand(n, generator=g, dtype=F64)).float()
+    lo_b = torch.stack([hb - w, torch.zeros(n), torch.zeros(n)], 1)
+    hi_b = torch.stack([hb, torch.full((n,), w), torch.full((n,), w)], 1)
+    la = hb + torch.tensor(2 * pad, dtype=torch.float32)  # rounded in float32, as the kernel's test is
+    lo_a = torch.stack([la, torch.zeros(n), torch.zeros(n)], 1)
+    hi_a = torch.stack([la + w, torch.full((n,), w), torch.full((n,), w)], 1)
+    got = native.contact_box_pairs(lo_a, hi_a, lo_b, hi_b, pad)
+    ref = brute_box_pairs(lo_a, hi_a, lo_b, hi_b, torch.tensor(pad, dtype=torch.float32))
+    assert torch.equal(got, ref) and (got[:, 0] == got[:, 1]).sum() == n
+
+
 def test_stencil_sum_is_the_eager_one():
     g = torch.Generator().manual_seed(8)
     V = 30
@@ -354,3 +371,28 @@ def test_projection_in_the_normal_frame_holds_at_the_extremes(case, dtype):
             P = native.contact_barrier(xa, st, types, None, dhat ** 2, 1.0, 2, mode)[2].double()
             err = ((P - psd(H, mode)).abs() / H.abs().amax((1, 2), keepdim=True).clamp_min(1e-300)).amax((1, 2))
             assert float(err[active].max()) <= 200 * torch.finfo(dtype).eps, (edge_edge, mode, float(err.max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_projection_in_the_normal_frame_of_pairs_just_inside_dhat(dtype):
+    """A point-plane and a point-line pair a ten-millionth to a ten-thousandth inside dhat = 1 mm: the barrier's
+    gradient is so small that its square underflows in float32 (the frame is built from the gradient scaled by its
+    largest entry); the clamp projection against eigh of the same unprojected Hessian."""
+    dhat = 1e-3
+    rows = []
+    for frac in (1 - 1e-7, 1 - 1e-6, 1 - 1e-4, 0.5):
+        d = dhat * frac
+        rows.append([[0.2, 0.2, d], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # above the face
+        rows.append([[0.5, -d, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # beside the edge t0 t1
+    X = torch.tensor(rows, dtype=dtype)
+    xa, st = flat(X)
+    types = torch.tensor([dist.PT_FACE, dist.PT_E01] * 4)
+    assert torch.equal(native.contact_distances(xa, st, False)[0], types)
+    for kappa in (1.0, 1e-6):
+        H = native.contact_barrier(xa, st, types, None, dhat ** 2, kappa, 2, "none")[2].double()
+        P = native.contact_barrier(xa, st, types, None, dhat ** 2, kappa, 2, "clamp")[2].double()
+        scale = H.abs().amax((1, 2), keepdim=True)
+        assert bool((scale > 0).all())
+        err = ((P - psd(H, "clamp")).abs() / scale).amax((1, 2))
+        assert float(err.max()) <= 200 * torch.finfo(dtype).eps, (kappa, err.tolist())
+

@@ -27,17 +27,27 @@ namespace contact {
 // the frame of a pair with r = 2 or 3 rows, unmollified, from its barrier gradient g (3 r, reduced coordinates; a
 // multiple of u's): Lb and U (k x m, row-major, k = 3 r, m = r + 2).  False where g's first block is zero or not
 // finite (d = 0, or a pair beyond dhat: its Hessian is zero and the full eigenproblem handles it).
+// the largest magnitude of g's first block (the frame scales g by it: |g_0|^2 of a pair near dhat underflows in
+// float32 where g_0 itself does not)
+template <typename T> TB_HD static inline T frame_scale(const T* g) {
+  const T a = fabs(g[0]), b = fabs(g[1]), c = fabs(g[2]);
+  return a > b ? (a > c ? a : c) : (b > c ? b : c);
+}
+
 template <typename T> TB_HD static inline bool frame_ok(const T* g) {
-  const T g0 = sqrt(dot3p(g, g));
-  return g0 > 0 && g0 < T(1) / T(0);
+  const T m = frame_scale(g);
+  return m > 0 && m < T(1) / T(0);
 }
 
 template <typename T> TB_HD static inline bool pair_frame(const signed char C[3][4], int r, const T* g, T* Lb, T* U) {
   if (!frame_ok(g)) return false;
-  const T g0 = sqrt(dot3p(g, g));
-  T z[3] = {g[0] / g0, g[1] / g0, g[2] / g0};
+  const T s = T(1) / frame_scale(g);
+  T gs[9];
+  for (int i = 0; i < 3 * r; ++i) gs[i] = g[i] * s;
+  const T g0 = sqrt(dot3p(gs, gs));
+  T z[3] = {gs[0] / g0, gs[1] / g0, gs[2] / g0};
   T om[3] = {1, 0, 0};  // u's reduced weights, up to a common factor: g_i . z / |g_0|
-  for (int i = 1; i < r; ++i) om[i] = dot3p(g + 3 * i, z) / g0;
+  for (int i = 1; i < r; ++i) om[i] = dot3p(gs + 3 * i, z) / g0;
   // an orthonormal basis (p, q) of z-perp (Duff et al. 2017: no division by a small number)
   const T sg = z[2] >= 0 ? T(1) : T(-1), a = T(-1) / (sg + z[2]), b = z[0] * z[1] * a;
   const T p[3] = {1 + sg * z[0] * z[0] * a, sg * b, -sg * z[0]}, q[3] = {b, sg + z[1] * z[1] * a, -z[1]};

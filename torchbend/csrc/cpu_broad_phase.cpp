@@ -67,8 +67,13 @@ void box_pairs_impl(const T* loA, const T* hiA, int64_t nA, const T* loB, const 
   scan(loB, hiB, nB);
   const double ext_b = ext_sum / double(nB);
   scan(loA, hiA, nA);
-  // cells cover the boxes padded by a little more than pad: a pair that overlaps after padding shares a cell
-  const double cpad = double(pad) * (1 + 1e-6) + 1e-300;
+  // cells cover the boxes padded by a little more than pad, and more than the rounding of the final test in T (a
+  // sum of a coordinate and 2 pad: half an ulp of the largest coordinate): a pair that passes it shares a cell
+  double big = 0;
+  for (int64_t i = 0; i < 3 * nA; ++i) big = std::max(big, std::max(std::fabs(double(loA[i])), std::fabs(double(hiA[i]))));
+  for (int64_t i = 0; i < 3 * nB; ++i) big = std::max(big, std::max(std::fabs(double(loB[i])), std::fabs(double(hiB[i]))));
+  const double cpad = double(pad) * (1 + 1e-6) + 4 * double(std::numeric_limits<T>::epsilon()) * (big + double(pad)) +
+                      1e-300;
   double h = std::max(ext_b, ext_max / 32) + 2 * cpad;
   if (!(h > 0) || !std::isfinite(h)) h = 1;
   for (int i = 0; i < 3; ++i) org[i] -= 2 * cpad;
