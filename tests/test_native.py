@@ -372,6 +372,43 @@ def test_native_blocks_same_bits_aligned_or_not(kernel, dtype):
     assert rel(Hb, ref) <= 50 * torch.finfo(dtype).eps
 
 
+@pytest.mark.parametrize("damped", [False, True])
+def test_native_gather_same_bits_full_or_partial_tiles(kernel, dtype, damped):
+    """A full tile of consecutive hinges of one sample is gathered across its lanes (vector loads of each
+    component, the parameters as runs), a partial tile or one that wraps into the next sample lane by lane:
+    each hinge's angle, energy, blocks and angle gradient are the same bits whichever path loaded it.  In a
+    batch of 3 samples of H (not a multiple of 8) hinges with per-sample parameters, most hinges sit in
+    tiles of the other kind than in the per-sample calls."""
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=4, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=0.3)
+    H, B = bend.hinge_count, 3
+    assert H % 8
+    gen = torch.Generator().manual_seed(5)
+    xb = (rest + 0.05 * torch.randn((B,) + rest.shape, generator=gen, dtype=F64)).to(dtype)
+    k = (0.1 + torch.rand((B, H), generator=gen, dtype=F64)).to(dtype)
+    r = (bend.rest_angles + 0.1 * torch.randn((B, H), generator=gen, dtype=F64)).to(dtype)
+    a = bend.weights.to(dtype)
+    c = (0.01 * torch.rand((B, H), generator=gen, dtype=F64)).to(dtype) if damped else None
+    prev = (bend.angles(xb.double()) + 0.05 * torch.randn((B, H), generator=gen, dtype=F64)).to(dtype) if damped else None
+    mod = native.load()
+    code = native.model_code("tan")
+    psi, theta, _ = mod.bending_energy(xb, bend.hinges, a, k.reshape(-1), r.reshape(-1),
+                                       None if c is None else c.reshape(-1), None if prev is None else prev.reshape(-1),
+                                       code, False)
+    Hb, g, _ = native.bending_hessians(xb, bend.hinges, a, k.reshape(-1), r.reshape(-1),
+                                       None if c is None else c.reshape(-1), None if prev is None else prev.reshape(-1),
+                                       "tan")
+    for b in range(B):
+        cb, pb = (None, None) if c is None else (c[b], prev[b])
+        psi1, theta1, _ = mod.bending_energy(xb[b], bend.hinges, a, k[b], r[b], cb, pb, code, False)
+        assert torch.equal(psi1, psi[b]) and torch.equal(theta1, theta[b])
+        Hb1, g1, _ = native.bending_hessians(xb[b], bend.hinges, a, k[b], r[b], cb, pb, "tan")
+        assert torch.equal(Hb1, Hb[b]) and torch.equal(g1, g[b])
+    ref = plain_bending_energy(xb.double(), bend.hinges, a.double(), k.double(), r.double(), "tan",
+                               None if c is None else c.double(), None if prev is None else prev.double())
+    assert rel(psi.double().sum(-1), ref) <= 100 * torch.finfo(dtype).eps
+
+
 def test_large_outputs_reuse_released_memory(kernel):
     """With the (opt-in) cache on, blocks of 4 MB or more take memory released by earlier outputs (warm pages, no
     page faults): never that of a live tensor; native.empty_output_cache() frees it, a limit of 0 turns the cache off."""

@@ -203,9 +203,10 @@ template <typename T, int W> TB_HD static TB_FORCEINLINE T stencil_theta(const T
   for (int m = 0; m < 3; ++m) { e[m] *= p; u[m] *= p; w[m] *= p; }
   C NA[3], NB[3], NN[3];
   cross(e, u, NA); cross(w, e, NB); cross(NA, NB, NN);
+  // atan2(e . (nA x nB), |e| nA . nB): the same angle without a division on the way to atan2's (a collapsed edge
+  // gives atan2(0, 0) = 0, as 0 * (1 / |e|) did)
   C elen = tb_sqrt(dot(e, e));
-  C inv = elen > C(0) ? C(1) / elen : C(0);
-  return T(tb_atan2v(dot(e, NN) * inv, dot(NA, NB)));
+  return T(tb_atan2v(dot(e, NN), elen * dot(NA, NB)));
 }
 
 template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {

@@ -230,10 +230,9 @@ def _outer(u: Tensor, v: Tensor) -> Tensor:
 
 def _theta(e: Vec, nA: Vec, nB: Vec, ee: Tensor | None = None) -> Tensor:
     """The defining formula ``theta = atan2(e0_hat . (nA x nB), nA . nB)`` (``ee = e . e`` if already computed)."""
+    # as atan2(e . (nA x nB), |e| nA . nB): no division (a collapsed edge gives atan2(0, 0) = 0)
     elen = (_dot(e, e) if ee is None else ee).sqrt()
-    pos = (elen > 0).to(elen.dtype)
-    inv = pos / (elen + (1.0 - pos))  # 1/|e|, 0 for a collapsed edge (arithmetic: torch.where is slow)
-    return torch.atan2(_dot(e, _cross(nA, nB)) * inv, _dot(nA, nB))
+    return torch.atan2(_dot(e, _cross(nA, nB)), elen * _dot(nA, nB))
 
 
 _EXP_CLAMP = 1000  # |log2| of the largest stencil scale factor (float64's exponents reach +-1022)
