@@ -418,6 +418,30 @@ def cloth_over_box(gap: float):
     return model, rest, body, bv, bf
 
 
+def test_a_free_cloth_solves_statically_on_a_body_mesh_as_on_a_plane():
+    """No pinned vertex: a body mesh holds the cloth as a plane collider does (the static solve is not refused as
+    unbounded below), and both solves end at the same rest state, within dhat above the body and never on it."""
+    rest, faces = tb.scenes.grid(6, 6, (0.1, 0.1), dtype=F64)
+    rest = rest + torch.tensor([-0.05, -0.05, 5e-4], dtype=F64)
+    floor = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], dtype=F64)
+    out = {}
+    for name, collider in (("mesh", tb.MeshCollider(floor, torch.tensor([[0, 1, 2], [0, 2, 3]]), dhat=1e-3)),
+                           ("plane", tb.Plane())):
+        model = tb.ClothModel(faces, rest, colliders=[collider], density=0.2,
+                              membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                              bending=tb.BendingEnergy(faces, rest, stiffness=1e-5))
+        x, info = tb.solve_static(model, rest)
+        assert info.converged and info.stop_reason != "rigid_body_modes", info.message
+        assert 0 < float(x[:, 2].min()) and float(x[:, 2].max()) < 1e-3
+        out[name] = (x, info)
+    x, info = out["mesh"]
+    assert info.contact_count > 0 and 0 < info.min_distance < 1e-3
+    # the same flat rest state up to the free slide in the plane (no friction in a static solve): the sheet keeps
+    # its shape on both
+    for y, _ in out.values():
+        torch.testing.assert_close(torch.cdist(y, y), torch.cdist(rest, rest), rtol=0, atol=1e-6)
+
+
 def test_mesh_collider_matches_ipctk_on_the_cloth_and_body_mesh():
     ipctk = pytest.importorskip("ipctk")
     model, rest, body, bv, bf = cloth_over_box(1e-3)
@@ -438,6 +462,37 @@ def test_mesh_collider_matches_ipctk_on_the_cloth_and_body_mesh():
     np.testing.assert_allclose(body.gradient(x, ctx).numpy(), g_ref, rtol=0, atol=1e-10 * np.abs(g_ref).max())
     H_ref = B.hessian(coll, mesh, allv, ipctk.PSDProjectionMethod.NONE).toarray()[: 3 * V, : 3 * V]
     np.testing.assert_allclose(body.hessian(x, ctx).to_dense().numpy(), H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())
+
+
+@pytest.mark.parametrize("gap", [5e-4, 3e-3, 2e-2])
+def test_min_distance_is_the_smallest_distance_also_beyond_dhat(gap):
+    """SolveInfo's min_distance of self-contact: ipctk's minimum distance over every pair of non-adjacent
+    primitives, whether the closest pair is within dhat (two sheets 0.5 mm apart), a few dhat away (3 mm) or
+    only inside a sheet (layers 2 cm apart: the grid's own non-adjacent primitives, 14 mm); inf where nothing is
+    within 64 dhat (two triangles 1 m apart); the solver's kept candidates are left as they were."""
+    ipctk = pytest.importorskip("ipctk")
+    rest, faces = tb.scenes.grid(6, 6, (0.1, 0.1), dtype=F64)
+    gen = torch.Generator().manual_seed(0)
+    upper = rest + torch.tensor([0.007, 0.003, gap], dtype=F64) + 1e-4 * torch.randn(rest.shape, generator=gen,
+                                                                                      dtype=F64)
+    x, f = torch.cat([rest, upper]), torch.cat([faces, faces + rest.shape[0]])
+    sc = tb.SelfContact(dhat=1e-3, stiffness=1.0)
+    tb.ClothModel(f, x, terms=[sc])
+    sc.energy(x, tb.StepContext())
+    kept = sc._cache
+    d, count = sc.contact_stats(x)
+    assert sc._cache is kept
+    V, F = x.numpy(), f.numpy().astype(np.int32)
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    coll = ipctk.NormalCollisions()
+    coll.build(mesh, V, 1.0)  # every pair within 1 m: all of them
+    assert math.isclose(d, coll.compute_minimum_distance(mesh, V) ** 0.5, rel_tol=1e-12)
+    assert (count > 0) == (d < sc.dhat)
+    tri = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]], dtype=F64)
+    far = tb.SelfContact(dhat=1e-3, stiffness=1.0)
+    two = torch.cat([tri, tri + torch.tensor([0.0, 0.0, 1.0], dtype=F64)])
+    tb.ClothModel(torch.tensor([[0, 1, 2], [3, 4, 5]]), two, terms=[far])
+    assert far.contact_stats(two) == (math.inf, 0)
 
 
 def test_a_cloth_dropped_on_a_body_mesh_rests_on_it_without_passing_through():
@@ -504,6 +559,10 @@ def _pile(tmp_path, steps: int, resolution: int | None):
     (sc,) = [t for t in model.terms if isinstance(t, tb.SelfContact)]
     stats = run_config(cfg, str(tmp_path), steps=steps, progress=False)
     assert all(s["converged"] for s in stats["steps"])
+    # every step's contact statistics recorded: once the layers land, contacts at a positive distance within dhat
+    landed = [s for s in stats["steps"] if s["contact_count"] > 0]
+    assert landed and all(0 < s["min_distance"] < sc.dhat for s in landed)
+    assert all(s["min_distance"] > 0 for s in stats["steps"])
     topo = model.topology
     frames = sorted((tmp_path / "frames").glob("frame_*.obj"))
     assert len(frames) >= steps // 5

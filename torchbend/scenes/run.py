@@ -3,7 +3,8 @@
 Writes into the output directory (``--out``, default ``runs/<config name>``):
 ``frames/frame_XXXX.obj`` (meshio), ``snapshot.png`` (matplotlib: the cloth and every collider,
 including a robot's link capsules) and ``stats.json`` (the validated config and, per step: Newton
-iterations, residual, energy per term, seconds).  Three scene kinds:
+iterations, residual, energy per term, seconds, the smallest contact distance and the contact count).  Three
+scene kinds:
 
 * ``dynamic`` (e.g. ``cloth_sphere``): implicit Euler steps of a cloth falling onto colliders;
 * ``robot`` (e.g. ``robot_fold``): implicit Euler steps of a cloth held by a URDF robot following
@@ -247,6 +248,7 @@ def _info_dict(info, **extra) -> dict:
     d = {"converged": info.converged, "iterations": info.iterations, "residual": info.residual,
          "energy": info.energy, "energies": info.energies, "seconds": info.seconds,
          "line_search_failures": info.line_search_failures, "message": info.message,
+         "min_distance": info.min_distance, "contact_count": info.contact_count,
          "energy_monotone": all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(info.energy_history, info.energy_history[1:]))}
     d.update(extra)
     return d
@@ -262,6 +264,11 @@ def summary(stats: dict, seconds: float, out: str) -> list[str]:
         lines.append(f"robot-held vertices vs forward kinematics: max error {max(stats['pin_error'], default=0.0):.2e} m")
     if "max_penetration" in stats:
         lines.append(f"max penetration {stats['max_penetration']:.2e} m (mean edge {stats['edge_length']:.3e} m)")
+    near = [s["min_distance"] for s in stats["steps"] if s.get("contact_count")]
+    if near:
+        lines.append(f"contact: {sum(1 for s in stats['steps'] if s.get('contact_count'))} solves with contacts, "
+                     f"smallest distance {min(near):.2e} m, at most {max(s.get('contact_count', 0) for s in stats['steps'])} "
+                     "contacts")
     beams = [s for s in stats["steps"] if "ratio" in s]
     if beams:
         lines.append("beams: tip/Kirchhoff = (tip/linear) x (linear/Kirchhoff); Kirchhoff = q L^4 / (8 D), linear plate "

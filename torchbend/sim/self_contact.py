@@ -321,7 +321,24 @@ class _ContactPairs:
         return best, count
 
     def contact_stats(self, x: Tensor) -> tuple[float, int]:
-        return self.min_distance(x) if self.faces is not None else (math.inf, 0)
+        """``(the smallest distance between non-adjacent primitives if it is within 64 dhat, else inf; the pairs
+        closer than dhat)`` (:class:`~torchbend.SolveInfo`'s ``min_distance``, ``contact_count``).  With no pair
+        within ``dhat`` the search widens fourfold, up to 64 ``dhat``, until it finds one: the value is exact
+        wherever it is finite (every pair within the radius is a candidate).  The wider searches keep the
+        solver's candidates as they were."""
+        if self.faces is None:
+            return math.inf, 0
+        d, count = self.min_distance(x)
+        if d <= self.dhat:
+            return d, count
+        kept, radius = self._cache, self.dhat
+        try:
+            while d > radius and radius < 64 * self.dhat:
+                radius *= 4
+                d = self.min_distance(x, radius=radius)[0]
+        finally:
+            self._cache = kept
+        return (d if d <= radius else math.inf), count
 
     def inadmissible(self, x: Tensor) -> str:
         if self.faces is None:
@@ -585,6 +602,8 @@ class MeshCollider(SelfContact):
     leave the cloth outside it, or the next step refuses its start.  ``stiffness=None``: ``kappa`` from the
     cloth's weight, as :class:`SelfContact`'s.  ``friction = mu``: IPC's lagged friction on the body in time
     steps (module docstring)."""
+
+    confines = True  # a body holds a cloth that has no pinned vertex, as the analytic colliders do
 
     def __init__(self, vertices, faces, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
                  eps_v: float = 1e-3, name: str = "mesh_collider"):
