@@ -374,8 +374,9 @@ def test_native_blocks_same_bits_aligned_or_not(kernel, dtype):
 
 @pytest.mark.parametrize("damped", [False, True])
 def test_native_gather_same_bits_full_or_partial_tiles(kernel, dtype, damped):
-    """A full tile of consecutive hinges of one sample is gathered across its lanes (vector loads of each
-    component, the parameters as runs), a partial tile or one that wraps into the next sample lane by lane:
+    """A full float64 tile of consecutive hinges of one sample is gathered across its lanes (vector loads of each
+    component, the parameters as runs), a partial tile, one that wraps into the next sample or a float32 tile lane
+    by lane:
     each hinge's angle, energy, blocks and angle gradient are the same bits whichever path loaded it.  In a
     batch of 3 samples of H (not a multiple of 8) hinges with per-sample parameters, most hinges sit in
     tiles of the other kind than in the per-sample calls."""
