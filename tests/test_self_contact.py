@@ -495,6 +495,83 @@ def test_min_distance_is_the_smallest_distance_also_beyond_dhat(gap):
     assert far.contact_stats(two) == (math.inf, 0)
 
 
+def test_a_start_that_passes_through_itself_or_a_body_is_refused():
+    """Every distance between primitives is positive where a cloth edge pierces a triangle: the start is refused
+    all the same (naming the edge and the triangle), by a step and by a static solve, for two sheets that cross
+    and for a cloth cut by a body mesh; the crossing test agrees with the brute-force one, and resting contact
+    states are not crossings."""
+    a, fa = tb.scenes.grid(4, 4, (0.1, 0.1), dtype=F64)
+    b = a.clone()
+    b[:, 2] = 0.02 * (b[:, 0] - 0.05)  # tilted through the flat sheet: no vertex of one on the other
+    x0, f = torch.cat([a + torch.tensor([0.0131, 0.0071, 0.0], dtype=F64), b]), torch.cat([fa, fa + 16])
+    sc = tb.SelfContact(dhat=1e-3)
+    model = tb.ClothModel(f, x0, membrane=tb.MembraneEnergy(f, x0, young=1e5, poisson=0.3, thickness=5e-4),
+                          terms=[sc], density=0.2, pinned=list(range(16)))
+    topo = model.topology
+    assert intersects(x0, topo.faces, topo.edges) and sc.min_distance(x0, radius=0.1)[0] > 0
+    edge, tri = sc.crossing(x0)
+    assert not set(edge) & set(tri)
+    with pytest.raises(ValueError, match=r"self_contact: the cloth passes through itself: edge \(\d+, \d+\) crosses "
+                                         r"triangle \(\d+, \d+, \d+\)"):
+        tb.implicit_euler_step(model, tb.ClothState(x0.clone(), torch.zeros_like(x0)), 0.01)
+    with pytest.raises(ValueError, match="passes through itself"):
+        tb.solve_static(model, x0)
+    apart = x0.clone()
+    apart[16:, 2] += 0.0015  # the tilted sheet lifted clear of the flat one (1 mm at its lowest edge): no crossing
+    assert not intersects(apart, topo.faces, topo.edges) and sc.crossing(apart) is None
+
+    rest, faces = tb.scenes.grid(7, 7, (0.3, 0.3), dtype=F64)
+    rest = rest + torch.tensor([-0.037, 0.043, 0.0], dtype=F64)  # overhangs the box on both sides
+    bv, bf = box((0.0, 0.0, -0.1), (0.2, 0.2, 0.005))  # the box's top 5 mm above the cloth: it cuts the cloth
+    body = tb.MeshCollider(bv, bf, dhat=1e-3)
+    model = tb.ClothModel(faces, rest, membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                          colliders=[body], density=0.2)
+    V = rest.shape[0]
+    allf = torch.cat([model.topology.faces, bf + V])
+    alle = torch.cat([allf[:, [0, 1]], allf[:, [1, 2]], allf[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    assert intersects(torch.cat([rest, bv]), allf, alle, cloth=V) and body.min_distance(rest)[0] > 0
+    with pytest.raises(ValueError, match=r"mesh_collider: the cloth and the body mesh intersect: (cloth|body) edge"):
+        tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)
+    body.vertices = bv - torch.tensor([0.0, 0.0, 0.0055], dtype=F64)  # moved below the cloth: a valid start again
+    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)
+    assert info.converged and body.crossing(state.x) is None
+
+
+def test_float32_flat_sheet_is_typed_as_in_float64():
+    """Parallel edges of a flat float32 grid: typed in float64 (in float32 the parallel test is round-off and two
+    parallel diagonals 17.7 mm apart came out as crossing lines at distance 0, refusing every start); the
+    smallest distance is the float64 one to float32's precision, and a step runs."""
+    from torchbend.ops.distance import edge_edge_distance_sq, edge_edge_type
+
+    out = {}
+    for dt in (torch.float64, torch.float32):
+        rest, faces = tb.scenes.grid(9, 3, (0.2, 0.05), dtype=dt)
+        rest = rest + torch.tensor([0.0, 0.0, 1e-3], dtype=dt)
+        X = rest[torch.tensor([[2, 10, 12, 20]])]  # two parallel diagonals
+        assert int(edge_edge_type(X)[0]) == int(edge_edge_type(X.double())[0])
+        assert math.isclose(float(edge_edge_distance_sq(X)[0]), 0.025 ** 2 * 2, rel_tol=1e-6)  # 25 mm by 25 mm
+        sc = tb.SelfContact(dhat=2e-3)
+        model = tb.ClothModel(faces, rest, terms=[sc], density=0.2, pinned=[0, 1, 2],
+                              membrane=tb.MembraneEnergy(faces, rest, young=2e5, poisson=0.3, thickness=5e-4))
+        out[dt] = sc.contact_stats(rest)
+        _, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)
+        assert info.converged and info.min_distance > 0
+    assert math.isclose(out[torch.float32][0], out[torch.float64][0], rel_tol=1e-5)
+
+
+def test_moving_a_body_mesh_checks_its_vertices():
+    bv, bf = box((0.0, 0.0, -0.1), (0.2, 0.2, 0.0))
+    body = tb.MeshCollider(bv, bf, dhat=1e-3)
+    for bad, what in ((bv[:-1], r"moves the body's 8 vertices .* got \(7, 3\)"), (bv.long(), "float tensor"),
+                      (bv * float("nan"), "non-finite"), (bv[:, :2], r"\(Vb, 3\) float tensor")):
+        with pytest.raises(ValueError, match="MeshCollider: vertices .*" + what):
+            body.vertices = bad
+    body.vertices = (bv + 0.01).tolist()  # a nested list of the same shape moves it
+    assert torch.equal(body.vertices, bv + 0.01)
+    with pytest.raises(ValueError, match="MeshCollider: dhat must be positive"):
+        tb.MeshCollider(bv, bf, dhat=-1e-3)
+
+
 def test_a_cloth_dropped_on_a_body_mesh_rests_on_it_without_passing_through():
     model, rest, body, bv, bf = cloth_over_box(8e-3)
     V = rest.shape[0]

@@ -52,9 +52,19 @@ template <typename T> inline void gather(const T* x, const int64_t* s, T X[4][3]
 }
 
 // the squared distance of a stencil and (type) its distance type
+// (edge-edge stencils typed in double: in float32 |u|^2 |v|^2 - (u . v)^2 of two parallel edges is round-off far
+// above the parallel threshold, and the clamped parameters are noise: two parallel edges of a flat float32 grid
+// came out as crossing lines at distance 0)
 template <typename T> T stencil_distance_sq(const T X[4][3], bool edge_edge, int* type) {
-  const int t = edge_edge ? cm::edge_edge_type(X[0], X[1], X[2], X[3], T(1e-10))
-                          : cm::point_triangle_type(X[0], X[1], X[2], X[3]);
+  int t;
+  if (edge_edge) {
+    double D[4][3];
+    for (int v = 0; v < 4; ++v)
+      for (int i = 0; i < 3; ++i) D[v][i] = double(X[v][i]);
+    t = cm::edge_edge_type(D[0], D[1], D[2], D[3], 1e-10);
+  } else {
+    t = cm::point_triangle_type(X[0], X[1], X[2], X[3]);
+  }
   int formula;
   signed char C[3][4] = {};
   const int r = cm::type_rows(t, &formula, C);

@@ -67,7 +67,12 @@ def point_triangle_type(X: Tensor) -> Tensor:
 def edge_edge_type(X: Tensor, parallel: float = 1e-10) -> Tensor:
     """The distance type ``(N,)`` (``EE_*``) of edge-edge stencils ``X (N, 4, 3)`` (``a0, a1, b0, b1``): where
     the closest points of the two segments lie (Ericson's clamped segment-segment parameters; edges with
-    ``|u x v|^2 <= parallel |u|^2 |v|^2`` are taken as parallel: a corner of one against the other)."""
+    ``|u x v|^2 <= parallel |u|^2 |v|^2`` are taken as parallel: a corner of one against the other).  Typed in
+    float64 whatever ``X``'s dtype: in float32 ``|u|^2 |v|^2 - (u . v)^2`` of two parallel edges is round-off far
+    above ``parallel`` and the clamped parameters noise (two parallel edges of a flat float32 grid 17 mm apart
+    were typed as crossing lines, at distance 0)."""
+    if X.dtype != torch.float64:
+        X = X.double()
     a0, a1, b0, b1 = X.unbind(-2)
     u, v, w = a1 - a0, b1 - b0, a0 - b0
     a, b, c, d, e = _dot(u, u), _dot(u, v), _dot(v, v), _dot(u, w), _dot(v, w)

@@ -169,6 +169,27 @@ def _covers(cache: tuple | None, xa: Tensor, end: Tensor | None, radius: float) 
         float((hi - lo).amax()) <= 2 * float((end - xa).abs().amax()) + 4 * cache[3]
 
 
+def segments_cross_triangles(p0: Tensor, p1: Tensor, t0: Tensor, t1: Tensor, t2: Tensor) -> Tensor:
+    """``(N,)``: whether each segment ``p0 p1`` passes through the interior of its triangle ``t0 t1 t2`` (Moller and
+    Trumbore's test in float64, strict: the crossing point at least ``1e-12`` of the triangle's barycentric range
+    and of the segment from their boundaries, the segment at least ``1e-12`` rad from the triangle's plane), so that
+    rounding never reports a contact as a crossing; a segment through a triangle's edge crosses its neighbour or
+    lies at distance 0 from that edge (what the distance check refuses)."""
+    p0, p1, t0, t1, t2 = (t.double() for t in (p0, p1, t0, t1, t2))
+    e1, e2, d = t1 - t0, t2 - t0, p1 - p0
+    h = torch.linalg.cross(d, e2)
+    a = (e1 * h).sum(-1)
+    ok = a.abs() > 1e-12 * d.norm(dim=-1) * e1.norm(dim=-1) * e2.norm(dim=-1)
+    f = 1.0 / torch.where(ok, a, torch.ones_like(a))
+    r = p0 - t0
+    u = f * (r * h).sum(-1)
+    q = torch.linalg.cross(r, e1)
+    v = f * (d * q).sum(-1)
+    t = f * (e2 * q).sum(-1)
+    m = 1e-12
+    return ok & (u > m) & (v > m) & (u + v < 1 - m) & (t > m) & (t < 1 - m)
+
+
 def _distances(xa: Tensor, st: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:
     """``(types (N,), squared distances (N,))`` of point-triangle or edge-edge stencils ``st (N, 4)`` over the
     points ``xa`` (compiled on the CPU; else :mod:`torchbend.ops.distance`)."""
@@ -235,6 +256,29 @@ class _ContactPairs:
         eps = 1e-3 * r[pairs[:, 0]] * r[pairs[:, 1]]  # the mollifier thresholds of the edge pairs
         self._cache = (lo, hi, r_need, slack, pt, ee, eps)
         return pt, ee, eps
+
+    def _crossing_pairs(self, pts: Tensor) -> tuple[Tensor, Tensor]:
+        """``(edges (K, 2), triangles (K, 3))``: the edge-triangle pairs without a shared vertex whose boxes overlap
+        (every pair that may cross), over the points ``pts`` (:meth:`_points`)."""
+        faces, edges = self._mesh()
+        faces, edges = faces.to(pts.device), edges.to(pts.device)
+        p = box_pairs(pts[edges].amin(1), pts[edges].amax(1), pts[faces].amin(1), pts[faces].amax(1), 0.0,
+                      ids_a=edges, ids_b=faces)
+        return edges[p[:, 0]], faces[p[:, 1]]
+
+    def crossing(self, x: Tensor) -> tuple[list[int], list[int]] | None:
+        """The first edge and triangle (vertex indices into :meth:`_points`) where the mesh passes through itself
+        (or the cloth through a body) at ``x``, or None: a state no solve may start from, although every distance
+        between primitives is positive there."""
+        pts = self._points(x).detach()
+        e, f = self._crossing_pairs(pts)
+        if e.shape[0] == 0:
+            return None
+        hit = segments_cross_triangles(pts[e[:, 0]], pts[e[:, 1]], pts[f[:, 0]], pts[f[:, 1]], pts[f[:, 2]])
+        if not bool(hit.any()):
+            return None
+        k = int(hit.nonzero()[0, 0])
+        return e[k].tolist(), f[k].tolist()
 
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (each vertex-edge or
@@ -344,9 +388,13 @@ class _ContactPairs:
         if self.faces is None:
             return ""
         d, _ = self.min_distance(x)
-        if d > 0:
-            return ""
-        return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+        if d <= 0:
+            return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+        cross = self.crossing(x)
+        if cross is not None:
+            return (f"{self.name}: the cloth passes through itself: edge {tuple(cross[0])} crosses triangle "
+                    f"{tuple(cross[1])} (vertex indices): start from a state without intersections")
+        return ""
 
 
 class _LaggedFriction(_ContactPairs):
@@ -460,11 +508,12 @@ class SelfContact(_LaggedFriction, EnergyTerm):
 
     def __init__(self, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
                  eps_v: float = 1e-3, name: str = "self_contact"):
-        self.dhat = positive(dhat, "SelfContact: dhat")
-        self.stiffness = None if stiffness is None else positive(stiffness, "SelfContact: stiffness")
+        who = type(self).__name__
+        self.dhat = positive(dhat, f"{who}: dhat")
+        self.stiffness = None if stiffness is None else positive(stiffness, f"{who}: stiffness")
         self._auto = stiffness is None  # chosen per model by bind
-        self.friction = nonnegative(friction, f"{type(self).__name__}: friction")
-        self.eps_v = positive(eps_v, "SelfContact: eps_v")
+        self.friction = nonnegative(friction, f"{who}: friction")
+        self.eps_v = positive(eps_v, f"{who}: eps_v")
         self.name = name
         self.faces: Tensor | None = None
         self.edges: Tensor | None = None
@@ -608,11 +657,9 @@ class MeshCollider(SelfContact):
     def __init__(self, vertices, faces, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
                  eps_v: float = 1e-3, name: str = "mesh_collider"):
         super().__init__(dhat=dhat, stiffness=stiffness, friction=friction, eps_v=eps_v, name=name)
-        v = torch.as_tensor(vertices)
+        self._vertices: Tensor | None = None
+        v = self._checked_vertices(vertices)
         f = torch.as_tensor(faces)
-        if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point() or not bool(torch.isfinite(v).all()):
-            raise ValueError(f"MeshCollider: vertices must be a finite (Vb, 3) float tensor, got {tuple(v.shape)} "
-                             f"{v.dtype}")
         if f.ndim != 2 or f.shape[-1] != 3 or f.is_floating_point() or f.numel() == 0:
             raise ValueError(f"MeshCollider: faces must be a non-empty (Fb, 3) integer tensor, got {tuple(f.shape)}")
         if int(f.min()) < 0 or int(f.max()) >= v.shape[0]:
@@ -621,6 +668,28 @@ class MeshCollider(SelfContact):
         self.vertices, self.body_faces = v, f.long()
         e = torch.cat([self.body_faces[:, [0, 1]], self.body_faces[:, [1, 2]], self.body_faces[:, [2, 0]]])
         self.body_edges = e.sort(1).values.unique(dim=0)
+
+    def _checked_vertices(self, vertices) -> Tensor:
+        v = vertices if isinstance(vertices, Tensor) else torch.as_tensor(  # a list: the dtype of the body's
+            vertices, dtype=None if self._vertices is None else self._vertices.dtype)
+        if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point() or not bool(torch.isfinite(v.detach()).all()):
+            raise ValueError(f"MeshCollider: vertices must be a finite (Vb, 3) float tensor, got {tuple(v.shape)} "
+                             f"{v.dtype}" + ("" if not v.is_floating_point() or v.ndim != 2 or v.shape[-1] != 3
+                                             else " with non-finite values"))
+        if self._vertices is not None and v.shape != self._vertices.shape:
+            raise ValueError(f"MeshCollider: vertices moves the body's {self._vertices.shape[0]} vertices (the faces "
+                             f"index them), got {tuple(v.shape)}")
+        return v
+
+    @property
+    def vertices(self) -> Tensor:
+        """The body's vertex positions ``(Vb, 3)`` [m]; assign new positions (same shape) to move it between steps."""
+        assert self._vertices is not None
+        return self._vertices
+
+    @vertices.setter
+    def vertices(self, value) -> None:
+        self._vertices = self._checked_vertices(value)
 
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         super().bind(topology, rest, mass)
@@ -651,11 +720,33 @@ class MeshCollider(SelfContact):
         stencils = torch.cat([edges[ee[:, 0]], be[ee[:, 1]]], 1)
         return pt, stencils, torch.stack([ee[:, 0], ee[:, 1] + edges.shape[0]], 1)
 
+    def _crossing_pairs(self, pts: Tensor) -> tuple[Tensor, Tensor]:
+        faces, edges = self._mesh()
+        faces, edges = faces.to(pts.device), edges.to(pts.device)
+        V = self._V
+        bf, be = self.body_faces.to(pts.device) + V, self.body_edges.to(pts.device) + V
+        box = (lambda idx: (pts[idx].amin(1), pts[idx].amax(1)))
+        a = box_pairs(*box(edges), *box(bf), 0.0)  # cloth edge - body triangle
+        b = box_pairs(*box(be), *box(faces), 0.0)  # body edge - cloth triangle
+        return torch.cat([edges[a[:, 0]], be[b[:, 0]]]), torch.cat([bf[a[:, 1]], faces[b[:, 1]]])
+
     def inadmissible(self, x: Tensor) -> str:
         if self.faces is None:
             return ""
         d, _ = self.min_distance(x)
-        return "" if d > 0 else f"{self.name}: the cloth touches the body mesh (distance {d:.3g} m): start apart"
+        if d <= 0:
+            return f"{self.name}: the cloth touches the body mesh (distance {d:.3g} m): start apart"
+        cross = self.crossing(x)
+        if cross is not None:
+            V = self._V
+            (i, j), tri = cross
+            if i < V:
+                where = f"cloth edge {(i, j)} crosses body triangle {tuple(t - V for t in tri)}"
+            else:
+                where = f"body edge {(i - V, j - V)} crosses cloth triangle {tuple(tri)}"
+            return (f"{self.name}: the cloth and the body mesh intersect: {where} (vertex indices): a body must "
+                    "be moved so that it leaves the cloth outside it")
+        return ""
 
 
 def _distinct_pairs(st: Tensor, types: Tensor) -> tuple[Tensor, Tensor]:
