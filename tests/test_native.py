@@ -400,7 +400,7 @@ def test_native_gather_same_bits_full_or_partial_tiles(kernel, dtype, damped):
                                        None if c is None else c.reshape(-1), None if prev is None else prev.reshape(-1),
                                        "tan")
     for b in range(B):
-        cb, pb = (None, None) if c is None else (c[b], prev[b])
+        cb, pb = (None, None) if c is None or prev is None else (c[b], prev[b])
         psi1, theta1, _ = mod.bending_energy(xb[b], bend.hinges, a, k[b], r[b], cb, pb, code, False)
         assert torch.equal(psi1, psi[b]) and torch.equal(theta1, theta[b])
         Hb1, g1, _ = native.bending_hessians(xb[b], bend.hinges, a, k[b], r[b], cb, pb, "tan")
