@@ -190,6 +190,27 @@ def segments_cross_triangles(p0: Tensor, p1: Tensor, t0: Tensor, t1: Tensor, t2:
     return ok & (u > m) & (v > m) & (u + v < 1 - m) & (t > m) & (t < 1 - m)
 
 
+def mesh_crossing_pairs(faces: Tensor, edges: Tensor, pts: Tensor) -> tuple[Tensor, Tensor]:
+    """``(edges (K, 2), triangles (K, 3))``: a mesh's edge-triangle pairs without a shared vertex whose boxes
+    overlap over the points ``pts`` (every pair that may cross)."""
+    faces, edges = faces.to(pts.device), edges.to(pts.device)
+    p = box_pairs(pts[edges].amin(1), pts[edges].amax(1), pts[faces].amin(1), pts[faces].amax(1), 0.0,
+                  ids_a=edges, ids_b=faces)
+    return edges[p[:, 0]], faces[p[:, 1]]
+
+
+def first_crossing(pts: Tensor, e: Tensor, f: Tensor) -> tuple[list[int], list[int]] | None:
+    """The first of the edges ``e (K, 2)`` that passes through its triangle ``f (K, 3)`` over the points ``pts``
+    (:func:`segments_cross_triangles`), as ``(edge, triangle)`` vertex lists, or None."""
+    if e.shape[0] == 0:
+        return None
+    hit = segments_cross_triangles(pts[e[:, 0]], pts[e[:, 1]], pts[f[:, 0]], pts[f[:, 1]], pts[f[:, 2]])
+    if not bool(hit.any()):
+        return None
+    k = int(hit.nonzero()[0, 0])
+    return e[k].tolist(), f[k].tolist()
+
+
 def _distances(xa: Tensor, st: Tensor, edge_edge: bool) -> tuple[Tensor, Tensor]:
     """``(types (N,), squared distances (N,))`` of point-triangle or edge-edge stencils ``st (N, 4)`` over the
     points ``xa`` (compiled on the CPU; else :mod:`torchbend.ops.distance`)."""
@@ -241,9 +262,8 @@ class _ContactPairs:
         """The candidate pairs within ``radius`` (default ``dhat``) of ``x``, or of any point along ``x + t dx``
         (``t`` in ``[0, 1]``: the step bound's), and the edge pairs' mollifier thresholds.  Found over the points'
         boxes (swept along ``dx``, widened by a twentieth of ``dhat``), they serve every later ``x`` whose points
-        all lie in their boxes (no other pair can be that close): a line search and the next iterate reuse the
-        step's (a body's vertices count as points too).  A step whose boxes are far smaller than the kept ones
-        searches afresh (one long step's boxes would otherwise hold on to its many candidates)."""
+        all lie in their boxes (a body's vertices count as points too): a line search and the next iterate reuse
+        the step's.  A step whose boxes are far smaller than the kept ones searches afresh."""
         r_need, c, xa = self.dhat if radius is None else radius, self._cache, self._points(x).detach()
         end = xa if dx is None else xa + torch.cat([dx.detach(), dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa)
         if c is not None and _covers(c, xa, None if dx is None else end, r_need):
@@ -258,27 +278,12 @@ class _ContactPairs:
         return pt, ee, eps
 
     def _crossing_pairs(self, pts: Tensor) -> tuple[Tensor, Tensor]:
-        """``(edges (K, 2), triangles (K, 3))``: the edge-triangle pairs without a shared vertex whose boxes overlap
-        (every pair that may cross), over the points ``pts`` (:meth:`_points`)."""
-        faces, edges = self._mesh()
-        faces, edges = faces.to(pts.device), edges.to(pts.device)
-        p = box_pairs(pts[edges].amin(1), pts[edges].amax(1), pts[faces].amin(1), pts[faces].amax(1), 0.0,
-                      ids_a=edges, ids_b=faces)
-        return edges[p[:, 0]], faces[p[:, 1]]
+        return mesh_crossing_pairs(*self._mesh(), pts)
 
     def crossing(self, x: Tensor) -> tuple[list[int], list[int]] | None:
-        """The first edge and triangle (vertex indices into :meth:`_points`) where the mesh passes through itself
-        (or the cloth through a body) at ``x``, or None: a state no solve may start from, although every distance
-        between primitives is positive there."""
+        """The first edge and triangle through each other at ``x`` (:meth:`_points` indices), or None."""
         pts = self._points(x).detach()
-        e, f = self._crossing_pairs(pts)
-        if e.shape[0] == 0:
-            return None
-        hit = segments_cross_triangles(pts[e[:, 0]], pts[e[:, 1]], pts[f[:, 0]], pts[f[:, 1]], pts[f[:, 2]])
-        if not bool(hit.any()):
-            return None
-        k = int(hit.nonzero()[0, 0])
-        return e[k].tolist(), f[k].tolist()
+        return first_crossing(pts, *self._crossing_pairs(pts))
 
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (each vertex-edge or
@@ -365,36 +370,40 @@ class _ContactPairs:
         return best, count
 
     def contact_stats(self, x: Tensor) -> tuple[float, int]:
-        """``(the smallest distance between non-adjacent primitives if it is within 64 dhat, else inf; the pairs
-        closer than dhat)`` (:class:`~torchbend.SolveInfo`'s ``min_distance``, ``contact_count``).  With no pair
-        within ``dhat`` the search widens fourfold, up to 64 ``dhat``, until it finds one: the value is exact
-        wherever it is finite (every pair within the radius is a candidate).  The wider searches keep the
-        solver's candidates as they were."""
-        if self.faces is None:
-            return math.inf, 0
-        d, count = self.min_distance(x)
-        if d <= self.dhat:
-            return d, count
-        kept, radius = self._cache, self.dhat
-        try:
-            while d > radius and radius < 64 * self.dhat:
-                radius *= 4
-                d = self.min_distance(x, radius=radius)[0]
-        finally:
-            self._cache = kept
-        return (d if d <= radius else math.inf), count
+        return _widened_min_distance(self, x) if self.faces is not None else (math.inf, 0)
 
-    def inadmissible(self, x: Tensor) -> str:
-        if self.faces is None:
-            return ""
-        d, _ = self.min_distance(x)
-        if d <= 0:
-            return f"{self.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
-        cross = self.crossing(x)
-        if cross is not None:
-            return (f"{self.name}: the cloth passes through itself: edge {tuple(cross[0])} crosses triangle "
-                    f"{tuple(cross[1])} (vertex indices): start from a state without intersections")
-        return ""
+    def inadmissible(self, x: Tensor) -> str:  # touching primitives, or an edge through a triangle
+        return _self_inadmissible(self, x) if self.faces is not None else ""
+
+
+def _widened_min_distance(term: _ContactPairs, x: Tensor) -> tuple[float, int]:
+    """``(the smallest distance between non-adjacent primitives if it is within 64 dhat, else inf; the pairs
+    closer than dhat)`` (:class:`~torchbend.SolveInfo`'s ``min_distance``, ``contact_count``).  With no pair within
+    ``dhat`` the search widens fourfold, up to 64 ``dhat``, until it finds one: the value is exact wherever it is
+    finite (every pair within the radius is a candidate).  The wider searches keep the solver's candidates."""
+    d, count = term.min_distance(x)
+    if d <= term.dhat:
+        return d, count
+    kept, radius = term._cache, term.dhat
+    try:
+        while d > radius and radius < 64 * term.dhat:
+            radius *= 4
+            d = term.min_distance(x, radius=radius)[0]
+    finally:
+        term._cache = kept
+    return (d if d <= radius else math.inf), count
+
+
+def _self_inadmissible(term: _ContactPairs, x: Tensor) -> str:
+    """Why a solve cannot start at ``x``: two primitives of the cloth touch, or an edge passes through a triangle."""
+    d, _ = term.min_distance(x)
+    if d <= 0:
+        return f"{term.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
+    cross = term.crossing(x)
+    if cross is not None:
+        return (f"{term.name}: the cloth passes through itself: edge {tuple(cross[0])} crosses triangle "
+                f"{tuple(cross[1])} (vertex indices): start from a state without intersections")
+    return ""
 
 
 class _LaggedFriction(_ContactPairs):
