@@ -264,11 +264,11 @@ def summary(stats: dict, seconds: float, out: str) -> list[str]:
         lines.append(f"robot-held vertices vs forward kinematics: max error {max(stats['pin_error'], default=0.0):.2e} m")
     if "max_penetration" in stats:
         lines.append(f"max penetration {stats['max_penetration']:.2e} m (mean edge {stats['edge_length']:.3e} m)")
-    near = [s["min_distance"] for s in stats["steps"] if s.get("contact_count")]
-    if near:
-        lines.append(f"contact: {sum(1 for s in stats['steps'] if s.get('contact_count'))} solves with contacts, "
-                     f"smallest distance {min(near):.2e} m, at most {max(s.get('contact_count', 0) for s in stats['steps'])} "
-                     "contacts")
+    touching = [s for s in stats["steps"] if s.get("contact_count")]
+    if touching:
+        lines.append(f"contact: {len(touching)} solves with contacts, smallest distance "
+                     f"{min(s['min_distance'] for s in touching):.2e} m, at most "
+                     f"{max(s['contact_count'] for s in touching)} contacts")
     beams = [s for s in stats["steps"] if "ratio" in s]
     if beams:
         lines.append("beams: tip/Kirchhoff = (tip/linear) x (linear/Kirchhoff); Kirchhoff = q L^4 / (8 D), linear plate "

@@ -181,8 +181,9 @@ class SolveInfo:
     homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
     step retried as halves).  ``min_distance`` [m]: the smallest distance the contact terms report at the
     returned state (cloth-cloth between non-adjacent primitives, cloth-collider; negative: a penetration of a
-    penalty collider; ``inf`` without contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond), ``contact_count``: the pairs and vertices in contact there
-    (within a barrier's ``dhat`` or a collider's margin)."""
+    penalty collider; ``inf`` without contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond),
+    ``contact_count``: the pairs and vertices in contact there (within a barrier's ``dhat`` or a collider's
+    margin)."""
 
     converged: bool = False
     iterations: int = 0

@@ -681,10 +681,11 @@ class MeshCollider(SelfContact):
     def _checked_vertices(self, vertices) -> Tensor:
         v = vertices if isinstance(vertices, Tensor) else torch.as_tensor(  # a list: the dtype of the body's
             vertices, dtype=None if self._vertices is None else self._vertices.dtype)
-        if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point() or not bool(torch.isfinite(v.detach()).all()):
-            raise ValueError(f"MeshCollider: vertices must be a finite (Vb, 3) float tensor, got {tuple(v.shape)} "
-                             f"{v.dtype}" + ("" if not v.is_floating_point() or v.ndim != 2 or v.shape[-1] != 3
-                                             else " with non-finite values"))
+        what = f"MeshCollider: vertices must be a finite (Vb, 3) float tensor, got {tuple(v.shape)} {v.dtype}"
+        if v.ndim != 2 or v.shape[-1] != 3 or not v.is_floating_point():
+            raise ValueError(what)
+        if not bool(torch.isfinite(v.detach()).all()):
+            raise ValueError(what + " with non-finite values")
         if self._vertices is not None and v.shape != self._vertices.shape:
             raise ValueError(f"MeshCollider: vertices moves the body's {self._vertices.shape[0]} vertices (the faces "
                              f"index them), got {tuple(v.shape)}")
