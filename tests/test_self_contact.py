@@ -666,6 +666,37 @@ def test_the_pile_config_stays_apart(tmp_path):
     _pile(tmp_path, steps=40, resolution=None)
 
 
+def test_the_robot_fold_with_self_contact_folds_the_towel_onto_itself_without_passing_through(tmp_path):
+    """configs/robot_fold_self_contact.yaml, whole: every step converges with every contact distance positive (the
+    towel's own, the table's and the moving link capsules'); every saved state (every fifth step) has no cloth edge
+    through a cloth triangle; at the end the lifted half lies folded on the lower half, apart and in contact."""
+    import os
+
+    from torchbend.scenes.config import build_robot_scene, load_config
+    from torchbend.scenes.run import run_config
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    cfg = load_config(os.path.join(root, "configs", "robot_fold_self_contact.yaml"))
+    cfg["output"]["every"] = 5
+    scene, x0, faces, _ = build_robot_scene(cfg)
+    (sc,) = [t for t in scene.model.terms if isinstance(t, tb.SelfContact)]
+    stats = run_config(cfg, str(tmp_path), progress=False)
+    steps = stats["steps"]
+    assert len(steps) == 300 and all(s["converged"] for s in steps)
+    assert all(s["min_distance"] > 0 for s in steps)
+    topo = scene.model.topology
+    frames = sorted((tmp_path / "frames").glob("frame_*.obj"))
+    assert len(frames) == 61
+    for path in frames:
+        x, _ = tb.mesh.load(str(path), weld_tol=None, dtype=torch.float64)
+        assert not intersects(x, topo.faces, topo.edges), path.name
+    x = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["x"]
+    d, count = sc.min_distance(x)
+    assert 0 < d < sc.dhat and count > 0  # the halves touch through the barrier
+    near, far = x0[:, 0] < 0.2, x0[:, 0] > 0.3  # the lifted half lies over the lower one, above it
+    assert float(x[near, 0].mean()) > 0.3 and float(x[near, 2].mean()) > float(x[far, 2].mean())
+
+
 def test_grid_layers_are_a_stack_of_turned_sheets():
     from torchbend.scenes.builders import build_mesh
     from torchbend.scenes.config import SceneConfig, validate

@@ -88,10 +88,13 @@ class LinkCapsule:
     """A capsule fixed in the frame of ``link``: end points ``a``, ``b`` [m] in link coordinates; the
     other arguments (validated) are those of :class:`~torchbend.Capsule` with the ``"penalty"`` law
     (``stiffness`` [N/m]): a link moves between time steps and may start a step on the cloth, where the ipc
-    law's barrier would be infinite (a penalty pushes the cloth back out)."""
+    law's barrier would be infinite (a penalty pushes the cloth back out).  The penalty acts from ``margin`` [m]
+    (default 1 mm) outside the capsule's surface, so that the cloth it pushes (up to ``stiffness * margin`` per
+    vertex) stays outside the capsule: a penalty needs some depth to push, and with ``margin=0`` that depth is
+    inside the link."""
 
     def __init__(self, link: str, a=(0.0, 0.0, 0.0), b=(0.1, 0.0, 0.0), radius: float = 0.02, stiffness: float = 1e4,
-                 margin: float = 0.0):
+                 margin: float = 1e-3):
         self.link = str(link)
         self.local = Capsule(a=a, b=b, radius=radius, stiffness=stiffness, margin=margin,  # in link coordinates
                              law="penalty")

@@ -500,7 +500,7 @@ class LinkCapsuleSpec(Section):
     b: Vec3 = (0.1, 0.0, 0.0)
     radius: Positive = 0.02
     stiffness: Positive = 1e4  # the penalty's [N/m]: a moving link keeps the penalty law (LinkCapsule)
-    margin: NonNegative = 0.0
+    margin: NonNegative = 1e-3  # [m]: the penalty acts from this far outside the surface (LinkCapsule)
 
 
 class KeyframeSpec(Section):
