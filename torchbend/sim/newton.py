@@ -164,7 +164,8 @@ class SolveInfo:
     ``"max_iters"``, ``"line_search"``, ``"time_limit"``, ``"callback"``, ``"non_finite"``,
     ``"evaluation_error"`` (an energy raised a ``ValueError``), ``"rigid_body_modes"`` (unbounded
     below), ``"stalled"`` (the pseudo-transient relaxation came to rest at a state the static solve does
-    not converge from; repeating that solve would repeat its result); ``message`` says it in words, with counts aggregated over sub-solves.  ``minimum``: True
+    not converge from; repeating that solve would repeat its result), ``"body_move"`` (a time step could not carry a
+    moved body all the way, :func:`implicit_euler_step`); ``message`` says it in words, with counts aggregated over sub-solves.  ``minimum``: True
     when the exact Hessian on the free DOFs was checked positive semi-definite there, False when a
     negative eigenvalue ``min_eigenvalue`` [N/m] remains, None when not checked.
     ``negative_curvature_steps``: steps taken along negative-curvature directions.
@@ -733,8 +734,9 @@ def _check_minimum(phi: _Potential, x: Tensor, gf: np.ndarray, energy: float, no
 
 
 # -------------------------------------------------------------------- public solvers
-def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
-    """``x`` as a finite floating ``(V, 3)`` tensor (on its own device)."""
+def _prepare_x(model: ClothModel, x, name: str = "x0", step: bool = False) -> Tensor:
+    """``x`` as a finite floating ``(V, 3)`` tensor (on its own device), a valid start for every term (``step``: a
+    time step's, where a moved body counts at its last pose if ``x`` is valid there: the step carries out the move)."""
     x = torch.as_tensor(x)
     if x.shape != (model.vertex_count, 3):
         raise ValueError(f"{name} must have shape ({model.vertex_count}, 3), got {tuple(x.shape)}")
@@ -742,6 +744,11 @@ def _prepare_x(model: ClothModel, x, name: str = "x0") -> Tensor:
     if name != "state.v":
         for term in model.terms:
             why = term.inadmissible(x)
+            if why and step and term.pending_move():
+                pose = term.pose()
+                term.place(0.0)
+                why = why if term.inadmissible(x) else ""
+                term.restore_pose(pose)
             if why:
                 raise ValueError(f"{name}: {why}")
     return x
@@ -985,6 +992,10 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
     return x, out
 
 
+MAX_MOVE_STAGES = 64
+"""The most stages in which a time step carries out the moves of bodies (:func:`implicit_euler_step`)."""
+
+
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options: NewtonOptions | None = None, *,
                         projection: str | Projection = UNSET, linear_solver: str | LinearSolver = UNSET,
                         tol: float = UNSET, max_iters: int = UNSET, max_substep_depth: int = UNSET,
@@ -1003,6 +1014,14 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
     half steps (recursively, at most ``max_substep_depth`` halvings; ``info.substeps`` counts the
     (sub)steps of the returned state, ``info.solves`` every Newton solve).
 
+    A body moved since the last step (a :class:`~torchbend.MeshCollider` whose ``vertices`` were assigned) moves
+    from its last pose to the new one within the step: where the move would bring it into contact with the cloth
+    held at ``state.x``, it advances in stages, each as far as the contact's step bound allows against the cloth
+    solved at the stage before (at most ``MAX_MOVE_STAGES``), so the body pushes the cloth instead of passing
+    through it.  A move the cloth cannot make way for (caught between the body and a pinned vertex or another
+    body) ends where it stops: the body stays at the pose reached, the state is the solve there, and the step
+    says so (``converged = False``).
+
     Nothing is raised once iterating: if the step fails, the best state reached at the end of the
     step is returned with ``info.converged = False`` (the halves' end state when the first half
     succeeded, else the best iterate of the full step) with the consistent velocity
@@ -1010,7 +1029,7 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
     dt = positive_value(dt, "dt")
     if not isinstance(state, ClothState):
         raise ValueError(f"state must be a ClothState, got {type(state).__name__}")
-    _prepare_x(model, state.x, "state.x")
+    _prepare_x(model, state.x, "state.x", step=True)
     _prepare_x(model, state.v, "state.v")
     opts, ctl = resolve_options(options, "implicit_euler_step", "step", hessian=hessian, max_cg_iters=max_cg_iters,
                                 callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
@@ -1023,10 +1042,13 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
                 ctl: Controls, depth: int) -> tuple[ClothState, SolveInfo]:
     """:func:`implicit_euler_step` after validation (recursive halving)."""
     t0 = time.perf_counter()
+    poses = [(t, t.pose()) for t in model.terms]
     new, info = _euler_solve(model, state, dt, option, linear, ctl)
     if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback"):
         info.substeps = 1
         return new, info
+    for t, p in poses:  # the halves start from the bodies' poses (and pending moves) of the full step
+        t.restore_pose(p)
     mid, info1 = _euler_step(model, state, dt / 2, option, linear, ctl, depth - 1)
     if not info1.converged:  # the full step's best state is the one at the end of the step
         out = _aggregate([info, info1], info)
@@ -1056,18 +1078,64 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
             f"{info.tolerance:.3e} N)")
 
 
+def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext, option: Projection,
+                 linear: LinearSolver, ctl: Controls) -> tuple[Tensor, list, float, bool]:
+    """The bodies' moves of a step (:func:`implicit_euler_step`) in stages, each free of contact with the cloth as
+    the last stage's solve left it: ``(x, the stages' infos, the fraction of the moves made, stuck)``.  The bodies
+    end at that fraction (at their new poses unless stuck); a start invalid at their last poses jumps to the new
+    ones (the step's solve judges it there)."""
+    x, infos, s, stuck = x_n, [], 0.0, False
+    if movers and any(t.inadmissible(x_n) for t in movers):
+        movers = []
+        for t in model.terms:
+            t.place(1.0)
+    stage_ctl = replace(ctl, max_iters=min(ctl.max_iters, 15), check_minimum=False, callback=None)
+    while movers:
+        alpha = min(t.move_bound(x) for t in movers)
+        if alpha >= 1.0:
+            break
+        if alpha < 1e-3 or len(infos) >= MAX_MOVE_STAGES or (ctl.deadline is not None and
+                                                              time.perf_counter() > ctl.deadline):
+            stuck = True
+            break
+        s += alpha * (1.0 - s)
+        for t in movers:
+            t.place(s)
+        x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
+        infos.append(info)
+    if movers and not stuck:
+        s = 1.0
+        for t in movers:
+            t.place(1.0)
+    return x, infos, s, stuck
+
+
 def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projection, linear: LinearSolver,
                  ctl: Controls) -> tuple[ClothState, SolveInfo]:
     """One Newton solve of a step: the converged or best state, with ``v = (x - x_n)/dt``."""
     x_n, v_n = state.x, state.v
     pinned = model.pinned.to(x_n.device)[:, None]
     v_n = torch.where(pinned, torch.zeros_like(v_n), v_n)
+    movers = [t for t in model.terms if t.pending_move()]
+    for t in movers:  # the lagged data (friction frames) at the step's start: the bodies at their last poses
+        t.place(0.0)
     ctx = StepContext.for_step(model.terms, x_n, v_n, dt)  # the terms' lagged data (e.g. viscous hinge angles)
     x_hat = ctx.x_hat
     assert x_hat is not None
-    # Newton starts at x_hat, or where a term's step bound (a collider's) stops it on the segment
-    # x_n -> x_hat (x_hat of a large step may lie through a collider: never start there)
-    x0 = x_n + model.max_step(x_n, x_hat - x_n, ctx) * (x_hat - x_n)
-    x, info = _newton(model, x0, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())
+    x, infos, s, stuck = _move_bodies(model, x_n, movers, ctx, option, linear, ctl)
+    if not infos:  # Newton starts at x_hat, or where a term's step bound (a collider's) stops it on the segment
+        x = x_n + model.max_step(x_n, x_hat - x_n, ctx) * (x_hat - x_n)  # x_n -> x_hat (never through a collider)
+    x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())  # (else: the last stage's)
+    for t in movers:
+        t.settle()
+    if infos or stuck:
+        info = _aggregate(infos + [info], info)
+        info.message += f" (a body's move in {len(infos) + 1} stages)"
+        if stuck:
+            info.converged = False
+            info.stop_reason = "body_move"
+            info.message = (f"a body's move stopped at {s:.3g} of the way after {len(infos)} stages: the cloth "
+                            f"cannot make way (caught between the body and a pinned vertex or another body?); the "
+                            f"body stays at the pose reached and the state is the solve there")
     v = torch.where(pinned, torch.zeros_like(v_n), (x - x_n) / dt)
     return ClothState(x=x, v=v), info

@@ -34,8 +34,9 @@ normal is ``n = (sum_A dD/dx_k) / |.|`` and ``w_k = dD/dx_k . n / |sum_A dD/dx_k
 (:mod:`torchbend.energies.friction`'s ``f0`` with ``eps = eps_v dt``): Coulomb's ``mu lam`` against the relative
 sliding once it is faster than ``eps_v``.  Its gradient is ``w_k`` times the point friction's and its Hessian
 ``w_k w_l`` times the point friction's ``3 x 3`` block, positive semi-definite (no projection needed).  A body
-mesh's vertices (:class:`MeshCollider`) do not move within a step, so a cloth slides on the body as on a
-collider with ``friction=``.
+mesh (:class:`MeshCollider`) moved since the last step moves within the step: its pairs' frames are taken at its
+last pose and its vertices' displacement enters ``delta``, so a moving body drags the cloth (a still one holds it
+as a collider with ``friction=`` does).
 """
 from __future__ import annotations
 
@@ -335,27 +336,7 @@ class _ContactPairs:
         return out
 
     def max_step(self, x: Tensor, dx: Tensor, ctx: StepContext) -> float:
-        move = dx.detach().norm(dim=-1)
-        m = float(move.max()) if move.numel() else 0.0
-        if m == 0:
-            return 1.0
-        pt, ee, _ = self._active(x, dx)
-        xa = self._points(x).detach()
-        move = torch.cat([move, move.new_zeros(xa.shape[0] - x.shape[0])])  # a body is still during a step
-        alpha = 1.0
-        for st in (pt, ee):
-            if not st.shape[0]:
-                continue
-            if _native_ok(xa):
-                alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, move.to(xa.dtype)))
-                continue
-            d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
-            mv = move[st]
-            rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
-            ok = rate > 0
-            if bool(ok.any()):
-                alpha = min(alpha, float((0.9 * d[ok] / rate[ok]).min()))
-        return max(alpha, 0.0)
+        return _path_bound(self, x, dx)
 
     def min_distance(self, x: Tensor, radius: float | None = None) -> tuple[float, int]:
         """(the smallest distance [m] between non-adjacent primitives within ``radius`` (default ``dhat``), or
@@ -374,6 +355,32 @@ class _ContactPairs:
 
     def inadmissible(self, x: Tensor) -> str:  # touching primitives, or an edge through a triangle
         return _self_inadmissible(self, x) if self.faces is not None else ""
+
+
+def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
+    """The step bound of ``term``'s pairs (module docstring) along ``dx``: the cloth's ``(V, 3)`` (a body is still
+    during a step) or every point's (``term._points``: a body's move, the cloth still)."""
+    move = dx.detach().norm(dim=-1)
+    m = float(move.max()) if move.numel() else 0.0
+    if m == 0:
+        return 1.0
+    pt, ee, _ = term._active(x, dx)
+    xa = term._points(x).detach()
+    move = torch.cat([move, move.new_zeros(xa.shape[0] - move.shape[0])])
+    alpha = 1.0
+    for st in (pt, ee):
+        if not st.shape[0]:
+            continue
+        if _native_ok(xa):
+            alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, move.to(xa.dtype)))
+            continue
+        d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
+        mv = move[st]
+        rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
+        ok = rate > 0
+        if bool(ok.any()):
+            alpha = min(alpha, float((0.9 * d[ok] / rate[ok]).min()))
+    return max(alpha, 0.0)
 
 
 def _widened_min_distance(term: _ContactPairs, x: Tensor) -> tuple[float, int]:
@@ -659,7 +666,12 @@ class MeshCollider(SelfContact):
     body may be moved between steps by assigning ``vertices`` (a robot link, an animation frame); a move must
     leave the cloth outside it, or the next step refuses its start.  ``stiffness=None``: ``kappa`` from the
     cloth's weight, as :class:`SelfContact`'s.  ``friction = mu``: IPC's lagged friction on the body in time
-    steps (module docstring)."""
+    steps (module docstring).
+
+    A time step carries out the move since the last step (:func:`~torchbend.implicit_euler_step`): where the
+    body would come into contact with the cloth held still, it moves in stages, each as far as the step bound
+    lets it, and the cloth is solved between stages, so a body pushes the cloth ahead of it instead of passing
+    through it.  The friction's slip is relative to the body's move (a moving body drags the cloth)."""
 
     confines = True  # a body holds a cloth that has no pinned vertex, as the analytic colliders do
 
@@ -667,6 +679,8 @@ class MeshCollider(SelfContact):
                  eps_v: float = 1e-3, name: str = "mesh_collider"):
         super().__init__(dhat=dhat, stiffness=stiffness, friction=friction, eps_v=eps_v, name=name)
         self._vertices: Tensor | None = None
+        self._start: Tensor | None = None  # the body's pose in the last step, while a move to _target is pending
+        self._target: Tensor | None = None
         v = self._checked_vertices(vertices)
         f = torch.as_tensor(faces)
         if f.ndim != 2 or f.shape[-1] != 3 or f.is_floating_point() or f.numel() == 0:
@@ -699,7 +713,37 @@ class MeshCollider(SelfContact):
 
     @vertices.setter
     def vertices(self, value) -> None:
-        self._vertices = self._checked_vertices(value)
+        v = self._checked_vertices(value)
+        if self._vertices is not None and self._start is None:  # the pose of the last step: a step moves it from there
+            self._start = self._vertices.detach()
+        self._vertices = self._target = v
+
+    # ---- a move between steps, carried out by the next step (EnergyTerm.pending_move)
+    def pending_move(self) -> bool:
+        return self._start is not None and not torch.equal(self._start, self._goal().to(self._start))
+
+    def _goal(self) -> Tensor:
+        assert self._target is not None
+        return self._target.detach()
+
+    def place(self, s: float) -> None:
+        if self._start is not None:
+            self._vertices = self._target if s >= 1 else self._start + s * (self._goal().to(self._start) - self._start)
+
+    def move_bound(self, x: Tensor) -> float:
+        if self._start is None or self.faces is None:
+            return 1.0
+        rest = (self._goal() - self.vertices.detach()).to(device=x.device, dtype=x.dtype)
+        return _path_bound(self, x, torch.cat([torch.zeros_like(x), rest]))
+
+    def settle(self) -> None:
+        self._start, self._target = None, self._vertices
+
+    def pose(self) -> tuple:
+        return self._start, self._target, self._vertices
+
+    def restore_pose(self, pose: tuple) -> None:
+        self._start, self._target, self._vertices = pose
 
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         super().bind(topology, rest, mass)

@@ -174,6 +174,33 @@ class EnergyTerm:
         :func:`~torchbend.solve_static` (``continuation``), or None (the default): not part of it."""
         return None
 
+    # ---- a body moved between time steps (MeshCollider): a step carries out the move in stages
+    def pending_move(self) -> bool:
+        """Whether the term's body was moved since the last time step (a step moves it from its pose of that step
+        to the assigned one); False (the default) for a term without a body."""
+        return False
+
+    def place(self, s: float) -> None:
+        """Put the body at the fraction ``s`` in ``[0, 1]`` of its pending move (0: the last step's pose)."""
+        return None
+
+    def move_bound(self, x: Tensor) -> float:
+        """The fraction in ``[0, 1]`` of the rest of the pending move (from the body's pose now to the assigned
+        one) that the cloth at ``x (V, 3)``, held still, leaves free of contact (a conservative bound); 1.0 by
+        default."""
+        return 1.0
+
+    def settle(self) -> None:
+        """End the pending move at the body's pose now (the next step moves it from there)."""
+        return None
+
+    def pose(self) -> Any:
+        """The body's pose and pending move (:meth:`restore_pose` puts them back: a step retried in halves)."""
+        return None
+
+    def restore_pose(self, pose: Any) -> None:
+        return None
+
 
 def contact_stats(terms, x: Tensor) -> tuple[float, int]:
     """The smallest distance and the number of contacts over ``terms`` (:meth:`EnergyTerm.contact_stats`)."""
