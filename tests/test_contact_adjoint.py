@@ -81,3 +81,43 @@ def test_adjoint_through_a_body_mesh_matches_central_differences():
     adj = float((g * lift).sum())
     assert abs(adj - fd) <= 1e-6 * abs(fd), (adj, fd)
     assert abs(fd) > 1
+
+
+def free_sheet_on_floor(k):
+    """A sheet without pinned vertices resting on a two-triangle floor (a MeshCollider): it can slide along the
+    floor's diagonal edge without changing its potential (across it, the diagonal's edge pairs hold it)."""
+    rest, faces = tb.scenes.grid(6, 6, (0.1, 0.1), dtype=F64)
+    rest = rest + torch.tensor([-0.05, -0.05, 5e-4], dtype=F64)
+    floor = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], dtype=F64)
+    body = tb.MeshCollider(floor, torch.tensor([[0, 1, 2], [0, 2, 3]]), dhat=1e-3)
+    model = tb.ClothModel(faces, rest, colliders=[body], density=0.2,
+                          membrane=tb.MembraneEnergy(faces, rest, young=1e5, poisson=0.3, thickness=5e-4),
+                          bending=tb.BendingEnergy(faces, rest, stiffness=k))
+    return model, rest
+
+
+def test_adjoint_of_an_equilibrium_that_can_slide_refuses_a_loss_that_sees_the_slide():
+    """The free sheet's position along the floor is not determined (the Hessian is singular along the slide): a loss
+    that changes along it has no derivative, and the backward pass says so (it used to return an arbitrary number);
+    a loss that ignores the slide (the heights) gets its derivative, as central differences give it."""
+    import pytest
+
+    k = torch.tensor(1e-5, dtype=F64, requires_grad=True)
+    model, rest = free_sheet_on_floor(k)
+    x, info = tb.solve_static_adjoint(model, rest, [k], tol=TOL)
+    assert info.converged
+    with pytest.raises(RuntimeError, match="the equilibrium is not isolated: the exact Hessian on the free "
+                                           "coordinates has 1 zero eigenvalues"):
+        (x[:, 0] + x[:, 1]).sum().backward()
+    x, info = tb.solve_static_adjoint(model, rest, [k], tol=TOL)
+    (grad,) = torch.autograd.grad(x[:, 2].sum(), [k])
+
+    def heights(kv: float) -> float:
+        m, r = free_sheet_on_floor(kv)
+        y, inf = tb.solve_static(m, r, tol=TOL)
+        assert inf.converged
+        return float(y[:, 2].sum())
+
+    h = 1e-3
+    fd = (heights(1e-5 * (1 + h)) - heights(1e-5 * (1 - h))) / (2e-5 * h)
+    assert abs(float(grad) - fd) <= 1e-6 * abs(fd)

@@ -284,6 +284,24 @@ def test_self_contact_names_what_is_wrong():
         tb.solve_static(model, x)
 
 
+def test_a_contact_term_belongs_to_one_mesh():
+    """A SelfContact (or MeshCollider) given to a model of another mesh is refused (before, the second model took the
+    term's mesh over and the first model's solves reported false contacts); a model of the same mesh may share it."""
+    model, x, sc, V = two_sheets(gap=5e-4)
+    before = sc.min_distance(x)
+    small, f = tb.scenes.grid(3, 3, (0.05, 0.05), dtype=F64)
+    with pytest.raises(ValueError, match=r"SelfContact 'self_contact' is already part of a model of another mesh "
+                                         r"\(\d+ vertices, \d+ faces; this one has 9 and 8\)"):
+        tb.ClothModel(f, small, terms=[sc], density=0.2)
+    again = tb.ClothModel(model.topology.faces, x, terms=[sc], density=0.2, pinned=torch.arange(V))
+    assert sc in again.extra_terms and sc.min_distance(x) == before  # still the two sheets' mesh
+    floor = torch.tensor([[-1.0, -1.0, -0.01], [1.0, -1.0, -0.01], [1.0, 1.0, -0.01], [-1.0, 1.0, -0.01]], dtype=F64)
+    body = tb.MeshCollider(floor, torch.tensor([[0, 1, 2], [0, 2, 3]]), dhat=1e-3)
+    tb.ClothModel(f, small, colliders=[body], density=0.2)
+    with pytest.raises(ValueError, match="MeshCollider 'mesh_collider' is already part of a model of another mesh"):
+        tb.ClothModel(model.topology.faces, x, colliders=[body], density=0.2)
+
+
 @pytest.mark.parametrize("kind", range(16))
 def test_pair_hessians_of_every_type_are_those_of_torch_func(kind):
     from torchbend.ops.distance import EE_A0B0

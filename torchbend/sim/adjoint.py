@@ -18,7 +18,10 @@ No Newton iteration is unrolled.
 The adjoint is the derivative of an equilibrium only where one was found: the backward pass of a
 solve that did not converge (``info.converged`` False, e.g. ``max_iters`` reached) raises a
 ``RuntimeError`` quoting ``info.message``, unless ``allow_unconverged=True`` was passed (then the
-formula above is applied at the returned, best, iterate).
+formula above is applied at the returned, best, iterate).  Nor is it defined where the equilibrium is not
+isolated: where the cloth can move without changing its potential (``H_ff`` singular: a cloth without pinned
+vertices on a frictionless body, turning about a single pin), the backward pass raises a ``RuntimeError`` when the
+loss changes along that motion, and otherwise takes the ``lambda`` orthogonal to it.
 """
 from __future__ import annotations
 
@@ -62,7 +65,17 @@ class _Equilibrium(torch.autograd.Function):
         free = ~pinned
         H = model.hessian(x, Projection.NONE).tocsr()
         rhs = gx.reshape(-1).detach().cpu().double().numpy()
-        lam = spla.splu(H[free][:, free].tocsc()).solve(rhs[free])
+        Hff = H[free][:, free].tocsc()
+        try:
+            lu = spla.splu(Hff)
+        except RuntimeError:  # exactly singular
+            raise RuntimeError(_NOT_ISOLATED.format(count="a zero pivot")) from None
+        lam = lu.solve(rhs[free])
+        null = _null_space(lu, Hff)
+        if null.shape[1]:
+            if np.linalg.norm(null.T @ rhs[free]) > 1e-6 * np.linalg.norm(rhs[free]):
+                raise RuntimeError(_NOT_ISOLATED.format(count=f"{null.shape[1]} zero eigenvalues"))
+            lam = lam - null @ (null.T @ lam)  # the loss ignores the free motion: its part of lam is round-off
         lam_full = np.zeros(free.shape[0])
         lam_full[free] = lam
         lam_t = torch.from_numpy(lam_full).to(dtype=x.dtype, device=x.device).reshape(-1, 3)
@@ -77,6 +90,34 @@ class _Equilibrium(torch.autograd.Function):
                 grads = torch.autograd.grad(g, params, grad_outputs=-lam_t, allow_unused=True)
             grads = tuple(torch.zeros_like(p) if gp is None else gp for p, gp in zip(params, grads))
         return (None, None, None, None, g_pins, None, *grads)
+
+
+_NOT_ISOLATED = (
+    "solve_static_adjoint: the equilibrium is not isolated: the exact Hessian on the free coordinates has {count} "
+    "(|eigenvalue| <= 1e-10 of its norm): the cloth can move without changing its potential (a cloth without pinned "
+    "vertices sliding on a frictionless body or collider, or turning about a single pin), and the loss changes "
+    "along that motion, so its derivative is not defined. Pin vertices that fix the motion, or use a loss that "
+    "ignores it")
+
+
+def _null_space(lu, H, size: int = 6, iterations: int = 8) -> np.ndarray:
+    """An orthonormal basis ``(n, m)`` of the eigenvectors of the symmetric ``H`` whose eigenvalues are zero to
+    working precision (at most ``size``: a body's rigid motions), by block inverse iteration with the factorization
+    ``lu`` of ``H`` and a Rayleigh-Ritz step; ``m = 0`` for a nonsingular ``H``."""
+    n = H.shape[0]
+    k = min(size, n)
+    if k == 0:
+        return np.zeros((n, 0))
+    V = np.random.default_rng(0).standard_normal((n, k))
+    for _ in range(iterations):
+        W = lu.solve(V)
+        if not np.isfinite(W).all():
+            break
+        V, _ = np.linalg.qr(W)
+    T = V.T @ (H @ V)
+    w, Q = np.linalg.eigh(0.5 * (T + T.T))
+    scale = float(abs(H).sum(axis=1).max())  # >= the spectral norm
+    return V @ Q[:, np.abs(w) <= 1e-10 * scale]
 
 
 def solve_static_adjoint(model: ClothModel, x0: Tensor, params=(), *, pin_positions: Tensor | None = None,

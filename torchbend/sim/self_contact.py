@@ -548,8 +548,14 @@ class SelfContact(_LaggedFriction, EnergyTerm):
     # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
-        ``stiffness=None``, the barrier stiffness from its mean vertex weight."""
+        ``stiffness=None``, the barrier stiffness from its mean vertex weight.  A term is bound to one mesh: a model
+        of another mesh needs its own term (a ``ValueError``)."""
         faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
+        if self.faces is not None and (self._V != rest.shape[0] or self.faces.shape != faces.shape
+                                       or not torch.equal(self.faces.cpu(), faces.cpu())):
+            raise ValueError(f"{type(self).__name__} {self.name!r} is already part of a model of another mesh ("
+                             f"{self._V} vertices, {self.faces.shape[0]} faces; this one has {rest.shape[0]} and "
+                             f"{faces.shape[0]}): give each model its own {type(self).__name__}")
         self.faces, self.edges, self._cache, self._close_cache = faces, edges, None, None
         self._V = rest.shape[0]
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
