@@ -238,6 +238,7 @@ class _ContactPairs:
     _rest_len_sq: Tensor | None
     _cache: tuple | None
     _close_cache: tuple | None
+    _V: int
 
     def _mesh(self) -> tuple[Tensor, Tensor]:
         if self.faces is None or self.edges is None:
@@ -381,6 +382,16 @@ def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
         if bool(ok.any()):
             alpha = min(alpha, float((0.9 * d[ok] / rate[ok]).min()))
     return max(alpha, 0.0)
+
+
+def _check_same_mesh(term: _ContactPairs, faces: Tensor, V: int) -> None:
+    """A ``ValueError`` if ``term`` is bound to a mesh other than ``faces`` over ``V`` vertices."""
+    if term.faces is not None and (term._V != V or term.faces.shape != faces.shape
+                                   or not torch.equal(term.faces.cpu(), faces.cpu())):
+        who = type(term).__name__
+        raise ValueError(f"{who} {term.name!r} is already part of a model of another mesh ({term._V} vertices, "
+                         f"{term.faces.shape[0]} faces; this one has {V} and {faces.shape[0]}): give each model its "
+                         f"own {who}")
 
 
 def _widened_min_distance(term: _ContactPairs, x: Tensor) -> tuple[float, int]:
@@ -551,11 +562,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         ``stiffness=None``, the barrier stiffness from its mean vertex weight.  A term is bound to one mesh: a model
         of another mesh needs its own term (a ``ValueError``)."""
         faces, edges = topology.faces.to(rest.device), topology.edges.to(rest.device)
-        if self.faces is not None and (self._V != rest.shape[0] or self.faces.shape != faces.shape
-                                       or not torch.equal(self.faces.cpu(), faces.cpu())):
-            raise ValueError(f"{type(self).__name__} {self.name!r} is already part of a model of another mesh ("
-                             f"{self._V} vertices, {self.faces.shape[0]} faces; this one has {rest.shape[0]} and "
-                             f"{faces.shape[0]}): give each model its own {type(self).__name__}")
+        _check_same_mesh(self, faces, rest.shape[0])
         self.faces, self.edges, self._cache, self._close_cache = faces, edges, None, None
         self._V = rest.shape[0]
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
