@@ -676,8 +676,8 @@ class MeshCollider(SelfContact):
     barrier of :class:`SelfContact` between the cloth and the body (cloth vertices against body triangles, body
     vertices against cloth triangles, cloth edges against body edges), the same step bound (the body does not
     move within a step).  Give it in ``colliders=`` (or ``terms=``) of a :class:`~torchbend.ClothModel`.  The
-    body may be moved between steps by assigning ``vertices`` (a robot link, an animation frame); a move must
-    leave the cloth outside it, or the next step refuses its start.  ``stiffness=None``: ``kappa`` from the
+    body may be moved between steps by assigning ``vertices`` (a robot link, an animation frame; see below; a static
+    solve refuses a start that the body's new pose intersects).  ``stiffness=None``: ``kappa`` from the
     cloth's weight, as :class:`SelfContact`'s.  ``friction = mu``: IPC's lagged friction on the body in time
     steps (module docstring).
 
@@ -728,7 +728,7 @@ class MeshCollider(SelfContact):
     def vertices(self, value) -> None:
         v = self._checked_vertices(value)
         if self._vertices is not None and self._start is None:  # the pose of the last step: a step moves it from there
-            self._start = self._vertices.detach()
+            self._start = self._vertices.detach().clone()  # (a copy: the caller may reuse the tensor it gave)
         self._vertices = self._target = v
 
     # ---- a move between steps, carried out by the next step (EnergyTerm.pending_move)
