@@ -55,6 +55,23 @@ def test_a_move_clear_of_the_cloth_takes_one_solve():
     assert not body.pending_move()
 
 
+def test_a_body_sliding_far_under_a_resting_cloth_in_one_step_takes_no_stage():
+    """The box slides 5 cm (fifty gaps) along x in one step under a cloth resting on it, frictionless: the move
+    advances by step bounds without solving between them (the gap does not close), the step ends with the body at
+    its new pose and the cloth where it was, apart and without a crossing."""
+    model, rest, body, bv, bf = sheet_on_box()
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    for _ in range(3):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+    x0 = state.x.clone()
+    body.vertices = bv + torch.tensor([0.05, 0.0, 0.0], dtype=F64)
+    state, info = tb.implicit_euler_step(model, state, 0.01, max_substep_depth=0)
+    assert info.converged and info.solves == 1, info.message
+    assert torch.equal(body.vertices, bv + torch.tensor([0.05, 0.0, 0.0], dtype=F64))
+    assert float((state.x[:, :2] - x0[:, :2]).abs().max()) < 1e-3  # the cloth stays (no friction)
+    assert info.min_distance > 0 and crossing_free(model, state.x, body, bf)
+
+
 @pytest.mark.parametrize("mu", [0.0, 0.5])
 def test_a_body_sliding_under_a_cloth_drags_it_by_friction(mu):
     """The box slides along x at 5 cm/s under a cloth resting on it: with friction 0.5 the cloth sticks and moves

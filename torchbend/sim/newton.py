@@ -993,7 +993,9 @@ def _continuation(model: ClothModel, x_start: Tensor, first: SolveInfo, option: 
 
 
 MAX_MOVE_STAGES = 64
-"""The most stages in which a time step carries out the moves of bodies (:func:`implicit_euler_step`)."""
+"""The most solves (stages) in which a time step carries out the moves of bodies (:func:`implicit_euler_step`)."""
+MAX_MOVE_ADVANCES = 1024
+"""The most advances (step bounds) in which a time step carries out the moves of bodies."""
 
 
 def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options: NewtonOptions | None = None, *,
@@ -1016,9 +1018,10 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
 
     A body moved since the last step (a :class:`~torchbend.MeshCollider` whose ``vertices`` were assigned) moves
     from its last pose to the new one within the step: where the move would bring it into contact with the cloth
-    held at ``state.x``, it advances in stages, each as far as the contact's step bound allows against the cloth
-    solved at the stage before (at most ``MAX_MOVE_STAGES``), so the body pushes the cloth instead of passing
-    through it.  A move the cloth cannot make way for (caught between the body and a pinned vertex or another
+    held at ``state.x``, it advances as far as the contact's step bound allows, again and again, and the cloth is
+    solved wherever the body has come within its activation distance and closed half the gap since the last solve
+    (a stage; at most ``MAX_MOVE_STAGES`` solves and ``MAX_MOVE_ADVANCES`` advances), so the body pushes the cloth
+    instead of passing through it.  A move the cloth cannot make way for (caught between the body and a pinned vertex or another
     body) ends where it stops: the body stays at the pose reached, the state is the solve there, and the step
     says so (``converged = False``).
 
@@ -1080,29 +1083,38 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
 
 def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext, option: Projection,
                  linear: LinearSolver, ctl: Controls) -> tuple[Tensor, list, float, bool]:
-    """The bodies' moves of a step (:func:`implicit_euler_step`) in stages, each free of contact with the cloth as
-    the last stage's solve left it: ``(x, the stages' infos, the fraction of the moves made, stuck)``.  The bodies
-    end at that fraction (at their new poses unless stuck); a start invalid at their last poses jumps to the new
-    ones (the step's solve judges it there)."""
+    """The bodies' moves of a step (:func:`implicit_euler_step`): ``(x, the stages' infos, the fraction of the moves
+    made, stuck)``.  The bodies advance along their moves as far as the step bound against the cloth at ``x`` allows,
+    again and again; where an advance has brought a body within its activation distance of the cloth and closed at
+    least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way.  A body that
+    slides past the cloth, or away from it, takes no solve.  The bodies end at the fraction made (their new poses
+    unless stuck); a start invalid at their last poses jumps to the new ones (the step's solve judges it there)."""
     x, infos, s, stuck = x_n, [], 0.0, False
     if movers and any(t.inadmissible(x_n) for t in movers):
-        movers = []
-        for t in model.terms:
+        for t in movers:
             t.place(1.0)
+        movers = []
     stage_ctl = replace(ctl, max_iters=min(ctl.max_iters, 15), check_minimum=False, callback=None)
+    gap, advances, made = min((t.move_gap(x) for t in movers), default=math.inf), 0, [0.0]
     while movers:
         alpha = min(t.move_bound(x) for t in movers)
         if alpha >= 1.0:
             break
-        if alpha < 1e-3 or len(infos) >= MAX_MOVE_STAGES or (ctl.deadline is not None and
-                                                              time.perf_counter() > ctl.deadline):
+        stalled = len(made) > 8 and s - made[-9] < 1e-3 * (1.0 - made[-9])  # eight solves made no way
+        if alpha <= 1e-12 or stalled or advances >= MAX_MOVE_ADVANCES or len(infos) >= MAX_MOVE_STAGES or \
+                (ctl.deadline is not None and time.perf_counter() > ctl.deadline):
             stuck = True
             break
         s += alpha * (1.0 - s)
+        advances += 1
         for t in movers:
             t.place(s)
-        x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
-        infos.append(info)
+        now = min(t.move_gap(x) for t in movers)
+        if now < 0.5 * gap:
+            x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
+            infos.append(info)
+            made.append(s)
+            gap = min(t.move_gap(x) for t in movers)
     if movers and not stuck:
         s = 1.0
         for t in movers:

@@ -749,6 +749,9 @@ class MeshCollider(SelfContact):
         rest = (self._goal() - self.vertices.detach()).to(device=x.device, dtype=x.dtype)
         return _path_bound(self, x, torch.cat([torch.zeros_like(x), rest]))
 
+    def move_gap(self, x: Tensor) -> float:
+        return self.min_distance(x)[0]
+
     def settle(self) -> None:
         self._start, self._target = None, self._vertices
 

@@ -190,6 +190,11 @@ class EnergyTerm:
         default."""
         return 1.0
 
+    def move_gap(self, x: Tensor) -> float:
+        """The smallest distance [m] between the body and the cloth at ``x`` where the body's contact acts on it
+        (within its activation distance), else ``inf`` (the default)."""
+        return math.inf
+
     def settle(self) -> None:
         """End the pending move at the body's pose now (the next step moves it from there)."""
         return None
