@@ -97,9 +97,10 @@ def test_a_body_sliding_under_a_cloth_drags_it_by_friction(mu):
         assert abs(moved) < 0.05 * shift  # (the barrier of the top face's diagonal edge nudges it a little)
 
 
-def test_a_move_the_cloth_cannot_make_way_for_stops_and_says_so():
-    """A cloth pinned all round over the box, which is lifted 5 cm through it: the cloth bulges as far as it can,
-    the move stops short, the step says so, and neither the state nor the body's pose has a crossing."""
+def test_a_move_too_long_for_one_step_stops_and_says_so():
+    """A cloth pinned all round over a post that rises 5 cm in one step: the cloth makes way by stretching, one
+    stage per fraction of a gap, until the stages run out; the step says so, the body stays at the pose reached,
+    and neither the state nor the body's pose has a crossing."""
     rest, _ = tb.scenes.grid(7, 7, (0.1, 0.1), dtype=F64)
     local = rest[:, :2] - rest[:, :2].amin(0)
     rim = (local < 1e-9).any(1) | (local > 0.1 - 1e-9).any(1)
@@ -108,10 +109,27 @@ def test_a_move_the_cloth_cannot_make_way_for_stops_and_says_so():
     body.vertices = small
     tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)  # (the post placed)
     body.vertices = small + torch.tensor([0.0, 0.0, 0.05], dtype=F64)
-    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01,
-                                         max_substep_depth=0)
-    assert not info.converged and info.stop_reason == "body_move"
-    assert "stopped at" in info.message and not body.pending_move()
+    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)
+    assert not info.converged and info.stop_reason == "body_move" and info.substeps == 1
+    assert "stopped at" in info.message and "move the body less per step" in info.message
+    assert not body.pending_move()
     top = float(body.vertices[:, 2].max())
     assert 5e-3 < top < 0.05  # it moved, and stopped short
     assert info.min_distance > 0 and crossing_free(model, state.x, body, bf)
+
+
+def test_a_cloth_caught_between_two_bodies_stops_the_move():
+    """A block pressed down onto a cloth lying on a floor (two body meshes): the cloth cannot make way; the step
+    stops the block short of the floor, says so, and leaves the cloth between the two, apart from both."""
+    model, rest, floor, fv, ff = sheet_on_box()
+    bv, bf = box((0.08, 0.08, 5e-3), (0.12, 0.12, 0.045))
+    block = tb.MeshCollider(bv, bf, dhat=2e-3, name="block")
+    model = tb.ClothModel(model.topology.faces, rest, membrane=model.membrane, bending=model.bending,
+                          colliders=[floor, block], density=0.2)
+    block.vertices = bv - torch.tensor([0.0, 0.0, 0.01], dtype=F64)  # its bottom 5 mm into the floor
+    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), 0.01)
+    assert not info.converged and info.stop_reason == "body_move" and "stopped at" in info.message
+    bottom = float(block.vertices[:, 2].min())
+    assert 0 < bottom < 5e-3  # it moved down, and stopped above the floor
+    assert info.min_distance > 0
+    assert crossing_free(model, state.x, floor, ff) and crossing_free(model, state.x, block, bf)

@@ -1047,8 +1047,8 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     t0 = time.perf_counter()
     poses = [(t, t.pose()) for t in model.terms]
     new, info = _euler_solve(model, state, dt, option, linear, ctl)
-    if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback"):
-        info.substeps = 1
+    if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback", "body_move"):
+        info.substeps = 1  # (a body's move the cloth cannot make way for stops the same in a half step)
         return new, info
     for t, p in poses:  # the halves start from the bodies' poses (and pending moves) of the full step
         t.restore_pose(p)
@@ -1081,29 +1081,39 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
             f"{info.tolerance:.3e} N)")
 
 
+def _move_stop(alpha: float, made: list, s: float, advances: int, stages: int, ctl: Controls) -> str:
+    """Why a body's move stops short of its end (:func:`_move_bodies`), or ""."""
+    if alpha <= 1e-12 or (len(made) > 8 and s - made[-9] < 1e-3 * (1.0 - made[-9])):  # eight solves made no way
+        return "the cloth cannot make way (caught between the body and a pinned vertex or another body?)"
+    if advances >= MAX_MOVE_ADVANCES or stages >= MAX_MOVE_STAGES:
+        return (f"the move needs more than {MAX_MOVE_STAGES} solves or {MAX_MOVE_ADVANCES} advances (each as far "
+                f"as the step bound allows): move the body less per step (a smaller dt)")
+    if ctl.deadline is not None and time.perf_counter() > ctl.deadline:
+        return f"the time limit of {ctl.time_limit} s was reached"
+    return ""
+
+
 def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext, option: Projection,
-                 linear: LinearSolver, ctl: Controls) -> tuple[Tensor, list, float, bool]:
+                 linear: LinearSolver, ctl: Controls) -> tuple[Tensor, list, float, str]:
     """The bodies' moves of a step (:func:`implicit_euler_step`): ``(x, the stages' infos, the fraction of the moves
-    made, stuck)``.  The bodies advance along their moves as far as the step bound against the cloth at ``x`` allows,
-    again and again; where an advance has brought a body within its activation distance of the cloth and closed at
+    made, why they stopped short or "")``.  The bodies advance along their moves as far as the step bound against
+    the cloth at ``x`` allows, again and again; where an advance has brought a body within its activation distance of the cloth and closed at
     least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way.  A body that
     slides past the cloth, or away from it, takes no solve.  The bodies end at the fraction made (their new poses
     unless stuck); a start invalid at their last poses jumps to the new ones (the step's solve judges it there)."""
-    x, infos, s, stuck = x_n, [], 0.0, False
+    x, infos, s, stuck = x_n, [], 0.0, ""
     if movers and any(t.inadmissible(x_n) for t in movers):
         for t in movers:
             t.place(1.0)
         movers = []
-    stage_ctl = replace(ctl, max_iters=min(ctl.max_iters, 15), check_minimum=False, callback=None)
+    stage_ctl = replace(ctl, max_iters=4 * ctl.max_iters, check_minimum=False, callback=None)  # a stage converges
     gap, advances, made = min((t.move_gap(x) for t in movers), default=math.inf), 0, [0.0]
     while movers:
         alpha = min(t.move_bound(x) for t in movers)
         if alpha >= 1.0:
             break
-        stalled = len(made) > 8 and s - made[-9] < 1e-3 * (1.0 - made[-9])  # eight solves made no way
-        if alpha <= 1e-12 or stalled or advances >= MAX_MOVE_ADVANCES or len(infos) >= MAX_MOVE_STAGES or \
-                (ctl.deadline is not None and time.perf_counter() > ctl.deadline):
-            stuck = True
+        stuck = _move_stop(alpha, made, s, advances, len(infos), ctl)
+        if stuck:
             break
         s += alpha * (1.0 - s)
         advances += 1
@@ -1146,8 +1156,7 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
         if stuck:
             info.converged = False
             info.stop_reason = "body_move"
-            info.message = (f"a body's move stopped at {s:.3g} of the way after {len(infos)} stages: the cloth "
-                            f"cannot make way (caught between the body and a pinned vertex or another body?); the "
+            info.message = (f"a body's move stopped at {s:.3g} of the way after {len(infos)} stages: {stuck}; the "
                             f"body stays at the pose reached and the state is the solve there")
     v = torch.where(pinned, torch.zeros_like(v_n), (x - x_n) / dt)
     return ClothState(x=x, v=v), info
