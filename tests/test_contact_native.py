@@ -302,6 +302,49 @@ def test_close_pairs_are_the_eager_ones_each_contact_once():
     assert scm._distinct_pairs(st, ty)[0].tolist() == [[0, 1, 2, 3]]
 
 
+def hard_stencils(dtype, edge_edge):
+    """Random stencils of every type with the hard ones among them: nearly and exactly parallel edges, edges and
+    triangles on a grid's lattice (a point exactly above an edge or a corner: stencils on the boundary between two
+    types), collapsed edges and triangles, and a far offset."""
+    parts = [stencils(2000, 11, dtype), stencils(400, 12, dtype, parallel=edge_edge)]
+    g = torch.Generator().manual_seed(13)
+    L = torch.randint(-2, 3, (600, 4, 3), generator=g).to(F64) * 0.25  # lattice points: exact ties
+    L[:300, :, 2] = 0.0  # flat: coplanar, parallel and collinear stencils
+    parts.append(L.to(dtype))
+    C = stencils(200, 14, dtype)
+    C[:100, 1] = C[:100, 0]  # a collapsed edge (a triangle with two equal corners)
+    C[100:, 3] = C[100:, 2]
+    parts.append(C)
+    parts.append(stencils(200, 15, dtype) + 100.0)  # far from the origin
+    return torch.cat(parts)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("edge_edge", [False, True])
+def test_close_pairs_type_their_stencils_as_the_scalar_classifier(edge_edge, dtype):
+    """contact_close classifies lanes of stencils branch-free; the types must be the scalar classifier's (the eager
+    reference's, contact_distances) bit for bit, ties and degenerate stencils included, and a stencil is kept
+    exactly when its distance is below dhat (up to rounding for one within 1e-6 of dhat)."""
+    X = hard_stencils(dtype, edge_edge)
+    xa, st = flat(X)
+    ref_types, D = native.contact_distances(xa, st, edge_edge)
+    assert torch.equal(ref_types, dist.edge_edge_type(X) if edge_edge else dist.point_triangle_type(X))
+    idx, types = native.contact_close(xa, st, edge_edge, 1e30, distinct=False)  # everything finite is kept
+    finite = torch.isfinite(D).nonzero()[:, 0]
+    assert idx.shape[0] >= finite.shape[0] > 0.95 * st.shape[0]
+    keep = torch.zeros(st.shape[0], dtype=torch.bool)
+    keep[idx] = True
+    assert keep[finite].all()
+    assert torch.equal(types, ref_types[idx])
+    for dh2 in (float(D[finite].median()), float(D[finite].quantile(0.1))):
+        idx, types = native.contact_close(xa, st, edge_edge, dh2, distinct=False)
+        kept = torch.zeros(st.shape[0], dtype=torch.bool)
+        kept[idx] = True
+        clear = ((D - dh2).abs() > 1e-6 * dh2) & torch.isfinite(D)
+        assert torch.equal(kept[clear], (D < dh2)[clear]) and 0 < int(kept.sum()) < st.shape[0]
+        assert torch.equal(types, ref_types[idx])
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("n", [3, 6, 9])
 def test_the_contact_eigensolver_projects_as_eigh_on_hard_matrices(n, dtype):
