@@ -496,28 +496,27 @@ struct BlockPattern {
 
 BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch::TensorOptions& index_options) {
   BlockPattern P;
-  std::vector<int64_t> count(V + 1, 0);
-  for (int64_t m = 0; m < M; ++m)
-    for (int a = 0; a < 4; ++a)
-      if (ps[4 * m + a] < V)
-        for (int b = 0; b < 4; ++b) count[ps[4 * m + a] + 1] += ps[4 * m + b] < V;
-  for (int64_t v = 0; v < V; ++v) count[v + 1] += count[v];
-  std::vector<int64_t> fill(count.begin(), count.end() - 1);
-  std::vector<std::pair<int64_t, int64_t>> entry(count[V]);  // (column vertex, 16 m + 4 a + b) per block row
-  for (int64_t m = 0; m < M; ++m)
-    for (int a = 0; a < 4; ++a)
-      if (ps[4 * m + a] < V)
-        for (int b = 0; b < 4; ++b)
-          if (ps[4 * m + b] < V) entry[fill[ps[4 * m + a]]++] = {ps[4 * m + b], 16 * m + 4 * a + b};
-  // each row's distinct columns by a mark per column vertex (the rows' entries are many, their columns few)
+  // each vertex's slots 4 m + a (stencil m's corner a is the vertex), in stencil order
+  std::vector<int64_t> start(V + 1, 0);
+  for (int64_t q = 0; q < 4 * M; ++q)
+    if (ps[q] < V) ++start[ps[q] + 1];
+  for (int64_t v = 0; v < V; ++v) start[v + 1] += start[v];
+  std::vector<int64_t> slot(start[V]);
+  {
+    std::vector<int64_t> fill(start.begin(), start.end() - 1);
+    for (int64_t q = 0; q < 4 * M; ++q)
+      if (ps[q] < V) slot[fill[ps[q]]++] = q;
+  }
+  // each row's distinct columns: the vertices < V of its slots' stencils (few per row), by a mark per vertex
   P.nb.assign(V, 0);
   at::parallel_for(0, V, 256, [&](int64_t v0, int64_t v1) {
     std::vector<int64_t> mark(V, -1);
     for (int64_t v = v0; v < v1; ++v) {
       int64_t k = 0;
-      for (int64_t q = count[v]; q < count[v + 1]; ++q) {
-        const int64_t w = entry[q].first;
-        if (mark[w] != v) { mark[w] = v; ++k; }
+      for (int64_t i = start[v]; i < start[v + 1]; ++i) {
+        const int64_t* s = ps + 4 * (slot[i] / 4);
+        for (int b = 0; b < 4; ++b)
+          if (s[b] < V && mark[s[b]] != v) { mark[s[b]] = v; ++k; }
       }
       P.nb[v] = k;
     }
@@ -533,9 +532,10 @@ BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch:
     std::vector<int64_t> mark(V, -1), pos(V, 0), cols;
     for (int64_t v = v0; v < v1; ++v) {
       cols.clear();
-      for (int64_t q = count[v]; q < count[v + 1]; ++q) {
-        const int64_t w = entry[q].first;
-        if (mark[w] != v) { mark[w] = v; cols.push_back(w); }
+      for (int64_t i = start[v]; i < start[v + 1]; ++i) {
+        const int64_t* s = ps + 4 * (slot[i] / 4);
+        for (int b = 0; b < 4; ++b)
+          if (s[b] < V && mark[s[b]] != v) { mark[s[b]] = v; cols.push_back(s[b]); }
       }
       std::sort(cols.begin(), cols.end());  // row-major: the columns in order
       const int64_t len = 3 * P.nb[v];
@@ -547,7 +547,12 @@ BlockPattern block_pattern(const int64_t* ps, int64_t M, int64_t V, const torch:
             prow[i] = 3 * v + p; pcol[i] = 3 * cols[j] + s;
           }
       }
-      for (int64_t q = count[v]; q < count[v + 1]; ++q) P.at[entry[q].second] = 9 * P.first[v] + 3 * pos[entry[q].first];
+      for (int64_t i = start[v]; i < start[v + 1]; ++i) {
+        const int64_t q = slot[i], m = q / 4, a = q % 4;
+        const int64_t* s = ps + 4 * m;
+        for (int b = 0; b < 4; ++b)
+          if (s[b] < V) P.at[16 * m + 4 * a + b] = 9 * P.first[v] + 3 * pos[s[b]];
+      }
     }
   });
   return P;
