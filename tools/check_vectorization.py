@@ -36,7 +36,7 @@ from torchbend.backends import _build_config as cfg  # noqa: E402  (standard lib
 # translation unit -> csrc function -> how many of its loops must vectorize: the tile kernels of every
 # operator (angle and energy, half-hinges, gradient, HVP, per-hinge blocks, projection, the assembly's angles and
 # face blocks), the scatters, and the contact projection (cpu_contact.cpp: the tridiagonal QL over lanes and the
-# products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes).
+# products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes and the pairs' energy lanes).
 # x86-64-v3 and x86-64-v4 builds vectorize the same loops (GCC 12.2, 2026-12); ``--list`` prints the counts.
 REQUIRED: dict[str, dict[str, int]] = {
     "cpu_first_order.cpp": {"theta_tile": 1, "halves_tile": 1, "half_tile": 1, "grad_of_halves": 1,
@@ -48,18 +48,18 @@ REQUIRED: dict[str, dict[str, int]] = {
                        "complete_tile": 2, "hessian_tiles": 2},
     "cpu_projection.cpp": {"project_hinge_tile": 6, "jacobi_project": 5, "lanes_scale": 1, "lanes_rebuild": 3},
     "cpu_contact.cpp": {"ql_project": 14, "lanes_scale": 2, "lanes_rebuild": 3, "frame_group": 4,
-                        "ee_close_lanes": 1, "pt_close_lanes": 1},
+                        "ee_close_lanes": 1, "pt_close_lanes": 1, "energy_lanes": 1},
     "cpu_assembly.cpp": {"theta_tile": 1, "half_tile": 1, "grad_of_halves": 1, "block_tile": 7, "face_block_tile": 3},
     "cpu_membrane.cpp": {"stress_tile": 2, "hvp_tile": 1, "block_tile": 1},
 }
 # Template lane loops whose every instantiation must vectorize: translation unit -> function -> how many vectorized
 # instances of its loops (one report per instantiation): the membrane's stress tile (energy and forces: 2 loops x
 # 3 models x 2 dtypes), HVP and block tiles (4 models x 3 projections x 2 dtypes each); the contact's
-# point-triangle typing lanes (2 dtypes).  A loop that vectorizes for
+# point-triangle typing and energy lanes (2 dtypes each).  A loop that vectorizes for
 # one model but not another counts once in REQUIRED; here the lost instance shows.
 INSTANCES: dict[str, dict[str, int]] = {
     "cpu_membrane.cpp": {"stress_tile": 12, "hvp_tile": 24, "block_tile": 24},
-    "cpu_contact.cpp": {"pt_close_lanes": 2},
+    "cpu_contact.cpp": {"pt_close_lanes": 2, "energy_lanes": 2},
 }
 
 _REPORT = re.compile(r"^(?P<file>[^:\s]+):(?P<line>\d+):\d+: optimized: loop vectorized using (?P<bytes>\d+) byte vectors")

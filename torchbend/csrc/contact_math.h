@@ -128,6 +128,28 @@ template <typename T> TB_HD static inline int edge_edge_type(const T* a0, const 
   return table[si][ti];
 }
 
+// The squared distance of a formula from its reduced coordinates y (the value typed_derivs returns, its
+// expressions written out) and the squared cross product c = |a x b|^2 of a stencil's two edges (the mollifier's
+// argument), both without contraction: every energy of the compiled kernels (pair_terms, and the energy lanes of
+// cpu_contact.cpp, which spell the same expressions) comes out bit for bit the same.
+template <typename T> TB_HD static inline T typed_distance(int formula, const T* y) {
+  if (formula == F_PP) return y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
+  if (formula == F_PE) {
+    const T x0 = y[1] * y[5] - y[2] * y[4], x1 = y[2] * y[3] - y[0] * y[5], x2 = y[0] * y[4] - y[1] * y[3];
+    return (x0 * x0 + x1 * x1 + x2 * x2) / (y[3] * y[3] + y[4] * y[4] + y[5] * y[5]);
+  }
+  const T n0 = y[4] * y[8] - y[5] * y[7], n1 = y[5] * y[6] - y[3] * y[8], n2 = y[3] * y[7] - y[4] * y[6];
+  const T sn = y[0] * n0 + y[1] * n1 + y[2] * n2;
+  return sn * sn / (n0 * n0 + n1 * n1 + n2 * n2);
+}
+
+template <typename T> TB_HD static inline T edge_cross_sq(const T x[4][3]) {
+  const T a0 = x[1][0] - x[0][0], a1 = x[1][1] - x[0][1], a2 = x[1][2] - x[0][2];
+  const T b0 = x[3][0] - x[2][0], b1 = x[3][1] - x[2][1], b2 = x[3][2] - x[2][2];
+  const T c0 = a1 * b2 - a2 * b1, c1 = a2 * b0 - a0 * b2, c2 = a0 * b1 - a1 * b0;
+  return c0 * c0 + c1 * c1 + c2 * c2;
+}
+
 #ifdef TB_CONTACT_NO_CONTRACT
 #pragma GCC pop_options
 #undef TB_CONTACT_NO_CONTRACT
@@ -286,7 +308,9 @@ template <typename T> TB_HD static inline void pair_terms(const T x[4][3], int t
   signed char C[3][4] = {};
   int r = type_rows(type, &formula, C);
   T y[9], gD[9], HD[81];
-  T D = typed_derivs(formula, (reduce(C, r, x, y), y), want >= 1 ? gD : (T*)0, want >= 2 ? HD : (T*)0);
+  reduce(C, r, x, y);
+  if (want >= 1) typed_derivs(formula, y, gD, want >= 2 ? HD : (T*)0);
+  const T D = typed_distance(formula, y);
   out->D = D;
   out->mollified = false;
   const int k = 3 * r;
@@ -302,10 +326,8 @@ template <typename T> TB_HD static inline void pair_terms(const T x[4][3], int t
   // the mollifier (edge-edge pairs): c = |a x b|^2 of a = a1 - a0, b = b1 - b0
   T m = 1, m1 = 0, m2 = 0, ea[3], eb[3];
   if (eps > 0) {
-    T n[3];
     for (int i = 0; i < 3; ++i) { ea[i] = x[1][i] - x[0][i]; eb[i] = x[3][i] - x[2][i]; }
-    cross3p(ea, eb, n);
-    m = mollifier(dot3p(n, n), eps, &m1, &m2);
+    m = mollifier(edge_cross_sq(x), eps, &m1, &m2);
   }
   if (m1 == 0 && m2 == 0) {  // no mollifier term: the type's own coordinates
     out->E = m * bE;

@@ -72,7 +72,7 @@ template <typename T> T stencil_distance_sq(const T X[4][3], bool edge_edge, int
   T y[9];
   cm::reduce(C, r, X, y);
   *type = t;
-  return cm::typed_derivs<T>(formula, y, nullptr, nullptr);
+  return cm::typed_distance<T>(formula, y);
 }
 
 // the squared gap (in A arithmetic) between the boxes of a stencil's two sides, corners [0, split) and [split, 4):
@@ -197,6 +197,33 @@ template <typename T> void pt_close_lanes(const T (*P)[kClose], int* type, T* D)
     const T pl = sn * sn / (n0 * n0 + n1 * n1 + n2 * n2);
     type[l] = t;
     D[l] = t <= cm::PT_P2 ? pp : (t < cm::PT_FACE ? pe : pl);
+  }
+}
+
+// The energies alone (contact_barrier with want = 0, a line search's trial points), kClose pairs at a time: each
+// lane's reduced coordinates y = C x as contact::reduce forms them (C's entries are -1, 0, 1: one rounded
+// difference per coordinate), its formula's squared distance and the edge pairs' mollifier argument spelled as
+// contact::typed_distance and contact::edge_cross_sq, without contraction as there: the energies are pair_terms'
+// bit for bit.  D and the mollifier M (1 where eps = 0 or c >= eps) per lane; the barrier's log is taken after.
+template <typename T> void energy_lanes(const T (*X)[kClose], const T (*C)[4][kClose], const int* form, T* D, T* M) {
+  TB_LANES_AGG(kClose) {
+    T y[9];
+    for (int r = 0; r < 3; ++r)
+      for (int i = 0; i < 3; ++i)
+        y[3 * r + i] = C[r][0][l] * X[i][l] + C[r][1][l] * X[3 + i][l] + C[r][2][l] * X[6 + i][l] +
+                       C[r][3][l] * X[9 + i][l];
+    const T pp = y[0] * y[0] + y[1] * y[1] + y[2] * y[2];
+    const T x0 = y[1] * y[5] - y[2] * y[4], x1 = y[2] * y[3] - y[0] * y[5], x2 = y[0] * y[4] - y[1] * y[3];
+    const T pe = (x0 * x0 + x1 * x1 + x2 * x2) / (y[3] * y[3] + y[4] * y[4] + y[5] * y[5]);
+    const T n0 = y[4] * y[8] - y[5] * y[7], n1 = y[5] * y[6] - y[3] * y[8], n2 = y[3] * y[7] - y[4] * y[6];
+    const T sn = y[0] * n0 + y[1] * n1 + y[2] * n2;
+    const T pl = sn * sn / (n0 * n0 + n1 * n1 + n2 * n2);
+    D[l] = form[l] == cm::F_PP ? pp : (form[l] == cm::F_PE ? pe : pl);
+    const T a0 = X[3][l] - X[0][l], a1 = X[4][l] - X[1][l], a2 = X[5][l] - X[2][l];
+    const T b0 = X[9][l] - X[6][l], b1 = X[10][l] - X[7][l], b2 = X[11][l] - X[8][l];
+    const T c0 = a1 * b2 - a2 * b1, c1 = a2 * b0 - a0 * b2, c2 = a0 * b1 - a1 * b0;
+    const T cc = c0 * c0 + c1 * c1 + c2 * c2, eps = M[l], rr = cc / eps;
+    M[l] = eps > 0 && cc < eps ? (2 - rr) * rr : T(1);
   }
 }
 
@@ -385,6 +412,33 @@ void pair_chunk(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, 
   }
 }
 
+// the energies of the pairs n0 .. n1 - 1 (energy_lanes, then the barrier lane by lane as contact::barrier)
+template <typename T> void pair_energies(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, T dh2,
+                                         T kappa, int64_t n0, int64_t n1, T* pE) {
+  alignas(64) T X[12][kClose], C[3][4][kClose], D[kClose], M[kClose];
+  alignas(64) int form[kClose];
+  for (int64_t m0 = n0; m0 < n1; m0 += kClose) {
+    const int nl = int(std::min<int64_t>(kClose, n1 - m0));
+    for (int l = 0; l < kClose; ++l) {
+      const int64_t n = m0 + (l < nl ? l : 0);  // the lanes past the end repeat the first
+      const int64_t* s = ps + 4 * n;
+      for (int v = 0; v < 4; ++v)
+        for (int i = 0; i < 3; ++i) X[3 * v + i][l] = px[3 * s[v] + i];
+      signed char c[3][4];
+      cm::type_rows(int(pt[n]), &form[l], c);
+      for (int r = 0; r < 3; ++r)
+        for (int v = 0; v < 4; ++v) C[r][v][l] = T(c[r][v]);
+      M[l] = pe ? pe[n] : T(0);
+    }
+    energy_lanes<T>(X, C, form, D, M);
+    for (int l = 0; l < nl; ++l) {
+      T b1, b2;
+      const T d = D[l];
+      pE[m0 + l] = d > 0 ? M[l] * cm::barrier(d, dh2, kappa, &b1, &b2) : T(1) / T(0);
+    }
+  }
+}
+
 // the checked stencils, types and thresholds (in x's dtype; empty: none) of the barrier operators
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> barrier_args(const char* op, const torch::Tensor& x,
                                                                      torch::Tensor stencils, torch::Tensor types,
@@ -430,6 +484,12 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
     T* pE = E.data_ptr<T>();
     T* pG = want >= 1 ? G.data_ptr<T>() : nullptr;
     T* pH = want >= 2 ? H.data_ptr<T>() : nullptr;
+    if (want == 0) {
+      at::parallel_for(0, N, 2048, [&](int64_t n0, int64_t n1) {
+        pair_energies<T>(px, ps, pt, pe, T(dhat_sq), T(kappa), n0, n1, pE);
+      });
+      return;
+    }
     const int64_t chunks = (N + kPairChunk - 1) / kPairChunk;
     at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
       std::vector<cm::PairTerms<T>> terms(kPairChunk);
