@@ -36,7 +36,7 @@ from torchbend.backends import _build_config as cfg  # noqa: E402  (standard lib
 # translation unit -> csrc function -> how many of its loops must vectorize: the tile kernels of every
 # operator (angle and energy, half-hinges, gradient, HVP, per-hinge blocks, projection, the assembly's angles and
 # face blocks), the scatters, and the contact projection (cpu_contact.cpp: the tridiagonal QL over lanes and the
-# products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes and the pairs' energy lanes).
+# products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes and the pairs' energy lanes, cpu_contact_scan.h).
 # x86-64-v3 and x86-64-v4 builds vectorize the same loops (GCC 12.2, 2026-12); ``--list`` prints the counts.
 REQUIRED: dict[str, dict[str, int]] = {
     "cpu_first_order.cpp": {"theta_tile": 1, "halves_tile": 1, "half_tile": 1, "grad_of_halves": 1,
