@@ -133,3 +133,103 @@ def test_a_cloth_caught_between_two_bodies_stops_the_move():
     assert 0 < bottom < 5e-3  # it moved down, and stopped above the floor
     assert info.min_distance > 0
     assert crossing_free(model, state.x, floor, ff) and crossing_free(model, state.x, block, bf)
+
+
+# ---- analytic colliders replaced by moved ones between steps (ClothModel.colliders assigned)
+def pinned_sheet(collider, n: int = 9, size: float = 0.3, pinned: bool = True):
+    """A ``n x n`` sheet ``size`` wide centred on the origin at z = 0, pinned at its corners (or free), over
+    ``collider``."""
+    rest, faces = tb.scenes.grid(n, n, (size, size), dtype=F64)
+    rest = rest - torch.tensor([size / 2, size / 2, 0.0], dtype=F64)
+    corners = [0, n - 1, n * (n - 1), n * n - 1]
+    model = tb.ClothModel(faces, rest, bending=tb.BendingEnergy(faces, rest, stiffness=1e-5), density=0.2,
+                          membrane=tb.MembraneEnergy(faces, rest, model="stvk", young=1e4, poisson=0.3, thickness=5e-4),
+                          pinned=corners if pinned else None, colliders=[collider])
+    return model, tb.ClothState(rest.clone(), torch.zeros_like(rest))
+
+
+@pytest.mark.parametrize("kind", ["sphere", "capsule", "plane"])
+def test_an_analytic_collider_moved_up_into_a_cloth_pushes_it_up(kind):
+    """A sphere or a capsule rises 1 cm per step into a sheet pinned at its corners, from 1 cm below it to 2 cm
+    above; a plane under a free sheet resting on it rises 1 cm per step and tilts: each step carries out the move
+    in stages, converges, and ends with every cloth vertex outside the collider at its new pose (before, the first
+    step refused the start: a vertex inside the collider)."""
+    def at(k):
+        z = -0.01 + 0.01 * k
+        if kind == "sphere":
+            return tb.Sphere(center=(0.0, 0.0, z - 0.05), radius=0.05)
+        if kind == "capsule":
+            return tb.Capsule(a=(-0.05, 0.0, z - 0.03), b=(0.05, 0.02, z - 0.03), radius=0.03)
+        return tb.Plane(point=(0.0, 0.0, 0.01 * k - 5e-4), normal=(0.03 * k, 0.0, 1.0))  # rising and turning
+    model, state = pinned_sheet(at(0), pinned=kind != "plane")
+    for k in range(1, 4):
+        model.colliders = [at(k)]
+        term = next(t for t in model.terms if t.name == "collider0")
+        assert term.pending_move()
+        state, info = tb.implicit_euler_step(model, state, 1 / 30)
+        assert info.converged, info.message
+        assert "stages" in info.message and not term.pending_move()
+        assert model.colliders[0] == at(k).with_weight(model.vertex_weight())  # the move is complete
+        s = at(k).signed_distance(state.x)
+        assert float(s.min()) > 0 and info.min_distance > 0
+    if kind != "plane":  # the cloth's centre rides on top of the body
+        centre = state.x[state.x[:, :2].norm(dim=1).argmin()]
+        assert float(centre[2]) > 0.01
+
+
+def test_an_analytic_collider_moved_clear_of_the_cloth_takes_one_solve_and_a_penalty_one_no_stage():
+    model, state = pinned_sheet(tb.Sphere(center=(0.0, 0.0, -0.2), radius=0.05))
+    model.colliders = [tb.Sphere(center=(0.05, 0.0, -0.15), radius=0.05)]  # still 10 cm below
+    state, info = tb.implicit_euler_step(model, state, 1 / 30)
+    assert info.converged and info.solves == 1 and "stages" not in info.message
+    assert model.colliders[0].center == (0.05, 0.0, -0.15)
+    # a penalty collider (a cloth may start a step inside it) is placed, not moved in stages
+    model, state = pinned_sheet(tb.Sphere(center=(0.0, 0.0, -0.06), radius=0.05, law="penalty"))
+    model.colliders = [tb.Sphere(center=(0.0, 0.0, -0.04), radius=0.05, law="penalty")]
+    assert not any(t.pending_move() for t in model.terms)
+    # so is a collider replaced by one of another kind or other parameters
+    model, state = pinned_sheet(tb.Sphere(center=(0.0, 0.0, -0.2), radius=0.05))
+    model.colliders = [tb.Sphere(center=(0.0, 0.0, -0.1), radius=0.05, friction=0.2)]
+    assert not any(t.pending_move() for t in model.terms)
+
+
+def test_a_sphere_moving_under_a_cloth_drags_it_by_friction():
+    """A sheet resting on a sphere (its corners free) while the sphere slides along x at 3 cm/s: with friction 0.8
+    the sheet moves along with it; without friction it stays behind (sliding off its top)."""
+    moved = {}
+    for mu in (0.0, 0.8):
+        rest, faces = tb.scenes.grid(7, 7, (0.06, 0.06), dtype=F64)
+        rest = rest - torch.tensor([0.03, 0.03, -1e-3], dtype=F64)
+
+        def ball(x0, mu=mu):
+            return tb.Sphere(center=(x0, 0.0, -0.2), radius=0.2, friction=mu)
+        model = tb.ClothModel(faces, rest, bending=tb.BendingEnergy(faces, rest, stiffness=1e-5), density=0.2,
+                              membrane=tb.MembraneEnergy(faces, rest, young=1e4, poisson=0.3, thickness=5e-4),
+                              colliders=[ball(0.0)])
+        state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+        for _ in range(3):
+            state, info = tb.implicit_euler_step(model, state, 0.01)
+            assert info.converged, info.message
+        x0 = state.x.clone()
+        for k in range(1, 11):
+            model.colliders = [ball(3e-4 * k)]
+            state, info = tb.implicit_euler_step(model, state, 0.01)
+            assert info.converged, info.message
+            assert float(ball(3e-4 * k).signed_distance(state.x).min()) > 0
+        moved[mu] = float((state.x[:, 0] - x0[:, 0]).mean())
+    assert moved[0.8] == pytest.approx(3e-3, rel=0.1)
+    assert abs(moved[0.0]) < 0.3 * 3e-3
+
+
+def test_a_static_solve_takes_the_bodies_where_they_are_given_and_ends_their_moves():
+    """A static solve after a body's move (a MeshCollider's vertices, a Sphere replaced) solves with the body at its
+    new pose and ends the move there: the next step does not move it again from its last step's pose."""
+    model, rest, body, bv, bf = sheet_on_box(gap=2e-3)
+    body.vertices = bv + torch.tensor([0.0, 0.0, 5e-4], dtype=F64)
+    assert body.pending_move()
+    x, info = tb.solve_static(model, rest)
+    assert info.converged and not body.pending_move() and float(x[:, 2].min()) > 5e-4
+    model, state = pinned_sheet(tb.Sphere(center=(0.0, 0.0, -0.2), radius=0.05))
+    model.colliders = [tb.Sphere(center=(0.0, 0.0, -0.1), radius=0.05)]
+    _, info = tb.solve_static(model, state.x)
+    assert info.converged and not any(t.pending_move() for t in model.terms)

@@ -71,10 +71,9 @@ class Collider:
     ``stiffness`` (> 0; [N/m] for the penalty, [J/m^p] for the barrier, [J/m^2] for ipc; None: 1e4 for the penalty
     and the barrier, chosen from the cloth's weight by a model for ipc), ``margin`` [m] (>= 0; ipc's activation
     distance, > 0; None: ``DEFAULT_MARGIN`` for ipc, 0 otherwise), ``law`` (``"ipc"``, the default, ``"penalty"`` or
-    ``"barrier"``, :mod:`torchbend.energies.contact`), ``power``
-    (the barrier's, default 3), ``friction`` (the Coulomb coefficient ``mu`` >= 0 of time steps, lagged and
-    smoothed below the sliding speed ``eps_v`` [m/s], :mod:`torchbend.energies.friction`) as keyword arguments of
-    every collider."""
+    ``"barrier"``, :mod:`torchbend.energies.contact`), ``power`` (the barrier's, default 3), ``friction`` (the
+    Coulomb coefficient ``mu`` >= 0 of time steps, lagged and smoothed below the sliding speed ``eps_v`` [m/s],
+    :mod:`torchbend.energies.friction`) as keyword arguments of every collider."""
 
     stiffness: float | None = None
     margin: float | None = None
@@ -139,6 +138,30 @@ class Collider:
     def _replace(self, **changes) -> Collider:
         return dataclasses.replace(self, **changes)
 
+    # ---- a move between time steps (a model's collider replaced by a moved one: ClothModel.colliders)
+    _GEOMETRY: ClassVar[tuple[str, ...]] = ()  # the fields a move changes; the others must stay
+
+    def _moves_to(self, goal: Collider) -> bool:
+        """Whether replacing this collider by ``goal`` is a move a time step carries out in stages: the same
+        kind with a bounded law (ipc, barrier: the cloth may never start inside), only its geometry changed."""
+        if type(goal) is not type(self) or goal == self or self._contact is None or not self._contact.bounded:
+            return False
+        return all(getattr(self, f.name) == getattr(goal, f.name) for f in dataclasses.fields(self)
+                   if f.name not in self._GEOMETRY)
+
+    def _toward(self, goal: Collider, s: float) -> Collider:  # pragma: no cover - abstract
+        """The collider a fraction ``s`` in ``[0, 1]`` of the way from this one to ``goal``."""
+        raise NotImplementedError
+
+    def _path_rate(self, goal: Collider, x: Tensor) -> Tensor:  # pragma: no cover - abstract
+        """``(V,)``: how far the signed distance of ``x (V, 3)`` falls at most on the way to ``goal`` (a fraction
+        ``s`` of the way: ``s`` times as far)."""
+        raise NotImplementedError
+
+    def _surface_motion(self, goal: Collider, x: Tensor) -> Tensor:
+        """``(V, 3)``: the surface's move nearest ``x`` on the way to ``goal`` (the friction's slip is relative to it)."""
+        return torch.zeros_like(x)
+
     def _sd(self, x: Tensor):  # pragma: no cover - abstract
         """``(s, n, curv)``: signed distance ``(V,)``, unit normal ``(V, 3)``, ``Hess s`` ``(V, 3, 3)`` or None."""
         raise NotImplementedError
@@ -195,6 +218,14 @@ class Collider:
         return self.contact.vertex_terms(self.margin - s, n, curv, exact)
 
 
+def _lerp(p: tuple, q: tuple, s: float) -> tuple:
+    return tuple(a + s * (b - a) for a, b in zip(p, q))
+
+
+def _lerp1(p: float, q: float, s: float) -> float:
+    return p + s * (q - p)
+
+
 def _radial(p: Tensor, radius: float):
     """Distance to a point (``p`` relative to it) minus ``radius``: ``(s, n, Hess s)``."""
     r = p.norm(dim=-1)
@@ -242,6 +273,20 @@ class Sphere(Collider):
     def _sd(self, x: Tensor):
         return _radial(x - x.new_tensor(self.center), self.radius)
 
+    _GEOMETRY = ("center", "radius")
+
+    def _toward(self, goal: Collider, s: float) -> Collider:
+        assert isinstance(goal, Sphere)
+        return self._replace(center=_lerp(self.center, goal.center, s), radius=_lerp1(self.radius, goal.radius, s))
+
+    def _path_rate(self, goal: Collider, x: Tensor) -> Tensor:
+        assert isinstance(goal, Sphere)
+        return x.new_full(x.shape[:1], math.dist(self.center, goal.center) + abs(goal.radius - self.radius))
+
+    def _surface_motion(self, goal: Collider, x: Tensor) -> Tensor:
+        assert isinstance(goal, Sphere)
+        return x.new_tensor(goal.center).sub(x.new_tensor(self.center)).expand_as(x)
+
     def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
         p = x - x.new_tensor(self.center)
         return _ray_ball(p, dx, _allowed_radius(p.norm(dim=-1), self.radius, tau))
@@ -267,6 +312,22 @@ class Plane(Collider):
         n = x.new_tensor(self.normal)
         s = (x - x.new_tensor(self.point)) @ n
         return s, n.expand_as(x), None
+
+    _GEOMETRY = ("point", "normal")
+
+    def _moves_to(self, goal: Collider) -> bool:  # a turn of less than 90 degrees
+        return super()._moves_to(goal) and sum(a * b for a, b in zip(self.normal, goal.normal)) > 0  # type: ignore[attr-defined]
+
+    def _toward(self, goal: Collider, s: float) -> Collider:
+        assert isinstance(goal, Plane)
+        return self._replace(point=_lerp(self.point, goal.point, s), normal=_lerp(self.normal, goal.normal, s))
+
+    def _path_rate(self, goal: Collider, x: Tensor) -> Tensor:
+        # s_t(x) - s(x) = (x - p) . (n_t - n) - (p_t - p) . n_t, and the normalized chord's normal moves at most
+        # twice as far as the chord: |n_t - n| <= 2 t |n' - n|
+        assert isinstance(goal, Plane)
+        turn = math.dist(self.normal, goal.normal)
+        return 2 * turn * (x - x.new_tensor(self.point)).norm(dim=-1) + math.dist(self.point, goal.point)
 
     def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
         # s(x + t dx) = s + t (dx . n) reaches -D (D = max(tau, 2 d) > -s) only when moving inwards
@@ -313,6 +374,30 @@ class Capsule(Collider):
     def _sd(self, x: Tensor):
         a, b = self._ends(x)
         return _capsule_sd(x, a, b, self.radius)
+
+    _GEOMETRY = ("a", "b", "radius")
+
+    def _moves_to(self, goal: Collider) -> bool:  # (a capsule with tensor ends, a robot link's, is placed per step)
+        return not isinstance(self, _TensorCapsule) and not isinstance(goal, _TensorCapsule) and super()._moves_to(goal)
+
+    def _toward(self, goal: Collider, s: float) -> Collider:
+        assert isinstance(goal, Capsule)
+        return self._replace(a=_lerp(self.a, goal.a, s), b=_lerp(self.b, goal.b, s),
+                             radius=_lerp1(self.radius, goal.radius, s))
+
+    def _path_rate(self, goal: Collider, x: Tensor) -> Tensor:
+        # each point of the axis moves on a chord between the ends' moves: at most the longer of them
+        assert isinstance(goal, Capsule)
+        move = max(math.dist(self.a, goal.a), math.dist(self.b, goal.b)) + abs(goal.radius - self.radius)
+        return x.new_full(x.shape[:1], move)
+
+    def _surface_motion(self, goal: Collider, x: Tensor) -> Tensor:
+        assert isinstance(goal, Capsule)
+        a, b = self._ends(x)
+        length = (b - a).norm()
+        u = (((x - a) @ ((b - a) / length)).clamp_min(0.0).clamp_max(length) / length)[:, None]
+        da, db = x.new_tensor(goal.a) - a, x.new_tensor(goal.b) - b
+        return (1 - u) * da + u * db
 
     def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:
         a, b = (e.detach() for e in self._ends(x))

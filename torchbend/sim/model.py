@@ -253,7 +253,41 @@ class ClothModel(TermSum):
         if any(c.stiffness is None for c in colliders) and self.mass.device.type != "meta":
             w = self.vertex_weight()
             colliders = tuple(c.with_weight(w) for c in colliders)
+        # a collider replaced by a moved one of the same kind (ipc or barrier law) is a move the next time step
+        # carries out in stages (ColliderTerm.pending_move): from the pose of the last step, kept until then
+        old = getattr(self, "_colliders", None)
+        starts = getattr(self, "_collider_starts", None) or (None,) * len(colliders)
+        moves = []
+        for i, c in enumerate(colliders):
+            start = None
+            if old is not None and len(old) == len(colliders):
+                start = starts[i] if len(starts) == len(colliders) and starts[i] is not None else old[i]
+                if start is not None and not start._moves_to(c):
+                    start = None
+            moves.append(start)
         self._colliders = colliders
+        self._collider_starts = tuple(moves)
+        self._collider_goals: dict = {}
+
+    def _collider_move(self, i: int):
+        """``(start, goal)`` of collider ``i``'s pending move (``start`` None: none)."""
+        starts = getattr(self, "_collider_starts", ())
+        return (starts[i] if i < len(starts) else None), getattr(self, "_collider_goals", {}).get(i, self._colliders[i])
+
+    def _set_collider(self, i: int, collider, start, goal) -> None:
+        """Collider ``i`` placed at ``collider`` on its move from ``start`` to ``goal`` (``start`` None: settled)."""
+        colliders = list(self._colliders)
+        colliders[i] = collider
+        self._colliders = tuple(colliders)
+        starts = list(getattr(self, "_collider_starts", None) or (None,) * len(colliders))
+        starts[i] = start
+        self._collider_starts = tuple(starts)
+        goals = dict(getattr(self, "_collider_goals", {}))
+        if start is None:
+            goals.pop(i, None)
+        else:
+            goals[i] = goal
+        self._collider_goals = goals
 
     def vertex_weight(self) -> float:
         """The mean vertex weight ``|g| mean(m)`` [N] (with ``|g| = 9.81`` m/s^2 under no gravity): the scale the
@@ -294,7 +328,7 @@ class ClothModel(TermSum):
         out.append(GravityTerm(self.mass, self.gravity))
         if self.colliders:
             depth = lambda: self.contact_depth  # noqa: E731 - evaluated by a step bound only
-            out.extend(ColliderTerm(c, depth, name=f"collider{i}") for i, c in enumerate(self.colliders))
+            out.extend(ColliderTerm(c, depth, name=f"collider{i}", owner=(self, i)) for i, c in enumerate(self.colliders))
         out.extend(self.extra_terms)
         return tuple(out)
 

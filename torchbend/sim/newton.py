@@ -826,6 +826,9 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
     is False and ``info.stop_reason`` / ``info.message`` say why; ``info`` describes the returned
     state.  ``x0`` is never modified.  Invalid arguments raise ``ValueError`` naming them."""
     x0 = _prepare_x(model, x0)
+    for term in model.terms:  # the bodies are where they are given: a move pending from a step ends there
+        if term.pending_move():
+            term.settle()
     opts, ctl = resolve_options(options, "solve_static", "static", hessian=hessian, max_cg_iters=max_cg_iters,
                                 callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
                                 max_iters=max_iters, continuation=continuation, max_relax_steps=max_relax_steps,

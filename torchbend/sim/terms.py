@@ -332,14 +332,75 @@ class ColliderTerm(EnergyTerm):
     term: per-vertex Hessian blocks (the curvature term dropped for every projection), and the continuous
     step bound with penetration ``depth`` [m].  With ``friction > 0`` a time step adds the lagged smooth
     friction of :mod:`~torchbend.energies.friction` (normals and contact forces taken at the step's start by
-    :meth:`begin_step`); a static solve has none."""
+    :meth:`begin_step`); a static solve has none.
+
+    ``owner = (model, i)``: the term is the model's collider ``i`` (:attr:`ClothModel.colliders
+    <torchbend.ClothModel.colliders>`), read from the model on every use.  A collider there replaced between
+    steps by a moved one of the same kind with an ipc or barrier law is a move (:meth:`pending_move`) that the next
+    time step carries out in stages, as a :class:`~torchbend.MeshCollider`'s: the collider advances as far as
+    its path bound against the cloth allows (:meth:`move_bound`), and the cloth is solved where it has come
+    within ``margin``, so that the cloth makes way instead of starting inside.  The friction's slip is then
+    relative to the surface's move (a moving sphere or capsule drags the cloth)."""
 
     contact = True
     confines = True
     batched = True
 
-    def __init__(self, collider: Collider, depth: float | Callable[[], float], name: str = "collider"):
-        self.collider, self._depth, self.name = collider, depth, name
+    def __init__(self, collider: Collider, depth: float | Callable[[], float], name: str = "collider",
+                 owner: tuple | None = None):
+        self._collider, self._depth, self.name, self._owner = collider, depth, name, owner
+
+    @property
+    def collider(self) -> Collider:
+        """The collider (the owner model's collider ``i`` at its pose now, where the term has an owner)."""
+        return self._owner[0].colliders[self._owner[1]] if self._owner is not None else self._collider
+
+    # ---- a move between steps (the owner model's collider replaced by a moved one)
+    def _move(self) -> tuple:
+        return self._owner[0]._collider_move(self._owner[1]) if self._owner is not None else (None, None)
+
+    def pending_move(self) -> bool:
+        return self._move()[0] is not None
+
+    def place(self, s: float) -> None:
+        start, goal = self._move()
+        if start is not None and self._owner is not None:
+            model, i = self._owner
+            model._set_collider(i, goal if s >= 1 else start._toward(goal, s), start, goal)
+
+    def move_bound(self, x: Tensor) -> float:
+        start, goal = self._move()
+        if start is None or not x.shape[0]:
+            return 1.0
+        c = self.collider
+        s = c._sd(x.detach())[0]
+        rate = c._path_rate(goal, x.detach())
+        moving = rate > 0
+        if not bool(moving.any()):
+            return 1.0
+        return min(1.0, max(0.0, float((0.9 * s[moving] / rate[moving]).min())))
+
+    def move_gap(self, x: Tensor) -> float:
+        if not x.shape[0]:
+            return math.inf
+        c = self.collider
+        d = float(c._sd(x.detach())[0].min())
+        return d if c.margin is not None and d < c.margin else math.inf
+
+    def settle(self) -> None:
+        start, _ = self._move()
+        if start is not None and self._owner is not None:
+            model, i = self._owner
+            model._set_collider(i, self.collider, None, None)
+
+    def pose(self) -> Any:
+        return None if self._owner is None else (*self._move(), self.collider)
+
+    def restore_pose(self, pose: Any) -> None:
+        if pose is not None and self._owner is not None:
+            start, goal, current = pose
+            model, i = self._owner
+            model._set_collider(i, current, start, goal)
 
     @property
     def depth(self) -> float:
@@ -354,6 +415,9 @@ class ColliderTerm(EnergyTerm):
             s, n, _ = c._sd(x_prev)
             lam = c.contact.slope(c.margin - s)
             lam = torch.where(torch.isfinite(lam), lam, torch.zeros_like(lam))
+            start, goal = self._move()
+            if start is not None:  # the slip is relative to the surface's move over the step
+                x_prev = x_prev + start._surface_motion(goal, x_prev)
             ctx.lagged[self.name] = {"x_prev": x_prev, "n": n, "weight": c.friction * lam, "eps": c.eps_v * ctx.dt}
 
     def _friction(self, x, ctx):
