@@ -25,6 +25,7 @@ import importlib.util
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -220,6 +221,30 @@ def garments_section(results: str = RESULTS) -> list:
     return lines
 
 
+def contact_section(results: str = RESULTS) -> list:
+    """The newest ``self_contact_*.txt`` in ``results`` (``python benchmarks/bm_contact.py > ...``), verbatim, and the
+    names of the earlier ones."""
+    lines = ["", "## Self-contact against the IPC toolkit (one thread)", ""]
+    def recorded(path: str) -> str:  # the run's date in the file's header, "(YYYY-MM-DD HH:MM UTC"
+        with open(path) as f:
+            m = re.search(r"\((\d{4}-\d{2}-\d{2} \d{2}:\d{2}) UTC", f.read(600))
+        return m.group(1) if m else ""
+
+    paths = sorted(glob.glob(os.path.join(results, "self_contact_*.txt")), key=recorded)
+    if not paths:
+        return lines + ["No contact run recorded: `python benchmarks/bm_contact.py --scene half --sizes 12 20 50 100 > "
+                        "benchmarks/results/self_contact_<machine>.txt`."]
+    lines.append("Written by `python benchmarks/bm_contact.py` (a grid folded onto itself: the pairs' barrier energy, "
+                 "gradient and clamp-projected Hessian against `ipctk` on the same scene, a Newton iteration's contact "
+                 "work, the broad phase, the cost per pair from 1e3 to 1e5 pairs).  The newest record:")
+    with open(paths[-1]) as f:
+        text = f.read().rstrip()
+    lines += ["", f"### `{os.path.relpath(paths[-1], ROOT)}`", "", "```", text, "```"]
+    if len(paths) > 1:
+        lines += ["", "Earlier records: " + ", ".join(f"`{os.path.relpath(q, ROOT)}`" for q in reversed(paths[:-1])) + "."]
+    return lines
+
+
 # --------------------------------------------------------------------------- discussion
 def _against_floor_and_fastest(result: dict, rows: dict) -> list:
     out = []
@@ -354,6 +379,7 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
     md += (["Not part of this run (`--quick` or `--from-json`); `python benchmarks/bm_solver.py`."]
            if sol_lines is None else sol_lines)
     md += garments_section()
+    md += contact_section()
     md += ["", "## Regenerating", "",
            "- `python benchmarks/report.py`: everything above (CPU throughput 1e3..1e6 hinges, float64 and float32, all",
            "  methods; accuracy; solver), roughly 30 to 45 minutes on the 2-core machine when it is quiet (the header",
