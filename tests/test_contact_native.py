@@ -389,6 +389,49 @@ def test_step_bound_is_the_eager_one():
             assert got == pytest.approx(ref, rel=1e-12)
 
 
+def test_step_bound_of_displacements_ignores_the_move_a_pair_shares():
+    """contact_step_bound with displacements (n, 3): each side's largest displacement less the pair's mean, against
+    the eager formula over every stencil; a translation of everything leaves every pair unbounded (1), a
+    translation added to any move leaves the bound as it was, and no bound is above the one of the move's lengths
+    by more than the centring allows (each centred displacement is at most twice the longest)."""
+    x, f = folded(10)
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    pt, ee, _ = scm.candidate_pairs(x, f, edges, 0.05)
+    g = torch.Generator().manual_seed(5)
+    for scale in (1e-5, 1e-3, 1e-1):
+        dx = scale * torch.randn(x.shape, generator=g, dtype=F64)
+        dx[::7] = 0.0
+        shift = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
+        for st, edge_edge in ((pt, False), (ee, True)):
+            got = native.contact_step_bound(x, st, edge_edge, dx)
+            d = dist._by_type(x[st], dist.edge_edge_type(x[st]) if edge_edge else dist.point_triangle_type(x[st]))
+            split = 2 if edge_edge else 1
+            mv = (dx[st] - dx[st].mean(1, keepdim=True)).norm(dim=-1)
+            rate = mv[:, :split].amax(1) + mv[:, split:].amax(1)
+            ok = rate > 0
+            ref = min(1.0, float((0.9 * d[ok].clamp_min(0).sqrt() / rate[ok]).min()))
+            assert got == pytest.approx(ref, rel=1e-12)
+            assert native.contact_step_bound(x, st, edge_edge, dx + scale * shift) == pytest.approx(got, rel=1e-9)
+            assert native.contact_step_bound(x, st, edge_edge, (scale * shift).expand_as(x).contiguous()) == 1.0
+            lengths = native.contact_step_bound(x, st, edge_edge, dx.norm(dim=1))
+            assert got >= 0.5 * lengths * (1 - 1e-12)
+    with pytest.raises(ValueError, match="move must hold"):
+        native.contact_step_bound(x, pt, False, torch.zeros(x.shape[0], 2, dtype=F64))
+
+
+def test_a_folded_cloth_falling_as_a_whole_is_not_held_back_by_its_step_bound():
+    """Two layers 1 mm apart moved down 5 cm together: no pair's distance changes, so the self-contact's step bound
+    lets the whole step through (with the moves' lengths it was 0.9 mm / 10 cm, about 0.01)."""
+    x, f = folded(10)
+    sc = tb.SelfContact(dhat=2e-3, stiffness=1.0)
+    tb.ClothModel(f, x, terms=[sc])
+    dx = torch.zeros_like(x)
+    dx[:, 2] = -0.05
+    assert sc.max_step(x, dx, tb.StepContext()) == 1.0
+    dx[x.shape[0] // 2:, 2] = -0.05 - 2e-3  # the upper layer 2 mm further: it may close 0.9 of the 1 mm gap
+    assert sc.max_step(x, dx, tb.StepContext()) == pytest.approx(0.9 * 1e-3 / 2e-3, rel=1e-6)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("case", ["tiny_gap", "tiny_scale", "huge_scale", "offset"])
 def test_projection_in_the_normal_frame_holds_at_the_extremes(case, dtype):

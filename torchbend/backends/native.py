@@ -193,9 +193,11 @@ def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
 
 def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tensor) -> float:
     """The conservative step bound of point-triangle or edge-edge stencils ``(N, 4)`` over the points ``x (n, 3)``
-    whose points move at most ``move (n,)`` along a step: ``min(1, 0.9 d / (m_A + m_B))`` over the stencils (``d``
-    the distance, ``m_A``, ``m_B`` the largest moves of each side; :meth:`torchbend.SelfContact.max_step`); stencils
-    whose boxes' gap alone bounds them above the smallest so far are not measured."""
+    that move along a step: ``min(1, 0.9 d / (m_A + m_B))`` over the stencils (``d`` the distance; with ``move (n,)``
+    each point's largest move, ``m_A``, ``m_B`` the largest of each side; with ``move (n, 3)`` each point's
+    displacement, ``m_A``, ``m_B`` the largest of each side's displacements less the stencil's mean, which no
+    distance depends on; :meth:`torchbend.SelfContact.max_step`); stencils whose boxes' gap alone bounds them above
+    the smallest so far are not measured."""
     return float(_module().contact_step_bound(x, stencils, bool(edge_edge), move))
 
 

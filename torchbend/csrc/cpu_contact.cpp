@@ -164,15 +164,20 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
   return {idx, types};
 }
 
-// The conservative step bound of stencils whose vertices move at most move[v] along a step (torchbend.sim.
-// self_contact: 0.9 d / (m_A + m_B), at most 1): the smallest over the stencils; a stencil whose primitives' boxes
-// are so far apart that their gap alone bounds it above the smallest so far is skipped (its distance is at least
-// the gap)
+// The conservative step bound of stencils whose vertices move along a step: 0.9 d / (m_A + m_B), at most 1, the
+// smallest over the stencils (torchbend.sim.self_contact).  move (n,): each point's largest move, m_A and m_B the
+// largest of each side; move (n, 3): each point's displacement, m_A and m_B the largest of each side's displacements
+// less the stencil's mean (a move the four corners share changes no distance: a cloth falling onto itself as a
+// whole is not held back).  A stencil whose primitives' boxes are so far apart that their gap alone bounds it above
+// the smallest so far is skipped (its distance is at least the gap).
 double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move) {
   const char* op = "contact_step_bound";
   stencils = stencil_tensor(op, x, stencils);
-  ck::require(move.device().is_cpu() && move.dim() == 1 && move.size(0) == x.size(0) &&
-              move.scalar_type() == x.scalar_type(), op, "move must hold one distance per point of x, in x's dtype");
+  const bool vectors = move.dim() == 2;
+  ck::require(move.device().is_cpu() && (move.dim() == 1 || (vectors && move.size(1) == 3)) &&
+              move.size(0) == x.size(0) && move.scalar_type() == x.scalar_type(), op,
+              "move must hold one distance (n,) or one displacement (n, 3) per point of x, in x's dtype, got ",
+              ck::shape_str(move));
   x = x.contiguous();
   move = move.contiguous();
   const int64_t N = stencils.size(0);
@@ -190,9 +195,20 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
         double a = 1.0;
         for (int64_t n = N * c / chunks; n < N * (c + 1) / chunks; ++n) {
           const int64_t* s = ps + 4 * n;
-          T mA = 0, mB = 0;
-          for (int v = 0; v < 4; ++v) (v < split ? mA : mB) = std::max(v < split ? mA : mB, pm[s[v]]);
-          const double rate = double(mA) + double(mB);
+          double mA = 0, mB = 0;
+          if (vectors) {
+            double d[4][3], mean[3] = {0, 0, 0};
+            for (int v = 0; v < 4; ++v)
+              for (int i = 0; i < 3; ++i) { d[v][i] = double(pm[3 * s[v] + i]); mean[i] += 0.25 * d[v][i]; }
+            for (int v = 0; v < 4; ++v) {
+              const double e0 = d[v][0] - mean[0], e1 = d[v][1] - mean[1], e2 = d[v][2] - mean[2];
+              const double m = std::sqrt(e0 * e0 + e1 * e1 + e2 * e2);
+              (v < split ? mA : mB) = std::max(v < split ? mA : mB, m);
+            }
+          } else {
+            for (int v = 0; v < 4; ++v) (v < split ? mA : mB) = std::max(v < split ? mA : mB, double(pm[s[v]]));
+          }
+          const double rate = mA + mB;
           if (!(rate > 0)) continue;
           T X[4][3];
           gather(px, s, X);

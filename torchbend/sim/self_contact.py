@@ -18,8 +18,10 @@ Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double b
 each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
 
 **Step bound** (:meth:`SelfContact.max_step`): along ``x + t dx`` every point of a primitive moves at most as
-far as the farthest of its vertices, so two primitives at distance ``d`` whose vertices move at most ``m_A``
-and ``m_B`` cannot meet before ``t = d / (m_A + m_B)``; the bound is ``0.9`` of the smallest such time over
+far as the farthest of its vertices, and a displacement the pair's four vertices share changes no distance, so two
+primitives at distance ``d`` whose vertices' displacements less the pair's mean displacement are at most ``m_A``
+and ``m_B`` long cannot meet before ``t = d / (m_A + m_B)`` (as additive CCD centres them: a cloth falling onto
+itself as a whole is not held back); the bound is ``0.9`` of the smallest such time over
 the pairs whose boxes swept along the step come within ``dhat`` (other pairs cannot meet in the step), at most 1.
 No intersection can appear along a step so bounded (distances stay above a tenth of their start).
 
@@ -361,22 +363,23 @@ class _ContactPairs:
 def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
     """The step bound of ``term``'s pairs (module docstring) along ``dx``: the cloth's ``(V, 3)`` (a body is still
     during a step) or every point's (``term._points``: a body's move, the cloth still)."""
-    move = dx.detach().norm(dim=-1)
-    m = float(move.max()) if move.numel() else 0.0
+    dx = dx.detach()
+    m = float(dx.abs().max()) if dx.numel() else 0.0
     if m == 0:
         return 1.0
     pt, ee, _ = term._active(x, dx)
     xa = term._points(x).detach()
-    move = torch.cat([move, move.new_zeros(xa.shape[0] - move.shape[0])])
+    dx = torch.cat([dx, dx.new_zeros(xa.shape[0] - dx.shape[0], 3)]).to(xa.dtype)
     alpha = 1.0
     for st in (pt, ee):
         if not st.shape[0]:
             continue
         if _native_ok(xa):
-            alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, move.to(xa.dtype)))
+            alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, dx))
             continue
         d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
-        mv = move[st]
+        rel = dx[st] - dx[st].mean(1, keepdim=True)  # a move the four corners share changes no distance
+        mv = rel.norm(dim=-1)
         rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
         ok = rate > 0
         if bool(ok.any()):
