@@ -8,6 +8,7 @@ import torch
 
 import torchbend as tb
 from tests.test_self_contact import box, intersects
+from torchbend.sim.terms import ColliderTerm
 
 F64 = torch.float64
 
@@ -250,3 +251,28 @@ def test_a_sphere_swept_sideways_through_a_hanging_sheet_pushes_it_aside_in_one_
         assert info.converged, info.message
         assert model.colliders[0].center == (x0, 0.0, z)
         assert float(ball(x0, z).signed_distance(state.x).min()) > 0
+
+
+def test_collider_moves_are_matched_by_place_and_a_swapped_capsule_is_no_move():
+    """A collider added beside a moved one leaves the move in place (colliders are matched by their place); a
+    capsule given with its ends swapped is the same body (no move); a term kept past an assignment of fewer
+    colliders keeps the collider it was made with."""
+    model, state = pinned_sheet(tb.Sphere(center=(0.0, 0.0, -0.2), radius=0.05))
+    model.colliders = [tb.Sphere(center=(0.0, 0.0, -0.15), radius=0.05), tb.Plane(point=(0.0, 0.0, -1.0))]
+    terms = [t for t in model.terms if t.name.startswith("collider")]
+    assert [t.pending_move() for t in terms] == [True, False]
+    kept = terms[1]
+    assert isinstance(kept, ColliderTerm)
+    model.colliders = [tb.Sphere(center=(0.0, 0.0, -0.15), radius=0.05)]
+    assert isinstance(kept.collider, tb.Plane)
+    cap = tb.Capsule(a=(-0.05, 0.0, -0.1), b=(0.05, 0.0, -0.1), radius=0.02)
+    model, state = pinned_sheet(cap)
+    model.colliders = [tb.Capsule(a=cap.b, b=cap.a, radius=0.02)]
+    assert not any(t.pending_move() for t in model.terms)
+    # (the capsule now has a at x = 0.05): 1 cm up, given with its ends swapped again
+    model.colliders = [tb.Capsule(a=(-0.05, 0.0, -0.09), b=(0.05, 0.0, -0.09), radius=0.02)]
+    (term,) = [t for t in model.terms if t.name == "collider0"]
+    assert term.pending_move()
+    term.place(0.5)  # half way: the ends paired with the nearer goal ends, the axis as long as before
+    half = model.colliders[0]
+    assert half.a == pytest.approx((0.05, 0.0, -0.095)) and half.b == pytest.approx((-0.05, 0.0, -0.095))

@@ -233,3 +233,19 @@ def test_bad_robot_config_names_the_key(patch, match):
     rest, _ = tb.scenes.grid(5, 5, dtype=F64)
     with pytest.raises(ValueError, match=match):
         parse_config(section, rest)
+
+
+def test_a_static_collider_moved_in_a_robot_scene_moves_once(robot):
+    """A static collider of the scene's model replaced by a moved one (the ipc law: a move in stages) is moved by
+    the next robot step, and that step ends the move on the scene's model too: the step after does not move it
+    again from its old pose."""
+    q0 = torch.tensor([0.1, -0.8, 1.2, -0.4, 0.0, 0.0], dtype=F64)
+    scene, rest = _hanging_towel(robot, q0)
+    low = float(rest[:, 2].min())
+    scene.model.colliders = [tb.Sphere(center=(0.0, 0.0, low - 0.3), radius=0.1)]
+    scene.model.colliders = [tb.Sphere(center=(0.0, 0.0, low - 0.2), radius=0.1)]
+    assert scene.model._collider_move(0)[0] is not None
+    state = tb.ClothState(rest, torch.zeros_like(rest))
+    state, info = scene.step(state, q0, 0.01)
+    assert info.converged and scene.model._collider_move(0)[0] is None
+    assert scene.model.colliders[0].center == pytest.approx((0.0, 0.0, low - 0.2))

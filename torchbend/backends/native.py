@@ -185,8 +185,8 @@ def contact_distances(x: Tensor, stencils: Tensor, edge_edge: bool) -> tuple[Ten
 def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
                   distinct: bool = False) -> tuple[Tensor, Tensor]:
     """``(index (K,), types (K,))``: the stencils ``(N, 4)`` (point-triangle or edge-edge) closer than
-    ``sqrt(dhat_sq)`` and their distance types, in order (a box test skips the pairs whose primitives' boxes are
-    that far apart); ``distinct`` (point-triangle): each vertex-edge and vertex-vertex contact once, the first
+    ``sqrt(dhat_sq)`` and their distance types, in order (every candidate typed over lanes, the types the scalar
+    classifier's bit for bit); ``distinct`` (point-triangle): each vertex-edge and vertex-vertex contact once, the first
     stencil that finds it (:func:`torchbend.sim.self_contact._distinct_pairs`)."""
     return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq), bool(distinct))
 
@@ -196,7 +196,8 @@ def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tenso
     that move along a step: ``min(1, 0.9 d / (m_A + m_B))`` over the stencils (``d`` the distance; with ``move (n,)``
     each point's largest move, ``m_A``, ``m_B`` the largest of each side; with ``move (n, 3)`` each point's
     displacement, ``m_A``, ``m_B`` the largest of each side's displacements less the stencil's mean, which no
-    distance depends on; :meth:`torchbend.SelfContact.max_step`); stencils whose boxes' gap alone bounds them above
+    distance depends on, or of the displacements themselves where their sum is smaller;
+    :meth:`torchbend.SelfContact.max_step`); stencils whose boxes' gap alone bounds them above
     the smallest so far are not measured."""
     return float(_module().contact_step_bound(x, stencils, bool(edge_edge), move))
 

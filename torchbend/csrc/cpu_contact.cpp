@@ -117,8 +117,8 @@ std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torc
   return {types, D};
 }
 
-// the pairs of candidate stencils closer than sqrt(dhat_sq) (a box test first: pairs whose primitives' boxes are
-// that far apart are skipped), with their types, in order; `distinct` (point-triangle): each vertex-edge and
+// the pairs of candidate stencils closer than sqrt(dhat_sq) (every candidate typed and measured over lanes,
+// cpu_contact_scan.h), with their types, in order; `distinct` (point-triangle): each vertex-edge and
 // vertex-vertex contact once, the first of the stencils that find it
 std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
                                                        double dhat_sq, bool distinct) {
@@ -168,7 +168,7 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
 // smallest over the stencils (torchbend.sim.self_contact).  move (n,): each point's largest move, m_A and m_B the
 // largest of each side; move (n, 3): each point's displacement, m_A and m_B the largest of each side's displacements
 // less the stencil's mean (a move the four corners share changes no distance: a cloth falling onto itself as a
-// whole is not held back).  A stencil whose primitives' boxes are so far apart that their gap alone bounds it above
+// whole is not held back), or of the displacements themselves where those give the smaller sum.  A stencil whose primitives' boxes are so far apart that their gap alone bounds it above
 // the smallest so far is skipped (its distance is at least the gap).
 double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move) {
   const char* op = "contact_step_bound";
@@ -200,11 +200,15 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
             double d[4][3], mean[3] = {0, 0, 0};
             for (int v = 0; v < 4; ++v)
               for (int i = 0; i < 3; ++i) { d[v][i] = double(pm[3 * s[v] + i]); mean[i] += 0.25 * d[v][i]; }
+            double lA = 0, lB = 0;  // the uncentred lengths' bound too: the smaller rate holds (both do)
             for (int v = 0; v < 4; ++v) {
               const double e0 = d[v][0] - mean[0], e1 = d[v][1] - mean[1], e2 = d[v][2] - mean[2];
               const double m = std::sqrt(e0 * e0 + e1 * e1 + e2 * e2);
+              const double len = std::sqrt(d[v][0] * d[v][0] + d[v][1] * d[v][1] + d[v][2] * d[v][2]);
               (v < split ? mA : mB) = std::max(v < split ? mA : mB, m);
+              (v < split ? lA : lB) = std::max(v < split ? lA : lB, len);
             }
+            if (lA + lB < mA + mB) { mA = lA; mB = lB; }
           } else {
             for (int v = 0; v < 4; ++v) (v < split ? mA : mB) = std::max(v < split ? mA : mB, double(pm[s[v]]));
           }

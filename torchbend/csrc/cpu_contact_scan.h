@@ -21,9 +21,10 @@ namespace cm = torchbend::contact;
 // contact_close types every candidate: the distance types of kClose stencils at a time, lanes innermost, by the
 // classifiers of contact_math.h (point_triangle_type, edge_edge_type) written branch-free: the same operations in
 // the same order and, as there, without contracting a * b + c, so that each lane's type is the scalar one
-// bit for bit (tests/test_contact_native.py).  The lanes' squared distances are those of the closest points the
-// classification finds (the typed formulas' value up to rounding: only a pair within an ulp of dhat can be kept
-// by one and not the other, where its barrier and the barrier's derivatives vanish).
+// bit for bit (tests/test_contact_native.py).  The lanes' squared distances are the typed formulas' (point-triangle:
+// the same expressions) or those of the closest points the classification finds (edge-edge: equal up to rounding,
+// which for nearly parallel edges can reach many ulps): only a pair that close to dhat can be kept by one and not
+// the other, where its barrier and the barrier's first two derivatives are about zero.
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC push_options
 #pragma GCC optimize("fp-contract=off")

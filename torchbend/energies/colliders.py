@@ -143,7 +143,7 @@ class Collider:
 
     def _moves_to(self, goal: Collider) -> bool:
         """Whether replacing this collider by ``goal`` is a move a time step carries out in stages: the same
-        kind with a bounded law (ipc, barrier: the cloth may never start inside), only its geometry changed."""
+        kind with a bounded law (ipc: no cloth may start inside it), only its geometry changed."""
         if type(goal) is not type(self) or goal == self or self._contact is None or not self._contact.bounded:
             return False
         return all(getattr(self, f.name) == getattr(goal, f.name) for f in dataclasses.fields(self)
@@ -377,26 +377,38 @@ class Capsule(Collider):
 
     _GEOMETRY = ("a", "b", "radius")
 
-    def _moves_to(self, goal: Collider) -> bool:  # (a capsule with tensor ends, a robot link's, is placed per step)
-        return not isinstance(self, _TensorCapsule) and not isinstance(goal, _TensorCapsule) and super()._moves_to(goal)
+    def _goal_ends(self, goal: Collider) -> tuple[tuple, tuple]:
+        """The goal's ends in the order nearer this capsule's ``(a, b)`` (``a`` and ``b`` swapped are one shape)."""
+        assert isinstance(goal, Capsule)
+        ga, gb = tuple(goal.a), tuple(goal.b)
+        if math.dist(self.a, gb) + math.dist(self.b, ga) < math.dist(self.a, ga) + math.dist(self.b, gb):
+            ga, gb = gb, ga
+        return ga, gb
+
+    def _moves_to(self, goal: Collider) -> bool:  # (not a robot link's tensor ends; not the same ends swapped)
+        if isinstance(self, _TensorCapsule) or isinstance(goal, _TensorCapsule) or not super()._moves_to(goal):
+            return False
+        assert isinstance(goal, Capsule)
+        return self._goal_ends(goal) != (tuple(self.a), tuple(self.b)) or goal.radius != self.radius
 
     def _toward(self, goal: Collider, s: float) -> Collider:
         assert isinstance(goal, Capsule)
-        return self._replace(a=_lerp(self.a, goal.a, s), b=_lerp(self.b, goal.b, s),
-                             radius=_lerp1(self.radius, goal.radius, s))
+        ga, gb = self._goal_ends(goal)
+        return self._replace(a=_lerp(self.a, ga, s), b=_lerp(self.b, gb, s), radius=_lerp1(self.radius, goal.radius, s))
 
     def _path_rate(self, goal: Collider, x: Tensor) -> Tensor:
         # each point of the axis moves on a chord between the ends' moves: at most the longer of them
         assert isinstance(goal, Capsule)
-        move = max(math.dist(self.a, goal.a), math.dist(self.b, goal.b)) + abs(goal.radius - self.radius)
+        ga, gb = self._goal_ends(goal)
+        move = max(math.dist(self.a, ga), math.dist(self.b, gb)) + abs(goal.radius - self.radius)
         return x.new_full(x.shape[:1], move)
 
     def _surface_motion(self, goal: Collider, x: Tensor) -> Tensor:
-        assert isinstance(goal, Capsule)
         a, b = self._ends(x)
+        ga, gb = self._goal_ends(goal)
         length = (b - a).norm()
         u = (((x - a) @ ((b - a) / length)).clamp_min(0.0).clamp_max(length) / length)[:, None]
-        da, db = x.new_tensor(goal.a) - a, x.new_tensor(goal.b) - b
+        da, db = x.new_tensor(ga) - a, x.new_tensor(gb) - b
         return (1 - u) * da + u * db
 
     def _impact_time(self, x: Tensor, dx: Tensor, tau: float) -> Tensor:

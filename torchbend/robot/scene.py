@@ -167,7 +167,18 @@ class RobotScene:
         those of :func:`~torchbend.implicit_euler_step`)."""
         q_next = self.robot.check_joints(q_next, "q_next").detach()
         x = self.place(state.x, q_next)
-        return implicit_euler_step(self.model_at(q_next), ClothState(x, state.v), dt, options, **kw)
+        model = self.model_at(q_next)
+        try:
+            return implicit_euler_step(model, ClothState(x, state.v), dt, options, **kw)
+        finally:
+            self._settle_static(model)
+
+    def _settle_static(self, model: ClothModel) -> None:
+        """The static colliders' moves that ``model`` (a :meth:`model_at` copy) carried out, ended on
+        :attr:`model` too, at the poses the copy left them."""
+        for i in range(len(self.model.colliders)):
+            if self.model._collider_move(i)[0] is not None and model._collider_move(i)[0] is None:
+                self.model._set_collider(i, model.colliders[i], None, None)
 
     def solve_static(self, q, x0: Tensor, params=(), **solve_kw) -> tuple[Tensor, SolveInfo]:
         """Static equilibrium ``(V, 3)`` with the robot at ``q (J,)``, differentiable with respect to
@@ -185,7 +196,10 @@ class RobotScene:
         index = self._slot.to(x0.device)[:, None].expand(-1, 3)
         pin_pos = pin_pos.scatter(0, index, robot_pos)  # differentiable in q
         ends = [t for c in model.colliders[len(self.model.colliders):] for t in c.ends]
-        return solve_static_adjoint(model, x0, list(params) + ends, pin_positions=pin_pos, **solve_kw)
+        try:
+            return solve_static_adjoint(model, x0, list(params) + ends, pin_positions=pin_pos, **solve_kw)
+        finally:
+            self._settle_static(model)
 
 
 def trajectory(keyframes, t: float) -> Tensor:

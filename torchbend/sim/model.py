@@ -253,16 +253,17 @@ class ClothModel(TermSum):
         if any(c.stiffness is None for c in colliders) and self.mass.device.type != "meta":
             w = self.vertex_weight()
             colliders = tuple(c.with_weight(w) for c in colliders)
-        # a collider replaced by a moved one of the same kind (ipc or barrier law) is a move the next time step
-        # carries out in stages (ColliderTerm.pending_move): from the pose of the last step, kept until then
-        old = getattr(self, "_colliders", None)
-        starts = getattr(self, "_collider_starts", None) or (None,) * len(colliders)
+        # a collider replaced by a moved one of the same kind (ipc law) is a move the next time step carries out in
+        # stages (ColliderTerm.pending_move): from the pose of the last step, kept until then
+        # (matched by place: collider i of the new tuple moves from collider i of the old one, where both exist)
+        old = getattr(self, "_colliders", None) or ()
+        starts = getattr(self, "_collider_starts", None) or ()
         moves = []
         for i, c in enumerate(colliders):
             start = None
-            if old is not None and len(old) == len(colliders):
-                start = starts[i] if len(starts) == len(colliders) and starts[i] is not None else old[i]
-                if start is not None and not start._moves_to(c):
+            if i < len(old):
+                start = starts[i] if i < len(starts) and starts[i] is not None else old[i]
+                if not start._moves_to(c):
                     start = None
             moves.append(start)
         self._colliders = colliders

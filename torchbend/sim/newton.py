@@ -777,7 +777,9 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
                  max_relax_steps: int = UNSET, check_minimum: bool = UNSET, callback: Callable | None = None,
                  time_limit: float | str | None = UNSET, max_cg_iters: int | None = UNSET,
                  damping: bool = UNSET, hessian: str | Projection | None = UNSET) -> tuple[Tensor, SolveInfo]:
-    """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.
+    """Static equilibrium from ``x0 (V, 3)`` [m]; pinned vertices keep their ``x0`` positions.  Bodies (a
+    :class:`~torchbend.MeshCollider`, an ipc collider replaced by a moved one) are where they were last given: a
+    move pending for the next time step ends there.
 
     ``options``: a :class:`NewtonOptions` (every control below; a keyword given here overrides its field).
     ``projection``: a :class:`torchbend.options.Projection` (``"exact"``, the default, ``"clamp"``, ``"abs"``,
@@ -826,13 +828,13 @@ def solve_static(model: ClothModel, x0, options: NewtonOptions | None = None, *,
     is False and ``info.stop_reason`` / ``info.message`` say why; ``info`` describes the returned
     state.  ``x0`` is never modified.  Invalid arguments raise ``ValueError`` naming them."""
     x0 = _prepare_x(model, x0)
-    for term in model.terms:  # the bodies are where they are given: a move pending from a step ends there
-        if term.pending_move():
-            term.settle()
     opts, ctl = resolve_options(options, "solve_static", "static", hessian=hessian, max_cg_iters=max_cg_iters,
                                 callback=callback, projection=projection, linear_solver=linear_solver, tol=tol,
                                 max_iters=max_iters, continuation=continuation, max_relax_steps=max_relax_steps,
                                 check_minimum=check_minimum, time_limit=time_limit, damping=damping)
+    for term in model.terms:  # the bodies are where they are given: a move pending from a step ends there
+        if term.pending_move():
+            term.settle()
     option, linear, max_relax_steps = opts.option, opts.linear, opts.max_relax_steps
     mode = continuation_mode(opts.continuation) if ctl.max_iters > 0 else None  # 0: evaluation only
     kw = ctl.newton_kw()
@@ -1055,10 +1057,13 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback", "body_move"):
         info.substeps = 1  # (a body's move the cloth cannot make way for stops the same in a half step)
         return new, info
+    after = [(t, t.pose()) for t in model.terms]  # the bodies where the full step left them
     for t, p in poses:  # the halves start from the bodies' poses (and pending moves) of the full step
         t.restore_pose(p)
     mid, info1 = _euler_step(model, state, dt / 2, option, linear, ctl, depth - 1)
-    if not info1.converged:  # the full step's best state is the one at the end of the step
+    if not info1.converged:  # the full step's best state is the one at the end of the step, its bodies' poses too
+        for t, p in after:
+            t.restore_pose(p)
         out = _aggregate([info, info1], info)
         out.substeps, out.seconds = 1, time.perf_counter() - t0
         if info1.stop_reason in ("time_limit", "callback"):

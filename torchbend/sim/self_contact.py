@@ -21,7 +21,8 @@ each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a p
 far as the farthest of its vertices, and a displacement the pair's four vertices share changes no distance, so two
 primitives at distance ``d`` whose vertices' displacements less the pair's mean displacement are at most ``m_A``
 and ``m_B`` long cannot meet before ``t = d / (m_A + m_B)`` (as additive CCD centres them: a cloth falling onto
-itself as a whole is not held back); the bound is ``0.9`` of the smallest such time over
+itself as a whole is not held back; the displacements' own lengths where theirs is the smaller sum); the bound is
+``0.9`` of the smallest such time over
 the pairs whose boxes swept along the step come within ``dhat`` (other pairs cannot meet in the step), at most 1.
 No intersection can appear along a step so bounded (distances stay above a tenth of their start).
 
@@ -378,9 +379,10 @@ def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
             alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, dx))
             continue
         d = _distances(xa, st, st is ee)[1].clamp_min(0).sqrt()
+        k = 1 if st is pt else 2
         rel = dx[st] - dx[st].mean(1, keepdim=True)  # a move the four corners share changes no distance
-        mv = rel.norm(dim=-1)
-        rate = (mv[:, :1].amax(1) + mv[:, 1:].amax(1)) if st is pt else (mv[:, :2].amax(1) + mv[:, 2:].amax(1))
+        mv, ln = rel.norm(dim=-1), dx[st].norm(dim=-1)
+        rate = torch.minimum(mv[:, :k].amax(1) + mv[:, k:].amax(1), ln[:, :k].amax(1) + ln[:, k:].amax(1))
         ok = rate > 0
         if bool(ok.any()):
             alpha = min(alpha, float((0.9 * d[ok] / rate[ok]).min()))

@@ -336,7 +336,7 @@ class ColliderTerm(EnergyTerm):
 
     ``owner = (model, i)``: the term is the model's collider ``i`` (:attr:`ClothModel.colliders
     <torchbend.ClothModel.colliders>`), read from the model on every use.  A collider there replaced between
-    steps by a moved one of the same kind with an ipc or barrier law is a move (:meth:`pending_move`) that the next
+    steps by a moved one of the same kind with the ipc law is a move (:meth:`pending_move`) that the next
     time step carries out in stages, as a :class:`~torchbend.MeshCollider`'s: the collider advances as far as
     its path bound against the cloth allows (:meth:`move_bound`), and the cloth is solved where it has come
     within ``margin``, so that the cloth makes way instead of starting inside.  The friction's slip is then
@@ -353,7 +353,11 @@ class ColliderTerm(EnergyTerm):
     @property
     def collider(self) -> Collider:
         """The collider (the owner model's collider ``i`` at its pose now, where the term has an owner)."""
-        return self._owner[0].colliders[self._owner[1]] if self._owner is not None else self._collider
+        if self._owner is not None:
+            model, i = self._owner
+            if i < len(model.colliders):  # (a term kept past an assignment of fewer colliders keeps its own)
+                return model.colliders[i]
+        return self._collider
 
     # ---- a move between steps (the owner model's collider replaced by a moved one)
     def _move(self) -> tuple:
