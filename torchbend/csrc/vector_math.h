@@ -120,20 +120,29 @@ TB_HD static TB_FORCEINLINE void tb_sincos_impl(double x, double& s, double& c) 
 TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { tb_sincos_impl<false>(x, s, c); }
 TB_HD static TB_FORCEINLINE void tb_sincos_accurate(double x, double& s, double& c) { tb_sincos_impl<true>(x, s, c); }
 
+// 1 where v's sign bit is set (v < 0 or v = -0), else 0, by arithmetic on the sign: the selects below are
+// written as such 0/1 weights because GCC turns arithmetic on selects of constants into blends, which cost 3
+// uops each on recent Intel cores without AVX-512 masks (and 2 on older ones)
+TB_HD static TB_FORCEINLINE double tb_neg01(double v) { return 0.5 - copysign(0.5, v); }
+
 TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double ax = fabs(x), ay = fabs(y);
-  bool swap = ay > ax;  // atan2 = pi/2 - atan(ax / ay)
-  double num = swap ? ax : ay, den = swap ? ay : ax;
-  den = den == 0.0 ? 1.0 : den;  // atan2(+-0, +-0): z = 0
+  // swapped (ay > ax: atan2 = pi/2 - atan(ax / ay)): num = min, den = max (a NaN y makes both NaN)
+  double num = ay > ax ? ax : ay, den = ay > ax ? ay : ax;
+  double sw = tb_neg01(ax - ay);  // 1 if swapped (a tie gives +0: not swapped)
+  den = den < 0x1p-1074 ? 0x1p-1074 : den;  // atan2(+-0, +-0): t = 0
   // huge or tiny arguments scaled by a power of two (exact, and t, tl are scale-invariant): 16 num, 7 den and
   // 2 den + num stay finite near DBL_MAX, and the division's residual stays normal for subnormal arguments
-  double sc = (den > 0x1p1000 ? 0x1p-60 : 1.0) * (den < 0x1p-900 ? 0x1p120 : 1.0);
+  double big = tb_neg01(0x1p1000 - den), tiny = tb_neg01(den - 0x1p-900);
+  double sc = ((1.0 - big) + big * 0x1p-60) * ((1.0 - tiny) + tiny * 0x1p120);
   num *= sc; den *= sc;
-  // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (z < 7/16),
-  // (2z - 1) / (2 + z) about A = atan(1/2) (z < 11/16), (z - 1) / (z + 1) about A = atan(1) (else)
-  bool r0 = 16.0 * num < 7.0 * den, r1 = !r0 && 16.0 * num < 11.0 * den;
-  double tn = r0 ? num : (r1 ? 2.0 * num - den : num - den);
-  double td = r0 ? den : (r1 ? 2.0 * den + num : num + den);
+  // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (m0: z < 7/16),
+  // (2z - 1) / (2 + z) about A = atan(1/2) (m1: z < 11/16), (z - 1) / (z + 1) about A = atan(1) (m2: else);
+  // ties give +0 (not below)
+  double m0 = tb_neg01(16.0 * num - 7.0 * den), m01 = tb_neg01(16.0 * num - 11.0 * den);
+  double m1 = m01 - m0, m2 = 1.0 - m01;
+  double f = 1.0 + m1, g = 1.0 - m0;  // every product below exact: one rounding per sum, as the three forms
+  double tn = f * num - g * den, td = f * den + g * num;
   double t = tn / td;
   double tl = fma(-t, td, tn) / td;  // the division's rounding error: t + tl = tn / td
   double z = t * t, w = z * z;
@@ -144,10 +153,9 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
   // atan2(|y|, x) = K + sg atan(t + tl): K = A (sg = 1), pi/2 - A (swapped, sg = -1), pi - A (x < 0,
   // sg = -1), pi/2 + A (both, sg = 1), each as hi + lo; x < 0 by its sign bit (atan2(+-0, -0) = +-pi)
-  bool xneg = copysign(1.0, x) < 0.0;  // (x = -0, y != 0: swapped with t = 0, pi/2 either way)
-  // the constants by range as exact blends m0 c0 + m1 c1 + m2 c2 (one m is 1, the others 0): nested
-  // selects of constants become branches that GCC does not if-convert
-  double m0 = r0 ? 1.0 : 0.0, m1 = r1 ? 1.0 : 0.0, m2 = 1.0 - m0 - m1;
+  // (x = -0, y != 0: swapped with t = 0, pi/2 either way).  The constants as exact blends: sums of 0/1
+  // weights times constants with exactly one weight 1.
+  double xn = tb_neg01(x);
   double k0h = m1 * 0.4636476090008061 + m2 * 0.7853981633974483;  // A
   double k0l = m1 * 2.2698777452961687e-17 + m2 * 3.061616997868383e-17;
   double k1h = m0 * 1.5707963267948966 + m1 * 1.1071487177940904 + m2 * 0.7853981633974483;  // pi/2 - A
@@ -156,10 +164,13 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double k2l = m0 * 1.2246467991473532e-16 + m1 * 1.5527705369303147e-16 + m2 * 9.184850993605148e-17;
   double k3h = m0 * 1.5707963267948966 + m1 * 2.0344439357957027 + m2 * 2.356194490192345;  // pi/2 + A
   double k3l = m0 * 6.123233995736766e-17 + m1 * 2.841996617907152e-17 + m2 * 9.184850993605148e-17;
-  double khi = xneg ? (swap ? k3h : k2h) : (swap ? k1h : k0h);
-  double klo = xneg ? (swap ? k3l : k2l) : (swap ? k1l : k0l);
-  double sg = swap != xneg ? -1.0 : 1.0;
+  double xp = 1.0 - xn, sp = 1.0 - sw;
+  double w0 = xp * sp, w1 = xp * sw, w2 = xn * sp, w3 = xn * sw;
+  double khi = w0 * k0h + w1 * k1h + w2 * k2h + w3 * k3h;
+  double klo = w0 * k0l + w1 * k1l + w2 * k2l + w3 * k3l;
+  double sg = 1.0 - 2.0 * (w1 + w2);
   double res = khi + (sg * t + (sg * corr + klo));
+  res += x - x;  // a NaN x gives NaN (num and den are y's there)
   return copysign(res, y);
 }
 
