@@ -114,8 +114,8 @@ TB_HD static TB_FORCEINLINE void tb_sincos_impl(double x, double& s, double& c) 
   int n = int(q) & 3;
   bool odd = (n & 1) != 0;
   double ss = odd ? kc : ks, cc = odd ? ks : kc;
-  s = n >= 2 ? -ss : ss;
-  c = (n == 1 || n == 2) ? -cc : cc;
+  s = ss * double(1 - (n & 2));  // -ss for n = 2, 3 (a product by +-1, not a blend)
+  c = cc * double(1 - ((n + 1) & 2));  // -cc for n = 1, 2
 }
 TB_HD static TB_FORCEINLINE void tb_sincos(double x, double& s, double& c) { tb_sincos_impl<false>(x, s, c); }
 TB_HD static TB_FORCEINLINE void tb_sincos_accurate(double x, double& s, double& c) { tb_sincos_impl<true>(x, s, c); }
@@ -238,12 +238,12 @@ TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_
 template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
   const T pi_hi = T(3.14159265358979323846);
   const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
-  T a = t < T(0) ? -t : t;
+  T a = fabs(t);  // (+0 for -0, where the old select gave -0: the same w, and big is false)
   bool big = a > T(0.5) * pi_hi;
   T w = T(0.5) * ((pi_hi - a) + pi_lo);
   T sn, cs;
   tb_sincos(big ? w : T(0.5) * t, sn, cs);
-  s = big ? (t < T(0) ? -cs : cs) : sn;
+  s = big ? copysign(cs, t) : sn;  // cs = cos(w) > 0 where big: t's sign by one AND and OR, not a blend
   c = big ? sn : cs;
 }
 
@@ -266,10 +266,11 @@ TB_HD static TB_FORCEINLINE double tb_half_tan(double t) {
   bool big = a > 0.5 * pi_hi;
   double h = 0.5 * (pi_hi - a), l = 0.5 * pi_lo;
   double hs = h + l, ls = l - (hs - h);  // Fast2Sum: h is 0 or a multiple of ulp(pi) / 2 > l
-  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0, iy = big ? -1.0 : 1.0;
+  const double big01 = big ? 1.0 : 0.0;
+  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0, iy = 1.0 - 2.0 * big01;
   // __kernel_tan(x, y, iy): about pi/4 (|x| >= 0.67434, fdlibm's 0x3FE59428) from tan(pi/4 - x)
   bool hi = fabs(x) >= 0.6743354797363281;
-  double sx = x < 0.0 ? -1.0 : 1.0;
+  double sx = copysign(1.0, x);  // (-1 for x = -0, never about pi/4, where sx is used)
   double xr = (pio4 - sx * x) + (pio4lo - sx * y);
   x = hi ? xr : x;
   y = hi ? 0.0 : y;
@@ -287,7 +288,7 @@ TB_HD static TB_FORCEINLINE double tb_half_tan(double t) {
   double zt = tb_clear_low32(w), tt = tb_clear_low32(q);  // -1 / (x + r) accurately (fdlibm)
   double k_inv = tt + q * ((1.0 + tt * zt) + tt * (r - (zt - x)));
   double k = hi ? k_hi : (big ? k_inv : copysign(w, x));  // (tan(-0) = -0)
-  return big && t > 0.0 ? -k : k;
+  return k * (1.0 - 2.0 * (big01 * tb_neg01(-t)));  // -k where big and t > 0 (t = +0 is not big)
 }
 TB_HD static TB_FORCEINLINE float tb_half_tan(float t) { return float(tb_half_tan(double(t))); }
 
