@@ -388,7 +388,9 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            "- `python benchmarks/bm_throughput.py --sizes 1e5 --dtypes float64 --methods torchbend autograd`: any subset.",
            "- `python benchmarks/bm_cuda.py` on a GPU machine: the GPU section (`benchmarks/results/cuda_<device>.json`).",
            "- `python benchmarks/bm_hessian.py`, `bm_membrane.py`, `bm_solver.py`: more detail; recorded runs in "
-           "`benchmarks/results/`."]
+           "`benchmarks/results/`.",
+           "- `python benchmarks/bm_lanes.py [--csrc OTHER_TREE]`: the lane functions (bend angle, psi, atan2) compiled "
+           "alone for `-march=native` and `x86-64-v3`, timed in turns, with a bitwise checksum across the builds."]
     return md
 
 
