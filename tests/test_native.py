@@ -459,3 +459,23 @@ def test_output_cache_default_limit(kernel):
     env = os.environ.get("TORCHBEND_OUTPUT_CACHE_MB")
     expected = int(env) << 20 if env is not None else 0
     assert native.output_cache_info()["limit"] == expected
+
+
+def test_native_collapsed_edge_finite_with_denormals_flushed(kernel):
+    """A collapsed edge (the bend angle's atan2(0, 0)) stays finite with denormals flushed to zero
+    (``torch.set_flush_denormal(True)``): the lane atan2's floor on its denominator is a normal number."""
+    rest, faces = tb.scenes.random_curved_sheet(6, 5, amplitude=0.3, seed=1, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1e-2)
+    x = rest.clone()
+    x[faces[0, 1]] = x[faces[0, 0]]  # a collapsed edge
+    if not torch.set_flush_denormal(True):
+        pytest.skip("this CPU cannot flush denormals")
+    try:
+        with tb.use_backend("native"):
+            e, g = bend(x), bend.gradient(x)
+    finally:
+        torch.set_flush_denormal(False)
+    with tb.use_backend("native"):
+        e0, g0 = bend(x), bend.gradient(x)
+    assert bool(torch.isfinite(e)) and bool(torch.isfinite(g).all())
+    assert torch.equal(e, e0) and torch.equal(g, g0)  # no denormal on the way: the same bits

@@ -130,16 +130,20 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   // swapped (ay > ax: atan2 = pi/2 - atan(ax / ay)): num = min, den = max (a NaN y makes both NaN)
   double num = ay > ax ? ax : ay, den = ay > ax ? ay : ax;
   double sw = tb_neg01(ax - ay);  // 1 if swapped (a tie gives +0: not swapped)
-  den = den < 0x1p-1074 ? 0x1p-1074 : den;  // atan2(+-0, +-0): t = 0
   // huge or tiny arguments scaled by a power of two (exact, and t, tl are scale-invariant): 16 num, 7 den and
   // 2 den + num stay finite near DBL_MAX, and the division's residual stays normal for subnormal arguments
   double big = tb_neg01(0x1p1000 - den), tiny = tb_neg01(den - 0x1p-900);
   double sc = ((1.0 - big) + big * 0x1p-60) * ((1.0 - tiny) + tiny * 0x1p120);
   num *= sc; den *= sc;
+  // atan2(+-0, +-0): t = 0 (every other den is at least 2^-954 here; a normal floor, so that it holds with
+  // denormals flushed to zero too)
+  den = den < 0x1p-1000 ? 0x1p-1000 : den;
   // z = num / den in [0, 1], reduced to |t| < 7/16 with one division: t = z (m0: z < 7/16),
   // (2z - 1) / (2 + z) about A = atan(1/2) (m1: z < 11/16), (z - 1) / (z + 1) about A = atan(1) (m2: else);
-  // ties give +0 (not below)
-  double m0 = tb_neg01(16.0 * num - 7.0 * den), m01 = tb_neg01(16.0 * num - 11.0 * den);
+  // ties give +0 (not below).  The sign of 16 num - RN(7 den), as the comparison 16 num < 7 den: an explicit fma
+  // with the exact 16 num, so that no contraction (nvcc's default, GCC's -ffp-contract=fast) forms it from the
+  // exact 7 den instead
+  double m0 = tb_neg01(fma(16.0, num, -(7.0 * den))), m01 = tb_neg01(fma(16.0, num, -(11.0 * den)));
   double m1 = m01 - m0, m2 = 1.0 - m01;
   double f = 1.0 + m1, g = 1.0 - m0;  // every product below exact: one rounding per sum, as the three forms
   double tn = f * num - g * den, td = f * den + g * num;
@@ -243,7 +247,7 @@ template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s,
   T w = T(0.5) * ((pi_hi - a) + pi_lo);
   T sn, cs;
   tb_sincos(big ? w : T(0.5) * t, sn, cs);
-  s = big ? copysign(cs, t) : sn;  // cs = cos(w) > 0 where big: t's sign by one AND and OR, not a blend
+  s = big ? cs * copysign(T(1), t) : sn;  // -cs for t < 0 (cs < 0 too where |t| > 2 pi: a product, not copysign)
   c = big ? sn : cs;
 }
 
