@@ -13,18 +13,25 @@ operators themselves are measured by ``bm_throughput.py``; this isolates the per
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import statistics
 import subprocess
-import sys
 import tempfile
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import cpu_model, cpu_vector_extensions  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SOURCE = os.path.join(ROOT, "benchmarks", "lanes", "lanes.cpp")
 FLAGS = ["-O3", "-std=c++17", "-fno-math-errno", "-fno-trapping-math"]
+
+
+def _common():
+    """benchmarks/common.py by its path (a plain ``import common`` may find another directory's module of that name
+    when this script is loaded into a process that has one, as the tests do)."""
+    spec = importlib.util.spec_from_file_location("_torchbend_bench_common", os.path.join(ROOT, "benchmarks", "common.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def build(csrc: str, arch: str, out: str) -> None:
@@ -47,7 +54,9 @@ def main(argv=None) -> None:
     p.add_argument("--repeat", type=int, default=200)
     a = p.parse_args(argv)
     trees = [os.path.join(ROOT, "torchbend", "csrc")] + a.csrc
-    print(f"# {cpu_model()}; vector extensions: {', '.join(cpu_vector_extensions())}; {' '.join(FLAGS)}", flush=True)
+    common = _common()
+    print(f"# {common.cpu_model()}; vector extensions: {', '.join(common.cpu_vector_extensions())}; {' '.join(FLAGS)}",
+          flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         exes = {}
         for ti, tree in enumerate(trees):
