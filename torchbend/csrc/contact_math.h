@@ -258,10 +258,22 @@ template <typename T> TB_HD static inline T typed_derivs(int formula, const T* y
 }
 
 // ---- IPC's barrier on squared distances and the edge-edge mollifier --------------------------------
+// The barrier's log: vector_math.h's tb_logv (within 1 ulp), not the C library's.  A library call from code that
+// has used 512-bit registers stalls on the library's SSE-encoded first instructions where the compiler leaves out
+// the vzeroupper before it (GCC 12 does in pair_terms): about 100 ns a pair.  On the host one compiled copy
+// (noinline) serves every caller, so that no inlining context contracts its products differently: the energies of
+// the lanes (cpu_contact_scan.h) and of pair_terms stay equal bit for bit.
+#if defined(__CUDA_ARCH__)
+TB_HD static inline double barrier_log(double v) { return tb_logv(v); }
+#else
+__attribute__((noinline)) static double barrier_log(double v) { return tb_logv(v); }
+#endif
+TB_HD static inline float barrier_log(float v) { return float(barrier_log(double(v))); }
+
 // b(D) = -kappa (D - Dh)^2 log(D / Dh) for 0 < D < Dh (0 beyond); b1 = b', b2 = b''
 template <typename T> TB_HD static inline T barrier(T D, T dh2, T kappa, T* b1, T* b2) {
   if (D >= dh2) { *b1 = 0; *b2 = 0; return 0; }
-  T L = log(D / dh2), r = D - dh2;
+  T L = barrier_log(D / dh2), r = D - dh2;
   *b1 = -kappa * (2 * r * L + r * r / D);
   *b2 = -kappa * (2 * L + 4 * r / D - r * r / (D * D));
   return -kappa * r * r * L;
