@@ -82,9 +82,11 @@ def _install_info(build: dict) -> dict[str, Any]:
 
 
 def _on_load(module) -> None:
-    """The operators registered by the module (``torch.ops.torchbend.*``, ``csrc/cpu_registration.cpp``) raise the
-    ValueError of a status word through :func:`torchbend.backends._status.raise_for_status`."""
+    """Registers the module's operators (``torch.ops.torchbend.*``, ``csrc/cpu_registration.cpp``: explicitly, not at
+    import, so that a stale installed module imported directly and the JIT build can share a process), which raise
+    the ValueError of a status word through :func:`torchbend.backends._status.raise_for_status`."""
     module.set_status_handler(raise_for_status)
+    module.register_operators()
 
 
 _EXT = Extension("C++ extension", PREBUILT, lambda: cfg.native_source_hash(), _jit_build, cpu_arch=True,

@@ -1,7 +1,7 @@
 r"""The compiled bending kernels as PyTorch operators: ``torch.ops.torchbend.*``.
 
-The operators are registered in C++ by the CPU extension (``csrc/cpu_registration.cpp``: the schemas with
-``TORCH_LIBRARY(torchbend)``, the CPU kernels with ``TORCH_LIBRARY_IMPL(torchbend, CPU)``) and the CUDA binding
+The operators are registered in C++ by the CPU extension (``csrc/cpu_registration.cpp``: the schemas and the CPU
+kernels, by ``register_operators``, which the loader calls once it has chosen the module) and the CUDA binding
 (``csrc/cuda_binding.cpp``: ``TORCH_LIBRARY_IMPL(torchbend, CUDA)``, registered when the CUDA kernels are first
 loaded); this module loads the CPU extension (at import) and registers what stays in Python: the fake
 implementations (output shapes and dtypes from the input shapes alone), so that ``torch.compile`` (also
@@ -56,8 +56,9 @@ _PYTHON_KERNELS = frozenset({"project_blocks", "membrane_energy_gradient", "memb
 
 def _define() -> tuple[torch.library.Library, bool]:
     """The library the registrations below go to, and whether the operators are defined here: loads the CPU
-    extension, whose ``TORCH_LIBRARY(torchbend)`` defines the schemas and registers the CPU kernels; where it
-    cannot be built, the same schemas (:data:`torchbend.backends._table.SCHEMAS`) are defined here."""
+    extension, whose ``register_operators`` (the loader calls it) defines the schemas and registers the CPU
+    kernels; where it cannot be built, the same schemas (:data:`torchbend.backends._table.SCHEMAS`) are defined
+    here."""
     if native.load() is not None:
         return torch.library.Library("torchbend", "FRAGMENT"), False
     lib = torch.library.Library("torchbend", "DEF")

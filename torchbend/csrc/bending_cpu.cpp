@@ -56,4 +56,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");
   m.def("set_status_handler", &torchbend::reg::set_status_handler,
         "the Python function raising the ValueError of a status word in the registered operators");
+  m.def("register_operators", &torchbend::reg::register_operators,
+        "register torch.ops.torchbend.* (the schemas and the CPU kernels), once per process");
 }

@@ -1,10 +1,15 @@
-// The operators torch.ops.torchbend.* registered in C++: the schemas (TORCH_LIBRARY, op_registration.h) and the
-// CPU kernels (TORCH_LIBRARY_IMPL(torchbend, CPU)) over the operators of cpu_ops.h.  Each kernel checks the
+// The operators torch.ops.torchbend.* registered in C++: the schemas (op_registration.h) and the CPU kernels over
+// the operators of cpu_ops.h, by register_operators (which the loader calls once it has chosen this module; not
+// static initializers, so that a stale installed module imported directly, e.g. by a documentation tool, and the
+// current JIT build can be loaded in one process: two TORCH_LIBRARY blocks for one namespace abort it).  Each kernel checks the
 // model's name, runs the operator and turns a non-zero status word into the eager path's ValueError
 // (reg::raise_status).  The fake kernels (shapes for tracing) are registered from Python
 // (torchbend.backends.ops); so is project_blocks' kernel, whose eager fallback (CUDA tensors, other block
 // sizes) is Python's.  The CUDA kernels are registered by the CUDA binding (cuda_binding.cpp).
 #include <torch/library.h>
+
+#include <mutex>
+#include <optional>
 
 #include "cpu_ops.h"
 #include "op_registration.h"
@@ -89,17 +94,20 @@ Tensor assemble(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, OptTen
 
 }  // namespace
 
-TORCH_LIBRARY(torchbend, m) {
-  m.set_python_module("torchbend.backends.ops");  // the fake kernels are registered there
-  for (const char* schema : torchbend::reg::kSchemas) m.def(schema);
-}
-
-TORCH_LIBRARY_IMPL(torchbend, CPU, m) {
-  m.impl("bending_energy", TORCH_FN(energy));
-  m.impl("bending_gradient", TORCH_FN(gradient));
-  m.impl("bending_energy_gradient", TORCH_FN(energy_gradient));
-  m.impl("bending_hvp", TORCH_FN(hvp));
-  m.impl("bending_second_order", TORCH_FN(second_order));
-  m.impl("hinge_hessians", TORCH_FN(hinge_hessians));
-  m.impl("assemble", TORCH_FN(assemble));
+void torchbend::reg::register_operators() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    // never destroyed: the operators stay registered for the life of the process, as the module stays loaded
+    auto* def = new torch::Library(torch::Library::DEF, "torchbend", std::nullopt, __FILE__, __LINE__);
+    def->set_python_module("torchbend.backends.ops");  // the fake kernels are registered there
+    for (const char* schema : torchbend::reg::kSchemas) def->def(schema);
+    auto* m = new torch::Library(torch::Library::IMPL, "torchbend", c10::DispatchKey::CPU, __FILE__, __LINE__);
+    m->impl("bending_energy", TORCH_FN(energy));
+    m->impl("bending_gradient", TORCH_FN(gradient));
+    m->impl("bending_energy_gradient", TORCH_FN(energy_gradient));
+    m->impl("bending_hvp", TORCH_FN(hvp));
+    m->impl("bending_second_order", TORCH_FN(second_order));
+    m->impl("hinge_hessians", TORCH_FN(hinge_hessians));
+    m->impl("assemble", TORCH_FN(assemble));
+  });
 }

@@ -1,5 +1,5 @@
-// What the operator registrations of the CPU extension (cpu_registration.cpp: TORCH_LIBRARY(torchbend) and
-// TORCH_LIBRARY_IMPL(torchbend, CPU)) and of the CUDA binding (cuda_binding.cpp: TORCH_LIBRARY_IMPL(torchbend,
+// What the operator registrations of the CPU extension (cpu_registration.cpp: register_operators, the schemas and
+// the CPU kernels) and of the CUDA binding (cuda_binding.cpp: TORCH_LIBRARY_IMPL(torchbend,
 // CUDA)) share: the schemas of torch.ops.torchbend.* (the same strings as the Python fallback's,
 // torchbend.backends._table.SCHEMAS, which a test compares), the check of the bending model's name, and the one
 // place that turns a kernel's status word into the ValueError of the eager path: the Python function the loader
@@ -39,6 +39,9 @@ inline constexpr const char* kSchemas[] = {
     "str model, str projection) -> (Tensor, Tensor)",
     "sum_last(Tensor values) -> Tensor",
 };
+
+// the schemas and the CPU kernels of torch.ops.torchbend.* (cpu_registration.cpp), registered on the first call
+void register_operators();
 
 // the Python callable (status, model, x, theta, v) -> raises; held for the life of the process (never destroyed:
 // kernels may run at interpreter exit)
