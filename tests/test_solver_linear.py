@@ -351,6 +351,68 @@ def test_free_hessian_matches_model_hessian(option):
     assert np.abs(fh.to_scipy(A2).toarray() - ref2).max() <= 1e-12 * np.abs(ref2).max()
 
 
+class _PairsTerm:
+    """A term whose Hessian is the sum of given 2x2 vertex-pair couplings (a stand-in for contact pairs whose set
+    changes from one iterate to the next)."""
+
+    def __init__(self, V):
+        self.V, self.pairs = V, []
+
+    def vertex_blocks(self, x, ctx, option):
+        return None
+
+    def hessian(self, x, ctx, option):
+        n = 3 * self.V
+        H = torch.zeros(n, n, dtype=x.dtype)
+        for a, b, w in self.pairs:
+            for i in (3 * a, 3 * a + 1, 3 * a + 2):
+                for j in (3 * b, 3 * b + 1, 3 * b + 2):
+                    H[i, j] += w
+                    H[j, i] += w
+        return H.to_sparse_csr()
+
+
+def test_free_hessian_keeps_its_pattern_while_the_contact_pairs_change():
+    """A term whose pattern changes (the contact pairs of a new iterate): entries already in the pattern are placed
+    in it (the pattern object, and a PARDISO analysis on it, serve on), new ones grow it with the old entries kept,
+    and a pattern mostly of old entries is rebuilt from the terms' own; the values are the sum's every time."""
+    V = 12
+    x = torch.zeros(V, 3, dtype=F64)
+
+    class Owner:  # FreeHessian holds its model weakly
+        pass
+
+    owner = Owner()
+    free = torch.ones(3 * V, dtype=torch.bool)
+    free[:3] = False  # vertex 0 pinned: its entries are left out
+    fh = linear.FreeHessian(owner, free)
+    term = _PairsTerm(V)
+    diag = _PairsTerm(V)
+    diag.pairs = [(v, v, 1.0) for v in range(V)]
+
+    def check(A):
+        ref = (diag.hessian(x, None, None) + term.hessian(x, None, None)).to_dense()[free][:, free].numpy()
+        assert np.array_equal(fh.to_scipy(A).toarray(), ref)
+
+    term.pairs = [(0, 5, 1.0), (1, 2, 2.0), (3, 4, 3.0), (6, 7, 4.0)]
+    check(fh.assemble(x, [diag, term], None, Projection.NONE))
+    first = fh._pattern
+    assert first is not None
+    term.pairs = [(1, 2, 5.0), (6, 7, 6.0)]  # fewer pairs, all in the pattern: the same pattern, zeros kept
+    check(fh.assemble(x, [diag, term], None, Projection.NONE))
+    assert fh._pattern is first
+    term.pairs = [(1, 2, 5.0), (8, 9, 7.0)]  # a new pair: a new pattern with the old entries kept
+    check(fh.assemble(x, [diag, term], None, Projection.NONE))
+    grown = fh._pattern
+    assert grown is not first and grown.nnz > grown.own_nnz
+    term.pairs = [(3, 4, 1.0), (6, 7, 2.0)]  # old pairs again: placed in the grown pattern
+    check(fh.assemble(x, [diag, term], None, Projection.NONE))
+    assert fh._pattern is grown
+    term.pairs = [(10, 11, 1.0)]  # the old entries would be more than a third: the terms' own pattern
+    check(fh.assemble(x, [diag, term], None, Projection.NONE))
+    assert fh._pattern is not grown and fh._pattern.nnz == fh._pattern.own_nnz
+
+
 def test_cg_direction_matches_direct_direction():
     model, rest, _ = cantilever(6, 3)
     x = rest + 1e-3 * torch.randn_like(rest) * (~model.pinned)[:, None]

@@ -86,40 +86,36 @@ class Preconditioner(Option):
 
 # -------------------------------------------------------------------- assembled free Hessian
 class _Pattern:
-    """The CSR pattern of a free Hessian and where each term's values go (built once, on the CPU,
-    then moved to ``device``)."""
+    """The CSR pattern of a free Hessian and where each term's values go (built on the CPU, then moved to
+    ``device``).  ``extra``: keys (``row * nf + col``) kept in the pattern beyond the terms' own, e.g. the entries
+    of the contact pairs of earlier iterates (:meth:`FreeHessian.assemble`)."""
 
-    def __init__(self, free: np.ndarray, terms: list[tuple[np.ndarray, np.ndarray]], device: torch.device):
+    def __init__(self, free: np.ndarray, terms: list[tuple[np.ndarray, np.ndarray]], device: torch.device,
+                 extra: np.ndarray | None = None):
         n_full = free.shape[0]
         index = np.full(n_full, -1, dtype=np.int64)
         index[free] = np.arange(int(free.sum()))
         nf = int(free.sum())
         vf = nf // 3
+        self._free, self._index = free, index
         # every free vertex's 3x3 diagonal block is in the pattern (colliders, inertia, block-Jacobi)
         bi = np.repeat(np.arange(nf), 3)
         bj = (3 * (np.arange(nf) // 3))[:, None].repeat(3, 1) + np.arange(3)[None, :]
-        term_keys, term_keep = [], []
-        for rows, cols in terms:
-            keep = free[rows] & free[cols]
-            term_keep.append(np.flatnonzero(keep))
-            term_keys.append(index[rows[keep]] * nf + index[cols[keep]])
+        placed = [self._term_keys(rows, cols, nf) for rows, cols in terms]
         block_keys = bi * nf + bj.reshape(-1)
-        keys = sorted_unique(np.concatenate([block_keys, *term_keys]))
+        parts = [block_keys, *(k for _, k in placed)] + ([] if extra is None else [extra])
+        keys = sorted_unique(np.concatenate(parts))
+        self.own_nnz = int(keys.shape[0]) if extra is None else int(sorted_unique(np.concatenate(parts[:-1])).shape[0])
         rows = keys // nf
         crow = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=crow[1:])
-        as_dev = lambda a: torch.as_tensor(a, dtype=torch.int64, device=device)
-        self.n, self.nnz, self.device = nf, int(keys.shape[0]), device
-        self.crow, self.col = as_dev(crow), as_dev(keys % nf)
-        term_pos = [np.searchsorted(keys, k) for k in term_keys]
-        # a term whose every entry is kept (no pinned vertex in it) needs no gather; one whose entries are the
-        # whole pattern in order (the bending's 2-ring pattern usually) starts the values as a copy
-        self.term_keep = [None if k.shape[0] == t_rows.shape[0] else as_dev(k) for k, (t_rows, _) in zip(term_keep, terms)]
-        self.term_pos = [as_dev(q) for q in term_pos]
-        self.term_whole = [q.shape[0] == keys.shape[0] and bool(np.all(q == np.arange(keys.shape[0])))
-                           for q in term_pos]
-        self.block_pos = as_dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
-        self.free_vertices = as_dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
+        self.n, self.nnz, self.device, self.keys = nf, int(keys.shape[0]), device, keys
+        self.crow, self.col = self._dev(crow), self._dev(keys % nf)
+        self.term_keep, self.term_pos, self.term_whole = [], [], []
+        for (keep, k), (t_rows, _) in zip(placed, terms):
+            self._set_term(len(self.term_pos), keep, k, np.searchsorted(keys, k), t_rows.shape[0])
+        self.block_pos = self._dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
+        self.free_vertices = self._dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
         self.scipy_indices = (keys % nf, crow)
         # the same as 32-bit integers where they fit: scipy then takes them as they are (with 64-bit ones it scans
         # both arrays for their range on every matrix it wraps)
@@ -127,6 +123,35 @@ class _Pattern:
         self.wrap_indices = tuple(a.astype(np.int32) if small else a for a in self.scipy_indices)
         self.factor: pardiso.SymmetricFactor | None = None  # built on first use (direct solves with MKL)
         self.single_factor: pardiso.SymmetricFactor | None = None  # idem, single precision (reused factorisations)
+
+    def _dev(self, a: np.ndarray) -> Tensor:
+        return torch.as_tensor(a, dtype=torch.int64, device=self.device)
+
+    def _term_keys(self, rows: np.ndarray, cols: np.ndarray, nf: int) -> tuple[np.ndarray, np.ndarray]:
+        """The entries of a term's ``(rows, cols)`` (full DOFs) between free DOFs, and their keys."""
+        keep = self._free[rows] & self._free[cols]
+        return np.flatnonzero(keep), self._index[rows[keep]] * nf + self._index[cols[keep]]
+
+    def _set_term(self, i: int, keep: np.ndarray, keys: np.ndarray, pos: np.ndarray, count: int) -> None:
+        # a term whose every entry is kept (no pinned vertex in it) needs no gather; one whose entries are the
+        # whole pattern in order (the bending's 2-ring pattern usually) starts the values as a copy
+        entry = (None if keep.shape[0] == count else self._dev(keep), self._dev(pos),
+                 pos.shape[0] == self.nnz and bool(np.all(pos == np.arange(self.nnz))))
+        if i == len(self.term_pos):
+            self.term_keep.append(None)
+            self.term_pos.append(entry[1])
+            self.term_whole.append(False)
+        self.term_keep[i], self.term_pos[i], self.term_whole[i] = entry
+
+    def place(self, i: int, rows: np.ndarray, cols: np.ndarray) -> bool:
+        """Term ``i``'s new entries ``(rows, cols)`` placed in this pattern, if every one of them is in it (then
+        the pattern, and a factorisation analysed on it, serve on); False (nothing changed) otherwise."""
+        keep, k = self._term_keys(rows, cols, self.n)
+        pos = np.searchsorted(self.keys, k)
+        if k.shape[0] and (int(pos.max()) >= self.nnz or not np.array_equal(self.keys[pos], k)):
+            return False
+        self._set_term(i, keep, k, pos, rows.shape[0])
+        return True
 
 
 def _same_patterns(a: tuple, b: tuple) -> bool:
@@ -201,10 +226,21 @@ class FreeHessian:
             else:
                 blocks = b if blocks is None else blocks + b
         index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
-        if self._pattern is None or self._pattern.device != x.device or not _same_patterns(index, self._term_index):
-            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in matrices], x.device)
-            self._term_index = index
         pat = self._pattern
+        if pat is None or pat.device != x.device or len(index) != len(self._term_index):
+            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in matrices], x.device)
+        elif not _same_patterns(index, self._term_index):
+            # a term's pattern changed (the contact pairs of a new iterate): placed in the kept pattern where all
+            # its entries are there (PARDISO's analysis on it serves on); else a new pattern that keeps the old
+            # entries too, unless they would make up more than a third of it (then the terms' own)
+            changed = [i for i, (a, b) in enumerate(zip(index, self._term_index)) if not _same_patterns((a,), (b,))]
+            if not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed):
+                terms = [_csr_indices(H) for H in matrices]
+                grown = _Pattern(self._free, terms, x.device, extra=pat.keys)
+                self._pattern = grown if grown.nnz <= 1.5 * grown.own_nnz else _Pattern(self._free, terms, x.device)
+        self._term_index = index
+        pat = self._pattern
+        assert pat is not None
         values = None
         # a term whose values fill the whole pattern first: a copy of them is the sum's start (one pass less)
         order = sorted(range(len(matrices)), key=lambda i: not pat.term_whole[i])
