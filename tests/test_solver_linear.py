@@ -373,9 +373,11 @@ class _PairsTerm:
 
 
 def test_free_hessian_keeps_its_pattern_while_the_contact_pairs_change():
-    """A term whose pattern changes (the contact pairs of a new iterate): entries already in the pattern are placed
-    in it (the pattern object, and a PARDISO analysis on it, serve on), new ones grow it with the old entries kept,
-    and a pattern mostly of old entries is rebuilt from the terms' own; the values are the sum's every time."""
+    """A term whose pattern changes (the contact pairs of a new iterate), in a solve (``begin_solve``): entries
+    already in the pattern are placed in it (the pattern object, and a PARDISO factorisation bound to it, serve on),
+    new ones grow it with the old entries kept, a pattern mostly of old entries is rebuilt from the terms' own, and
+    a new solve starts from the terms' own; outside a solve the pattern is the terms' own every time.  The values
+    are the sum's every time."""
     V = 12
     x = torch.zeros(V, 3, dtype=F64)
 
@@ -385,32 +387,50 @@ def test_free_hessian_keeps_its_pattern_while_the_contact_pairs_change():
     owner = Owner()
     free = torch.ones(3 * V, dtype=torch.bool)
     free[:3] = False  # vertex 0 pinned: its entries are left out
-    fh = linear.FreeHessian(owner, free)
-    term = _PairsTerm(V)
-    diag = _PairsTerm(V)
+    diag, a, b = _PairsTerm(V), _PairsTerm(V), _PairsTerm(V)
     diag.pairs = [(v, v, 1.0) for v in range(V)]
+    terms = [diag, a, b]
 
-    def check(A):
-        ref = (diag.hessian(x, None, None) + term.hessian(x, None, None)).to_dense()[free][:, free].numpy()
+    def assemble(fh):
+        A = fh.assemble(x, terms, None, Projection.NONE)
+        ref = sum(t.hessian(x, None, None).to_dense() for t in terms)[free][:, free].numpy()
         assert np.array_equal(fh.to_scipy(A).toarray(), ref)
+        return fh._pattern
 
-    term.pairs = [(0, 5, 1.0), (1, 2, 2.0), (3, 4, 3.0), (6, 7, 4.0)]
-    check(fh.assemble(x, [diag, term], None, Projection.NONE))
-    first = fh._pattern
-    assert first is not None
-    term.pairs = [(1, 2, 5.0), (6, 7, 6.0)]  # fewer pairs, all in the pattern: the same pattern, zeros kept
-    check(fh.assemble(x, [diag, term], None, Projection.NONE))
-    assert fh._pattern is first
-    term.pairs = [(1, 2, 5.0), (8, 9, 7.0)]  # a new pair: a new pattern with the old entries kept
-    check(fh.assemble(x, [diag, term], None, Projection.NONE))
-    grown = fh._pattern
-    assert grown is not first and grown.nnz > grown.own_nnz
-    term.pairs = [(3, 4, 1.0), (6, 7, 2.0)]  # old pairs again: placed in the grown pattern
-    check(fh.assemble(x, [diag, term], None, Projection.NONE))
-    assert fh._pattern is grown
-    term.pairs = [(10, 11, 1.0)]  # the old entries would be more than a third: the terms' own pattern
-    check(fh.assemble(x, [diag, term], None, Projection.NONE))
-    assert fh._pattern is not grown and fh._pattern.nnz == fh._pattern.own_nnz
+    def exact(pat):
+        return pat.used == pat.nnz
+
+    # outside a solve (ClothModel.hessian's): the terms' own pattern after every change
+    plain = linear.FreeHessian(owner, free)
+    a.pairs = [(0, 5, 1.0), (1, 2, 2.0), (3, 4, 3.0), (6, 7, 4.0)]
+    first = assemble(plain)
+    a.pairs = [(1, 2, 5.0)]
+    assert assemble(plain) is not first and exact(plain._pattern)
+
+    fh = linear.FreeHessian(owner, free)
+    fh.begin_solve()
+    a.pairs = [(0, 5, 1.0), (1, 2, 2.0), (3, 4, 3.0), (6, 7, 4.0)]
+    first = assemble(fh)
+    factor = fh.direct_factor()
+    a.pairs = [(1, 2, 5.0), (6, 7, 6.0)]  # fewer pairs, all in the pattern: the same pattern, zeros kept
+    assert assemble(fh) is first and not exact(first) and fh.direct_factor() is factor
+    a.pairs = [(1, 2, 5.0), (8, 9, 7.0)]  # a new pair: a new pattern with the old entries kept
+    grown = assemble(fh)
+    assert grown is not first and not exact(grown)
+    a.pairs = [(3, 4, 1.0), (6, 7, 2.0)]  # old pairs again: placed in the grown pattern
+    assert assemble(fh) is grown
+    a.pairs = [(10, 11, 1.0)]  # the old entries would be more than a third: the terms' own pattern
+    assert exact(assemble(fh))
+    # two terms changing at once, the first placed, the second not: a grown pattern, the sums right
+    a.pairs, b.pairs = [], [(1, 2, 1.0)]
+    assert not exact(assemble(fh))
+    a.pairs, b.pairs = [(1, 2, 3.0)], []
+    assemble(fh)
+    # a new solve starts from the terms' own pattern
+    kept = fh._pattern
+    assert not exact(kept)
+    fh.begin_solve()
+    assert exact(assemble(fh))
 
 
 def test_cg_direction_matches_direct_direction():

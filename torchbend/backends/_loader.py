@@ -9,7 +9,6 @@ which happened.
 from __future__ import annotations
 
 import importlib
-import sys
 import threading
 import time
 import warnings
@@ -66,19 +65,6 @@ class Extension:
             extra = self.install_info(found["build"] or {}) if self.install_info else {}
             self.info.update(extra, source="install", seconds=time.perf_counter() - t0, path=module.__file__)
             return module, None
-        imported = sys.modules.get(self.prebuilt)
-        if imported is not None and not hasattr(imported, "register_operators"):
-            # The installed module was imported directly (e.g. a documentation tool's ``import torchbend._native``)
-            # although it is not current, and it registered its operators as it was imported (a module that
-            # registers them only when asked has ``register_operators``, and the JIT build below can share the
-            # process with it): a JIT-built module that registers the same ones would abort the process.  The
-            # eager path runs instead.
-            reason = (f"{self.prebuilt} was imported although it cannot be used ({why}); a rebuilt module cannot be "
-                      "loaded beside it in this process: rebuild it (e.g. `python setup.py build_ext --inplace`) and "
-                      "restart")
-            self.info.update(source=None, seconds=time.perf_counter() - t0, path=None)
-            warnings.warn(f"torchbend: {reason}; using the eager path", RuntimeWarning, stacklevel=5)
-            return None, reason
         try:
             module, extra = self.jit_build()
         except Exception as e:  # no compiler, no nvcc, no ninja, a failed compile, ...

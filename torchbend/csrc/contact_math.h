@@ -262,13 +262,15 @@ template <typename T> TB_HD static inline T typed_derivs(int formula, const T* y
 // has used 512-bit registers stalls on the library's SSE-encoded first instructions where the compiler leaves out
 // the vzeroupper before it (GCC 12 does in pair_terms): about 100 ns a pair.  On the host one compiled copy
 // (noinline) serves every caller, so that no inlining context contracts its products differently: the energies of
-// the lanes (cpu_contact_scan.h) and of pair_terms stay equal bit for bit.
+// the lanes (cpu_contact_scan.h) and of pair_terms stay equal bit for bit.  On the device (no stall there) the
+// CUDA library's log and logf, as before.
 #if defined(__CUDA_ARCH__)
-TB_HD static inline double barrier_log(double v) { return tb_logv(v); }
+TB_HD static inline double barrier_log(double v) { return log(v); }
+TB_HD static inline float barrier_log(float v) { return logf(v); }
 #else
 __attribute__((noinline)) static double barrier_log(double v) { return tb_logv(v); }
+static inline float barrier_log(float v) { return float(barrier_log(double(v))); }
 #endif
-TB_HD static inline float barrier_log(float v) { return float(barrier_log(double(v))); }
 
 // b(D) = -kappa (D - Dh)^2 log(D / Dh) for 0 < D < Dh (0 beyond); b1 = b', b2 = b''
 template <typename T> TB_HD static inline T barrier(T D, T dh2, T kappa, T* b1, T* b2) {

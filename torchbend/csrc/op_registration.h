@@ -16,7 +16,8 @@ namespace torchbend {
 namespace reg {
 
 // the schemas, in the order of torchbend.backends._table.OPERATORS
-inline constexpr const char* kSchemas[] = {
+// (internal linkage: two builds of the module loaded in one process each read their own)
+static constexpr const char* kSchemas[] = {
     "bending_energy(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "
     "bool check) -> Tensor",
     "bending_gradient(Tensor x, Tensor hinges, Tensor a, Tensor k, Tensor rest, Tensor? c, Tensor? prev, str model, "

@@ -103,18 +103,19 @@ class _Pattern:
         bj = (3 * (np.arange(nf) // 3))[:, None].repeat(3, 1) + np.arange(3)[None, :]
         placed = [self._term_keys(rows, cols, nf) for rows, cols in terms]
         block_keys = bi * nf + bj.reshape(-1)
-        parts = [block_keys, *(k for _, k in placed)] + ([] if extra is None else [extra])
-        keys = sorted_unique(np.concatenate(parts))
-        self.own_nnz = int(keys.shape[0]) if extra is None else int(sorted_unique(np.concatenate(parts[:-1])).shape[0])
+        own = sorted_unique(np.concatenate([block_keys, *(k for _, k in placed)]))
+        keys = own if extra is None else np.union1d(own, extra)
         rows = keys // nf
         crow = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=crow[1:])
         self.n, self.nnz, self.device, self.keys = nf, int(keys.shape[0]), device, keys
         self.crow, self.col = self._dev(crow), self._dev(keys % nf)
-        self.term_keep, self.term_pos, self.term_whole = [], [], []
+        self.term_keep, self.term_pos, self.term_whole, self._term_pos_np = [], [], [], []
         for (keep, k), (t_rows, _) in zip(placed, terms):
             self._set_term(len(self.term_pos), keep, k, np.searchsorted(keys, k), t_rows.shape[0])
-        self.block_pos = self._dev(np.searchsorted(keys, block_keys).reshape(vf, 3, 3))
+        self._block_pos_np = np.searchsorted(keys, block_keys)
+        self.block_pos = self._dev(self._block_pos_np.reshape(vf, 3, 3))
+        self.used = int(own.shape[0])  # the entries the current terms fill (the rest: kept from earlier ones)
         self.free_vertices = self._dev(np.flatnonzero(free.reshape(-1, 3)[:, 0]))
         self.scipy_indices = (keys % nf, crow)
         # the same as 32-bit integers where they fit: scipy then takes them as they are (with 64-bit ones it scans
@@ -141,7 +142,9 @@ class _Pattern:
             self.term_keep.append(None)
             self.term_pos.append(entry[1])
             self.term_whole.append(False)
+            self._term_pos_np.append(pos)
         self.term_keep[i], self.term_pos[i], self.term_whole[i] = entry
+        self._term_pos_np[i] = pos
 
     def place(self, i: int, rows: np.ndarray, cols: np.ndarray) -> bool:
         """Term ``i``'s new entries ``(rows, cols)`` placed in this pattern, if every one of them is in it (then
@@ -151,6 +154,11 @@ class _Pattern:
         if k.shape[0] and (int(pos.max()) >= self.nnz or not np.array_equal(self.keys[pos], k)):
             return False
         self._set_term(i, keep, k, pos, rows.shape[0])
+        used = np.zeros(self.nnz, dtype=bool)
+        used[self._block_pos_np] = True
+        for q in self._term_pos_np:
+            used[q] = True
+        self.used = int(used.sum())
         return True
 
 
@@ -187,6 +195,19 @@ class FreeHessian:
                              f"{tuple(free_mask.shape)}")
         self._pattern: _Pattern | None = None
         self._term_index: tuple = ()
+        self.keep_pattern = False  # see begin_solve
+        self._trim = False
+
+    def begin_solve(self) -> None:
+        """From now on keep the pattern while the terms' patterns change (the Newton solver's, whose contact pairs
+        change from one iterate to the next): a term's new entries that are all in it are placed there, so that
+        the pattern and PARDISO's analysis on it serve on; new entries give a pattern that keeps the old ones too.
+        A pattern whose kept entries are over a third of it is rebuilt from the terms' own, and so is one with any
+        kept entry at the first assembly after this call: every solve starts from the terms' own pattern, and its
+        results do not depend on earlier solves.  Without it (:meth:`ClothModel.hessian`) the pattern is always
+        exactly the terms'."""
+        self.keep_pattern = True
+        self._trim = True
 
     @classmethod
     def for_model(cls, model, free_mask: Tensor) -> FreeHessian:
@@ -212,6 +233,31 @@ class FreeHessian:
         """The number of free DOFs ``nf``."""
         return int(self._free.sum())
 
+    def _update_pattern(self, matrices: list[Tensor], device: torch.device) -> _Pattern:
+        """The pattern for the terms' CSR ``matrices`` (kept, placed in, grown or rebuilt: :meth:`begin_solve`)."""
+        index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
+        pat = self._pattern
+        own = lambda: _Pattern(self._free, [_csr_indices(H) for H in matrices], device)  # noqa: E731
+        if pat is None or pat.device != device or len(index) != len(self._term_index):
+            pat = own()
+        elif not _same_patterns(index, self._term_index):
+            # a term's pattern changed (the contact pairs of a new iterate): with keep_pattern placed in the kept
+            # pattern where all its entries are there; else a new pattern that keeps the old entries too, unless
+            # they would make up more than a third of it (then the terms' own)
+            changed = [i for i, (a, b) in enumerate(zip(index, self._term_index)) if not _same_patterns((a,), (b,))]
+            if not self.keep_pattern:
+                pat = own()
+            elif not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed) or pat.nnz > 1.5 * pat.used:
+                bloated = pat.nnz > 1.5 * pat.used
+                grown = _Pattern(self._free, [_csr_indices(H) for H in matrices], device,
+                                 extra=None if bloated else pat.keys)
+                pat = grown if grown.nnz <= 1.5 * grown.used else own()
+        if self._trim and pat.used < pat.nnz:
+            pat = own()  # a solve's first assembly: the terms' own pattern
+        self._trim = False
+        self._pattern, self._term_index = pat, index
+        return pat
+
     def assemble(self, x: Tensor, terms, ctx, option: Projection) -> Tensor:
         """The free Hessian at ``x (V, 3)`` [m] of the sum of ``terms`` (:class:`~torchbend.sim.terms.EnergyTerm`,
         e.g. the model's and a time step's inertia) in the step context ``ctx``, each with the projection
@@ -225,22 +271,7 @@ class FreeHessian:
                 matrices.append(as_csr(t.hessian(x, ctx, option)))
             else:
                 blocks = b if blocks is None else blocks + b
-        index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
-        pat = self._pattern
-        if pat is None or pat.device != x.device or len(index) != len(self._term_index):
-            self._pattern = _Pattern(self._free, [_csr_indices(H) for H in matrices], x.device)
-        elif not _same_patterns(index, self._term_index):
-            # a term's pattern changed (the contact pairs of a new iterate): placed in the kept pattern where all
-            # its entries are there (PARDISO's analysis on it serves on); else a new pattern that keeps the old
-            # entries too, unless they would make up more than a third of it (then the terms' own)
-            changed = [i for i, (a, b) in enumerate(zip(index, self._term_index)) if not _same_patterns((a,), (b,))]
-            if not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed):
-                terms = [_csr_indices(H) for H in matrices]
-                grown = _Pattern(self._free, terms, x.device, extra=pat.keys)
-                self._pattern = grown if grown.nnz <= 1.5 * grown.own_nnz else _Pattern(self._free, terms, x.device)
-        self._term_index = index
-        pat = self._pattern
-        assert pat is not None
+        pat = self._update_pattern(matrices, x.device)
         values = None
         # a term whose values fill the whole pattern first: a copy of them is the sum's start (one pass less)
         order = sorted(range(len(matrices)), key=lambda i: not pat.term_whole[i])

@@ -239,6 +239,7 @@ class _Potential(NewtonDirections):
         # direction found: positive definite (None: unknown), a direction of negative curvature (CG,
         # (nf,) on x's device), the factorisation / preconditioner used
         self.hessian_op = FreeHessian.for_model(model, self.free_mask)
+        self.hessian_op.begin_solve()  # the pattern kept while the contact pairs change, from the terms' own
         self.positive_definite: bool | None = None
         self.negative_curvature: Tensor | None = None
         self.linear_method = ""
