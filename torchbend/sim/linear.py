@@ -2,8 +2,10 @@ r"""Linear solves for Newton directions on the free degrees of freedom.
 
 * :class:`FreeHessian`: the Hessian of a :class:`~torchbend.sim.model.ClothModel` restricted to the
   free DOFs (plus an optional diagonal, the inertia ``M/dt^2``), assembled once per Newton iteration
-  into one torch sparse CSR matrix on the positions' device (its pattern is built once per model and
-  pinned set); :meth:`FreeHessian.to_scipy` gives the same matrix as ``scipy.sparse`` on the CPU.
+  into one torch sparse CSR matrix on the positions' device (its pattern is kept per model and pinned set
+  while the terms' patterns stay, and within a Newton solve while the contact pairs change:
+  :meth:`FreeHessian.begin_solve`); :meth:`FreeHessian.to_scipy` gives the same matrix as ``scipy.sparse`` on the
+  CPU.
 * :func:`direct_solve`: MKL PARDISO's supernodal ``L D L^T`` when the optional ``mkl`` is installed
   (``pip install torchbend[solvers]``; :mod:`~torchbend.sim.pardiso`, the ordering and symbolic analysis
   kept per pattern by :meth:`FreeHessian.direct_factor`), else sparse LU (``scipy.sparse.linalg.splu`` in
@@ -184,7 +186,8 @@ class FreeHessian:
     are :class:`~torchbend.sim.terms.EnergyTerm` objects (sparse matrices, or per-vertex 3x3 blocks);
     the summed pattern (every free vertex keeps its diagonal
     block) and the scatter positions of each term are built on first use and rebuilt when a term's pattern
-    changes (the energies keep their CSR patterns per topology).  Use :meth:`for_model` to share one per model and pinned set."""
+    changes (the energies keep their CSR patterns per topology), or, after :meth:`begin_solve`, kept while the
+    new entries fit in it.  Use :meth:`for_model` to share one per model and pinned set."""
 
     def __init__(self, model, free_mask: Tensor):
         self._model = weakref.ref(model)  # weak: the per-model cache must not keep its key alive
@@ -203,9 +206,11 @@ class FreeHessian:
         change from one iterate to the next): a term's new entries that are all in it are placed there, so that
         the pattern and PARDISO's analysis on it serve on; new entries give a pattern that keeps the old ones too.
         A pattern whose kept entries are over a third of it is rebuilt from the terms' own, and so is one with any
-        kept entry at the first assembly after this call: every solve starts from the terms' own pattern, and its
-        results do not depend on earlier solves.  Without it (:meth:`ClothModel.hessian`) the pattern is always
-        exactly the terms'."""
+        kept entry at the first assembly after this call: every solve starts from the terms' own pattern (its
+        pattern does not depend on earlier solves; a factorisation kept with an unchanged pattern, as
+        ``LinearSolver.reuse_factorization`` keeps one, may).  An instance on which this was never called
+        (:meth:`ClothModel.hessian`'s) keeps exactly the terms' pattern; one shared through :meth:`for_model`
+        keeps patterns for every later user once a solve has called it."""
         self.keep_pattern = True
         self._trim = True
 
@@ -236,15 +241,21 @@ class FreeHessian:
     def _update_pattern(self, matrices: list[Tensor], device: torch.device) -> _Pattern:
         """The pattern for the terms' CSR ``matrices`` (kept, placed in, grown or rebuilt: :meth:`begin_solve`)."""
         index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
-        pat = self._pattern
+        pat, old_index = self._pattern, self._term_index
+        # forgotten while it changes: an exception part way (an interrupt, out of memory) leaves no pattern whose
+        # positions disagree with the recorded term patterns
+        self._pattern, self._term_index = None, ()
         own = lambda: _Pattern(self._free, [_csr_indices(H) for H in matrices], device)  # noqa: E731
-        if pat is None or pat.device != device or len(index) != len(self._term_index):
+        unchanged = pat is not None and len(index) == len(old_index) and _same_patterns(index, old_index)
+        if pat is None or pat.device != device or len(index) != len(old_index):
             pat = own()
-        elif not _same_patterns(index, self._term_index):
+        elif self._trim:  # a solve's first assembly: the terms' own pattern
+            pat = pat if unchanged and pat.used == pat.nnz else own()
+        elif not unchanged:
             # a term's pattern changed (the contact pairs of a new iterate): with keep_pattern placed in the kept
             # pattern where all its entries are there; else a new pattern that keeps the old entries too, unless
             # they would make up more than a third of it (then the terms' own)
-            changed = [i for i, (a, b) in enumerate(zip(index, self._term_index)) if not _same_patterns((a,), (b,))]
+            changed = [i for i, (a, b) in enumerate(zip(index, old_index)) if not _same_patterns((a,), (b,))]
             if not self.keep_pattern:
                 pat = own()
             elif not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed) or pat.nnz > 1.5 * pat.used:
@@ -252,8 +263,6 @@ class FreeHessian:
                 grown = _Pattern(self._free, [_csr_indices(H) for H in matrices], device,
                                  extra=None if bloated else pat.keys)
                 pat = grown if grown.nnz <= 1.5 * grown.used else own()
-        if self._trim and pat.used < pat.nnz:
-            pat = own()  # a solve's first assembly: the terms' own pattern
         self._trim = False
         self._pattern, self._term_index = pat, index
         return pat
