@@ -164,6 +164,36 @@ class _Pattern:
         return True
 
 
+def _update_pattern(fh: FreeHessian, matrices: list[Tensor], device: torch.device) -> _Pattern:
+    """The pattern for the terms' CSR ``matrices`` of ``fh`` (kept, placed in, grown or rebuilt: :meth:`FreeHessian.begin_solve`)."""
+    index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
+    pat, old_index = fh._pattern, fh._term_index
+    # forgotten while it changes: an exception part way (an interrupt, out of memory) leaves no pattern whose
+    # positions disagree with the recorded term patterns
+    fh._pattern, fh._term_index = None, ()
+    own = lambda: _Pattern(fh._free, [_csr_indices(H) for H in matrices], device)  # noqa: E731
+    unchanged = pat is not None and len(index) == len(old_index) and _same_patterns(index, old_index)
+    if pat is None or pat.device != device or len(index) != len(old_index):
+        pat = own()
+    elif fh._trim:  # a solve's first assembly: the terms' own pattern
+        pat = pat if unchanged and pat.used == pat.nnz else own()
+    elif not unchanged:
+        # a term's pattern changed (the contact pairs of a new iterate): with keep_pattern placed in the kept
+        # pattern where all its entries are there; else a new pattern that keeps the old entries too, unless
+        # they would make up more than a third of it (then the terms' own)
+        changed = [i for i, (a, b) in enumerate(zip(index, old_index)) if not _same_patterns((a,), (b,))]
+        if not fh.keep_pattern:
+            pat = own()
+        elif not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed) or pat.nnz > 1.5 * pat.used:
+            bloated = pat.nnz > 1.5 * pat.used
+            grown = _Pattern(fh._free, [_csr_indices(H) for H in matrices], device,
+                             extra=None if bloated else pat.keys)
+            pat = grown if grown.nnz <= 1.5 * grown.used else own()
+    fh._trim = False
+    fh._pattern, fh._term_index = pat, index
+    return pat
+
+
 def _same_patterns(a: tuple, b: tuple) -> bool:
     """Whether two tuples of CSR ``(crow, col)`` index pairs are equal (``torch.equal`` returns at once for
     views of one storage: the energies' cached patterns)."""
@@ -238,35 +268,6 @@ class FreeHessian:
         """The number of free DOFs ``nf``."""
         return int(self._free.sum())
 
-    def _update_pattern(self, matrices: list[Tensor], device: torch.device) -> _Pattern:
-        """The pattern for the terms' CSR ``matrices`` (kept, placed in, grown or rebuilt: :meth:`begin_solve`)."""
-        index = tuple((H.crow_indices(), H.col_indices()) for H in matrices)
-        pat, old_index = self._pattern, self._term_index
-        # forgotten while it changes: an exception part way (an interrupt, out of memory) leaves no pattern whose
-        # positions disagree with the recorded term patterns
-        self._pattern, self._term_index = None, ()
-        own = lambda: _Pattern(self._free, [_csr_indices(H) for H in matrices], device)  # noqa: E731
-        unchanged = pat is not None and len(index) == len(old_index) and _same_patterns(index, old_index)
-        if pat is None or pat.device != device or len(index) != len(old_index):
-            pat = own()
-        elif self._trim:  # a solve's first assembly: the terms' own pattern
-            pat = pat if unchanged and pat.used == pat.nnz else own()
-        elif not unchanged:
-            # a term's pattern changed (the contact pairs of a new iterate): with keep_pattern placed in the kept
-            # pattern where all its entries are there; else a new pattern that keeps the old entries too, unless
-            # they would make up more than a third of it (then the terms' own)
-            changed = [i for i, (a, b) in enumerate(zip(index, old_index)) if not _same_patterns((a,), (b,))]
-            if not self.keep_pattern:
-                pat = own()
-            elif not all(pat.place(i, *_csr_indices(matrices[i])) for i in changed) or pat.nnz > 1.5 * pat.used:
-                bloated = pat.nnz > 1.5 * pat.used
-                grown = _Pattern(self._free, [_csr_indices(H) for H in matrices], device,
-                                 extra=None if bloated else pat.keys)
-                pat = grown if grown.nnz <= 1.5 * grown.used else own()
-        self._trim = False
-        self._pattern, self._term_index = pat, index
-        return pat
-
     def assemble(self, x: Tensor, terms, ctx, option: Projection) -> Tensor:
         """The free Hessian at ``x (V, 3)`` [m] of the sum of ``terms`` (:class:`~torchbend.sim.terms.EnergyTerm`,
         e.g. the model's and a time step's inertia) in the step context ``ctx``, each with the projection
@@ -280,7 +281,7 @@ class FreeHessian:
                 matrices.append(as_csr(t.hessian(x, ctx, option)))
             else:
                 blocks = b if blocks is None else blocks + b
-        pat = self._update_pattern(matrices, x.device)
+        pat = _update_pattern(self, matrices, x.device)
         values = None
         # a term whose values fill the whole pattern first: a copy of them is the sum's start (one pass less)
         order = sorted(range(len(matrices)), key=lambda i: not pat.term_whole[i])
