@@ -103,7 +103,7 @@ static void hessian_tiles(const T* xp, const int64_t* hp, int64_t B, int64_t V, 
       int64_t bh0 = t * W;
       int nl = int(std::min<int64_t>(W, BH - bh0));
       tile_lanes(bh0, nl, H, bs, hs);
-      gather_tile<T>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q);
+      gather_tile<T, false, W>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q);
       theta_tile<T, W>(X, TH);
       TB_LANES_AGG(W) {
         T psi;

@@ -9,7 +9,7 @@ namespace torchbend {
 namespace cpu {
 // ----------------------------------------------------------------------------------------------
 // Energy, gradient, Hessian-vector product and the general second-order product (the hot paths of
-// training and of matrix-free solvers).  Each is one parallel pass over tiles of W hinges (gather, angle,
+// training and of matrix-free solvers).  Each is one parallel pass over tiles of WL hinges (gather, angle,
 // psi, closed forms; every lane loop branch-free and vectorized, the model and damping template
 // arguments); the gradient and the products sum their per-hinge 12-vectors per vertex in blocks of
 // consecutive hinges (scatter_tiles: bit-identical for any number of threads, no two threads writing one
@@ -37,14 +37,14 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      for_tiles(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
-        alignas(64) T X[12][W];
-        alignas(64) T TH[W], PS[W];
-        HingeTile<T, W> Q;
-        if (gather_tile<T, true>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q))
+      for_tiles<WL>(P.B, P.H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+        alignas(64) T X[12][WL];
+        alignas(64) T TH[WL], PS[WL];
+        HingeTile<T, WL> Q;
+        if (gather_tile<T, true, WL>(xp, nullptr, hp, V, args, nullptr, nl, bs, hs, X, nullptr, Q))
           bad_index.store(true, std::memory_order_relaxed);
-        theta_tile<T, W>(X, TH);
-        TB_LANES_AGG(W) {
+        theta_tile<T, WL>(X, TH);
+        TB_LANES_AGG(WL) {
           T d1, d2;
           psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
         }
@@ -85,16 +85,16 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
-                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
-        alignas(64) T X[12][W], G[12][W];
-        alignas(64) T TH[W], S[W], PS[W], GP[4][W];
-        HingeTile<T, W> Q;
-        Half<T, W> hA, hB;
-        gather_tile<T>(xp, nullptr, hp, V, args, &w, nl, bs, hs, X, nullptr, Q);
-        theta_tile<T, W>(X, TH);
+      scatter_tiles<T, WL>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), gx.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[WL]) {
+        alignas(64) T X[12][WL], G[12][WL];
+        alignas(64) T TH[WL], S[WL], PS[WL], GP[4][WL];
+        HingeTile<T, WL> Q;
+        Half<T, WL> hA, hB;
+        gather_tile<T, false, WL>(xp, nullptr, hp, V, args, &w, nl, bs, hs, X, nullptr, Q);
+        theta_tile<T, WL>(X, TH);
         if (gpp) {
-          TB_LANES_AGG(W) {
+          TB_LANES_AGG(WL) {
             T d1, d2, g4[4];
             psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, g4);
             S[l] = Q.w[l] * d1;
@@ -103,15 +103,15 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
           for (int l = 0; l < nl; ++l)
             for (int j = 0; j < 4; ++j) gpp[4 * (bh0 + l) + j] = GP[j][l];
         } else {
-          TB_LANES_AGG(W) {
+          TB_LANES_AGG(WL) {
             T d1, d2;
             psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
             S[l] = Q.w[l] * d1;
           }
         }
-        halves_tile<T, W>(X, hA, hB);
-        grad_of_halves<T, W>(hA, hB, G);
-        for (int m = 0; m < 12; ++m) TB_LANES(W) O[m][l] = S[l] * G[m][l];
+        halves_tile<T, WL>(X, hA, hB);
+        grad_of_halves<T, WL>(hA, hB, G);
+        for (int m = 0; m < 12; ++m) TB_LANES(WL) O[m][l] = S[l] * G[m][l];
         for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
         if (po)
           for (int l = 0; l < nl; ++l) po[bh0 + l] = PS[l];

@@ -57,7 +57,7 @@ ScatterPlan scatter_plan(const int64_t* hp, int64_t H, int64_t V);
 // tiles of hinges (see for_tiles; O[3 s + c][l]: component c of stencil slot s of lane l)
 // The plan's pass over the hinge indices is their range check (before any work: checks::check_range names the
 // first bad entry); the incidence lists, which only the unblocked path reads, are checked in full there.
-template <typename T, typename Body>
+template <typename T, int L, typename Body>
 static void scatter_tiles(const char* op, const torch::Tensor& hinges, int64_t B, int64_t V, const int64_t* inc_ptr,
                           const int64_t* inc_idx, T* out, Body&& body) {
   const int64_t* hp = hinges.data_ptr<int64_t>();
@@ -69,10 +69,10 @@ static void scatter_tiles(const char* op, const torch::Tensor& hinges, int64_t B
     torchbend::checks::check_incidence_content(op, inc_ptr, inc_idx, hp, V, H);  // before any work
     torch::Tensor buf = torch::empty({B, H, 12}, c10::CppTypeToScalarType<T>::value);
     T* bp = buf.data_ptr<T>();
-    for_tiles(B, H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
-      alignas(64) T O[12][W];
+    for_tiles<L>(B, H, [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs) {
+      alignas(64) T O[12][L];
       body(bh0, nl, bs, hs, O);
-      store_rows<T>(O, nl, bp + 12 * bh0);
+      store_rows<T, L>(O, nl, bp + 12 * bh0);
     });
     gather_vertices<T>(bp, inc_ptr, inc_idx, B, V, H, out);
     return;
@@ -80,15 +80,15 @@ static void scatter_tiles(const char* op, const torch::Tensor& hinges, int64_t B
   Scratch sc = scratch(sizeof(T) * 3 * size_t(B * P.total));
   T* part = static_cast<T*>(sc.p);
   at::parallel_for(0, B * P.nb, 1, [&](int64_t begin, int64_t end) {
-    int64_t bs[W], hs[W];
-    alignas(64) T O[12][W];
+    int64_t bs[L], hs[L];
+    alignas(64) T O[12][L];
     for (int64_t blk = begin; blk < end; ++blk) {
       int64_t b = blk / P.nb, j = blk - b * P.nb, lo = P.lo[j];
       T* acc = part + 3 * (b * P.total + P.off[j]);
       std::fill(acc, acc + 3 * (P.off[j + 1] - P.off[j]), T(0));
       int64_t h1 = std::min(H, (j + 1) * P.S);
-      for (int64_t h0 = j * P.S; h0 < h1; h0 += W) {
-        int nl = int(std::min<int64_t>(W, h1 - h0));
+      for (int64_t h0 = j * P.S; h0 < h1; h0 += L) {
+        int nl = int(std::min<int64_t>(L, h1 - h0));
         for (int l = 0; l < nl; ++l) { bs[l] = b; hs[l] = h0 + l; }
         body(b * H + h0, nl, bs, hs, O);
         for (int l = 0; l < nl; ++l) {

@@ -34,24 +34,24 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, t
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), hv.data_ptr<T>(),
-                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
-        alignas(64) T X[12][W], Vd[12][W], G[12][W];
-        alignas(64) T TH[W], D1[W], D2[W], U[W];
-        HingeTile<T, W> Q;
-        Half<T, W> hA, hB;
-        gather_tile<T>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
-        theta_tile<T, W>(X, TH);
-        TB_LANES_AGG(W) {
+      scatter_tiles<T, WL>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), hv.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[WL]) {
+        alignas(64) T X[12][WL], Vd[12][WL], G[12][WL];
+        alignas(64) T TH[WL], D1[WL], D2[WL], U[WL];
+        HingeTile<T, WL> Q;
+        Half<T, WL> hA, hB;
+        gather_tile<T, false, WL>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
+        theta_tile<T, WL>(X, TH);
+        TB_LANES_AGG(WL) {
           T psi, d1, d2;
           psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, static_cast<T*>(nullptr));
           D1[l] = Q.w[l] * d1; D2[l] = Q.w[l] * d2;
         }
-        halves_tile<T, W>(X, hA, hB);
-        grad_of_halves<T, W>(hA, hB, G);
-        dot_tile<T, W>(G, Vd, U);
-        TB_LANES(W) U[l] *= D2[l];
-        hvp_of_halves<T, W>(hA, hB, Vd, G, D1, U, true, O);
+        halves_tile<T, WL>(X, hA, hB);
+        grad_of_halves<T, WL>(hA, hB, G);
+        dot_tile<T, WL>(G, Vd, U);
+        TB_LANES(WL) U[l] *= D2[l];
+        hvp_of_halves<T, WL>(hA, hB, Vd, G, D1, U, true, O);
         for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
       });
     });
@@ -105,22 +105,22 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
     with_model(int(model), P.damped, [&](auto M_, auto D_) {
       constexpr int M = decltype(M_)::value;
       constexpr bool D = decltype(D_)::value;
-      scatter_tiles<T>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), dx.data_ptr<T>(),
-                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[W]) {
-        alignas(64) T X[12][W], Vd[12][W], G[12][W];
-        alignas(64) T TH[W], U[W], TG[4][W], S1[W], S2[W], Z[4][W], DG[W];
-        HingeTile<T, W> Q;
-        Half<T, W> hA, hB;
-        gather_tile<T>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
-        for (int l = 0; l < W; ++l) {
+      scatter_tiles<T, WL>(op, P.hinges, P.B, V, inc_ptr.data_ptr<int64_t>(), inc_idx.data_ptr<int64_t>(), dx.data_ptr<T>(),
+                       [&](int64_t bh0, int nl, const int64_t* bs, const int64_t* hs, T (*O)[WL]) {
+        alignas(64) T X[12][WL], Vd[12][WL], G[12][WL];
+        alignas(64) T TH[WL], U[WL], TG[4][WL], S1[WL], S2[WL], Z[4][WL], DG[WL];
+        HingeTile<T, WL> Q;
+        Half<T, WL> hA, hB;
+        gather_tile<T, false, WL>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
+        for (int l = 0; l < WL; ++l) {
           const T* src = (tp && l < nl) ? tp + 4 * (t_batched ? bs[l] * H + hs[l] : hs[l]) : nullptr;
           for (int j = 0; j < 4; ++j) TG[j][l] = src ? src[j] : T(0);
         }
-        theta_tile<T, W>(X, TH);
-        halves_tile<T, W>(X, hA, hB);
-        grad_of_halves<T, W>(hA, hB, G);
-        if (vp) dot_tile<T, W>(G, Vd, U); else TB_LANES(W) U[l] = T(0);
-        TB_LANES_AGG(W) {
+        theta_tile<T, WL>(X, TH);
+        halves_tile<T, WL>(X, hA, hB);
+        grad_of_halves<T, WL>(hA, hB, G);
+        if (vp) dot_tile<T, WL>(G, Vd, U); else TB_LANES(WL) U[l] = T(0);
+        TB_LANES_AGG(WL) {
           T d1, zt, z4[4], dgl;
           psi_second_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], U[l], TG[0][l], TG[1][l],
                                 TG[2][l], TG[3][l], d1, zt, z4, dgl);
@@ -129,7 +129,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
           Z[0][l] = wl * z4[0]; Z[1][l] = wl * z4[1]; Z[2][l] = wl * z4[2]; Z[3][l] = wl * z4[3];
           DG[l] = dgl;
         }
-        hvp_of_halves<T, W>(hA, hB, Vd, G, S1, S2, vp != nullptr, O);
+        hvp_of_halves<T, WL>(hA, hB, Vd, G, S1, S2, vp != nullptr, O);
         for (int l = 0; l < nl; ++l) {
           for (int j = 0; j < 4; ++j) dpp[4 * (bh0 + l) + j] = Z[j][l];
           dgp[bh0 + l] = DG[l];

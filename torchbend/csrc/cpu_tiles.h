@@ -25,6 +25,13 @@ namespace cpu {
 // Hinges are processed in tiles of W, every quantity stored as [component][lane] so that the
 // compiler vectorizes each formula across the hinges of a tile (about 1.5x over one hinge at a time).
 constexpr int W = 8;
+// The energy, gradient and product operators (cpu_first_order.cpp, cpu_second_order.cpp) take tiles of WL = 16
+// hinges: with 16 lanes GCC vectorizes their lane loops with 512-bit vectors where the target has them (8 lanes:
+// 256-bit, by -mprefer-vector-width=256), and on AVX2 two vectors a loop hide more of the long latencies of the
+// angle and psi (the divisions, the polynomials).  Measured with the kernels' own bodies on an AVX-512 Xeon, 1e5
+// hinges, float64: gather, angle and tan psi 24-25 ns a hinge with 8 lanes, 16-17 with 16 (native); 25-26 and
+// 20-23 (x86-64-v3).  Each lane's arithmetic is the same: the results do not depend on the tile width.
+constexpr int WL = 16;
 
 // Each block is written once and not read again here: streaming (non-temporal) stores skip the
 // read-for-ownership of every output cache line, which otherwise doubles the memory traffic of this
@@ -157,13 +164,13 @@ static inline void tile_lanes(int64_t bh0, int nl, int64_t H, int64_t* bs, int64
 
 // The tiles [begin, end) of B samples of H hinges (flattened (sample, hinge) index bh = b H + h), each
 // handed to body(bh0, nl, bs, hs) with its first index, lane count and per-lane sample and hinge.
-template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body) {
-  int64_t BH = B * H, tiles = (BH + W - 1) / W;
-  at::parallel_for(0, tiles, 64, [&](int64_t begin, int64_t end) {
-    int64_t bs[W], hs[W];
+template <int L = W, typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body) {
+  int64_t BH = B * H, tiles = (BH + L - 1) / L;
+  at::parallel_for(0, tiles, 512 / L, [&](int64_t begin, int64_t end) {
+    int64_t bs[L], hs[L];
     for (int64_t t = begin; t < end; ++t) {
-      int64_t bh0 = t * W;
-      int nl = int(std::min<int64_t>(W, BH - bh0));
+      int64_t bh0 = t * L;
+      int nl = int(std::min<int64_t>(L, BH - bh0));
       tile_lanes(bh0, nl, H, bs, hs);
       body(bh0, nl, bs, hs);
     }
@@ -181,63 +188,91 @@ template <typename Body> static void for_tiles(int64_t B, int64_t H, Body&& body
 // is one vectorized (gather) load across them, the parameters contiguous loads.  The lane-by-lane path stores
 // each coordinate on its own, which then reaches the lane loops' vector loads through the store buffer (a
 // stall per component; on AVX2 the difference is about 15% of an energy).  Both paths load the same values.
-template <typename T> static TB_FORCEINLINE void param_run(const Param<T>& p, int64_t b, int64_t h0, T* o) {
+template <int L, typename T> static TB_FORCEINLINE void param_run(const Param<T>& p, int64_t b, int64_t h0, T* o) {
   if (p.n == 1) {
     const T v = p.p[0];
-    TB_LANES(W) o[l] = v;
+    TB_LANES(L) o[l] = v;
   } else {
     const T* s = p.p + (p.n == p.H ? h0 : b * p.H + h0);
-    TB_LANES(W) o[l] = s[l];
+    TB_LANES(L) o[l] = s[l];
   }
 }
 
-// the stencils (and directions) of the full tile of hinges h0 .. h0 + W - 1 of sample b; with Check, 1 (and
+#if defined(__AVX__)
+// X[3 v + m][l] = p[O[v][l] + m] (m = 0, 1, 2: a point's three coordinates) for the four stencil slots v and the L
+// lanes: per point one 32-byte load of its coordinates (masked: the fourth double, past the point, is not read)
+// and per four lanes a 4x4 transpose in registers (the fourth row dropped).  The compiler's gather of the same
+// values loads every coordinate on its own and inserts it into a vector: three times the loads and more shuffles
+// (an energy about 5% faster this way, a Hessian-vector product, which gathers x and v, about 8%).
+template <int L> static TB_FORCEINLINE void gather_points(const double* p, const int64_t (*O)[L], double (*X)[L]) {
+  const __m256i first3 = _mm256_setr_epi64x(-1, -1, -1, 0);
+  for (int v = 0; v < 4; ++v)
+    for (int g = 0; g < L; g += 4) {
+      const __m256d r0 = _mm256_maskload_pd(p + O[v][g], first3), r1 = _mm256_maskload_pd(p + O[v][g + 1], first3);
+      const __m256d r2 = _mm256_maskload_pd(p + O[v][g + 2], first3), r3 = _mm256_maskload_pd(p + O[v][g + 3], first3);
+      const __m256d t0 = _mm256_unpacklo_pd(r0, r1), t1 = _mm256_unpackhi_pd(r0, r1);  // x0 x1 z0 z1, y0 y1 0 0
+      const __m256d t2 = _mm256_unpacklo_pd(r2, r3), t3 = _mm256_unpackhi_pd(r2, r3);
+      _mm256_storeu_pd(&X[3 * v][g], _mm256_permute2f128_pd(t0, t2, 0x20));
+      _mm256_storeu_pd(&X[3 * v + 1][g], _mm256_permute2f128_pd(t1, t3, 0x20));
+      _mm256_storeu_pd(&X[3 * v + 2][g], _mm256_permute2f128_pd(t0, t2, 0x31));
+    }
+}
+#endif
+
+// the stencils (and directions) of the full tile of hinges h0 .. h0 + L - 1 of sample b; with Check, 1 (and
 // nothing loaded) if an index is outside [0, V), for the caller to take the lane-by-lane path
-template <typename T, bool Check>
+template <typename T, bool Check, int L>
 static TB_FORCEINLINE int gather_full_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, int64_t b,
-                                           int64_t h0, T (*X)[W], T (*Vd)[W]) {
+                                           int64_t h0, T (*X)[L], T (*Vd)[L]) {
   const int64_t* q = hp + 4 * h0;
   if (Check && torchbend::checks::kChecked) {
     const uint64_t uV = uint64_t(V);
     int out = 0;
-    TB_SIMD for (int i = 0; i < 4 * W; ++i) out |= int(uint64_t(q[i]) >= uV);
+    TB_SIMD for (int i = 0; i < 4 * L; ++i) out |= int(uint64_t(q[i]) >= uV);
     if (out) return 1;
   }
   const T* xb = xp + 3 * V * b;
-  alignas(64) int64_t O[4][W];
-  for (int v = 0; v < 4; ++v) TB_LANES(W) O[v][l] = 3 * q[4 * l + v];
+  alignas(64) int64_t O[4][L];
+  for (int v = 0; v < 4; ++v) TB_LANES(L) O[v][l] = 3 * q[4 * l + v];
+#if defined(__AVX__)
+  if constexpr (sizeof(T) == sizeof(double) && L % 4 == 0) {
+    gather_points<L>(reinterpret_cast<const double*>(xb), O, reinterpret_cast<double (*)[L]>(X));
+    if (vp) gather_points<L>(reinterpret_cast<const double*>(vp + 3 * V * b), O, reinterpret_cast<double (*)[L]>(Vd));
+    return 0;
+  }
+#endif
   for (int v = 0; v < 4; ++v)
-    for (int m = 0; m < 3; ++m) TB_LANES(W) X[3 * v + m][l] = xb[O[v][l] + m];
+    for (int m = 0; m < 3; ++m) TB_LANES(L) X[3 * v + m][l] = xb[O[v][l] + m];
   if (vp) {
     const T* vb = vp + 3 * V * b;
     for (int v = 0; v < 4; ++v)
-      for (int m = 0; m < 3; ++m) TB_LANES(W) Vd[3 * v + m][l] = vb[O[v][l] + m];
+      for (int m = 0; m < 3; ++m) TB_LANES(L) Vd[3 * v + m][l] = vb[O[v][l] + m];
   }
   return 0;
 }
 
-template <typename T, bool Check = false>
+template <typename T, bool Check = false, int L = W>
 static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* hp, int64_t V, const HingeArgs<T>& args,
-                                      const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[W],
-                                      T (*Vd)[W], HingeTile<T, W>& P) {
+                                      const Param<T>* w, int nl, const int64_t* bs, const int64_t* hs, T (*X)[L],
+                                      T (*Vd)[L], HingeTile<T, L>& P) {
   // float64 only: for float32 the gathers over 64-bit offsets measured slower than the lane-by-lane loads (an
   // energy 10%, an HVP 20% slower on an AVX-512 Xeon)
-  if (sizeof(T) == sizeof(double) && nl == W && hs[W - 1] == hs[0] + (W - 1) &&
-      gather_full_tile<T, Check>(xp, vp, hp, V, bs[0], hs[0], X, Vd) == 0) {
+  if (sizeof(T) == sizeof(double) && nl == L && hs[L - 1] == hs[0] + (L - 1) &&
+      gather_full_tile<T, Check, L>(xp, vp, hp, V, bs[0], hs[0], X, Vd) == 0) {
     const int64_t b = bs[0], h0 = hs[0];
-    param_run(args.a, b, h0, P.a); param_run(args.k, b, h0, P.k); param_run(args.rest, b, h0, P.rest);
+    param_run<L>(args.a, b, h0, P.a); param_run<L>(args.k, b, h0, P.k); param_run<L>(args.rest, b, h0, P.rest);
     if (args.damped) {
-      param_run(args.c, b, h0, P.c); param_run(args.prev, b, h0, P.prev);
+      param_run<L>(args.c, b, h0, P.c); param_run<L>(args.prev, b, h0, P.prev);
     } else {
-      TB_LANES(W) { P.c[l] = T(0); P.prev[l] = T(0); }
+      TB_LANES(L) { P.c[l] = T(0); P.prev[l] = T(0); }
     }
-    if (w) param_run(*w, b, h0, P.w);
-    else TB_LANES(W) P.w[l] = T(1);
+    if (w) param_run<L>(*w, b, h0, P.w);
+    else TB_LANES(L) P.w[l] = T(1);
     return 0;
   }
   const uint64_t uV = uint64_t(V);
   int bad = 0;
-  for (int l = 0; l < W; ++l) {
+  for (int l = 0; l < L; ++l) {
     int64_t b = l < nl ? bs[l] : 0, h = l < nl ? hs[l] : 0;
     const int64_t* q = hp + 4 * h;
     const bool out = Check && torchbend::checks::kChecked && l < nl &&
@@ -246,19 +281,19 @@ static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* h
       bad |= int(out);
       for (int m = 0; m < 12; ++m) X[m][l] = T(0);
       if (vp) for (int m = 0; m < 12; ++m) Vd[m][l] = T(0);
-      zero_params<T, W>(l, P);
+      zero_params<T, L>(l, P);
       continue;
     }
-    load_hinge<T, W>(xp + 3 * V * b, q, X, l);
-    if (vp) load_hinge<T, W>(vp + 3 * V * b, q, Vd, l);
-    load_params<T, W>(args, b, h, l, P);
+    load_hinge<T, L>(xp + 3 * V * b, q, X, l);
+    if (vp) load_hinge<T, L>(vp + 3 * V * b, q, Vd, l);
+    load_params<T, L>(args, b, h, l, P);
     P.w[l] = w ? (*w)(b, h) : T(1);
   }
   return bad;
 }
 
 // the first nl lanes of a tile's 12-vectors O to the per-hinge buffer rows bh0 ...
-template <typename T> static inline void store_rows(const T (*O)[W], int nl, T* dst) {
+template <typename T, int L> static inline void store_rows(const T (*O)[L], int nl, T* dst) {
   for (int l = 0; l < nl; ++l)
     for (int m = 0; m < 12; ++m) dst[12 * l + m] = O[m][l];
 }

@@ -53,6 +53,21 @@ TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
 
+// fdlibm's __kernel_sin and __kernel_cos of x = y0 + y1, |x| <= pi/4 (y1: the tail of a reduced argument)
+TB_HD static TB_FORCEINLINE void tb_sincos_kernel(double y0, double y1, double& ks, double& kc) {
+  double z = y0 * y0, v = z * y0;
+  // __kernel_sin(y0, y1)
+  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
+              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
+  ks = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01);
+  // __kernel_cos(y0, y1)
+  double zz = z * z;
+  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
+              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
+  double hz = 0.5 * z, w1 = 1.0 - hz;
+  kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
+}
+
 // ---- vectorizable sin/cos and atan2 (the CPU lane loops; the same code on the GPU) --------------
 // The C library's sin, cos and atan2 are calls that no lane loop vectorizes, and in the energy and
 // gradient kernels they cost more than all the geometry.  tb_sincos and tb_atan2v are branch-free
@@ -99,17 +114,8 @@ TB_HD static TB_FORCEINLINE void tb_sincos_impl(double x, double& s, double& c) 
     y0 = cancel ? y0c : y0;
     y1 = cancel ? y1c : y1;
   }
-  double z = y0 * y0, v = z * y0;
-  // __kernel_sin(y0, y1)
-  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
-              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
-  double ks = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01);
-  // __kernel_cos(y0, y1)
-  double zz = z * z;
-  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
-              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
-  double hz = 0.5 * z, w1 = 1.0 - hz;
-  double kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
+  double ks, kc;
+  tb_sincos_kernel(y0, y1, ks, kc);
   // quadrant n = q mod 4: (sin, cos) = (ks, kc), (kc, -ks), (-ks, -kc), (-kc, ks)
   int n = int(q) & 3;
   bool odd = (n & 1) != 0;
@@ -232,13 +238,24 @@ TB_HD static TB_FORCEINLINE void tb_sincos_accurate(float x, float& s, float& c)
   tb_sincos_accurate(double(x), sd, cd);
   s = float(sd); c = float(cd);
 }
+// sin and cos of |x| <= pi/4 by the kernels alone (no argument reduction: within 1 ulp there as tb_sincos, at a
+// fraction of its cost; beyond pi/4 the kernels' polynomials lose accuracy)
+TB_HD static TB_FORCEINLINE void tb_sincos_small(double x, double& s, double& c) { tb_sincos_kernel(x, 0.0, s, c); }
+TB_HD static TB_FORCEINLINE void tb_sincos_small(float x, float& s, float& c) {
+  double sd, cd;
+  tb_sincos_kernel(double(x), 0.0, sd, cd);
+  s = float(sd); c = float(cd);
+}
 TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
 
 // sin(t/2) and cos(t/2) to a few ulps for t in [-pi, pi], near +-pi too (torchbend.ops.psi.half_angle_sincos):
 // for |t| > pi/2 from the complement w = (pi - |t|)/2, formed exactly (pi_hi - |t| by Sterbenz, then the
 // tail pi_lo), sin(t/2) = sign(t) cos(w), cos(t/2) = sin(w): t/2 rounded (and a reduction by pi/2 that keeps
 // too few digits of pi) would make the tiny cosine near +-pi wrong in most of its digits.  One tb_sincos of
-// an argument in [-pi/4, pi/4]; branch-free.
+// an argument in [-pi/4, pi/4] (|t| <= 3 pi / 2; the tan model's angles are in (-pi, pi)) by the kernels alone
+// (tb_sincos_small), without tb_sincos's reduction, which leaves such an argument unchanged (the values differ from
+// tb_sincos's at most in the last bit, where the compiler contracts a product into an fma differently without the
+// reduced argument's tail); branch-free.
 template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
   const T pi_hi = T(3.14159265358979323846);
   const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
@@ -246,7 +263,7 @@ template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s,
   bool big = a > T(0.5) * pi_hi;
   T w = T(0.5) * ((pi_hi - a) + pi_lo);
   T sn, cs;
-  tb_sincos(big ? w : T(0.5) * t, sn, cs);
+  tb_sincos_small(big ? w : T(0.5) * t, sn, cs);
   s = big ? cs * copysign(T(1), t) : sn;  // -cs for t < 0 (cs < 0 too where |t| > 2 pi: a product, not copysign)
   c = big ? sn : cs;
 }
