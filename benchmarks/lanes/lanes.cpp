@@ -13,7 +13,7 @@
 #include "hinge_ops.h"
 
 using namespace torchbend;
-constexpr int W = 8;
+constexpr int W = 16;  // the tiles of the energy, gradient and product operators (WL in cpu_tiles.h)
 
 __attribute__((noinline)) static void run_theta(const double (*X)[12][W], int nt, double* out) {
   for (int t = 0; t < nt; ++t) theta_tile<double, W>(X[t], out + W * t);
