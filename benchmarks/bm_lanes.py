@@ -3,7 +3,7 @@
     python benchmarks/bm_lanes.py                                   # this tree, native and x86-64-v3
     python benchmarks/bm_lanes.py --csrc /path/to/old/torchbend/csrc --rounds 5   # before/after, in turns
 
-Compiles ``benchmarks/lanes/lanes.cpp`` (theta_tile over tiles of 8 stencils, psi_lane of the tan model,
+Compiles ``benchmarks/lanes/lanes.cpp`` (theta_tile over tiles of 16 stencils, psi_lane of the tan model,
 tb_atan2v; 1e5 lanes of random data in L2, fastest of ``--repeat`` passes) with the extension's flags
 (``-O3 -fno-math-errno -fno-trapping-math -march=<arch>``) against each csrc directory, then runs the programs in
 turns for ``--rounds`` rounds and prints the median per build.  No extension build is needed: a change to the lane

@@ -389,21 +389,44 @@ def test_sincos_fast_ulp_on_the_kernels_domain(harness, dtype, vec):
     assert np.array_equal(s1, s2) and np.array_equal(c1, c2)
 
 
+@pytest.mark.parametrize("kind", ["half_sincos", "half_angle"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
-def test_half_sincos_ulp(harness, dtype):
-    """tb_half_sincos (sin(t/2), cos(t/2) for t in [-pi, pi], near +-pi too) to its documented accuracy, "a few
-    ulps": 1.5 ulps each (the complement w = ((pi_hi - |t|) + pi_lo) / 2 is rounded once before tb_sincos:
-    measured 0.94 / 1.28 ulps in double, 0.67 / 1.12 in float); s / c within 2.5 ulps of tan(t/2) (two rounded
-    values and a rounded quotient: measured 2.2 / 1.9), which is why the kernels take tan(t/2) from
-    tb_half_tan (test_half_tan_ulp)."""
+def test_half_sincos_ulp(harness, dtype, kind):
+    """tb_half_sincos and tb_half_sincos_angle (sin(t/2), cos(t/2) for t in [-pi, pi], near +-pi too; the second
+    without tb_sincos's reduction) to their documented accuracy, "a few ulps": 1.5 ulps each (the complement
+    w = ((pi_hi - |t|) + pi_lo) / 2 is rounded once before tb_sincos: measured 0.94 / 1.28 ulps in double, 0.67 /
+    1.12 in float); s / c within 2.5 ulps of tan(t/2) (two rounded values and a rounded quotient: measured 2.2 /
+    1.9), which is why the kernels take tan(t/2) from tb_half_tan (test_half_tan_ulp)."""
     x, sin, cos, tan = _reference("half", dtype, lambda: _half_ref(dtype))
     for vec in (True, False):
-        s, c = harness.half_sincos(x, dtype, vec)
+        s, c = harness._pair(kind, x, dtype, vec)
         es, ec = _ulp_errors(s, sin, dtype), _ulp_errors(c, cos, dtype)
         with np.errstate(divide="ignore", invalid="ignore"):
             et = _ulp_errors(s / c, tan, dtype)
         msg = "; ".join(_worst(f"half {n} {dtype.name}", (x,), e) for n, e in (("sin", es), ("cos", ec), ("tan", et)))
         assert es.max() <= 1.5 and ec.max() <= 1.5 and et.max() <= 2.5, msg
+
+
+@pytest.mark.parametrize("vec", [True, False], ids=["vector", "scalar"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: d.name)
+def test_half_sincos_beyond_pi(harness, dtype, vec):
+    """tb_half_sincos of the reference angles (rest, theta_prev: any finite value reaches it) past +-pi, up to
+    tb_sincos's domain 2^19: within 4 ulps of |t| (absolute; the complement pi_hi - |t| is no longer exact there)
+    of sin(t/2) and cos(t/2), so that a reference angle past the fold gives the tan model's periodic value, not
+    the polynomials' garbage."""
+    rng = np.random.default_rng(11)
+    t = np.concatenate([rng.uniform(np.pi, 8.0, 400), _log_uniform(rng, 400, 2, 18, dtype).astype(np.float64),
+                        np.array([1.5, 2.0, 3.0, 4.0]) * np.pi]).astype(dtype)
+    t = np.concatenate([t, -t])
+    s, c = harness.half_sincos(t, dtype, vec)
+    mp.dps = 40
+    half = [mpmath.mpf(float(a)) / 2 for a in t]
+    es = np.array([abs(float(mpmath.sin(h) - float(v))) for h, v in zip(half, s)])
+    ec = np.array([abs(float(mpmath.cos(h) - float(v))) for h, v in zip(half, c)])
+    bound = 4 * np.spacing(np.abs(t)).astype(np.float64)
+    worst = int(np.argmax(np.maximum(es, ec) / bound))
+    assert np.all(es <= bound) and np.all(ec <= bound), (
+        f"t = {t[worst]!r}: |sin error| {es[worst]:.3g}, |cos error| {ec[worst]:.3g}, bound {bound[worst]:.3g}")
 
 
 @pytest.mark.parametrize("vec", [True, False], ids=["vector", "scalar"])

@@ -6,8 +6,8 @@ computation into one pass over hinges: gather the stencil from the positions, th
 ``atan2`` formula of :func:`torchbend.hinge_angles`), ``psi'`` and ``psi''`` of the three models with the optional viscous term
 (:func:`torchbend.ops.psi.psi_theta_derivatives`), and the closed-form block (the half-hinge factors of
 the tech report, sec. 6, and ``H = Y + Y^T`` with the B terms, see :mod:`torchbend.ops.hinge`).
-Hinges are processed in tiles of 8 with every quantity stored per lane, so the compiler vectorizes
-the formulas across hinges; tiles run in parallel (``at::parallel_for``), blocks are written with
+Hinges are processed in tiles of 16 (8 for the blocks) with every quantity stored per lane, so the compiler
+vectorizes the formulas across hinges; tiles run in parallel (``at::parallel_for``), blocks are written with
 streaming stores.
 
 The C++ sources are in ``torchbend/csrc``: the per-hinge mathematics in ``hinge_math.h`` and ``hinge_ops.h``

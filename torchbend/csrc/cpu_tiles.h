@@ -26,11 +26,12 @@ namespace cpu {
 // compiler vectorizes each formula across the hinges of a tile (about 1.5x over one hinge at a time).
 constexpr int W = 8;
 // The energy, gradient and product operators (cpu_first_order.cpp, cpu_second_order.cpp) take tiles of WL = 16
-// hinges: with 16 lanes GCC vectorizes their lane loops with 512-bit vectors where the target has them (8 lanes:
-// 256-bit, by -mprefer-vector-width=256), and on AVX2 two vectors a loop hide more of the long latencies of the
-// angle and psi (the divisions, the polynomials).  Measured with the kernels' own bodies on an AVX-512 Xeon, 1e5
-// hinges, float64: gather, angle and tan psi 24-25 ns a hinge with 8 lanes, 16-17 with 16 (native); 25-26 and
-// 20-23 (x86-64-v3).  Each lane's arithmetic is the same: the results do not depend on the tile width.
+// hinges: with 16 lanes GCC 12.2 with -march=native on an AVX-512 Xeon vectorized their lane loops with 512-bit
+// vectors (8 lanes: 256-bit, the tuning's preferred width), and on AVX2 two vectors a loop hide more of the long
+// latencies of the angle and psi (the divisions, the polynomials).  Measured with the kernels' own lane bodies
+// on that Xeon, 1e5 hinges, float64: gather, angle and tan psi 24-25 ns a hinge with 8 lanes, 16-17 with 16
+// (native); 25-26 and 20-23 (x86-64-v3).  Each lane's arithmetic and the scatter's order of summation are the
+// same for any tile width: so are the results (the tests compare them with the eager reference).
 constexpr int WL = 16;
 
 // Each block is written once and not read again here: streaming (non-temporal) stores skip the
@@ -183,11 +184,12 @@ template <int L = W, typename Body> static void for_tiles(int64_t B, int64_t H, 
 // [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
 // (checks::check_range) before returning anything
 // (Check = false: the indices were checked before, by the scatter plan of the gradient operators.)
-// A full tile of W consecutive hinges of one sample (every tile but a sample's last, partial or wrapping one)
-// in float64 takes gather_full_tile: the four vertices' offsets are computed across the lanes and each of the 12 components
-// is one vectorized (gather) load across them, the parameters contiguous loads.  The lane-by-lane path stores
-// each coordinate on its own, which then reaches the lane loops' vector loads through the store buffer (a
-// stall per component; on AVX2 the difference is about 15% of an energy).  Both paths load the same values.
+// A full tile of L consecutive hinges of one sample (every tile but a sample's last, partial or wrapping one)
+// in float64 takes gather_full_tile: the four vertices' offsets are computed across the lanes, the points loaded
+// by gather_points (AVX builds; elsewhere each of the 12 components is one loop across the lanes), the
+// parameters contiguous loads.  The lane-by-lane path stores each coordinate on its own, which then reaches the
+// lane loops' vector loads through the store buffer (a stall per component; on AVX2 the difference was about 15%
+// of an energy).  Both paths load the same values.
 template <int L, typename T> static TB_FORCEINLINE void param_run(const Param<T>& p, int64_t b, int64_t h0, T* o) {
   if (p.n == 1) {
     const T v = p.p[0];
@@ -203,7 +205,8 @@ template <int L, typename T> static TB_FORCEINLINE void param_run(const Param<T>
 // lanes: per point one 32-byte load of its coordinates (masked: the fourth double, past the point, is not read)
 // and per four lanes a 4x4 transpose in registers (the fourth row dropped).  The compiler's gather of the same
 // values loads every coordinate on its own and inserts it into a vector: three times the loads and more shuffles
-// (an energy about 5% faster this way, a Hessian-vector product, which gathers x and v, about 8%).
+// (measured with the lane bodies alone on an AVX-512 Xeon, 1e5 hinges in tiles of 16: 4.3 -> 2.6 ns a hinge
+// native, 4.0 -> 2.4 x86-64-v3; a Hessian-vector product gathers x and v).
 template <int L> static TB_FORCEINLINE void gather_points(const double* p, const int64_t (*O)[L], double (*X)[L]) {
   const __m256i first3 = _mm256_setr_epi64x(-1, -1, -1, 0);
   for (int v = 0; v < 4; ++v)

@@ -9,7 +9,7 @@
 // there, the loop pragmas empty) as the CPU driver (cpu_*.cpp) does with g++.
 //
 // Hinges are handled in tiles of W lanes with every quantity stored as [component][lane]: on the CPU,
-// W = 8 and each formula is vectorized across the lanes of a tile; a GPU driver would take W = 1 (one
+// W = 16 or 8 and each formula is vectorized across the lanes of a tile; a GPU driver takes W = 1 (one
 // hinge per thread).  The CPU build passes -fno-math-errno, without which no loop that takes a square
 // root vectorizes (see TB_LANES_AGG).
 #pragma once
@@ -131,7 +131,7 @@ template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T re
   T delta = t - ref;
   if (M == 1) {
     T sh, ch, sd, cd, sr, cr;
-    tb_half_sincos(t, sh, ch);
+    tb_half_sincos_angle(t, sh, ch);  // t: a bend angle (|t| <= pi); ref may be any finite value
     tb_half_sincos(ref, sr, cr);
     tb_sincos(T(0.5) * delta, sd, cd);
     bool opposite = (t < T(0)) != (ref < T(0));

@@ -1,5 +1,5 @@
 // Per-hinge bodies of the compiled energy, gradient, Hessian-vector and second-order operations, shared
-// by the CPU driver (cpu_*.cpp, tiles of W = 8 lanes) and the CUDA driver (bending_cuda.cu, W = 1:
+// by the CPU driver (cpu_*.cpp, tiles of W = 16 or 8 lanes) and the CUDA driver (bending_cuda.cu, W = 1:
 // one hinge per thread).  Everything here is built from hinge_math.h and mirrors the eager reference
 // (torchbend.ops.hinge and torchbend.ops.psi), against which the tests compare every operation.
 //

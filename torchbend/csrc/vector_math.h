@@ -252,20 +252,28 @@ TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_
 // for |t| > pi/2 from the complement w = (pi - |t|)/2, formed exactly (pi_hi - |t| by Sterbenz, then the
 // tail pi_lo), sin(t/2) = sign(t) cos(w), cos(t/2) = sin(w): t/2 rounded (and a reduction by pi/2 that keeps
 // too few digits of pi) would make the tiny cosine near +-pi wrong in most of its digits.  One tb_sincos of
-// an argument in [-pi/4, pi/4] (|t| <= 3 pi / 2; the tan model's angles are in (-pi, pi)) by the kernels alone
-// (tb_sincos_small), without tb_sincos's reduction, which leaves such an argument unchanged (the values differ from
-// tb_sincos's at most in the last bit, where the compiler contracts a product into an fma differently without the
-// reduced argument's tail); branch-free.
-template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
+// an argument in [-pi/4, pi/4] (for |t| <= 3 pi / 2; any |t| < 2^19 is reduced); branch-free.
+// tb_half_sincos_angle: the same for a bend angle (|t| <= pi: atan2's range), by the kernels alone
+// (tb_sincos_small), without tb_sincos's reduction, which leaves such an argument unchanged (the values may
+// differ from tb_half_sincos's in the last bit, where the compiler fuses a product into an fma differently
+// without the reduced argument's tail); wrong beyond |t| = 3 pi / 2.
+template <bool Reduce, typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos_impl(T t, T& s, T& c) {
   const T pi_hi = T(3.14159265358979323846);
   const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
   T a = fabs(t);  // (+0 for -0, where the old select gave -0: the same w, and big is false)
   bool big = a > T(0.5) * pi_hi;
   T w = T(0.5) * ((pi_hi - a) + pi_lo);
   T sn, cs;
-  tb_sincos_small(big ? w : T(0.5) * t, sn, cs);
+  if constexpr (Reduce) tb_sincos(big ? w : T(0.5) * t, sn, cs);
+  else tb_sincos_small(big ? w : T(0.5) * t, sn, cs);
   s = big ? cs * copysign(T(1), t) : sn;  // -cs for t < 0 (cs < 0 too where |t| > 2 pi: a product, not copysign)
   c = big ? sn : cs;
+}
+template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
+  tb_half_sincos_impl<true>(t, s, c);
+}
+template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos_angle(T t, T& s, T& c) {
+  tb_half_sincos_impl<false>(t, s, c);
 }
 
 // tan(t/2) for t in [-pi, pi] (a little beyond, to the float pi) within 1 ulp (tests/test_vector_math_ulp.py):
