@@ -1,8 +1,11 @@
 // The CPU driver's shared non-template pieces (cpu_tiles.h, cpu_scatter.h): the status scans, the output
 // buffers, the argument checks, the scratch memory and the scatter plan.
+#include <algorithm>
 #include <cstdlib>
 #include <mutex>
 #include <sys/mman.h>
+
+#include <ATen/Parallel.h>
 
 #include "cpu_ops.h"
 #include "cpu_scatter.h"
@@ -34,7 +37,8 @@ int64_t fold_status(const torch::Tensor& theta, int64_t model) {
 // faults cost more than the kernel itself (benchmarks/results/backends_registration.txt).  By default a large
 // output (kPoolMin bytes or more) is a plain torch::empty tensor (PyTorch's allocator: nothing is kept once it
 // is released) whose 2 MiB-aligned interior is advised to transparent huge pages before its first touch
-// (fewer, larger faults where the kernel's THP mode is "madvise" or "always").  Callers that ask for the blocks
+// (fewer, larger faults where the kernel's THP mode is "madvise" or "always") and whose pages are then
+// populated in one pass (populate_pages).  Callers that ask for the blocks
 // in a loop keep their own buffers (out=, bending_hessians), or opt in to a cache of released outputs:
 // TORCHBEND_OUTPUT_CACHE_MB megabytes (unset or 0: no cache) or
 // torchbend.backends.native.set_output_cache_limit(megabytes).  The cache keeps at most kPoolBlocks released
@@ -79,6 +83,28 @@ static void pool_release(void* ptr, size_t bytes) {
   for (void* q : drop) std::free(q);
 }
 
+// The whole pages inside [p, p + bytes) faulted in now, writable, by madvise(MADV_POPULATE_WRITE) (Linux 5.14+;
+// elsewhere a no-op): one system call a chunk instead of a fault a page on first touch, which halves the cost of
+// fresh memory (on a 2-core Xeon VM, 115 MB: 27-30 ms of faults against 13 ms populated); the chunks go to the
+// threads as the kernel's writes would.
+static void populate_pages(void* p, size_t bytes) {
+#ifdef MADV_POPULATE_WRITE
+  constexpr size_t page = 4096, chunk = size_t(8) << 20;
+  uintptr_t lo = (reinterpret_cast<uintptr_t>(p) + page - 1) / page * page;
+  uintptr_t hi = (reinterpret_cast<uintptr_t>(p) + bytes) / page * page;
+  if (hi <= lo) return;
+  int64_t chunks = int64_t((hi - lo + chunk - 1) / chunk);
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      uintptr_t a = lo + uintptr_t(c) * chunk, b = std::min<uintptr_t>(hi, a + chunk);
+      madvise(reinterpret_cast<void*>(a), b - a, MADV_POPULATE_WRITE);  // failure: the pages fault on first touch
+    }
+  });
+#else
+  (void)p; (void)bytes;
+#endif
+}
+
 static void* pool_acquire(size_t bytes) {
   OutputPool& P = output_pool();
   {
@@ -98,6 +124,7 @@ static void* pool_acquire(size_t bytes) {
 #ifdef MADV_HUGEPAGE
   madvise(ptr, bytes, MADV_HUGEPAGE);  // fewer, larger first-touch faults where transparent huge pages are on
 #endif
+  populate_pages(ptr, bytes);
   return ptr;
 }
 
@@ -112,7 +139,8 @@ static void advise_huge_pages(void* p, size_t bytes) {
 #endif
 }
 
-// torch::empty(shape); for large outputs with huge pages advised, or with the opt-in cache a block of it
+// torch::empty(shape); for large outputs with huge pages advised and the pages populated, or with the opt-in
+// cache a block of it
 torch::Tensor pooled_empty(const std::vector<int64_t>& shape, const torch::TensorOptions& options) {
   int64_t n = 1;
   for (auto s : shape) n *= s;
@@ -121,6 +149,7 @@ torch::Tensor pooled_empty(const std::vector<int64_t>& shape, const torch::Tenso
   if (output_pool().limit == 0) {
     torch::Tensor t = torch::empty(shape, options);
     advise_huge_pages(t.data_ptr(), bytes);
+    populate_pages(t.data_ptr(), bytes);
     return t;
   }
   size_t rounded = (bytes + kPoolAlign - 1) / kPoolAlign * kPoolAlign;
