@@ -388,8 +388,9 @@ class Measurement:
         self.rec = {"hinges": H, "vertices": bend.vertex_count, "nnz": self.pattern.nnz, "dtype": dtype_name,
                     "device": device, "target": target,
                     "param_elems": bend.weights.numel() + bend.rest_angles.numel() + bend.stiffness.numel(),
-                    "backends": default_backends(bend, x), "flops_per_hinge": floors.flops_per_hinge(fb, fx, fv),
+                    "backends": default_backends(bend, x), "ops_per_hinge": floors.ops_per_hinge(fb, fx, fv),
                     "rows": [], "compile": []}
+        self.rec["flops_per_hinge"] = {op: sum(n.values()) for op, n in self.rec["ops_per_hinge"].items()}
 
     def say(self, method: str, op: str, text: str) -> None:
         self.log(f"  {self.dtype_name} {self.H:>8d} {method:>18s} {op:>15s} {text}")
@@ -568,6 +569,7 @@ def measure_floors(device: str = "cpu", dtypes=("float64", "float32")) -> dict:
     """Bandwidth (STREAM copy/triad) and matmul flop rate per dtype on ``device``."""
     out = floors.stream_bandwidth(device)
     out["flops"] = {dt: floors.matmul_flops(getattr(torch, dt), device) for dt in dtypes}
+    out["op_costs"] = {dt: floors.op_costs(getattr(torch, dt), device) for dt in dtypes}
     return out
 
 
@@ -589,6 +591,8 @@ def run_all(sizes, dtypes, device: str = "cpu", methods=None, budget: float = 1.
     best = dict(before)
     best["bandwidth"] = max(before["bandwidth"], after["bandwidth"])
     best["flops"] = {d: max(before["flops"][d], after["flops"][d]) for d in dtypes}
+    best["op_costs"] = {d: {k: min(t, after["op_costs"][d][k]) for k, t in before["op_costs"][d].items()}
+                        for d in dtypes}
     return {"machine": machine_info(device), "floors": {"before": before, "after": after, "used": best},
             "configs": configs, "sizes": list(sizes), "dtypes": list(dtypes), "budget": budget,
             "min_repeat": min_repeat, "wall_s": time.perf_counter() - t0, "quick": quick, "load_before": list(load),

@@ -7,7 +7,7 @@ flops per hinge, so that every timing can be compared with what the hardware all
   copy, 3 for the triad (no write-allocate traffic).  The floors use the larger of the two.
 * **Flop rate**: a square ``torch.mm`` (n = 2048 on the CPU, 8192 on a GPU) in the dtype, ``2 n^3`` flops:
   the fused multiply-add peak of the vector units, which no elementwise kernel reaches (divisions,
-  square roots and atan2 are several instructions each), so the flop floor is optimistic.
+  square roots and atan2 are several instructions each: see the op costs below).
 * **Bytes per hinge** (:func:`bytes_per_hinge`): the compulsory traffic of one call, every array
   read or written once, from the actual sizes of the mesh: the hinge index array ``(H, 4)`` int64,
   the positions ``(V, 3)`` (a sheet has V ~ H/3, so about one coordinate per hinge: the 12 coordinates
@@ -23,7 +23,21 @@ flops per hinge, so that every timing can be compared with what the hardware all
   elements of every reduction and scatter-add, and ``2 m n k`` per matrix product; gathers, copies
   and views count nothing.
 
-``floor = max(bytes / bandwidth, flops / flop rate)`` per hinge; the tables give ``measured / floor``.
+* **Throughput of the costly operations** (:func:`op_costs`, CPU): divisions, square roots and the
+  transcendental functions (sin, cos, tan, atan2, ...) are not one flop each.  Each is timed on this machine as
+  PyTorch's own vectorized kernel (SLEEF's 1-ulp functions for the transcendentals) over arrays of 32768
+  elements in the L2 cache, one thread, best of many calls, minus the time of a multiplication over the same
+  arrays (the loads, stores and call that a kernel keeping its values in registers does not pay): ns per
+  element.  The counter keeps every aten op's count by name (:func:`ops_per_hinge`).
+* **Compute floor** (:func:`compute_floor_ns`): the two kinds of unit overlap, so the floor is the larger of
+  the FMA units' work (the plain arithmetic at the matmul flop rate, as if every multiply paired with an add,
+  plus each transcendental's cost: they are polynomials on the same units) and the divider's (each division,
+  reciprocal and square root at its cost).  Without measured costs (the GPU section) every counted op is one
+  flop at the matmul rate.  It is the eager formula's operation count at this machine's library throughputs,
+  not a bound on every implementation: a kernel that shares one argument reduction between the sine and cosine
+  of an angle, or that needs fewer divisions than the eager formula, can run below it.
+
+``floor = max(bytes / bandwidth, compute floor)`` per hinge; the tables give ``measured / floor``.
 """
 from __future__ import annotations
 
@@ -95,6 +109,48 @@ def matmul_flops(dtype: torch.dtype, device="cpu", n: int | None = None, repeat:
     return 2.0 * n**3 / t
 
 
+DIVIDER = ("div", "reciprocal", "sqrt", "rsqrt")
+TRANSCENDENTAL = ("sin", "cos", "tan", "atan2", "atan", "asin", "acos", "exp", "expm1", "log", "log1p", "tanh")
+
+
+def op_costs(dtype: torch.dtype, device="cpu", n: int = 32768, repeat: int = 300) -> dict[str, float]:
+    """``{aten op name: ns per element}`` of the divider's and the transcendental ops in ``dtype`` on the CPU
+    (see the module docstring): PyTorch's kernel over L2-resident arrays minus a multiplication's time, at least 0.
+    Empty for other devices (their compute floor counts every op as one flop)."""
+    if torch.device(device).type != "cpu":
+        return {}
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(n, dtype=dtype, generator=gen) + 0.5  # (0.5, 1.5): no special cases
+    b = torch.rand(n, dtype=dtype, generator=gen) + 0.5
+    out = torch.empty_like(a)
+    unary = {"reciprocal": torch.reciprocal, "sqrt": torch.sqrt, "rsqrt": torch.rsqrt, "sin": torch.sin,
+             "cos": torch.cos, "tan": torch.tan, "atan": torch.atan, "asin": lambda t, out: torch.asin(t - 0.5, out=out),
+             "acos": lambda t, out: torch.acos(t - 0.5, out=out), "exp": torch.exp, "expm1": torch.expm1,
+             "log": torch.log, "log1p": torch.log1p, "tanh": torch.tanh}
+    calls = {"mul": lambda: torch.mul(a, b, out=out), "div": lambda: torch.div(a, b, out=out),
+             "atan2": lambda: torch.atan2(a, b, out=out)}
+    calls.update({k: (lambda f=f: f(a, out=out)) for k, f in unary.items()})
+    per = {k: _best(f, torch.device("cpu"), repeat) / n * 1e9 for k, f in calls.items()}
+    base = per.pop("mul")
+    if "asin" in per:  # the shifted argument costs a subtraction (one more pass) of its own
+        shift = _best(lambda: torch.sub(a, 0.5), torch.device("cpu"), repeat) / n * 1e9
+        per["asin"], per["acos"] = per["asin"] - shift, per["acos"] - shift
+    return {k: max(0.0, t - base) for k, t in per.items()}
+
+
+def compute_floor_ns(counts: dict[str, float], flop_rate: float, costs: dict[str, float] | None) -> float:
+    """Compute floor [ns per hinge] of an op whose aten ops ran ``counts`` (per hinge, by name; see
+    :class:`FlopCounter`) on a machine of ``flop_rate`` [flop/s] and op costs ``costs`` (:func:`op_costs`)."""
+    total = sum(counts.values())
+    if not costs:
+        return total / flop_rate * 1e9
+    costly = {k: v for k, v in counts.items() if k in costs}
+    arithmetic = total - sum(costly.values())
+    fma = arithmetic / flop_rate * 1e9 + sum(v * costs[k] for k, v in costly.items() if k not in DIVIDER)
+    divider = sum(v * costs[k] for k, v in costly.items() if k in DIVIDER)
+    return max(fma, divider)
+
+
 def bytes_per_hinge(op: str, itemsize: int, hinges: int, vertices: int, nnz: int, param_elems: int) -> float:
     """Compulsory bytes of one call of ``op`` per hinge (see the module docstring).
 
@@ -154,6 +210,12 @@ class FlopCounter(TorchDispatchMode):
 
 def flops_per_hinge(bend, x: torch.Tensor, v: torch.Tensor) -> dict:
     """``{op: flops per hinge}`` of torchbend's closed forms (eager path) at ``x``, direction ``v``."""
+    return {op: sum(counts.values()) for op, counts in ops_per_hinge(bend, x, v).items()}
+
+
+def ops_per_hinge(bend, x: torch.Tensor, v: torch.Tensor) -> dict:
+    """``{op: {aten op name: count per hinge}}`` of torchbend's closed forms (eager path), as :func:`flops_per_hinge`
+    counts them."""
     calls = {
         "energy": lambda: bend(x, backend="eager"),
         "gradient": lambda: bend.gradient(x, backend="eager"),
@@ -169,5 +231,5 @@ def flops_per_hinge(bend, x: torch.Tensor, v: torch.Tensor) -> dict:
             counter = FlopCounter()
             with counter:
                 fn()
-            out[op] = counter.total / H
+            out[op] = {name: n / H for name, n in counter.by_op.items()}
     return out

@@ -111,18 +111,29 @@ def speedup_tables(result: dict) -> list:
 
 
 def floor_ns(result: dict, c: dict, op: str) -> tuple[float, float, float, float]:
-    """``(bytes per hinge, flops per hinge, bandwidth floor ns, flop floor ns)`` of ``op`` in config ``c``."""
+    """``(bytes per hinge, flops per hinge, bandwidth floor ns, compute floor ns)`` of ``op`` in config ``c``
+    (records written before the op costs were measured: every op one flop at the matmul rate)."""
     used = result["floors"]["used"]
     s = 8 if c["dtype"] == "float64" else 4
     b = floors.bytes_per_hinge(op, s, c["hinges"], c["vertices"], c["nnz"], c["param_elems"])
     f = c["flops_per_hinge"][op]
-    return b, f, b / used["bandwidth"] * 1e9, f / used["flops"][c["dtype"]] * 1e9
+    counts = c.get("ops_per_hinge", {}).get(op, {"flops": f})
+    costs = used.get("op_costs", {}).get(c["dtype"])
+    return b, f, b / used["bandwidth"] * 1e9, floors.compute_floor_ns(counts, used["flops"][c["dtype"]], costs)
+
+
+def _costs_text(used: dict) -> str:
+    costs = used.get("op_costs")
+    if not costs:
+        return ""
+    return ("; op costs beyond a multiplication's pass [ns per element, one thread]: "
+            + "; ".join(f"{d} " + ", ".join(f"{k} {v:.2f}" for k, v in c.items()) for d, c in costs.items()))
 
 
 def floor_table(result: dict) -> list:
     rows = index(result)
     used = result["floors"]["used"]
-    lines = ["\n| dtype | op | bytes/hinge | flops/hinge | bandwidth floor [ns] | flop floor [ns] | "
+    lines = ["\n| dtype | op | bytes/hinge | flops/hinge | bandwidth floor [ns] | compute floor [ns] | "
              + " | ".join(f"`torchbend` / floor at {c['hinges']:,}" for c in configs(result, result["dtypes"][0]))
              + " |", "|" + "---|" * (6 + len(configs(result, result["dtypes"][0])))]
     for dt in result["dtypes"]:
@@ -142,8 +153,9 @@ def floor_table(result: dict) -> list:
               f"and after the run: {result['floors']['before']['bandwidth'] / 1e9:.1f} and "
               f"{result['floors']['after']['bandwidth'] / 1e9:.1f} GB/s); flop rate (matmul): "
               + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in used["flops"].items())
+              + _costs_text(used)
               + ". Bytes and flops per hinge are those of the largest mesh; the ratios use each mesh's own floor "
-              "`max(bandwidth floor, flop floor)`."]
+              "`max(bandwidth floor, compute floor)`."]
     return lines
 
 
@@ -221,7 +233,7 @@ CPU_SPEEDUPS = [  # (label, op, the method it is compared with, required ratio, 
 """The CPU acceptance ratios (float64, one thread), for every build of :func:`builds`."""
 
 FLOOR_OPS = ("energy", "gradient", "hvp")
-"""Ops whose time must be within 3x of their floor (``max(bandwidth floor, flop floor)``)."""
+"""Ops whose time must be within 3x of their floor (``max(bandwidth floor, compute floor)``)."""
 
 
 def cpu_targets(result: dict, at=(100_000, 1_000_000)) -> list:
