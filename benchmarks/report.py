@@ -11,7 +11,8 @@ FMA: the narrowest vectors of the x86-64 machines in use, on whatever CPU runs t
 
 Throughput (:mod:`bm_throughput`: torchbend's default path against eager autograd, torch.func,
 torch.compile and JAX jit; ns per hinge), the machine's floors (:mod:`floors`: STREAM bandwidth, matmul
-flop rate, bytes and flops per hinge) and the ratio to them, compile times, the acceptance targets
+flop rate, the measured costs of divisions, square roots and transcendentals, bytes and operations per hinge) and
+the ratio to them, compile times, the acceptance targets
 (each computed from the measured numbers, marked met or not), a GPU section read from
 ``benchmarks/results/cuda_*.json`` (written by ``benchmarks/bm_cuda.py`` on a GPU machine), accuracy in
 ulps against a 40-digit mpmath reference and the solver-level trade.  No assertions: this only measures
