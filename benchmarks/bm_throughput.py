@@ -566,7 +566,7 @@ def run_isolated(sizes, dtypes, device: str = "cpu", methods=None, budget: float
 
 
 def measure_floors(device: str = "cpu", dtypes=("float64", "float32")) -> dict:
-    """Bandwidth (STREAM copy/triad) and matmul flop rate per dtype on ``device``."""
+    """Bandwidth (STREAM copy/triad), matmul flop rate and (CPU) the one-thread op costs per dtype on ``device``."""
     out = floors.stream_bandwidth(device)
     out["flops"] = {dt: floors.matmul_flops(getattr(torch, dt), device) for dt in dtypes}
     out["op_costs"] = {dt: floors.op_costs(getattr(torch, dt), device) for dt in dtypes}

@@ -1,5 +1,6 @@
-"""Machine floors of the benchmarked operations: measured memory bandwidth and flop rate, bytes and
-flops per hinge, so that every timing can be compared with what the hardware allows.
+"""Machine floors of the benchmarked operations: measured memory bandwidth, flop rate and costs of the costly
+operations, bytes and operations per hinge, so that every timing can be compared with what this machine's units
+allow for the counted formulas.
 
 * **Bandwidth**: a STREAM-like copy (``b <- a``) and triad (``a <- b + s c``) in torch on the device,
   all threads (``torch.get_num_threads()`` on the CPU), arrays of 2^25 float64 (256 MiB each, far
@@ -25,17 +26,19 @@ flops per hinge, so that every timing can be compared with what the hardware all
 
 * **Throughput of the costly operations** (:func:`op_costs`, CPU): divisions, square roots and the
   transcendental functions (sin, cos, tan, atan2, ...) are not one flop each.  Each is timed on this machine as
-  PyTorch's own vectorized kernel (SLEEF's 1-ulp functions for the transcendentals) over arrays of 32768
-  elements in the L2 cache, one thread, best of many calls, minus the time of a multiplication over the same
-  arrays (the loads, stores and call that a kernel keeping its values in registers does not pay): ns per
-  element.  The counter keeps every aten op's count by name (:func:`ops_per_hinge`).
+  PyTorch's own vectorized kernel (MKL's vector math or SLEEF, as the build has them) over arrays of 32768
+  elements in the L2 cache, on one thread, best of many calls, minus the time of a multiplication over the same
+  arrays (the loads, stores and call that a kernel keeping its values in registers does not pay; this errs low):
+  ns per element, divided by the run's thread count (perfect scaling: errs low again).  The counter keeps every
+  aten op's count by name (:func:`ops_per_hinge`).
 * **Compute floor** (:func:`compute_floor_ns`): the two kinds of unit overlap, so the floor is the larger of
   the FMA units' work (the plain arithmetic at the matmul flop rate, as if every multiply paired with an add,
   plus each transcendental's cost: they are polynomials on the same units) and the divider's (each division,
-  reciprocal and square root at its cost).  Without measured costs (the GPU section) every counted op is one
-  flop at the matmul rate.  It is the eager formula's operation count at this machine's library throughputs,
-  not a bound on every implementation: a kernel that shares one argument reduction between the sine and cosine
-  of an angle, or that needs fewer divisions than the eager formula, can run below it.
+  reciprocal and square root at its cost).  A sine and a cosine are priced as one sincos (the dearer of the two)
+  as far as their counts pair up, whether or not they share an argument (errs low).  Without measured costs (the
+  GPU section) every counted op is one flop at the matmul rate.  It is the eager formula's operation count at
+  this machine's library throughputs, not a bound on every implementation: a kernel that needs fewer divisions
+  or transcendentals than the eager formula (a rest angle's sine precomputed, say) can run below it.
 
 ``floor = max(bytes / bandwidth, compute floor)`` per hinge; the tables give ``measured / floor``.
 """
@@ -119,6 +122,15 @@ def op_costs(dtype: torch.dtype, device="cpu", n: int = 32768, repeat: int = 300
     Empty for other devices (their compute floor counts every op as one flop)."""
     if torch.device(device).type != "cpu":
         return {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # PyTorch splits the transcendentals over threads from 2048 elements on
+    try:
+        return _op_costs_one_thread(dtype, n, repeat)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _op_costs_one_thread(dtype: torch.dtype, n: int, repeat: int) -> dict[str, float]:
     gen = torch.Generator().manual_seed(0)
     a = torch.rand(n, dtype=dtype, generator=gen) + 0.5  # (0.5, 1.5): no special cases
     b = torch.rand(n, dtype=dtype, generator=gen) + 0.5
@@ -132,23 +144,26 @@ def op_costs(dtype: torch.dtype, device="cpu", n: int = 32768, repeat: int = 300
     calls.update({k: (lambda f=f: f(a, out=out)) for k, f in unary.items()})
     per = {k: _best(f, torch.device("cpu"), repeat) / n * 1e9 for k, f in calls.items()}
     base = per.pop("mul")
-    if "asin" in per:  # the shifted argument costs a subtraction (one more pass) of its own
-        shift = _best(lambda: torch.sub(a, 0.5), torch.device("cpu"), repeat) / n * 1e9
-        per["asin"], per["acos"] = per["asin"] - shift, per["acos"] - shift
+    shift = _best(lambda: torch.sub(a, 0.5), torch.device("cpu"), repeat) / n * 1e9  # asin's and acos's own pass
+    per["asin"], per["acos"] = per["asin"] - shift, per["acos"] - shift
     return {k: max(0.0, t - base) for k, t in per.items()}
 
 
-def compute_floor_ns(counts: dict[str, float], flop_rate: float, costs: dict[str, float] | None) -> float:
+def compute_floor_ns(counts: dict[str, float], flop_rate: float, costs: dict[str, float] | None,
+                     threads: int = 1) -> float:
     """Compute floor [ns per hinge] of an op whose aten ops ran ``counts`` (per hinge, by name; see
-    :class:`FlopCounter`) on a machine of ``flop_rate`` [flop/s] and op costs ``costs`` (:func:`op_costs`)."""
+    :class:`FlopCounter`) on a machine of ``flop_rate`` [flop/s] (at ``threads`` threads) and one-thread op costs
+    ``costs`` (:func:`op_costs`)."""
     total = sum(counts.values())
     if not costs:
         return total / flop_rate * 1e9
     costly = {k: v for k, v in counts.items() if k in costs}
     arithmetic = total - sum(costly.values())
-    fma = arithmetic / flop_rate * 1e9 + sum(v * costs[k] for k, v in costly.items() if k not in DIVIDER)
+    fma = sum(v * costs[k] for k, v in costly.items() if k not in DIVIDER)
+    if "sin" in costly and "cos" in costly:  # a paired sine and cosine: one sincos, the dearer of the two
+        fma -= min(costly["sin"], costly["cos"]) * min(costs["sin"], costs["cos"])
     divider = sum(v * costs[k] for k, v in costly.items() if k in DIVIDER)
-    return max(fma, divider)
+    return max(arithmetic / flop_rate * 1e9 + fma / threads, divider / threads)
 
 
 def bytes_per_hinge(op: str, itemsize: int, hinges: int, vertices: int, nnz: int, param_elems: int) -> float:

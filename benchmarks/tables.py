@@ -119,14 +119,17 @@ def floor_ns(result: dict, c: dict, op: str) -> tuple[float, float, float, float
     f = c["flops_per_hinge"][op]
     counts = c.get("ops_per_hinge", {}).get(op, {"flops": f})
     costs = used.get("op_costs", {}).get(c["dtype"])
-    return b, f, b / used["bandwidth"] * 1e9, floors.compute_floor_ns(counts, used["flops"][c["dtype"]], costs)
+    threads = used.get("threads") or 1
+    return (b, f, b / used["bandwidth"] * 1e9,
+            floors.compute_floor_ns(counts, used["flops"][c["dtype"]], costs, threads))
 
 
 def _costs_text(used: dict) -> str:
-    costs = used.get("op_costs")
+    costs = {d: c for d, c in used.get("op_costs", {}).items() if c}  # none measured on a GPU
     if not costs:
         return ""
-    return ("; op costs beyond a multiplication's pass [ns per element, one thread]: "
+    return (f"; op costs beyond a multiplication's pass [ns per element, one thread; divided by the run's "
+            f"{used.get('threads') or 1} thread(s)]: "
             + "; ".join(f"{d} " + ", ".join(f"{k} {v:.2f}" for k, v in c.items()) for d, c in costs.items()))
 
 

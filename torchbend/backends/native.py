@@ -112,9 +112,10 @@ def bending_hessians(x: Tensor, hinges: Tensor, a: Tensor, k: Tensor, rest: Tens
     (``prev`` also ``(..., H)`` with x's batch shape); ``c``, ``prev`` ``None`` without damping.
 
     ``out=(Hb, g)``: buffers to write the blocks and gradients into and return instead of new tensors
-    (contiguous, x's dtype, exactly those shapes, not overlapping x; either may be ``None``: a new tensor).  Fresh memory page-faults on first touch,
-    which for large meshes costs more than the kernel itself: a caller that asks for the blocks in a loop keeps its
-    buffers between the calls (or opts in to the cache of released outputs, :func:`set_output_cache_limit`)."""
+    (contiguous, x's dtype, exactly those shapes, not overlapping x; either may be ``None``: a new tensor).  Fresh memory costs the kernel's zeroing of
+    every page (a large new output is populated in one pass, ``MADV_POPULATE_WRITE``, instead of a fault a page),
+    which for large meshes is about as much as the kernel itself: a caller that asks for the blocks in a loop keeps
+    its buffers between the calls (or opts in to the cache of released outputs, :func:`set_output_cache_limit`)."""
     hb, g = (None, None) if out is None else out
     Hb, g, d2, theta, status = _module().bending_hessians(x, hinges, a, k, rest, c, prev, model_code(model), hb, g,
                                                           check)
@@ -285,10 +286,10 @@ def membrane_hvp(x: Tensor, v: Tensor, faces: Tensor, D: Tensor, coef: Tensor, m
 def output_cache_info() -> dict[str, int]:
     """The opt-in cache of large outputs (4 MiB or more: the per-hinge blocks, projected blocks and assembled values
     of big meshes): memory of released outputs kept, outside PyTorch's allocator, for the next outputs of the same
-    size, so that repeated calls write into warm pages instead of page-faulting fresh memory (the blocks of 1e5
-    hinges take 2.5x the time without it, benchmarks/results/backends_registration.txt).  Off by
-    default (``limit`` 0: every output is a plain tensor of PyTorch's allocator, large ones advised to
-    transparent huge pages); ``TORCHBEND_OUTPUT_CACHE_MB`` megabytes at start-up or :func:`set_output_cache_limit`
+    size, so that repeated calls write into warm pages instead of fresh memory, which the operating system zeroes
+    first (the blocks of 1e5 hinges took 2.5x the time without it, benchmarks/results/backends_registration.txt; 1.5x
+    since fresh outputs are populated in one pass).  Off by default (``limit`` 0: every output is a plain tensor of
+    PyTorch's allocator, large ones advised to transparent huge pages and populated before the kernel writes them); ``TORCHBEND_OUTPUT_CACHE_MB`` megabytes at start-up or :func:`set_output_cache_limit`
     turn it on.  ``{"blocks", "bytes", "hits", "misses", "limit"}``: at most 4 blocks and ``limit`` bytes are kept
     (the blocks of a million hinges take 1.15 GB in float64); :func:`empty_output_cache` frees them."""
     blocks, nbytes, hits, misses, limit = _module().output_cache_info()
