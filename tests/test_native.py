@@ -453,6 +453,38 @@ def _check_output_cache_reuse():
     assert native.output_cache_info()["limit"] == limit
 
 
+def test_large_fresh_outputs_written_whole(kernel):
+    """Without the cache, a large output (4 MiB or more: its pages populated in one pass before the kernel writes
+    them) holds the same blocks as a caller's NaN-filled buffer, at one and two threads; a non-finite x raises the
+    usual ValueError (checked before any output is made), with or without the caller's buffers."""
+    rest, faces = tb.scenes.random_curved_sheet(40, 40, amplitude=0.3, seed=5, dtype=F64)
+    bend = tb.BendingEnergy(faces, rest, model="tan", stiffness=1.0)
+    H = bend.hinge_count
+    assert H * 144 * 8 >= 4 << 20
+    x = rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(6), dtype=F64)
+    a, k, r = bend.weights, torch.tensor(1.0, dtype=F64), bend.rest_angles
+    hb, g = torch.full((H, 12, 12), float("nan"), dtype=F64), torch.full((H, 12), float("nan"), dtype=F64)
+    native.bending_hessians(x, bend.hinges, a, k, r, None, None, "tan", out=(hb, g))
+    assert bool(torch.isfinite(hb).all()) and bool(torch.isfinite(g).all())
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            fresh, gf, _ = native.bending_hessians(x, bend.hinges, a, k, r, None, None, "tan")
+            assert torch.equal(fresh, hb) and torch.equal(gf, g)
+            assert torch.equal(bend.hinge_hessians(x), hb)
+    finally:
+        torch.set_num_threads(threads)
+    bad = x.clone()
+    bad[7, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"non-finite .* vertices \[7\]"):
+        bend.hinge_hessians(bad)
+    with pytest.raises(ValueError, match="non-finite"):
+        native.bending_hessians(bad, bend.hinges, a, k, r, None, None, "tan", out=(hb, g), check=True)
+    with pytest.raises(ValueError, match="non-finite"):
+        native.bending_hessians(bad, bend.hinges, a, k, r, None, None, "tan", check=True)
+
+
 def test_output_cache_default_limit(kernel):
     """The cache is opt-in: it keeps TORCHBEND_OUTPUT_CACHE_MB megabytes when that is set, none by default (no
     memory outside PyTorch's allocator is held unless asked for)."""

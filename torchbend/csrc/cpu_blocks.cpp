@@ -134,11 +134,14 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, int64_t> 
     c10::optional<torch::Tensor> c, c10::optional<torch::Tensor> prev, int64_t model,
     c10::optional<torch::Tensor> out_, c10::optional<torch::Tensor> gout_, bool check) {
   Prepared P = prepare("hinge_hessians", x, hinges, a, k, rest, c, prev, model, true);
-  auto out = output(out_, shape_with(P.batch, {P.H, 12, 12}), P.x, "out (blocks)");
-  auto g = output(gout_, shape_with(P.batch, {P.H, 12}), P.x, "out (gradients)");
+  // checked before the outputs are made: a non-finite x gets unpopulated tensors (no 1 GB zeroed for an error)
+  const bool bad = check && finite_status(P.x, kBadX) != 0;
+  auto shape = shape_with(P.batch, {P.H, 12, 12}), gshape = shape_with(P.batch, {P.H, 12});
+  auto out = bad && !out_ ? torch::empty(shape, P.x.options()) : output(out_, shape, P.x, "out (blocks)");
+  auto g = bad && !gout_ ? torch::empty(gshape, P.x.options()) : output(gout_, gshape, P.x, "out (gradients)");
   TORCH_CHECK(disjoint(out, g), "the two out buffers overlap");
   auto d2 = torch::empty(shape_with(P.batch, {P.H}), P.x.options()), theta = torch::empty_like(d2);
-  if (check && finite_status(P.x, kBadX)) return {out, g, d2, theta, kBadX};
+  if (bad) return {out, g, d2, theta, kBadX};
   AT_DISPATCH_FLOATING_TYPES(P.x.scalar_type(), "bending_hessians", [&] {
     using T = scalar_t;
     HingeArgs<T> args = hinge_args<T>(P.a, P.k, P.rest, P.c, P.prev, P.damped, int(model), P.H);

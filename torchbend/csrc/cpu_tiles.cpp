@@ -4,6 +4,7 @@
 #include <cstdlib>
 #include <mutex>
 #include <sys/mman.h>
+#include <unistd.h>
 
 #include <ATen/Parallel.h>
 
@@ -33,8 +34,9 @@ int64_t fold_status(const torch::Tensor& theta, int64_t model) {
 
 
 // ---- large outputs ---------------------------------------------------------------------------------
-// Fresh memory page-faults on first touch: for the per-hinge blocks (1152 bytes a hinge in float64) the
-// faults cost more than the kernel itself (benchmarks/results/backends_registration.txt).  By default a large
+// Fresh memory is zeroed by the operating system before its first use: for the per-hinge blocks (1152 bytes a
+// hinge in float64) the page faults cost more than the kernel itself (benchmarks/results/backends_registration.txt),
+// populating the pages in one pass about as much as the kernel.  By default a large
 // output (kPoolMin bytes or more) is a plain torch::empty tensor (PyTorch's allocator: nothing is kept once it
 // is released) whose 2 MiB-aligned interior is advised to transparent huge pages before its first touch
 // (fewer, larger faults where the kernel's THP mode is "madvise" or "always") and whose pages are then
@@ -84,19 +86,26 @@ static void pool_release(void* ptr, size_t bytes) {
 }
 
 // The whole pages inside [p, p + bytes) faulted in now, writable, by madvise(MADV_POPULATE_WRITE) (Linux 5.14+;
-// elsewhere a no-op): one system call a chunk instead of a fault a page on first touch, which halves the cost of
-// fresh memory (on a 2-core Xeon VM, 115 MB: 27-30 ms of faults against 13 ms populated); the chunks go to the
-// threads as the kernel's writes would.
+// an older kernel answers EINVAL and the pages fault on first touch as before; other systems: a no-op): one system
+// call a chunk instead of a fault a page, which halves the cost of fresh memory (on a 2-core Xeon VM, 115 MB:
+// 27-30 ms of faults against 13 ms populated; benchmarks/results/populate_outputs_intel_2026-12-06.txt).  The
+// 8 MiB chunks (on 2 MiB boundaries: a huge page is never split between threads) are shared out over the threads.
+#if defined(__linux__) && !defined(MADV_POPULATE_WRITE)
+#define MADV_POPULATE_WRITE 23  // the kernel's value; headers older than Linux 5.14 lack the name
+#endif
 static void populate_pages(void* p, size_t bytes) {
 #ifdef MADV_POPULATE_WRITE
-  constexpr size_t page = 4096, chunk = size_t(8) << 20;
+  static const size_t page = size_t(sysconf(_SC_PAGESIZE));
+  constexpr size_t chunk = size_t(8) << 20;
   uintptr_t lo = (reinterpret_cast<uintptr_t>(p) + page - 1) / page * page;
   uintptr_t hi = (reinterpret_cast<uintptr_t>(p) + bytes) / page * page;
   if (hi <= lo) return;
-  int64_t chunks = int64_t((hi - lo + chunk - 1) / chunk);
+  uintptr_t base = lo / chunk * chunk;
+  int64_t chunks = int64_t((hi - base + chunk - 1) / chunk);
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
-      uintptr_t a = lo + uintptr_t(c) * chunk, b = std::min<uintptr_t>(hi, a + chunk);
+      uintptr_t a = std::max<uintptr_t>(lo, base + uintptr_t(c) * chunk);
+      uintptr_t b = std::min<uintptr_t>(hi, base + uintptr_t(c + 1) * chunk);
       madvise(reinterpret_cast<void*>(a), b - a, MADV_POPULATE_WRITE);  // failure: the pages fault on first touch
     }
   });
