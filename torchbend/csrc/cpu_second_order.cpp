@@ -42,12 +42,12 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, t
         Half<T, WL> hA, hB;
         gather_tile<T, false, WL>(xp, vp, hp, V, args, &w, nl, bs, hs, X, Vd, Q);
         theta_tile<T, WL>(X, TH);
+        halves_tile<T, WL>(X, hA, hB);  // before psi, as in gradient_pass
         TB_LANES_AGG(WL) {
           T psi, d1, d2;
           psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], psi, d1, d2, static_cast<T*>(nullptr));
           D1[l] = Q.w[l] * d1; D2[l] = Q.w[l] * d2;
         }
-        halves_tile<T, WL>(X, hA, hB);
         grad_of_halves<T, WL>(hA, hB, G);
         dot_tile<T, WL>(G, Vd, U);
         TB_LANES(WL) U[l] *= D2[l];

@@ -74,22 +74,28 @@ template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<
 // (the B term is bl mh[2]^T); zeros where degenerate.
 template <typename T, int W> struct Half { T t[3][W], N[3][W], mh[3][3][W], bl[3][W]; };
 
-template <typename T, int W>
-TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], Half<T, W>& o) {
+// EL and IE: |e| and 1 / |e| of the shared edge e = b - a (both halves take them: one square root and one division
+// a hinge instead of two each; 1 and 1 where the triangle is degenerate, as ee = 1 gave).
+// Full = false: t and N only (what the angle gradient takes): mh and bl are left unwritten and the compiler drops
+// their cross products (the same t and N bits; with GCC 12 on AVX-512 the gradient's half-hinge tile became one
+// unrolled pass of 315 instructions and 12 square roots and divisions per 16 hinges, from two loops of twice that)
+template <typename T, int W, bool Full = true>
+TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], const T* EL,
+                                   const T* IE, Half<T, W>& o) {
   TB_LANES_AGG(W) {
     V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
     V3<T> e{E[0][l], E[1][l], E[2][l]};
     // the triangle's cyclic edges: e_0 = c - b (opposite a), e_1 = a - c (opposite b), e_2 = e = b - a
     V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
     Tri<T> t = tri_frame(e0, e1, e);
-    T ee = t.valid != T(0) ? t.ee2 : T(1);
-    T elen = tb_sqrt(ee);
-    T ie = T(1) / elen;  // reciprocals: divisions here cost the blocks ~10%
+    T elen = t.valid != T(0) ? EL[l] : T(1);
+    T ie = t.valid != T(0) ? IE[l] : T(1);  // reciprocals: divisions here cost the blocks ~10%
     o.t[0][l] = -dot3(e, e0) * ie * t.inn;  // -(e . (c - b)) / (|e| |N|^2)
     o.t[1][l] = -dot3(e, e1) * ie * t.inn;  //  (e . (c - a)) / (|e| |N|^2)
     o.t[2][l] = -elen * t.inn;
     T r = ie * ie * ie;
     o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
+    if (!Full) continue;
     o.mh[0][0][l] = t.mh0.x; o.mh[0][1][l] = t.mh0.y; o.mh[0][2][l] = t.mh0.z;
     o.mh[1][0][l] = t.mh1.x; o.mh[1][1][l] = t.mh1.y; o.mh[1][2][l] = t.mh1.z;
     o.mh[2][0][l] = t.mh2.x; o.mh[2][1][l] = t.mh2.y; o.mh[2][2][l] = t.mh2.z;
@@ -97,12 +103,19 @@ TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*
   }
 }
 
-// both half-hinges (triangles A = x0 x1 x2, B = x0 x1 x3) of W stencils X[3 * vertex + axis][lane]
-template <typename T, int W> TB_HD static inline void halves_tile(const T (*X)[W], Half<T, W>& hA, Half<T, W>& hB) {
-  T E[3][W];
+// both half-hinges (triangles A = x0 x1 x2, B = x0 x1 x3) of W stencils X[3 * vertex + axis][lane]; Full = false:
+// t and N only (half_tile), for the angle gradient alone
+template <typename T, int W, bool Full = true>
+TB_HD static inline void halves_tile(const T (*X)[W], Half<T, W>& hA, Half<T, W>& hB) {
+  T E[3][W], EL[W], IE[W];
   for (int p = 0; p < 3; ++p) TB_LANES(W) E[p][l] = X[3 + p][l] - X[p][l];
-  half_tile<T, W>(X, X + 3, X + 6, E, hA);
-  half_tile<T, W>(X, X + 3, X + 9, E, hB);
+  TB_LANES_AGG(W) {
+    V3<T> e{E[0][l], E[1][l], E[2][l]};
+    EL[l] = tb_sqrt(dot3(e, e));
+    IE[l] = T(1) / EL[l];
+  }
+  half_tile<T, W, Full>(X, X + 3, X + 6, E, EL, IE, hA);
+  half_tile<T, W, Full>(X, X + 3, X + 9, E, EL, IE, hB);
 }
 
 // ---- bend angle and psi --------------------------------------------------------------------------
@@ -358,7 +371,7 @@ TB_HD static inline void grad_of_halves(const Half<T, W>& hA, const Half<T, W>& 
 // angle gradients of W hinges (G[3 * vertex + axis][lane])
 template <typename T, int W> TB_HD static inline void grad_tile(const T (*X)[W], T (*G)[W]) {
   Half<T, W> hA, hB;
-  halves_tile<T, W>(X, hA, hB);
+  halves_tile<T, W, false>(X, hA, hB);
   grad_of_halves<T, W>(hA, hB, G);
 }
 
