@@ -45,8 +45,11 @@ def cpu_vector_extensions() -> list[str]:
 
 
 def kernel_build() -> dict:
-    """How the CPU kernels in use were built: ``{"march": "native" | "x86-64-v3" | ..., "arch": its cache tag, "cflags": [...], "source": "install" | "jit"}``
-    (:func:`torchbend.backends.native.build_info`; ``{}`` without the extension)."""
+    """How the CPU kernels in use were built: ``{"march": "native" | "x86-64-v3" | ..., "arch": its cache tag, "cflags": [...], "source": "install" | "jit",
+    "module": the loaded file, "package": the torchbend directory imported}`` (:func:`torchbend.backends.native.build_info`;
+    ``{}`` without the extension).  The two paths tell which tree a result measured: a script run from another
+    worktree imports the editable install's torchbend, not the worktree's, unless PYTHONPATH names it."""
+    import torchbend
     from torchbend.backends import native
 
     try:
@@ -56,6 +59,8 @@ def kernel_build() -> dict:
     except Exception:  # no compiler, or a failed build: the eager path runs (the backends line says so)
         return {}
     out = {k: info[k] for k in ("arch", "cflags", "source") if k in info}
+    out["module"] = info.get("path")
+    out["package"] = os.path.dirname(os.path.abspath(torchbend.__file__))
     march = [f.split("=", 1)[1] for f in out.get("cflags", []) if f.startswith("-march=")]
     out["march"] = march[-1] if march else "none"  # the compiler's baseline
     return out

@@ -67,6 +67,9 @@ def arch_rows(result: dict, arch: str, sizes, threads, budget: float, min_repeat
     built = sub["machine"].get("kernels", {})
     if built.get("march") != arch:
         raise RuntimeError(f"the -march={arch} measurement ran kernels built for {built or 'nothing'}")
+    here = os.path.dirname(os.path.abspath(bm_throughput.tb.__file__))
+    if built.get("package") not in (None, here):
+        raise RuntimeError(f"the -march={arch} measurement imported torchbend from {built['package']}, not {here}")
     shown = ["python", "benchmarks/bm_throughput.py", *cmd[2:cmd.index("--json")], *cmd[cmd.index("--json") + 2:]]
     result.setdefault("arch_rows", {})[arch] = {"kernels": built, "command": " ".join(shown)}
     by_key = {(c["dtype"], c.get("hinges")): c for c in result["configs"]}
