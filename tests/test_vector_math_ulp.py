@@ -208,10 +208,31 @@ def _atan2_near_pi(dtype: np.dtype, L: dict) -> tuple[list[float], list[float]]:
     return ys, xs
 
 
+def _atan2_tiny_over_moderate(dtype: np.dtype, L: dict) -> tuple[list[float], list[float]]:
+    """(y, x) with the smaller magnitude tiny (subnormal up to 2^-900) over a moderate larger one (2^-900 to 2^0),
+    both orders and all quadrants: the quotient's residual is subnormal unless the arguments are scaled up first."""
+    if dtype != F64:
+        return [], []
+    rng = np.random.default_rng(31)
+    n = 400
+    small = np.exp2(rng.uniform(-1074.0, -900.0, n))
+    large = np.exp2(rng.uniform(-900.0, 0.0, n)) * rng.uniform(1.0, 2.0, n)
+    ys: list[float] = []
+    xs: list[float] = []
+    for a, b in zip(small.tolist(), large.tolist()):
+        if a == 0.0:
+            continue
+        for sy in (1, -1):
+            for sx in (1, -1):
+                ys += [sy * a, sy * b]
+                xs += [sx * b, sx * a]
+    return ys, xs
+
+
 def atan2_cases(dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
     """(y, x): special values in all combinations, the reduction boundaries (ratios 7/16, 11/16, 1) at every
-    scale, results next to +-pi and +-pi/2, random magnitudes over the whole exponent range in all quadrants,
-    and random ratios from 1e-300 to 1e300 (float32: 1e-38 to 1e38)."""
+    scale, results next to +-pi and +-pi/2, tiny over moderate magnitudes (float64), random magnitudes over the
+    whole exponent range in all quadrants, and random ratios from 1e-300 to 1e300 (float32: 1e-38 to 1e38)."""
     L = _limits(dtype)
     rng = np.random.default_rng(29)
     special = [0.0, L["tiny"], L["min"], 1.0, L["huge"], L["max"], 3.0 * L["tiny"], 0.75]
@@ -227,6 +248,7 @@ def atan2_cases(dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
         add([a] * len(special), special)
     add(*_atan2_boundaries(dtype, L))
     add(*_atan2_near_pi(dtype, L))
+    add(*_atan2_tiny_over_moderate(dtype, L))
     # random magnitudes over the whole exponent range, all quadrants
     n = 700
     y = _signs(rng, _log_uniform(rng, n, L["emin"], L["emax"], dtype))

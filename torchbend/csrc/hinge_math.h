@@ -78,7 +78,8 @@ template <typename T, int W> struct Half { T t[3][W], N[3][W], mh[3][3][W], bl[3
 // a hinge instead of two each; 1 and 1 where the triangle is degenerate, as ee = 1 gave).
 // Full = false: t and N only (what the angle gradient takes): mh and bl are left unwritten and the compiler drops
 // their cross products (the same t and N bits; with GCC 12 on AVX-512 the gradient's half-hinge tile became one
-// unrolled pass of 315 instructions and 12 square roots and divisions per 16 hinges, from two loops of twice that)
+// unrolled pass of 315 instructions and 12 square roots and divisions per 16 hinges, from two loops executing about
+// 600 instructions and 16 square roots and divisions)
 template <typename T, int W, bool Full = true>
 TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], const T* EL,
                                    const T* IE, Half<T, W>& o) {

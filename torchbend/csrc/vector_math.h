@@ -137,8 +137,10 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double num = ay > ax ? ax : ay, den = ay > ax ? ay : ax;
   double sw = tb_neg01(ax - ay);  // 1 if swapped (a tie gives +0: not swapped)
   // huge or tiny arguments scaled by a power of two (exact, and t, tl are scale-invariant): 16 num, 7 den and
-  // 2 den + num stay finite near DBL_MAX, and the division's residual stays normal for subnormal arguments
-  double big = tb_neg01(0x1p1000 - den), tiny = tb_neg01(den - 0x1p-900);
+  // 2 den + num stay finite near DBL_MAX, and the quotient's residual stays normal where num is tiny (below 2^-900,
+  // with den below 2^880, so that 2^120 den stays finite: a tiny num over a moderate den left the residual
+  // subnormal, and t = tn (1/td) uncorrected up to 1.4 ulps)
+  double big = tb_neg01(0x1p1000 - den), tiny = tb_neg01(num - 0x1p-900) * tb_neg01(den - 0x1p880);
   double sc = ((1.0 - big) + big * 0x1p-60) * ((1.0 - tiny) + tiny * 0x1p120);
   num *= sc; den *= sc;
   // atan2(+-0, +-0): t = 0 (every other den is at least 2^-954 here; a normal floor, so that it holds with
@@ -153,10 +155,12 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double m1 = m01 - m0, m2 = 1.0 - m01;
   double f = 1.0 + m1, g = 1.0 - m0;  // every product below exact: one rounding per sum, as the three forms
   double tn = f * num - g * den, td = f * den + g * num;
-  // one division: t = tn (1 / td) is within about 1.5 ulps of the quotient, and its residual tn - t td is exact
-  // there (an fma), so t + tl = tn / td to about 2^-104 relative, as with a second division (a 512-bit division
-  // issues once in about 9 cycles on an AVX-512 Xeon, a square root once in 12: the divider is shared by the
-  // whole kernel)
+  // one division: t = tn (1 / td) is within about 1.5 ulps of the quotient, and its residual tn - t td by an fma
+  // (exact where t is within an ulp of the quotient, rounded in the few lanes where it is not) times 1 / td corrects
+  // it: t + tl = tn / td to about 2^-104 relative, as with a second division (a 512-bit division issues once in
+  // about 9 cycles on an AVX-512 Xeon, a square root once in 12).  t itself may differ from the correctly rounded
+  // quotient: the result's last bit differs from the two-division form for about 0.1% of arguments, within the
+  // same 1-ulp bound
   double rd = 1.0 / td;
   double t = tn * rd;
   double tl = fma(-t, td, tn) * rd;  // the rounding error of t: t + tl = tn / td
