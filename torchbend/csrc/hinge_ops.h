@@ -219,10 +219,15 @@ TB_HD static inline void hvp_of_halves(const Half<T, W>& hA, const Half<T, W>& h
   }
 }
 
-// g . v per lane
+// g . v per lane.  The sum is a register of the lane loop: accumulated in u[] over an outer loop on m, GCC's
+// x86-64-v3 code (16 lanes = 4 AVX2 vectors, the m loop not unrolled) carried it through memory, twelve
+// dependent store-load round trips a tile (about 3 ns a hinge on a Zen 4 EPYC, 1 with AVX-512 registers)
 template <typename T, int W> TB_HD static inline void dot_tile(const T (*G)[W], const T (*Vd)[W], T* u) {
-  TB_LANES(W) u[l] = T(0);
-  for (int m = 0; m < 12; ++m) TB_LANES(W) u[l] += G[m][l] * Vd[m][l];
+  TB_LANES(W) {
+    T s = T(0);
+    for (int m = 0; m < 12; ++m) s += G[m][l] * Vd[m][l];
+    u[l] = s;
+  }
 }
 
 // H_h v for the W stencils X and directions Vd (both [3 * vertex + axis][lane]) through the 12x12 block of
