@@ -99,7 +99,7 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
         if (gpp) {
           TB_LANES_AGG(WL) {
             T d1, d2, g4[4];
-            psi_lane<M, D, true>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, g4);
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, g4);
             S[l] = Q.w[l] * d1;
             GP[0][l] = Q.w[l] * g4[0]; GP[1][l] = Q.w[l] * g4[1]; GP[2][l] = Q.w[l] * g4[2]; GP[3][l] = Q.w[l] * g4[3];
           }
@@ -108,7 +108,7 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
         } else {
           TB_LANES_AGG(WL) {
             T d1, d2;
-            psi_lane<M, D, true>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
+            psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
             S[l] = Q.w[l] * d1;
           }
         }

@@ -130,16 +130,13 @@ TB_HD static inline void halves_tile(const T (*X)[W], Half<T, W>& hA, Half<T, W>
 // suffices: the half angles are in [-pi/4, pi/4] (no reduction), sin((t - r)/2) is used where t and r have the
 // same sign (|t - r| / 2 < pi/2: tiny only near 0, unreduced), and the sin model's cos((t + r)/4) is tiny only
 // for |t|, |r| both at pi, where its difference term d vanishes with it.
-// FirstOnly: for callers that use d and f1 alone (the gradient passes): f1 by a cheaper formula of about the same
-// accuracy (tan model; f2 is then still phi'' but from that f1)
-template <int M, bool FirstOnly = false, typename T>
-TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
+template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
 #if !defined(__CUDACC__)
   if constexpr (M == 1 && sizeof(T) == sizeof(float)) {
     // float tan on the CPU: all in double, rounded once (as tb_sincos); with the half-angle selects on floats
     // converted back and forth GCC no longer vectorizes the lane loops (the float energy ran 2.2x slower)
     double dd, g1, g2;
-    phi_diff<1, FirstOnly, double>(double(t), double(ref), dd, g1, g2);
+    phi_diff<1, double>(double(t), double(ref), dd, g1, g2);
     d = T(dd); f1 = T(g1); f2 = T(g2);
     return;
   }
@@ -153,22 +150,8 @@ TB_HD static TB_FORCEINLINE void phi_diff(T t, T ref, T& d, T& f1, T& f2) {
     tb_sincos(T(0.5) * delta, sd, cd);
     bool opposite = (t < T(0)) != (ref < T(0));
     T num = opposite ? sh * cr - sr * ch : sd;
-    d = T(2) * num / (ch * cr);
-    if constexpr (FirstOnly) {
-      // phi' = 1 + tan^2(t/2) without tan's polynomials and division (what the gradient passes need): from ich,
-      // 1 / cos(t/2) corrected by its residual e (cos ich = 1 - e exactly): 1 + (sin ich (1 + e))^2 for |t| <= pi/2
-      // (tan^2 <= 1: the 1 dominates), ich^2 (1 + 2 e) = 1 / cos^2 beyond (tan^2 dominates; the half-angle cosine
-      // is accurate near +-pi).  About 0.1 ulp more in the median of the gradient's error than 1 + u^2 with tan to
-      // 1 ulp (880 hinges against the 40-digit reference: 1.26 against 1.15 ulps, the same maximum), for 5-9% of a
-      // gradient on a Zen 4 EPYC (x86-64-v3 build)
-      T ich = T(1) / ch, e = fma(-ch, ich, T(1));
-      T uq = sh * ich, uc = fma(uq, e, uq), r2 = ich * ich;
-      f1 = fabs(t) <= T(1.5707963267948966) ? fma(uc, uc, T(1)) : fma(T(2) * e, r2, r2);
-      f2 = f1 * tb_half_tan(t);
-    } else {
-      T u = tb_half_tan(t), s2 = T(1) + u * u;  // tan(t/2) to 1 ulp (sh / ch: 2.2)
-      f1 = s2; f2 = s2 * u;
-    }
+    T u = tb_half_tan(t), s2 = T(1) + u * u;  // tan(t/2) to 1 ulp (sh / ch: 2.2)
+    d = T(2) * num / (ch * cr); f1 = s2; f2 = s2 * u;
     return;
   }
   T turns = tb_ceilv((delta - pi) / two_pi);  // theta' = theta - 2 pi turns

@@ -58,11 +58,10 @@ template <typename T, int W> TB_HD static inline void zero_params(int l, HingeTi
 // psi, psi' = d psi / d theta, psi'' and (gp not null) the parameter gradients
 // gp = (d psi/dk, d psi/drest, d psi/dc, d psi/dprev) of one hinge at theta: torchbend.ops.psi.psi_derivatives,
 // each term on the branch of its reference angle, the viscous term only if damped (D)
-// FirstOnly: for callers that use psi, d1 and gp alone (phi_diff's cheaper phi'; d2 is still psi'' from it)
-template <int M, bool D, bool FirstOnly = false, typename T>
+template <int M, bool D, typename T>
 TB_HD static TB_FORCEINLINE void psi_lane(T theta, T a, T k, T rest, T c, T prev, T& psi, T& d1, T& d2, T* gp) {
   T dr, f1, f2;
-  phi_diff<M, FirstOnly>(theta, rest, dr, f1, f2);
+  phi_diff<M>(theta, rest, dr, f1, f2);
   T kd = k * dr, two_a = T(2) * a;
   T p = a * kd * dr, s = kd * f1, h2 = k * f1 * f1 + kd * f2;
   if (gp) {
@@ -72,7 +71,7 @@ TB_HD static TB_FORCEINLINE void psi_lane(T theta, T a, T k, T rest, T c, T prev
   }
   if (D) {
     T dp, g1, g2;
-    phi_diff<M, FirstOnly>(theta, prev, dp, g1, g2);
+    phi_diff<M>(theta, prev, dp, g1, g2);
     T cd = c * dp;
     p = p + a * cd * dp;
     s = kd * f1 + cd * g1;
@@ -136,12 +135,12 @@ TB_HD static inline void psi_first(const HingeArgs<T>& p, int64_t b, int64_t h, 
   T c = p.damped ? p.c(b, h) : T(0), prev = p.damped ? p.prev(b, h) : T(0), d2, g4[4];
   T* g = gp ? g4 : nullptr;
   switch (p.model * 2 + (p.damped ? 1 : 0)) {
-    case 0: psi_lane<0, false, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
-    case 1: psi_lane<0, true, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
-    case 2: psi_lane<1, false, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
-    case 3: psi_lane<1, true, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
-    case 4: psi_lane<2, false, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
-    default: psi_lane<2, true, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    case 0: psi_lane<0, false>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    case 1: psi_lane<0, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    case 2: psi_lane<1, false>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    case 3: psi_lane<1, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    case 4: psi_lane<2, false>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
+    default: psi_lane<2, true>(theta, a, k, rest, c, prev, psi, d1, d2, g); break;
   }
   if (gp) {
     gp[0] = g4[0]; gp[1] = g4[1];
