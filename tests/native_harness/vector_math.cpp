@@ -1,5 +1,5 @@
 // Torch-free harness of the vectorizable math of torchbend/csrc/vector_math.h (tb_atan2v, tb_sincos_accurate
-// ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_sincos_angle, tb_half_tan, tb_logv), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
+// ("sincos"), tb_sincos ("sincos_fast"), tb_half_sincos, tb_half_sincos_tan ("half_sct"), tb_logv), built as a shared library by tests/test_vector_math_ulp.py with the CPU extension's
 // flags and loaded with ctypes.  The *_vec loops are written as the kernels' lane loops are (a plain loop
 // with the header's functions inlined, TB_IVDEP), so that GCC vectorizes them; the *_scalar loops call one
 // non-inlined scalar evaluation per element (the code a loop that does not vectorize runs).
@@ -7,8 +7,7 @@
 
 using torchbend::tb_atan2v;
 using torchbend::tb_half_sincos;
-using torchbend::tb_half_sincos_angle;
-using torchbend::tb_half_tan;
+using torchbend::tb_half_sincos_tan;
 using torchbend::tb_logv;
 using torchbend::tb_sincos;
 using torchbend::tb_sincos_accurate;
@@ -18,8 +17,7 @@ template <typename T> __attribute__((noinline)) T atan2_one(T y, T x) { return t
 template <typename T> __attribute__((noinline)) void sincos_one(T x, T* s, T* c) { tb_sincos_accurate(x, *s, *c); }
 template <typename T> __attribute__((noinline)) void sincos_fast_one(T x, T* s, T* c) { tb_sincos(x, *s, *c); }
 template <typename T> __attribute__((noinline)) void half_one(T x, T* s, T* c) { tb_half_sincos(x, *s, *c); }
-template <typename T> __attribute__((noinline)) void half_angle_one(T x, T* s, T* c) { tb_half_sincos_angle(x, *s, *c); }
-template <typename T> __attribute__((noinline)) T half_tan_one(T x) { return tb_half_tan(x); }
+template <typename T> __attribute__((noinline)) void half_sct_one(T x, T* s, T* c, T* u) { tb_half_sincos_tan(x, *s, *c, *u); }
 template <typename T> __attribute__((noinline)) T log_one(T x) { return tb_logv(x); }
 }  // namespace
 
@@ -60,21 +58,16 @@ template <typename T> __attribute__((noinline)) T log_one(T x) { return tb_logv(
   void tb_half_sincos_scalar_##SUFFIX(const T* x, T* s, T* c, long n) {                                    \
     for (long i = 0; i < n; ++i) half_one<T>(x[i], s + i, c + i);                                          \
   }                                                                                                        \
-  void tb_half_angle_vec_##SUFFIX(const T* __restrict x, T* __restrict s, T* __restrict c, long n) {       \
+  void tb_half_sct_vec_##SUFFIX(const T* __restrict x, T* __restrict s, T* __restrict c, T* __restrict u,     \
+                                long n) {                                                                  \
     TB_IVDEP for (long i = 0; i < n; ++i) {                                                                \
-      T si, ci;                                                                                            \
-      tb_half_sincos_angle(x[i], si, ci);                                                                  \
-      s[i] = si; c[i] = ci;                                                                                \
+      T si, ci, ui;                                                                                        \
+      tb_half_sincos_tan(x[i], si, ci, ui);                                                                \
+      s[i] = si; c[i] = ci; u[i] = ui;                                                                     \
     }                                                                                                      \
   }                                                                                                        \
-  void tb_half_angle_scalar_##SUFFIX(const T* x, T* s, T* c, long n) {                                     \
-    for (long i = 0; i < n; ++i) half_angle_one<T>(x[i], s + i, c + i);                                    \
-  }                                                                                                        \
-  void tb_half_tan_vec_##SUFFIX(const T* __restrict x, T* __restrict o, long n) {                          \
-    TB_IVDEP for (long i = 0; i < n; ++i) o[i] = tb_half_tan(x[i]);                                        \
-  }                                                                                                        \
-  void tb_half_tan_scalar_##SUFFIX(const T* x, T* o, long n) {                                             \
-    for (long i = 0; i < n; ++i) o[i] = half_tan_one<T>(x[i]);                                             \
+  void tb_half_sct_scalar_##SUFFIX(const T* x, T* s, T* c, T* u, long n) {                                 \
+    for (long i = 0; i < n; ++i) half_sct_one<T>(x[i], s + i, c + i, u + i);                               \
   }                                                                                                        \
   void tb_log_vec_##SUFFIX(const T* __restrict x, T* __restrict o, long n) {                               \
     TB_IVDEP for (long i = 0; i < n; ++i) o[i] = tb_logv(x[i]);                                            \

@@ -125,7 +125,8 @@ TB_HD static inline void halves_tile(const T (*X)[W], Half<T, W>& hA, Half<T, W>
 // 1 tan, 2 sin.  theta' = ref + wrap(theta - ref) (wrap into (-pi, pi]) for quadratic and sin, theta for tan;
 // the difference is written without cancellation (tan: 2 sin((t-r)/2) / (cos(t/2) cos(r/2)) where t and r
 // have the same sign, 2 (sin(t/2) cos(r/2) - sin(r/2) cos(t/2)) / (cos(t/2) cos(r/2)) where they differ,
-// two terms of one sign, the half angles from tb_half_sincos; sin: 4 cos((t+r)/4) sin((t-r)/4)).
+// two terms of one sign, the half angles from tb_half_sincos (r) and tb_half_sincos_tan (t, with tan(t/2));
+// sin: 4 cos((t+r)/4) sin((t-r)/4)).
 // Branch-free (tb_sincos, tb_ceilv): it vectorizes in the lane loops.  tb_sincos (not tb_sincos_accurate)
 // suffices: the half angles are in [-pi/4, pi/4] (no reduction), sin((t - r)/2) is used where t and r have the
 // same sign (|t - r| / 2 < pi/2: tiny only near 0, unreduced), and the sin model's cos((t + r)/4) is tiny only
@@ -144,13 +145,13 @@ template <int M, typename T> TB_HD static TB_FORCEINLINE void phi_diff(T t, T re
   const T pi = T(3.14159265358979323846), two_pi = T(6.28318530717958647692);
   T delta = t - ref;
   if (M == 1) {
-    T sh, ch, sd, cd, sr, cr;
-    tb_half_sincos_angle(t, sh, ch);  // t: a bend angle (|t| <= pi); ref may be any finite value
+    T sh, ch, u, sd, cd, sr, cr;
+    tb_half_sincos_tan(t, sh, ch, u);  // t: a bend angle (|t| <= pi); ref may be any finite value
     tb_half_sincos(ref, sr, cr);
     tb_sincos(T(0.5) * delta, sd, cd);
     bool opposite = (t < T(0)) != (ref < T(0));
     T num = opposite ? sh * cr - sr * ch : sd;
-    T u = tb_half_tan(t), s2 = T(1) + u * u;  // tan(t/2) to 1 ulp (sh / ch: 2.2)
+    T s2 = T(1) + u * u;  // u = tan(t/2) to 1 ulp (the rounded sh / ch: 2.2)
     d = T(2) * num / (ch * cr); f1 = s2; f2 = s2 * u;
     return;
   }

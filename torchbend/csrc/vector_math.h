@@ -68,6 +68,27 @@ TB_HD static TB_FORCEINLINE void tb_sincos_kernel(double y0, double y1, double& 
   kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
 }
 
+// tb_sincos_kernel with each result as an unevaluated sum: sin(y0 + y1) = ks + ksl and cos(y0 + y1) = kc + kcl,
+// within about 0.1 ulp of ks, kc (the last addition of each kernel carried exactly by Fast2Sum: |y0| and |w1| exceed
+// the terms added to them; what is left is the rounding of those terms, at most ~0.08 of the result's magnitude,
+// and the polynomials' error, below 2^-58).  ks and kc are tb_sincos_kernel's values bit for bit.
+TB_HD static TB_FORCEINLINE void tb_sincos_kernel_pair(double y0, double y1, double& ks, double& ksl, double& kc,
+                                                       double& kcl) {
+  double z = y0 * y0, v = z * y0;
+  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
+              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
+  double ps = (z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01;
+  ks = y0 - ps;
+  ksl = (y0 - ks) - ps;
+  double zz = z * z;
+  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
+              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
+  double hz = 0.5 * z, w1 = 1.0 - hz;
+  double pc = ((1.0 - w1) - hz) + (z * rc - y0 * y1);
+  kc = w1 + pc;
+  kcl = (w1 - kc) + pc;
+}
+
 // ---- vectorizable sin/cos and atan2 (the CPU lane loops; the same code on the GPU) --------------
 // The C library's sin, cos and atan2 are calls that no lane loop vectorizes, and in the energy and
 // gradient kernels they cost more than all the geometry.  tb_sincos and tb_atan2v are branch-free
@@ -243,87 +264,58 @@ TB_HD static TB_FORCEINLINE void tb_sincos_accurate(float x, float& s, float& c)
   tb_sincos_accurate(double(x), sd, cd);
   s = float(sd); c = float(cd);
 }
-// sin and cos of |x| <= pi/4 by the kernels alone (no argument reduction: within 1 ulp there as tb_sincos, at a
-// fraction of its cost; beyond pi/4 the kernels' polynomials lose accuracy)
-TB_HD static TB_FORCEINLINE void tb_sincos_small(double x, double& s, double& c) { tb_sincos_kernel(x, 0.0, s, c); }
-TB_HD static TB_FORCEINLINE void tb_sincos_small(float x, float& s, float& c) {
-  double sd, cd;
-  tb_sincos_kernel(double(x), 0.0, sd, cd);
-  s = float(sd); c = float(cd);
-}
 TB_HD static TB_FORCEINLINE float tb_atan2v(float y, float x) { return float(tb_atan2v(double(y), double(x))); }
 
 // sin(t/2) and cos(t/2) to a few ulps for t in [-pi, pi], near +-pi too (torchbend.ops.psi.half_angle_sincos):
 // for |t| > pi/2 from the complement w = (pi - |t|)/2, formed exactly (pi_hi - |t| by Sterbenz, then the
 // tail pi_lo), sin(t/2) = sign(t) cos(w), cos(t/2) = sin(w): t/2 rounded (and a reduction by pi/2 that keeps
 // too few digits of pi) would make the tiny cosine near +-pi wrong in most of its digits.  One tb_sincos of
-// an argument in [-pi/4, pi/4] (for |t| <= 3 pi / 2; any |t| < 2^19 is reduced); branch-free.
-// tb_half_sincos_angle: the same for a bend angle (|t| <= pi: atan2's range), by the kernels alone
-// (tb_sincos_small), without tb_sincos's reduction, which leaves such an argument unchanged (the values may
-// differ from tb_half_sincos's in the last bit, where the compiler fuses a product into an fma differently
-// without the reduced argument's tail); wrong beyond |t| = 3 pi / 2.
-template <bool Reduce, typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos_impl(T t, T& s, T& c) {
+// an argument in [-pi/4, pi/4] (for |t| <= 3 pi / 2; any |t| < 2^19 is reduced); branch-free.  (The reference
+// angles take it; a bend angle takes tb_half_sincos_tan below.)
+template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
   const T pi_hi = T(3.14159265358979323846);
   const T pi_lo = sizeof(T) == sizeof(float) ? T(-8.742278000372485e-08) : T(1.2246467991473532e-16);
   T a = fabs(t);  // (+0 for -0, where the old select gave -0: the same w, and big is false)
   bool big = a > T(0.5) * pi_hi;
   T w = T(0.5) * ((pi_hi - a) + pi_lo);
   T sn, cs;
-  if constexpr (Reduce) tb_sincos(big ? w : T(0.5) * t, sn, cs);
-  else tb_sincos_small(big ? w : T(0.5) * t, sn, cs);
+  tb_sincos(big ? w : T(0.5) * t, sn, cs);
   s = big ? cs * copysign(T(1), t) : sn;  // -cs for t < 0 (cs < 0 too where |t| > 2 pi: a product, not copysign)
   c = big ? sn : cs;
 }
-template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos(T t, T& s, T& c) {
-  tb_half_sincos_impl<true>(t, s, c);
-}
-template <typename T> TB_HD static TB_FORCEINLINE void tb_half_sincos_angle(T t, T& s, T& c) {
-  tb_half_sincos_impl<false>(t, s, c);
-}
 
-// tan(t/2) for t in [-pi, pi] (a little beyond, to the float pi) within 1 ulp (tests/test_vector_math_ulp.py):
-// fdlibm's __kernel_tan on [-pi/4, pi/4] with the argument's tail, branch-free.  |t| <= pi/2: tan(x) at x = t/2
-// (exact); |t| > pi/2: tan(t/2) = -sign(t) (-1 / tan(x + y)) with x + y = ((pi_hi - |t|) + pi_lo) / 2 as a
-// normalized pair (pi_hi - |t| exact by Sterbenz): no digit of the huge value near +-pi is lost.  One
-// division: w^2 / (w + iy) in the kernel's range about pi/4, -1 / w (refined with its 32-bit halves) below it.
-TB_HD static TB_FORCEINLINE double tb_clear_low32(double v) {
-  uint64_t b;
-  __builtin_memcpy(&b, &v, sizeof b);
-  b &= 0xffffffff00000000ull;
-  __builtin_memcpy(&v, &b, sizeof v);
-  return v;
-}
-TB_HD static TB_FORCEINLINE double tb_half_tan(double t) {
+// sin(t/2), cos(t/2) and tan(t/2) of a bend angle t in [-pi, pi] (a little beyond, to the float pi), each within
+// 1 ulp (tests/test_vector_math_ulp.py), by one evaluation of the sin/cos kernels and one division: |t| <= pi/2 at
+// x = t/2 (exact); |t| > pi/2 from the complement x + y = ((pi_hi - |t|) + pi_lo) / 2 as a normalized pair (pi_hi - |t|
+// exact by Sterbenz, pi's tail carried as the kernels' y: near +-pi the small cosine keeps its digits), sin(t/2) =
+// sign(t) cos(x + y), cos(t/2) = sin(x + y).  The kernels' results carry their last rounding (tb_sincos_kernel_pair),
+// so that tan = (s + sl) / (c + cl) is formed with one reciprocal and the quotient's exact residual: within about
+// 0.7 ulp, against 2.2 for the rounded s / c; fdlibm's tan kernel for tan(t/2) alone cost more (an HVP ~5% more).
+// Branch-free.
+TB_HD static TB_FORCEINLINE void tb_half_sincos_tan(double t, double& s, double& c, double& u) {
   const double pi_hi = 3.14159265358979311600e+00, pi_lo = 1.22464679914735320717e-16;
-  const double pio4 = 7.85398163397448278999e-01, pio4lo = 3.06161699786838301793e-17;
   double a = fabs(t);
   bool big = a > 0.5 * pi_hi;
   double h = 0.5 * (pi_hi - a), l = 0.5 * pi_lo;
-  double hs = h + l, ls = l - (hs - h);  // Fast2Sum: h is 0 or a multiple of ulp(pi) / 2 > l
-  const double big01 = big ? 1.0 : 0.0;
-  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0, iy = 1.0 - 2.0 * big01;
-  // __kernel_tan(x, y, iy): about pi/4 (|x| >= 0.67434, fdlibm's 0x3FE59428) from tan(pi/4 - x)
-  bool hi = fabs(x) >= 0.6743354797363281;
-  double sx = copysign(1.0, x);  // (-1 for x = -0, never about pi/4, where sx is used)
-  double xr = (pio4 - sx * x) + (pio4lo - sx * y);
-  x = hi ? xr : x;
-  y = hi ? 0.0 : y;
-  double z = x * x, w = z * z;
-  double r = 1.33333333333201242699e-01 + w * (2.18694882948595424599e-02 + w * (3.59207910759131235356e-03 +
-             w * (5.88041240820264096874e-04 + w * (7.81794442939557092300e-05 + w * -1.85586374855275456654e-05))));
-  double v = z * (5.39682539762260521377e-02 + w * (8.86323982359930005737e-03 + w * (1.45620945432529025516e-03 +
-             w * (2.46463134818469906812e-04 + w * (7.14072491382608190305e-05 + w * 2.59073051863633712884e-05)))));
-  double s = z * x;
-  r = y + z * (s * (r + v) + y);
-  r += 3.33333333333334091986e-01 * s;
-  w = x + r;
-  double q = (hi ? w * w : -1.0) / (hi ? w + iy : w);
-  double k_hi = sx * (iy - 2.0 * (x - (q - r)));
-  double zt = tb_clear_low32(w), tt = tb_clear_low32(q);  // -1 / (x + r) accurately (fdlibm)
-  double k_inv = tt + q * ((1.0 + tt * zt) + tt * (r - (zt - x)));
-  double k = hi ? k_hi : (big ? k_inv : copysign(w, x));  // (tan(-0) = -0)
-  return k * (1.0 - 2.0 * (big01 * tb_neg01(-t)));  // -k where big and t > 0 (t = +0 is not big)
+  double hs = h + l, ls = l - (hs - h);  // Fast2Sum: h is 0 or a multiple of ulp(pi) / 4 > l
+  double x = big ? hs : 0.5 * t, y = big ? ls : 0.0;
+  double ks, ksl, kc, kcl;
+  tb_sincos_kernel_pair(x, y, ks, ksl, kc, kcl);
+  double sg = copysign(1.0, t);
+  s = big ? kc * sg : ks;
+  double sl = big ? kcl * sg : ksl;
+  c = big ? ks : kc;
+  double cl = big ? ksl : kcl;
+  double r = 1.0 / c;
+  double q = s * r;
+  double e = (fma(-q, c, s) + sl) - q * cl;  // (s + sl) - q (c + cl): the first product's residual exact by the fma
+  u = q == 0.0 ? q : fma(e, r, q);  // (tan(-0) = -0: the correction +0 would give +0)
 }
-TB_HD static TB_FORCEINLINE float tb_half_tan(float t) { return float(tb_half_tan(double(t))); }
+TB_HD static TB_FORCEINLINE void tb_half_sincos_tan(float t, float& s, float& c, float& u) {
+  double sd, cd, ud;
+  tb_half_sincos_tan(double(t), sd, cd, ud);
+  s = float(sd); c = float(cd); u = float(ud);
+}
+
 
 }  // namespace torchbend
