@@ -45,7 +45,7 @@ in float64 at the same (rounded) inputs: energy, gradient and HVP by autograd; t
 matrix as its product with ``v`` against the autograd HVP.  The normwise relative error is recorded
 (``inf`` for a non-finite output) and flagged above 1e-8 (float64) or 1e-3 (float32).  Then one
 warm-up call (none after a checked call over 1 s), then the median of repeats (adaptive count, about
-``--budget`` seconds, at least ``--min-repeat`` unless a call takes over 2 s).  No assertions: this
+``--budget`` seconds, at least ``--min-repeat`` unless a call takes over 2 s, at most 2,000).  No assertions: this
 measures and records.
 """
 from __future__ import annotations
@@ -73,6 +73,9 @@ from torchbend.testing import autograd_gradient, autograd_hvp, plain_bending_ene
 OPS = floors.OPS
 METHODS = ["torchbend", "torchbend.backward", "torchbend.eager", "autograd", "torch.func", "torch.compile", "jax"]
 TOL = {"float64": 1e-8, "float32": 1e-3}
+MAX_REPEAT = 2000
+"""At most this many timed calls per measurement: fast calls fill the budget (the harness's default of 50 gave a
+thousand-hinge energy 3 ms of timed calls and a 1e5-hinge HVP 0.2 s, medians that moved by 20% from run to run)."""
 NATIVE_OP = {"energy": "energy", "gradient": "gradient", "hvp": "hvp", "hinge_hessians": "hinge_hessians",
              "assembly": "hessian_triangle"}
 """The name under which :func:`torchbend.backends.select_backend` decides each op of the default path."""
@@ -414,7 +417,8 @@ class Measurement:
             err = self.check.error(op, to_torch(out))
             del out
             with torch.no_grad() if op == "energy" else torch.enable_grad():  # the checked call warmed up slow ones
-                r = bench(fn, self.sync, budget=self.budget, min_repeat=self.min_repeat, warmup=0 if t_first > 1.0 else 1)
+                r = bench(fn, self.sync, budget=self.budget, min_repeat=self.min_repeat, max_repeat=MAX_REPEAT,
+                          warmup=0 if t_first > 1.0 else 1)
         except Exception as e:  # an out-of-memory, a method that cannot do the op
             row.update(ns=None, note=_short(e))
             self.rec["rows"].append(row)

@@ -335,7 +335,7 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in result["floors"]["used"]["flops"].items()),
            f"- sizes: {', '.join(f'{s:,}' for s in result['sizes'])} target hinges (random curved sheets, `tan` model), "
            f"{', '.join(result['dtypes'])}; median of repeats (about {result['budget']} s of timed calls per "
-           f"measurement, at least {result['min_repeat']}, one for calls over 2 s) after a checked call and a warm-up "
+           f"measurement, at least {result['min_repeat']} and at most 2,000, one for calls over 2 s) after a checked call and a warm-up "
            "call (the checked call is the warm-up of calls over 1 s)",
            "- what the default path (`backend=\"auto\"`) ran:"] + [f"  {line}" for line in tables.backends_line(result)]
     for arch, info in result.get("arch_rows", {}).items():
