@@ -53,28 +53,14 @@ TB_HD static inline float tb_eps(float) { return FLT_EPSILON; }
 TB_HD static inline double tb_eps(double) { return DBL_EPSILON; }
 template <typename T> TB_HD static inline T tb_max(T a, T b) { return a < b ? b : a; }  // as std::max
 
-// fdlibm's __kernel_sin and __kernel_cos of x = y0 + y1, |x| <= pi/4 (y1: the tail of a reduced argument)
-TB_HD static TB_FORCEINLINE void tb_sincos_kernel(double y0, double y1, double& ks, double& kc) {
-  double z = y0 * y0, v = z * y0;
-  // __kernel_sin(y0, y1)
-  double rs = 8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 + z * (2.75573137070700676789e-06 +
-              z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)));
-  ks = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * -1.66666666666666324348e-01);
-  // __kernel_cos(y0, y1)
-  double zz = z * z;
-  double rc = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * 2.48015872894767294178e-05)) +
-              zz * zz * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11));
-  double hz = 0.5 * z, w1 = 1.0 - hz;
-  kc = w1 + (((1.0 - w1) - hz) + (z * rc - y0 * y1));
-}
-
-// tb_sincos_kernel with each result as an unevaluated sum: sin(y0 + y1) ~ ks + ksl and cos(y0 + y1) ~ kc + kcl, the
-// last addition of each kernel carried exactly by Fast2Sum (|y0| and |w1| exceed the terms added to them; no product
-// in either chain, so that contraction cannot break it).  What is left (a review's scan against a 40-digit
+// fdlibm's __kernel_sin and __kernel_cos of x = y0 + y1, |x| <= pi/4 (y1: the tail of a reduced argument), each
+// result as an unevaluated sum: sin(y0 + y1) ~ ks + ksl and cos(y0 + y1) ~ kc + kcl, the last addition of each
+// kernel carried exactly by Fast2Sum (|y0| and |w1| exceed the terms added to them; no product in either chain, so
+// that contraction cannot break it).  What is left (a review's scan against a 40-digit
 // reference, 2026-12-06): the sum within 0.18 ulp of sin and 0.28 ulp of cos, mostly the rounding of z = y0^2, which
-// reaches w1 = 1 - z/2 itself near |y0| = pi/4.  ks and kc are the values tb_sincos_kernel would give for the same
-// arguments up to contraction: where the compiler fuses a product into an fma differently (e.g. with a literal y1 = 0
-// it drops the y1 terms), they may differ in the last bit.
+// reaches w1 = 1 - z/2 itself near |y0| = pi/4.  ks and kc alone are fdlibm's values (tb_sincos_kernel; the tails
+// are then dead code); where the compiler fuses a product into an fma differently (e.g. with a literal y1 = 0 it
+// drops the y1 terms), they may differ in the last bit between inlining contexts.
 TB_HD static TB_FORCEINLINE void tb_sincos_kernel_pair(double y0, double y1, double& ks, double& ksl, double& kc,
                                                        double& kcl) {
   double z = y0 * y0, v = z * y0;
@@ -90,6 +76,12 @@ TB_HD static TB_FORCEINLINE void tb_sincos_kernel_pair(double y0, double y1, dou
   double pc = ((1.0 - w1) - hz) + (z * rc - y0 * y1);
   kc = w1 + pc;
   kcl = (w1 - kc) + pc;
+}
+
+// ks and kc alone (the kernels of tb_sincos)
+TB_HD static TB_FORCEINLINE void tb_sincos_kernel(double y0, double y1, double& ks, double& kc) {
+  double ksl, kcl;
+  tb_sincos_kernel_pair(y0, y1, ks, ksl, kc, kcl);
 }
 
 // ---- vectorizable sin/cos and atan2 (the CPU lane loops; the same code on the GPU) --------------
@@ -322,6 +314,5 @@ TB_HD static TB_FORCEINLINE void tb_half_sincos_tan(float t, float& s, float& c,
   tb_half_sincos_tan(double(t), sd, cd, ud);
   s = float(sd); c = float(cd); u = float(ud);
 }
-
 
 }  // namespace torchbend
