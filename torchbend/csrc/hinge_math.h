@@ -52,7 +52,8 @@ template <typename T> TB_HD static TB_FORCEINLINE V3<T> pick3(bool c, V3<T> a, V
   return {c ? a.x : b.x, c ? a.y : b.y, c ? a.z : b.z};
 }
 
-template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<T> e1, V3<T> e2) {
+// (tri_normal: all but the mh_k, which tri_frame adds)
+template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_normal(V3<T> e0, V3<T> e1, V3<T> e2) {
   Tri<T> t;
   t.ee0 = dot3(e0, e0); t.ee1 = dot3(e1, e1); t.ee2 = dot3(e2, e2);
   // the longest edge m: 2 if e2 is (ties included), else 0 if e0 is at least as long as e1, else 1
@@ -64,6 +65,10 @@ template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<
   t.valid = valid ? T(1) : T(0);
   t.nn = valid ? nn : T(1);
   t.inn = t.valid / t.nn;
+  return t;
+}
+template <typename T> TB_HD static TB_FORCEINLINE Tri<T> tri_frame(V3<T> e0, V3<T> e1, V3<T> e2) {
+  Tri<T> t = tri_normal(e0, e1, e2);
   t.mh0 = scale3(cross3(e0, t.N), t.inn); t.mh1 = scale3(cross3(e1, t.N), t.inn); t.mh2 = scale3(cross3(e2, t.N), t.inn);
   return t;
 }
@@ -83,24 +88,49 @@ template <typename T, int W> struct Half { T t[3][W], N[3][W], mh[3][3][W], bl[3
 template <typename T, int W, bool Full = true>
 TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], const T* EL,
                                    const T* IE, Half<T, W>& o) {
+  if (!Full) {
+    TB_LANES_AGG(W) {
+      V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
+      V3<T> e{E[0][l], E[1][l], E[2][l]};
+      V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
+      Tri<T> t = tri_normal(e0, e1, e);
+      T ie = t.valid != T(0) ? IE[l] : T(1);
+      o.t[0][l] = -dot3(e, e0) * ie * t.inn;
+      o.t[1][l] = -dot3(e, e1) * ie * t.inn;
+      o.t[2][l] = -(t.valid != T(0) ? EL[l] : T(1)) * t.inn;
+      o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
+    }
+    return;
+  }
+  // Full: two lane loops (the normal, then what it takes: the same operations), for the reason theta_tile gives
+  // (hinge_ops.h): the HVP on a Zen 4 EPYC 44.4 -> 42.9 ns a hinge (x86-64-v3); the angle gradient's short form
+  // (Full = false) measured slower split and stays one loop
+  T INN[W], VAL[W];
+  TB_LANES_AGG(W) {
+    V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
+    V3<T> e{E[0][l], E[1][l], E[2][l]};
+    Tri<T> t = tri_normal(sub3(c, b), sub3(a, c), e);
+    o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
+    INN[l] = t.inn; VAL[l] = t.valid;
+  }
   TB_LANES_AGG(W) {
     V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
     V3<T> e{E[0][l], E[1][l], E[2][l]};
     // the triangle's cyclic edges: e_0 = c - b (opposite a), e_1 = a - c (opposite b), e_2 = e = b - a
     V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
-    Tri<T> t = tri_frame(e0, e1, e);
-    T elen = t.valid != T(0) ? EL[l] : T(1);
-    T ie = t.valid != T(0) ? IE[l] : T(1);  // reciprocals: divisions here cost the blocks ~10%
-    o.t[0][l] = -dot3(e, e0) * ie * t.inn;  // -(e . (c - b)) / (|e| |N|^2)
-    o.t[1][l] = -dot3(e, e1) * ie * t.inn;  //  (e . (c - a)) / (|e| |N|^2)
-    o.t[2][l] = -elen * t.inn;
+    V3<T> N{o.N[0][l], o.N[1][l], o.N[2][l]};
+    T inn = INN[l];
+    T elen = VAL[l] != T(0) ? EL[l] : T(1);
+    T ie = VAL[l] != T(0) ? IE[l] : T(1);  // reciprocals: divisions here cost the blocks ~10%
+    o.t[0][l] = -dot3(e, e0) * ie * inn;  // -(e . (c - b)) / (|e| |N|^2)
+    o.t[1][l] = -dot3(e, e1) * ie * inn;  //  (e . (c - a)) / (|e| |N|^2)
+    o.t[2][l] = -elen * inn;
     T r = ie * ie * ie;
-    o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
-    if (!Full) continue;
-    o.mh[0][0][l] = t.mh0.x; o.mh[0][1][l] = t.mh0.y; o.mh[0][2][l] = t.mh0.z;
-    o.mh[1][0][l] = t.mh1.x; o.mh[1][1][l] = t.mh1.y; o.mh[1][2][l] = t.mh1.z;
-    o.mh[2][0][l] = t.mh2.x; o.mh[2][1][l] = t.mh2.y; o.mh[2][2][l] = t.mh2.z;
-    o.bl[0][l] = t.N.x * r; o.bl[1][l] = t.N.y * r; o.bl[2][l] = t.N.z * r;
+    V3<T> mh0 = scale3(cross3(e0, N), inn), mh1 = scale3(cross3(e1, N), inn), mh2 = scale3(cross3(e, N), inn);
+    o.mh[0][0][l] = mh0.x; o.mh[0][1][l] = mh0.y; o.mh[0][2][l] = mh0.z;
+    o.mh[1][0][l] = mh1.x; o.mh[1][1][l] = mh1.y; o.mh[1][2][l] = mh1.z;
+    o.mh[2][0][l] = mh2.x; o.mh[2][1][l] = mh2.y; o.mh[2][2][l] = mh2.z;
+    o.bl[0][l] = N.x * r; o.bl[1][l] = N.y * r; o.bl[2][l] = N.z * r;
   }
 }
 
@@ -206,8 +236,9 @@ template <> struct ThetaType<float> { using type = float; };
 // that brings their largest component into [1, 2) (exact; the angle is the unscaled one bit for bit wherever
 // that did not over- or underflow), so that no scale of the input overflows or underflows the products of
 // five lengths.  The one formula of every kernel, so that angles at the rest state vanish bit for bit.
-template <typename T, int W> TB_HD static TB_FORCEINLINE T stencil_theta(const T (*X)[W], int l) {
-  using C = typename ThetaType<T>::type;
+// (stencil_theta_args: the two arguments of that atan2, for theta_tile's separate lane loops)
+template <typename T, int W, typename C = typename ThetaType<T>::type>
+TB_HD static TB_FORCEINLINE void stencil_theta_args(const T (*X)[W], int l, C& y, C& x) {
   C e[3], u[3], w[3];
   for (int m = 0; m < 3; ++m) {
     C x0 = C(X[m][l]);
@@ -223,7 +254,12 @@ template <typename T, int W> TB_HD static TB_FORCEINLINE T stencil_theta(const T
   // atan2(e . (nA x nB), |e| nA . nB): the same angle without a division on the way to atan2's (a collapsed edge
   // gives atan2(0, 0) = 0, as 0 * (1 / |e|) did)
   C elen = tb_sqrt(dot(e, e));
-  return T(tb_atan2v(dot(e, NN), elen * dot(NA, NB)));
+  y = dot(e, NN); x = elen * dot(NA, NB);
+}
+template <typename T, int W> TB_HD static TB_FORCEINLINE T stencil_theta(const T (*X)[W], int l) {
+  typename ThetaType<T>::type y, x;
+  stencil_theta_args<T, W>(X, l, y, x);
+  return T(tb_atan2v(y, x));
 }
 
 template <typename T> TB_HD static inline void phi_difference(int model, T t, T ref, T& d, T& f1, T& f2) {

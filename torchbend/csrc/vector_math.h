@@ -147,7 +147,11 @@ TB_HD static TB_FORCEINLINE void tb_sincos_accurate(double x, double& s, double&
 // uops each on recent Intel cores without AVX-512 masks (and 2 on older ones)
 TB_HD static TB_FORCEINLINE double tb_neg01(double v) { return 0.5 - copysign(0.5, v); }
 
-TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
+// tb_atan2v in two stages (tb_atan2v_reduce, then tb_atan2v_finish; tb_atan2v is the two in a row): a lane loop of
+// the reduction and one of the polynomial each keep a shorter chain of dependent operations than the whole, so
+// that the out-of-order window holds more of the tile's independent lanes (theta_tile, hinge_ops.h)
+TB_HD static TB_FORCEINLINE void tb_atan2v_reduce(double y, double x, double& t_, double& tl_, double& sg_,
+                                                  double& khi_, double& klo_) {
   double ax = fabs(x), ay = fabs(y);
   // swapped (ay > ax: atan2 = pi/2 - atan(ax / ay)): num = min, den = max (a NaN y makes both NaN)
   double num = ay > ax ? ax : ay, den = ay > ax ? ay : ax;
@@ -180,12 +184,7 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double rd = 1.0 / td;
   double t = tn * rd;
   double tl = fma(-t, td, tn) * rd;  // the rounding error of t: t + tl = tn / td
-  double z = t * t, w = z * z;
-  double s1 = z * (3.33333333333329318027e-01 + w * (1.42857142725034663711e-01 + w * (9.09088713343650656196e-02 +
-              w * (6.66107313738753120669e-02 + w * (4.97687799461593236017e-02 + w * 1.62858201153657823623e-02)))));
-  double s2 = w * (-1.99999999998764832476e-01 + w * (-1.11111104054623557880e-01 + w * (-7.69187620504482999495e-02 +
-              w * (-5.83357013379057348645e-02 + w * -3.65315727442169155270e-02))));
-  double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
+  t_ = t; tl_ = tl;
   // atan2(|y|, x) = K + sg atan(t + tl) with K = Q pi/2 + sg A: A (Q = 0, sg = 1), pi/2 - A (swapped: Q = 1,
   // sg = -1), pi - A (x < 0: Q = 2, sg = -1), pi/2 + A (both: Q = 1, sg = 1); x < 0 by its sign bit (atan2(+-0, -0)
   // = +-pi) (x = -0, y != 0: swapped with t = 0, pi/2 either way).  A (0, atan(1/2) or pi/4) as an exact blend (0/1
@@ -200,9 +199,24 @@ TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
   double qh = Q * 1.5707963267948966, sa = sg * ah;
   double khi = qh + sa;
   double klo = (sa - (khi - qh)) + (Q * 6.123233995736766e-17 + sg * al);
+  sg_ = sg; khi_ = khi; klo_ = klo;
+}
+TB_HD static TB_FORCEINLINE double tb_atan2v_finish(double y, double x, double t, double tl, double sg, double khi,
+                                                    double klo) {
+  double z = t * t, w = z * z;
+  double s1 = z * (3.33333333333329318027e-01 + w * (1.42857142725034663711e-01 + w * (9.09088713343650656196e-02 +
+              w * (6.66107313738753120669e-02 + w * (4.97687799461593236017e-02 + w * 1.62858201153657823623e-02)))));
+  double s2 = w * (-1.99999999998764832476e-01 + w * (-1.11111104054623557880e-01 + w * (-7.69187620504482999495e-02 +
+              w * (-5.83357013379057348645e-02 + w * -3.65315727442169155270e-02))));
+  double corr = (tl - tl * z) - t * (s1 + s2);  // atan(t + tl) = t + corr
   double res = khi + (sg * t + (sg * corr + klo));
   res += x - x;  // a NaN x gives NaN (num and den are y's there)
   return copysign(res, y);
+}
+TB_HD static TB_FORCEINLINE double tb_atan2v(double y, double x) {
+  double t, tl, sg, khi, klo;
+  tb_atan2v_reduce(y, x, t, tl, sg, khi, klo);
+  return tb_atan2v_finish(y, x, t, tl, sg, khi, klo);
 }
 
 // log(x) within 1 ulp for every x >= 0 (subnormals too; 0: -inf, +inf: +inf, negative or NaN: NaN): fdlibm's
