@@ -103,8 +103,8 @@ TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*
     return;
   }
   // Full: two lane loops (the normal, then what it takes: the same operations), for the reason theta_tile gives
-  // (hinge_ops.h): the HVP on a Zen 4 EPYC 44.4 -> 42.9 ns a hinge (x86-64-v3); the angle gradient's short form
-  // (Full = false) measured slower split and stays one loop
+  // (hinge_ops.h): the HVP on a Zen 4 EPYC 44.4 -> 42.9 ns a hinge (x86-64-v3, against the split angle alone); the
+  // angle gradient's short form (Full = false) measured slower split (31.7 -> 32.3) and stays one loop
   T INN[W], VAL[W];
   TB_LANES_AGG(W) {
     V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};

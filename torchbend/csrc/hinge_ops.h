@@ -30,13 +30,16 @@ template <typename T, int W> TB_HD static TB_FORCEINLINE T hinge_theta(const T (
 }
 
 // the bend angles of the W lanes of a tile, in three lane loops (atan2's arguments, its reduction, its polynomial;
-// the same operations as hinge_theta): the whole angle in one loop is a chain of about 130 cycles (cross products,
-// square root, division, polynomial) in about 220 instructions a vector, so that the out-of-order window held little
-// more than one vector's chain at a time.  Measured on a Zen 4 EPYC (1e5 hinges, float64, one thread, min over
-// calls): energy 20.2 -> 17.3 ns a hinge with x86-64-v3 (AVX2, 4 lanes a vector), 15.1 -> 13.7 with AVX-512.
+// the same operations as hinge_theta).  The whole angle in one loop was 223 instructions a 4-lane iteration in GCC
+// 12's x86-64-v3 code, on a chain of dependent operations (cross products, square root, division, polynomial)
+// estimated at over 100 cycles from their latencies: the out-of-order window could not hold much more than one
+// iteration's chain, and a loop of each stage holds several.  Measured on a Zen 4 EPYC (1e5 hinges, float64, one
+// thread, min over calls): energy 20.1 -> 17.3 ns a hinge with x86-64-v3 (AVX2, 4 lanes a vector), 15.1 -> 13.7
+// with AVX-512 (benchmarks/results/amd_zen4_2026-12-06.txt, section 9).
 template <typename T, int W> TB_HD static inline void theta_tile(const T (*X)[W], T* theta) {
   using C = typename ThetaType<T>::type;
-  C Y[W], Xa[W], At[W], Al[W], Sg[W], Kh[W], Kl[W];
+  C Y[W], Xa[W];
+  double At[W], Al[W], Sg[W], Kh[W], Kl[W];  // the reduction's parts are double whatever C is (tb_atan2v_reduce)
   TB_LANES_AGG(W) stencil_theta_args<T, W>(X, l, Y[l], Xa[l]);
   TB_LANES_AGG(W) tb_atan2v_reduce(Y[l], Xa[l], At[l], Al[l], Sg[l], Kh[l], Kl[l]);
   TB_LANES_AGG(W) theta[l] = T(tb_atan2v_finish(Y[l], Xa[l], At[l], Al[l], Sg[l], Kh[l], Kl[l]));
