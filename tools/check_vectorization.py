@@ -50,7 +50,7 @@ REQUIRED: dict[str, dict[str, int]] = {
     "cpu_projection.cpp": {"project_hinge_tile": 6, "jacobi_project": 5, "lanes_scale": 1, "lanes_rebuild": 3},
     "cpu_contact.cpp": {"ql_project": 14, "lanes_scale": 2, "lanes_rebuild": 3, "frame_group": 4,
                         "ee_close_lanes": 1, "pt_close_lanes": 1, "energy_lanes": 1},
-    "cpu_assembly.cpp": {"theta_tile": 3, "half_tile": 3, "grad_of_halves": 1, "block_tile": 7, "face_block_tile": 3},
+    "cpu_assembly.cpp": {"theta_tile": 3, "half_tile": 2, "grad_of_halves": 1, "block_tile": 7, "face_block_tile": 3},
     "cpu_membrane.cpp": {"stress_tile": 2, "hvp_tile": 1, "block_tile": 1},
 }
 # Template lane loops whose every instantiation must vectorize: translation unit -> function -> how many vectorized

@@ -85,52 +85,55 @@ template <typename T, int W> struct Half { T t[3][W], N[3][W], mh[3][3][W], bl[3
 // their cross products (the same t and N bits; with GCC 12 on AVX-512 the gradient's half-hinge tile became one
 // unrolled pass of 315 instructions and 12 square roots and divisions per 16 hinges, from two loops executing about
 // 600 instructions and 16 square roots and divisions)
+// the t_k of lane l of a half-hinge (both forms of half_tile) from its edges e = b - a, e0 = c - b, e1 = a - c, its
+// validity and inn = 1 / |N|^2; returns 1 / |e| (1 where degenerate), which the full form's bl takes
+template <typename T, int W>
+TB_HD static TB_FORCEINLINE T half_t_lane(V3<T> e, V3<T> e0, V3<T> e1, T valid, T inn, const T* EL, const T* IE,
+                                          Half<T, W>& o, int l) {
+  T elen = valid != T(0) ? EL[l] : T(1);
+  T ie = valid != T(0) ? IE[l] : T(1);  // reciprocals: divisions here cost the blocks ~10%
+  o.t[0][l] = -dot3(e, e0) * ie * inn;  // -(e . (c - b)) / (|e| |N|^2)
+  o.t[1][l] = -dot3(e, e1) * ie * inn;  //  (e . (c - a)) / (|e| |N|^2)
+  o.t[2][l] = -elen * inn;
+  return ie;
+}
+
+// Full: two lane loops (the normal, then what it takes: the same operations), for the reason theta_tile gives
+// (hinge_ops.h): the HVP on a Zen 4 EPYC 44.4 -> 42.9 ns a hinge (x86-64-v3, against the split angle alone).  The
+// angle gradient's short form (Full = false) measured slower split (31.7 -> 32.3): it is the first loop alone, with
+// the t_k written there.
 template <typename T, int W, bool Full = true>
 TB_HD static inline void half_tile(const T (*A)[W], const T (*Bv)[W], const T (*C)[W], const T (*E)[W], const T* EL,
                                    const T* IE, Half<T, W>& o) {
-  if (!Full) {
-    TB_LANES_AGG(W) {
-      V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
-      V3<T> e{E[0][l], E[1][l], E[2][l]};
-      V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
-      Tri<T> t = tri_normal(e0, e1, e);
-      T ie = t.valid != T(0) ? IE[l] : T(1);
-      o.t[0][l] = -dot3(e, e0) * ie * t.inn;
-      o.t[1][l] = -dot3(e, e1) * ie * t.inn;
-      o.t[2][l] = -(t.valid != T(0) ? EL[l] : T(1)) * t.inn;
-      o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
-    }
-    return;
-  }
-  // Full: two lane loops (the normal, then what it takes: the same operations), for the reason theta_tile gives
-  // (hinge_ops.h): the HVP on a Zen 4 EPYC 44.4 -> 42.9 ns a hinge (x86-64-v3, against the split angle alone); the
-  // angle gradient's short form (Full = false) measured slower split (31.7 -> 32.3) and stays one loop
-  T INN[W], VAL[W];
-  TB_LANES_AGG(W) {
-    V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
-    V3<T> e{E[0][l], E[1][l], E[2][l]};
-    Tri<T> t = tri_normal(sub3(c, b), sub3(a, c), e);
-    o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
-    INN[l] = t.inn; VAL[l] = t.valid;
-  }
+  [[maybe_unused]] T INN[W], VAL[W];  // the full form's, for its second loop
   TB_LANES_AGG(W) {
     V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
     V3<T> e{E[0][l], E[1][l], E[2][l]};
     // the triangle's cyclic edges: e_0 = c - b (opposite a), e_1 = a - c (opposite b), e_2 = e = b - a
     V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
-    V3<T> N{o.N[0][l], o.N[1][l], o.N[2][l]};
-    T inn = INN[l];
-    T elen = VAL[l] != T(0) ? EL[l] : T(1);
-    T ie = VAL[l] != T(0) ? IE[l] : T(1);  // reciprocals: divisions here cost the blocks ~10%
-    o.t[0][l] = -dot3(e, e0) * ie * inn;  // -(e . (c - b)) / (|e| |N|^2)
-    o.t[1][l] = -dot3(e, e1) * ie * inn;  //  (e . (c - a)) / (|e| |N|^2)
-    o.t[2][l] = -elen * inn;
-    T r = ie * ie * ie;
-    V3<T> mh0 = scale3(cross3(e0, N), inn), mh1 = scale3(cross3(e1, N), inn), mh2 = scale3(cross3(e, N), inn);
-    o.mh[0][0][l] = mh0.x; o.mh[0][1][l] = mh0.y; o.mh[0][2][l] = mh0.z;
-    o.mh[1][0][l] = mh1.x; o.mh[1][1][l] = mh1.y; o.mh[1][2][l] = mh1.z;
-    o.mh[2][0][l] = mh2.x; o.mh[2][1][l] = mh2.y; o.mh[2][2][l] = mh2.z;
-    o.bl[0][l] = N.x * r; o.bl[1][l] = N.y * r; o.bl[2][l] = N.z * r;
+    Tri<T> t = tri_normal(e0, e1, e);
+    o.N[0][l] = t.N.x; o.N[1][l] = t.N.y; o.N[2][l] = t.N.z;
+    if constexpr (Full) {
+      INN[l] = t.inn; VAL[l] = t.valid;
+    } else {
+      half_t_lane<T, W>(e, e0, e1, t.valid, t.inn, EL, IE, o, l);
+    }
+  }
+  if constexpr (Full) {
+    TB_LANES_AGG(W) {
+      V3<T> a{A[0][l], A[1][l], A[2][l]}, b{Bv[0][l], Bv[1][l], Bv[2][l]}, c{C[0][l], C[1][l], C[2][l]};
+      V3<T> e{E[0][l], E[1][l], E[2][l]};
+      V3<T> e0 = sub3(c, b), e1 = sub3(a, c);
+      V3<T> N{o.N[0][l], o.N[1][l], o.N[2][l]};
+      T inn = INN[l];
+      T ie = half_t_lane<T, W>(e, e0, e1, VAL[l], inn, EL, IE, o, l);
+      T r = ie * ie * ie;
+      V3<T> mh0 = scale3(cross3(e0, N), inn), mh1 = scale3(cross3(e1, N), inn), mh2 = scale3(cross3(e, N), inn);
+      o.mh[0][0][l] = mh0.x; o.mh[0][1][l] = mh0.y; o.mh[0][2][l] = mh0.z;
+      o.mh[1][0][l] = mh1.x; o.mh[1][1][l] = mh1.y; o.mh[1][2][l] = mh1.z;
+      o.mh[2][0][l] = mh2.x; o.mh[2][1][l] = mh2.y; o.mh[2][2][l] = mh2.z;
+      o.bl[0][l] = N.x * r; o.bl[1][l] = N.y * r; o.bl[2][l] = N.z * r;
+    }
   }
 }
 
