@@ -394,7 +394,10 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            "- `python benchmarks/bm_hessian.py`, `bm_membrane.py`, `bm_solver.py`: more detail; recorded runs in "
            "`benchmarks/results/`.",
            "- `python benchmarks/bm_lanes.py [--csrc OTHER_TREE]`: the lane functions (bend angle, psi, atan2) compiled "
-           "alone for `-march=native` and `x86-64-v3`, timed in turns, with a bitwise checksum across the builds."]
+           "alone for `-march=native` and `x86-64-v3`, timed in turns, with a bitwise checksum across the builds.",
+           "- `python benchmarks/bm_ratios.py`: the kernels issue's ratios (energy, gradient, HVP against eager autograd, "
+           "the blocks against torch.func) with both sides timed in one process in alternated turns, for this build and "
+           "an `x86-64-v3` build (about 15 minutes)."]
     return md
 
 

@@ -48,7 +48,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_energy(torch::Tensor x
           T d1, d2;
           psi_lane<M, D>(TH[l], Q.a[l], Q.k[l], Q.rest[l], Q.c[l], Q.prev[l], PS[l], d1, d2, static_cast<T*>(nullptr));
         }
-        for (int l = 0; l < nl; ++l) { po[bh0 + l] = PS[l]; to[bh0 + l] = TH[l]; }
+        store_lanes<T, WL>(PS, nl, po + bh0); store_lanes<T, WL>(TH, nl, to + bh0);
       });
     });
   });
@@ -114,9 +114,8 @@ static std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, in
         }
         grad_of_halves<T, WL>(hA, hB, G);
         for (int m = 0; m < 12; ++m) TB_LANES(WL) O[m][l] = S[l] * G[m][l];
-        for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
-        if (po)
-          for (int l = 0; l < nl; ++l) po[bh0 + l] = PS[l];
+        store_lanes<T, WL>(TH, nl, to + bh0);
+        if (po) store_lanes<T, WL>(PS, nl, po + bh0);
       });
     });
   });

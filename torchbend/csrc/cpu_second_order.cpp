@@ -52,7 +52,7 @@ std::tuple<torch::Tensor, torch::Tensor, int64_t> bending_hvp(torch::Tensor x, t
         dot_tile<T, WL>(G, Vd, U);
         TB_LANES(WL) U[l] *= D2[l];
         hvp_of_halves<T, WL>(hA, hB, Vd, G, D1, U, true, O);
-        for (int l = 0; l < nl; ++l) to[bh0 + l] = TH[l];
+        store_lanes<T, WL>(TH, nl, to + bh0);
       });
     });
   });

@@ -190,6 +190,18 @@ template <int L = W, typename Body> static void for_tiles(int64_t B, int64_t H, 
 // parameters contiguous loads.  The lane-by-lane path stores each coordinate on its own, which then reaches the
 // lane loops' vector loads through the store buffer (a stall per component; on AVX2 the difference was about 15%
 // of an energy).  Both paths load the same values.
+// p[0 .. L) = 0 by 32-byte stores where AVX is on (the lane loop became a memset, which GCC's x86-64-v3 code issues
+// as a rep stos: tens of cycles to start, every tile)
+template <typename T, int L> static TB_FORCEINLINE void zero_lanes(T* p) {
+#if defined(__AVX__)
+  if constexpr (sizeof(T) * L % 32 == 0) {
+    for (int i = 0; i < int(sizeof(T) * L / 32); ++i) _mm256_storeu_si256(reinterpret_cast<__m256i*>(p) + i, _mm256_setzero_si256());
+    return;
+  }
+#endif
+  TB_LANES(L) p[l] = T(0);
+}
+
 template <int L, typename T> static TB_FORCEINLINE void param_run(const Param<T>& p, int64_t b, int64_t h0, T* o) {
   if (p.n == 1) {
     const T v = p.p[0];
@@ -267,7 +279,7 @@ static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* h
     if (args.damped) {
       param_run<L>(args.c, b, h0, P.c); param_run<L>(args.prev, b, h0, P.prev);
     } else {
-      TB_LANES(L) { P.c[l] = T(0); P.prev[l] = T(0); }
+      zero_lanes<T, L>(P.c); zero_lanes<T, L>(P.prev);
     }
     if (w) param_run<L>(*w, b, h0, P.w);
     else TB_LANES(L) P.w[l] = T(1);
@@ -293,6 +305,13 @@ static TB_FORCEINLINE int gather_tile(const T* xp, const T* vp, const int64_t* h
     P.w[l] = w ? (*w)(b, h) : T(1);
   }
   return bad;
+}
+
+// The first nl of a tile's L per-lane values to dst: a full tile as one copy of a fixed size (inlined vector moves;
+// the loop to a variable nl became a call of memcpy every tile).
+template <typename T, int L> static TB_FORCEINLINE void store_lanes(const T* src, int nl, T* dst) {
+  if (nl == L) std::memcpy(dst, src, sizeof(T) * L);
+  else for (int l = 0; l < nl; ++l) dst[l] = src[l];
 }
 
 // the first nl lanes of a tile's 12-vectors O to the per-hinge buffer rows bh0 ...
