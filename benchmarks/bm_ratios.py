@@ -18,7 +18,7 @@ through ``torch.autograd`` (double backward of ``bend(x)``) against the same (>=
 :func:`bm_throughput.torch_methods`, the report's.  Each build other than ``default`` (the one this process loads) is
 measured in a child process with the kernels JIT-built for ``-march=<build>`` (``TORCHBEND_PREBUILT=0
 TORCHBEND_CPU_ARCH=<build>``), the reference timed again there.  A reference that takes seconds a call (torch.func's blocks at 1e6 hinges) gets
-three turns (:data:`SLOW_TURNS`).  No assertions: this measures and prints.
+three turns (:data:`SLOW_TURNS`, ``--slow-s``).  No assertions: this measures and prints.
 """
 from __future__ import annotations
 
@@ -70,8 +70,9 @@ def fastest(fn, seconds: float) -> float:
         gc.enable()
 
 
-def measure(sizes, ops, turns: int, seconds: float, log=print) -> list[dict]:
-    """The ratios of :data:`PAIRS` (those of ``ops``) at each size, float64, in this process."""
+def measure(sizes, ops, turns: int, seconds: float, log=print, slow_s: float = SLOW_S) -> list[dict]:
+    """The ratios of :data:`PAIRS` (those of ``ops``) at each size, float64, in this process; a reference whose warm-up
+    call took over ``slow_s`` seconds gets at most :data:`SLOW_TURNS` turns."""
     rows = []
     for size in sizes:
         bend, x, v = scene(size, torch.float64, torch.device("cpu"))
@@ -86,7 +87,7 @@ def measure(sizes, ops, turns: int, seconds: float, log=print) -> list[dict]:
                 fa()  # warm-up (and the first call's one-off costs)
                 t0 = time.perf_counter()
                 fb()
-                slow = time.perf_counter() - t0 > SLOW_S
+                slow = time.perf_counter() - t0 > slow_s
                 n_turns = min(turns, SLOW_TURNS) if slow else turns
                 ta, tb, per_turn = [], [], []
                 for t in range(n_turns):
@@ -120,20 +121,39 @@ HEADER = (f"{'hinges':>8s} {'op':>15s} {'method':>18s} {'':>12s} | {'reference':
 
 
 def child(build: str, a) -> dict:
-    """This script's measurement in a child process with the kernels built for ``-march=build``."""
+    """This script's measurement in a child process with the kernels built for ``-march=build`` (``portable``,
+    ``none`` or empty: no ``-march``), importing the torchbend this process imported; a child that fails is recorded
+    as such (``{"build", "failed"}``), not raised."""
+    import torchbend
+
+    package_root = os.path.dirname(os.path.dirname(os.path.abspath(torchbend.__file__)))
+    expect = "none" if build.strip().lower() in ("", "none", "portable") else build
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "rows.json")
         cmd = [sys.executable, os.path.abspath(__file__), "--builds", "default", "--sizes", *map(str, a.sizes),
                "--ops", *a.ops, "--turns", str(a.turns), "--seconds", str(a.seconds), "--threads", str(a.threads),
-               "--json", out, "--quiet-header"]
-        env = dict(os.environ, TORCHBEND_PREBUILT="0", TORCHBEND_CPU_ARCH=build, OMP_NUM_THREADS=str(a.threads))
-        subprocess.run(cmd, env=env, check=True)
+               "--slow-s", str(a.slow_s), "--json", out, "--quiet-header"]
+        path = os.pathsep.join([package_root] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
+        env = dict(os.environ, TORCHBEND_PREBUILT="0", TORCHBEND_CPU_ARCH=build, OMP_NUM_THREADS=str(a.threads),
+                   PYTHONPATH=path)
+        proc = subprocess.run(cmd, env=env)
+        if proc.returncode != 0:
+            print(f"the -march={build} child failed (exit {proc.returncode})", flush=True)
+            return {"build": build, "failed": f"exit {proc.returncode}"}
         with open(out) as f:
             rec = json.load(f)["builds"][0]
-    if rec["kernels"].get("march") != build:
-        raise RuntimeError(f"the -march={build} child ran kernels built for {rec['kernels'] or 'nothing'}")
+    built = rec["kernels"]
+    if built.get("march") != expect or built.get("package") != os.path.dirname(os.path.abspath(torchbend.__file__)):
+        raise RuntimeError(f"the -march={build} child ran kernels built for {built or 'nothing'}")
     rec["build"] = build
     return rec
+
+
+def write(path: str | None, builds: list) -> None:
+    """The record so far to ``path`` (after every build: a later one that fails keeps the earlier ones)."""
+    if path:
+        with open(path, "w") as f:
+            json.dump({"machine": machine(), "builds": builds}, f, indent=1)
 
 
 def main(argv=None) -> None:
@@ -145,6 +165,8 @@ def main(argv=None) -> None:
     p.add_argument("--turns", type=int, default=5)
     p.add_argument("--seconds", type=float, default=0.5, help="per method and turn: the fastest call within this")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--slow-s", type=float, default=SLOW_S,
+                   help=f"a reference whose warm-up call takes longer gets at most {SLOW_TURNS} turns")
     p.add_argument("--json", help="write the record to this JSON file")
     p.add_argument("--quiet-header", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -155,6 +177,7 @@ def main(argv=None) -> None:
             print(f"\nkernels built for -march={build} (a child process, TORCHBEND_PREBUILT=0 "
                   f"TORCHBEND_CPU_ARCH={build}):", flush=True)
             builds.append(child(build, a))
+            write(a.json, builds)
             continue
         kern = kernel_build()
         if not a.quiet_header:
@@ -164,10 +187,9 @@ def main(argv=None) -> None:
                   flush=True)
         print(HEADER, flush=True)
         builds.append({"build": "default", "kernels": kern,
-                       "rows": measure(a.sizes, a.ops, a.turns, a.seconds, log=lambda s: print(s, flush=True))})
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump({"machine": machine(), "builds": builds}, f, indent=1)
+                       "rows": measure(a.sizes, a.ops, a.turns, a.seconds, log=lambda s: print(s, flush=True),
+                                       slow_s=a.slow_s)})
+        write(a.json, builds)
 
 
 if __name__ == "__main__":
