@@ -225,6 +225,26 @@ def garments_section(results: str = RESULTS) -> list:
     return lines
 
 
+def ratios_section(results: str = RESULTS) -> list:
+    """The newest ``ratios_*.txt`` in ``results`` (``python benchmarks/bm_ratios.py > ...``: the targets' ratios with
+    both sides timed in one process, in turns), verbatim, under the acceptance table (which this run's figures fill)."""
+    def recorded(path: str) -> str:  # the first "YYYY-MM-DD HH:MM" of the file's header: when it was run
+        with open(path) as f:
+            m = re.search(r"\d{4}-\d{2}-\d{2} \d{2}:\d{2}", f.read(600))
+        return m.group(0) if m else ""
+
+    paths = sorted(glob.glob(os.path.join(results, "ratios_*.txt")), key=recorded)
+    if not paths:
+        return []
+    with open(paths[-1]) as f:
+        text = f.read().rstrip()
+    return ["", "### The same ratios timed side by side (`python benchmarks/bm_ratios.py`)", "",
+            "The table above divides medians measured one after the other (the x86-64-v3 rows' by a reference measured "
+            "in another process, earlier); `bm_ratios.py` times both sides of each ratio in one process, in alternated "
+            f"turns.  Its newest record, `{os.path.relpath(paths[-1], ROOT)}` (recorded separately, not by this run):",
+            "", "```", text, "```"]
+
+
 def contact_section(results: str = RESULTS) -> list:
     """The newest ``self_contact_*.txt`` in ``results`` (``python benchmarks/bm_contact.py > ...``), verbatim, and the
     names of the earlier ones."""
@@ -356,6 +376,7 @@ def render(result: dict, quick: bool, acc_lines: list | None, sol_lines: list | 
            + (" **Quick run: the speed-up targets are evaluated at 1e4 hinges, to check the harness only.**"
               if quick else ""), ""]
     md += tables.targets_table(cpu)
+    md += ratios_section()
     md += ["", "## Findings", ""] + discussion(result)
     md += ["", "## Throughput", "", "![float64](benchmarks/plots/throughput_float64.png)",
            "![float32](benchmarks/plots/throughput_float32.png)"]
