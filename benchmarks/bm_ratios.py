@@ -23,7 +23,6 @@ three turns (:data:`SLOW_TURNS`, ``--slow-s``).  No assertions: this measures an
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import os
 import statistics
@@ -33,8 +32,8 @@ import tempfile
 import time
 
 import torch
-from bm_throughput import parse_size, scene, torch_methods
-from common import kernel_build, machine
+from bm_throughput import MAX_REPEAT, parse_size, scene, torch_methods
+from common import bench, kernel_build, machine
 
 from torchbend.energies.sparse import HessianPattern
 
@@ -54,20 +53,8 @@ on a 2-core VM) gets at most SLOW_TURNS turns."""
 
 
 def fastest(fn, seconds: float) -> float:
-    """The fastest call of ``fn`` (seconds) among those of about ``seconds`` (at least one), the collector off."""
-    gc.collect()
-    gc.disable()
-    try:
-        best, end = float("inf"), time.perf_counter() + seconds
-        while True:
-            t0 = time.perf_counter()
-            fn()
-            t1 = time.perf_counter()
-            best = min(best, t1 - t0)
-            if t1 >= end:
-                return best
-    finally:
-        gc.enable()
+    """The fastest call of ``fn`` (seconds) among those of about ``seconds`` (at least one; :func:`common.bench`)."""
+    return bench(fn, budget=seconds, min_repeat=1, max_repeat=MAX_REPEAT, warmup=0)["min"]
 
 
 def measure(sizes, ops, turns: int, seconds: float, log=print, slow_s: float = SLOW_S) -> list[dict]:

@@ -225,15 +225,19 @@ def garments_section(results: str = RESULTS) -> list:
     return lines
 
 
+def recorded(path: str, pattern: str = r"\((\d{4}-\d{2}-\d{2} \d{2}:\d{2}) UTC") -> str:
+    """When a results file was run: ``pattern``'s first group in its header (default: "(YYYY-MM-DD HH:MM UTC");
+    "" if none: sorted first)."""
+    with open(path) as f:
+        m = re.search(pattern, f.read(600))
+    return m.group(1) if m else ""
+
+
 def ratios_section(results: str = RESULTS) -> list:
     """The newest ``ratios_*.txt`` in ``results`` (``python benchmarks/bm_ratios.py > ...``: the targets' ratios with
     both sides timed in one process, in turns), verbatim, under the acceptance table (which this run's figures fill)."""
-    def recorded(path: str) -> str:  # the first "YYYY-MM-DD HH:MM" of the file's header: when it was run
-        with open(path) as f:
-            m = re.search(r"\d{4}-\d{2}-\d{2} \d{2}:\d{2}", f.read(600))
-        return m.group(0) if m else ""
-
-    paths = sorted(glob.glob(os.path.join(results, "ratios_*.txt")), key=recorded)
+    paths = sorted(glob.glob(os.path.join(results, "ratios_*.txt")),
+                   key=lambda p: recorded(p, r"(\d{4}-\d{2}-\d{2} \d{2}:\d{2})"))
     if not paths:
         return []
     with open(paths[-1]) as f:
@@ -249,11 +253,6 @@ def contact_section(results: str = RESULTS) -> list:
     """The newest ``self_contact_*.txt`` in ``results`` (``python benchmarks/bm_contact.py > ...``), verbatim, and the
     names of the earlier ones."""
     lines = ["", "## Self-contact against the IPC toolkit (one thread)", ""]
-    def recorded(path: str) -> str:  # the run's date in the file's header, "(YYYY-MM-DD HH:MM UTC"
-        with open(path) as f:
-            m = re.search(r"\((\d{4}-\d{2}-\d{2} \d{2}:\d{2}) UTC", f.read(600))
-        return m.group(1) if m else ""
-
     paths = sorted(glob.glob(os.path.join(results, "self_contact_*.txt")), key=recorded)
     if not paths:
         return lines + ["No contact run recorded: `python benchmarks/bm_contact.py --scene half --sizes 12 20 50 100 > "

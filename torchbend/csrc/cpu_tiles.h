@@ -178,18 +178,6 @@ template <int L = W, typename Body> static void for_tiles(int64_t B, int64_t H, 
   });
 }
 
-// gather the stencils (and, if vp is given, the directions) and the parameters of a tile; lanes past
-// nl get zeros (finite: theta = atan2(0, 0) = 0).  The hinge indices are range-checked as they are read (the
-// check of the operators that make no other pass over them, bending_energy): a lane with an index outside
-// [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
-// (checks::check_range) before returning anything
-// (Check = false: the indices were checked before, by the scatter plan of the gradient operators.)
-// A full tile of L consecutive hinges of one sample (every tile but a sample's last, partial or wrapping one)
-// in float64 takes gather_full_tile: the four vertices' offsets are computed across the lanes, the points loaded
-// by gather_points (AVX builds; elsewhere each of the 12 components is one loop across the lanes), the
-// parameters contiguous loads.  The lane-by-lane path stores each coordinate on its own, which then reaches the
-// lane loops' vector loads through the store buffer (a stall per component; on AVX2 the difference was about 15%
-// of an energy).  Both paths load the same values.
 // p[0 .. L) = 0 by 32-byte stores where AVX is on (the lane loop became a memset, which GCC's x86-64-v3 code issues
 // as a rep stos: tens of cycles to start, every tile)
 template <typename T, int L> static TB_FORCEINLINE void zero_lanes(T* p) {
@@ -202,6 +190,18 @@ template <typename T, int L> static TB_FORCEINLINE void zero_lanes(T* p) {
   TB_LANES(L) p[l] = T(0);
 }
 
+// gather the stencils (and, if vp is given, the directions) and the parameters of a tile; lanes past
+// nl get zeros (finite: theta = atan2(0, 0) = 0).  The hinge indices are range-checked as they are read (the
+// check of the operators that make no other pass over them, bending_energy): a lane with an index outside
+// [0, V) reads nothing and gets zeros, and the return value is nonzero, for the caller to raise the ValueError
+// (checks::check_range) before returning anything
+// (Check = false: the indices were checked before, by the scatter plan of the gradient operators.)
+// A full tile of L consecutive hinges of one sample (every tile but a sample's last, partial or wrapping one)
+// in float64 takes gather_full_tile: the four vertices' offsets are computed across the lanes, the points loaded
+// by gather_points (AVX builds; elsewhere each of the 12 components is one loop across the lanes), the
+// parameters contiguous loads.  The lane-by-lane path stores each coordinate on its own, which then reaches the
+// lane loops' vector loads through the store buffer (a stall per component; on AVX2 the difference was about 15%
+// of an energy).  Both paths load the same values.
 template <int L, typename T> static TB_FORCEINLINE void param_run(const Param<T>& p, int64_t b, int64_t h0, T* o) {
   if (p.n == 1) {
     const T v = p.p[0];
