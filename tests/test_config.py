@@ -144,7 +144,11 @@ def test_overrides_set_nested_keys_and_are_validated(tmp_path):
     sphere, grid = c.colliders[0], c.mesh
     assert isinstance(sphere, SphereSpec) and isinstance(grid, GridMesh)
     assert c.solver.tol == 1e-8 and sphere.center == (0.0, 0.0, 0.1) and c.output.every == 5 and grid.size == (2.0, 1.0)
+    # a dotted index into a list as the bracketed one
+    out = apply_overrides(out, ["colliders.0.friction=0.5", "colliders.-1.radius=0.2"])
+    assert out["colliders"][0]["friction"] == 0.5 and out["colliders"][0]["radius"] == 0.2
     for bad, message in [("solver.tol", "must be KEY=VALUE"), ("colliders[3].radius=1", "no list element [3]"),
+                         ("colliders.3.radius=1", "no list element [3]"),
                          ("colliders.x=1", "not inside a mapping"), ("=1", "must be KEY=VALUE")]:
         with pytest.raises(ConfigError, match=re.escape(message)):
             apply_overrides({"colliders": [], "solver": {}}, [bad])

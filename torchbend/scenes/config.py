@@ -122,7 +122,7 @@ def _parse_key(key: str) -> list:
 
 def apply_overrides(cfg: dict, overrides) -> dict:
     """``cfg`` with ``KEY=VALUE`` overrides set in place (values read as YAML: ``solver.tol=1e-8``,
-    ``colliders[0].center=[0, 0, 0.1]``); missing mappings on the way are created."""
+    ``colliders[0].center=[0, 0, 0.1]``, or ``colliders.0.center``); missing mappings on the way are created."""
     import yaml
 
     for item in overrides or ():
@@ -137,7 +137,7 @@ def apply_overrides(cfg: dict, overrides) -> dict:
         except RecursionError:
             raise ConfigError(f"override {short_repr(item)}: the value is nested too deeply") from None
         node = _parent(cfg, parts, item)
-        last = parts[-1]
+        last = _list_index(node, parts[-1])
         if isinstance(last, int):
             if not isinstance(node, list) or not -len(node) <= last < len(node):
                 raise ConfigError(f"override {short_repr(item)}: no list element [{last}]")
@@ -147,12 +147,20 @@ def apply_overrides(cfg: dict, overrides) -> dict:
     return cfg
 
 
+def _list_index(node: Any, part: str | int) -> str | int:
+    """A dotted key's part as a list index where it names a list element (``colliders.0.friction`` as
+    ``colliders[0].friction``); else the part itself."""
+    if isinstance(node, list) and isinstance(part, str) and part.lstrip("-").isdigit():
+        return int(part)
+    return part
+
+
 def _parent(cfg: dict, parts: list, item) -> Any:
     """The container of an override key's last part (``parts`` from :func:`_parse_key`), creating missing
     mappings and lists on the way; :class:`ConfigError` naming the override ``item`` where it cannot."""
     node: Any = cfg
     for i, part in enumerate(parts[:-1]):
-        nxt = parts[i + 1]
+        nxt, part = parts[i + 1], _list_index(node, part)
         if isinstance(part, int):
             if not isinstance(node, list) or not -len(node) <= part < len(node):
                 raise ConfigError(f"override {short_repr(item)}: no list element [{part}]")
