@@ -760,3 +760,19 @@ def test_an_adaptive_kappa_doubles_while_a_contact_is_pressed_too_close():
     assert dist[0] < 0.1 * body.dhat < dist[-1]
     _, kappa_fixed, dist_fixed = run(k0)
     assert set(kappa_fixed) == {k0} and dist_fixed[-1] < 0.1 * body.dhat
+
+
+def test_a_stiffness_far_below_the_weight_based_choice_is_warned_about():
+    """A given kappa a thousand times below the one stiffness=None chooses (the contacts would be pressed to a tiny
+    fraction of dhat, where Newton's intersection-free steps are short) warns, naming both; one near it does not."""
+    import warnings
+    rest, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    auto = tb.SelfContact(dhat=1e-3)
+    tb.ClothModel(faces, rest, terms=[auto], density=0.2)
+    assert auto.stiffness is not None
+    weak = tb.SelfContact(dhat=1e-3, stiffness=1e-4 * auto.stiffness)
+    with pytest.warns(UserWarning, match=r"stiffness .* J/m\^4 is 1e\+04 times below the .* stiffness=None"):
+        tb.ClothModel(faces, rest, terms=[weak], density=0.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tb.ClothModel(faces, rest, terms=[tb.SelfContact(dhat=1e-3, stiffness=0.01 * auto.stiffness)], density=0.2)
