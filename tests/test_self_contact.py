@@ -233,11 +233,14 @@ def test_self_contact_step_bound_keeps_every_path_free_of_intersections():
         assert alpha < 1  # the whole step would have pushed the sheet through
 
 
-def test_the_step_bound_lets_pairs_slide_and_part_and_stops_them_short_of_meeting():
+def test_the_step_bound_lets_pairs_slide_and_part_and_stops_them_short_of_meeting(monkeypatch):
     """Conservative advancement: a sheet 1.5 mm above another (dhat 2 mm) moved 5 cm sideways or 5 cm up keeps
     its distances, so nothing holds the step back (a single bound 0.9 d / rate would stop both at 0.027); moved
     5 cm down, it stops short of the lower sheet (between the first advance and the gap), every point of the path
-    free of intersections; a diagonal move (down and sideways) stops short too."""
+    free of intersections; a diagonal move (down and sideways) stops short too.  The compiled bound and the eager
+    one (torchbend.sim.self_contact._advance) agree."""
+    import torchbend.sim.self_contact as sc_module
+
     model, x, sc, V = two_sheets(n=6, gap=1.5e-3)
     topo = model.topology
     for move, bound in [((0.05, 0.0, 0.0), 1.0), ((0.0, 0.05, 0.0), 1.0), ((0.0, 0.0, 0.05), 1.0),
@@ -245,6 +248,12 @@ def test_the_step_bound_lets_pairs_slide_and_part_and_stops_them_short_of_meetin
         dx = torch.zeros_like(x)
         dx[V:] = torch.tensor(move, dtype=F64)
         alpha = sc.max_step(x, dx, tb.StepContext())
+        with monkeypatch.context() as m:
+            m.setattr(sc_module, "_native_ok", lambda t: False)
+            sc._cache = None
+            eager = sc.max_step(x, dx, tb.StepContext())
+            sc._cache = None
+        assert math.isclose(alpha, eager, rel_tol=1e-9), (move, alpha, eager)
         if bound is not None:
             assert alpha == bound, (move, alpha)
             continue
@@ -254,6 +263,36 @@ def test_the_step_bound_lets_pairs_slide_and_part_and_stops_them_short_of_meetin
             y = x + t * alpha * dx
             assert not intersects(y, topo.faces, topo.edges), (move, t)
             assert sc.min_distance(y, radius=0.05)[0] > 0
+
+
+def test_the_compiled_step_bound_is_the_same_for_any_number_of_threads():
+    """The advancement's pruning (a pair past the smallest time found stops) changes no result: the bound of a
+    step with thousands of binding pairs, split over threads in chunks, is the one-thread bound bit for bit, and the
+    eager bound's."""
+    import torchbend.sim.self_contact as sc_module
+
+    model, x, sc, V = two_sheets(n=40, gap=1e-3, size=0.4)
+    dx = torch.zeros_like(x)
+    dx[V:] = torch.tensor([0.004, 0.001, -0.002], dtype=F64)
+    threads = torch.get_num_threads()
+    try:
+        got = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            sc._cache = None
+            got.append(sc.max_step(x, dx, tb.StepContext()))
+    finally:
+        torch.set_num_threads(threads)
+    sc_module_native = sc_module._native_ok
+    try:
+        sc_module._native_ok = lambda t: False
+        sc._cache = None
+        eager = sc.max_step(x, dx, tb.StepContext())
+    finally:
+        sc_module._native_ok = sc_module_native
+        sc._cache = None
+    assert 0.9 * 1e-3 / float(dx[V].norm()) < got[0] < 1 and got[0] == got[1], got
+    assert math.isclose(eager, got[0], rel_tol=1e-9), (eager, got)
 
 
 def test_a_strip_folded_tightly_onto_itself_converges_in_every_step():

@@ -194,15 +194,16 @@ def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
     return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq), bool(distinct))
 
 
-def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tensor) -> float:
+def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tensor, dhat: float = 0.0) -> float:
     """The conservative step bound of point-triangle or edge-edge stencils ``(N, 4)`` over the points ``x (n, 3)``
     that move along a step: ``min(1, 0.9 d / (m_A + m_B))`` over the stencils (``d`` the distance; with ``move (n,)``
     each point's largest move, ``m_A``, ``m_B`` the largest of each side; with ``move (n, 3)`` each point's
     displacement, ``m_A``, ``m_B`` the largest of each side's displacements less the stencil's mean, which no
     distance depends on, or of the displacements themselves where their sum is smaller;
     :meth:`torchbend.SelfContact.max_step`); stencils whose boxes' gap alone bounds them above
-    the smallest so far are not measured."""
-    return float(_module().contact_step_bound(x, stencils, bool(edge_edge), move))
+    the smallest so far are not measured.  With displacements and ``dhat > 0`` a stencil whose bound binds advances
+    on from the distance it reached (conservative advancement, :func:`torchbend.sim.self_contact._advance`)."""
+    return float(_module().contact_step_bound(x, stencils, bool(edge_edge), move, float(dhat)))
 
 
 def contact_barrier(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float, kappa: float,

@@ -170,7 +170,21 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
 // less the stencil's mean (a move the four corners share changes no distance: a cloth falling onto itself as a
 // whole is not held back), or of the displacements themselves where those give the smaller sum.  A stencil whose primitives' boxes are so far apart that their gap alone bounds it above
 // the smallest so far is skipped (its distance is at least the gap).
-double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move) {
+namespace {
+constexpr int kMaxAdvances = 64;  // advances of a pair's conservative advancement at most (torchbend.sim.self_contact)
+
+// the distance of the stencil with corners X moved by t times their displacements (pm, rows s) in T's arithmetic,
+// as x + t dx
+template <typename T> double distance_at(const T X[4][3], const T* pm, const int64_t* s, double t, bool edge_edge) {
+  T Y[4][3];
+  for (int v = 0; v < 4; ++v)
+    for (int i = 0; i < 3; ++i) Y[v][i] = X[v][i] + T(t) * pm[3 * s[v] + i];
+  int ty;
+  return double(std::sqrt(std::max(stencil_distance_sq(Y, edge_edge, &ty), T(0))));
+}
+}  // namespace
+
+double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move, double dhat) {
   const char* op = "contact_step_bound";
   stencils = stencil_tensor(op, x, stencils);
   const bool vectors = move.dim() == 2;
@@ -217,9 +231,23 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
           T X[4][3];
           gather(px, s, X);
           if (0.9 * std::sqrt(box_gap_sq<double>(X, split)) * (1 - 1e-9) / rate >= a) continue;
-          int t;
-          T D = stencil_distance_sq(X, edge_edge, &t);
-          a = std::min(a, 0.9 * double(std::sqrt(std::max(D, T(0)))) / rate);
+          int ty;
+          const double dist = double(std::sqrt(std::max(stencil_distance_sq(X, edge_edge, &ty), T(0))));
+          double t = 0.9 * dist / rate;  // the first advance, taken whole
+          if (vectors && dhat > 0 && t < a) {
+            // conservative advancement from the distance reached while it stays above the floor, to the step's end
+            // (1) at most; a pair whose time reached passes a cannot lower a: its advances stop (the result is the
+            // smallest pair time whatever the order and the threads)
+            const double floor = 0.1 * std::min(dist, dhat);
+            double dn = distance_at(X, pm, s, t, edge_edge);
+            for (int i = 1; i < kMaxAdvances && dn >= floor && t < a; ++i) {
+              const double tn = t + 0.9 * dn / rate;
+              if (tn >= 1.0) { t = 1.0; break; }
+              dn = distance_at(X, pm, s, tn, edge_edge);
+              if (dn >= floor) t = tn;
+            }
+          }
+          a = std::min(a, t);
         }
         best[c] = a;
       }

@@ -25,8 +25,10 @@ std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torc
 std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
                                                        double dhat_sq, bool distinct);
 // the largest fraction (<= 1) of a step along which the stencils' vertices, moving at most move[v] (n,), stay
-// apart: 0.9 d / (m_A + m_B) over the stencils (d the distance, m_A, m_B the sides' largest moves)
-double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move);
+// apart: 0.9 d / (m_A + m_B) over the stencils (d the distance, m_A, m_B the sides' largest moves); with
+// displacements move (n, 3) and dhat > 0, each stencil whose first advance binds advances on from the distance it
+// reached while that stays above a tenth of min(d, dhat) (conservative advancement, torchbend.sim.self_contact)
+double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edge, torch::Tensor move, double dhat);
 // (energies (N,), gradients (N, 12) if want >= 1, Hessians (N, 12, 12) if want >= 2: unprojected (mode -1),
 // clamped (0) or abs (1)) of the barrier of stencils (N, 4) of the given types; eps: the edge-edge pairs'
 // mollifier thresholds (N,) or empty (point-triangle pairs)

@@ -381,9 +381,10 @@ def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
     for st in (pt, ee):
         if not st.shape[0]:
             continue
-        if _native_ok(xa) and native.contact_step_bound(xa, st, st is ee, dx) >= alpha:
-            continue  # no pair's first bound binds (the common case, compiled)
-        alpha = min(alpha, _advance(xa[st], dx[st], st is ee, alpha, term.dhat))
+        if _native_ok(xa):  # compiled: the same advancement
+            alpha = min(alpha, native.contact_step_bound(xa, st, st is ee, dx, term.dhat))
+        else:
+            alpha = min(alpha, _advance(xa[st], dx[st], st is ee, alpha, term.dhat))
     return max(alpha, 0.0)
 
 
@@ -397,44 +398,52 @@ def _stencil_distances(X: Tensor, edge_edge: bool) -> Tensor:
     return _distances(X.reshape(-1, 3), st, edge_edge)[1].clamp_min(0).sqrt()
 
 
+def _lengths(v: Tensor) -> Tensor:
+    """The lengths ``(..., 4)`` of vectors ``v (..., 4, 3)`` (elementwise: torch's norm over a last dimension of 3 is
+    slower)."""
+    return (v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]).sqrt()
+
+
 def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> float:
     """The step bound (module docstring) of the pairs with corners ``X (N, 4, 3)`` moving by ``P (N, 4, 3)`` along
     a step, at most ``cap``, by conservative advancement (additive CCD): a pair at distance ``d`` whose distance
     changes at most at the rate ``r`` (its corners' displacements as in the module docstring) advances by
-    ``0.9 d / r`` (taken whole: the single bound) and again from the distance reached there, until its distance
-    falls below a tenth of its start or of ``dhat``, the smaller (the bound is the last time reached before it), or
-    it reaches ``cap``; at most ``_MAX_ADVANCES`` advances.
-    Along each advance the distance stays above a tenth of its value at the advance's start: no path so bounded
-    meets.  A first advance alone (the bound of a single ``0.9 d / r``) holds back pairs that slide or part, whose
-    distance does not fall: a fold whose hinges push its layers apart took ~1e-3 of each Newton step."""
+    ``0.9 d / r`` (taken whole: the single bound) and again from the distance reached there, while its distance
+    stays above a tenth of its start or of ``dhat``, the smaller (its time: the last one reached), up to the step's
+    end (1); at most ``_MAX_ADVANCES`` advances.  The bound is the smallest pair time (``cap`` at most): a pair
+    whose time passes the smallest one found stops advancing, which changes no result (the compiled
+    ``contact_step_bound`` computes the same).  Along each advance the distance stays above a tenth of its value at
+    the advance's start: no path so bounded meets.  A first advance alone (the single bound ``0.9 d / r``) holds
+    back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
+    ~1e-3 of each Newton step."""
     k = 2 if edge_edge else 1
-    rel = P - P.mean(1, keepdim=True)  # a move the four corners share changes no distance
-    mv, ln = rel.norm(dim=-1), P.norm(dim=-1)
+    rel = P - 0.25 * (P[:, 0] + P[:, 1] + P[:, 2] + P[:, 3])[:, None]  # a move the four corners share changes no distance
+    mv, ln = _lengths(rel), _lengths(P)
     rate = torch.minimum(mv[:, :k].amax(1) + mv[:, k:].amax(1), ln[:, :k].amax(1) + ln[:, k:].amax(1))
     d = _stencil_distances(X, edge_edge)
     step = 0.9 * d / rate.clamp_min(torch.finfo(d.dtype).tiny)
-    bind = (rate > 0) & (step < cap)  # the pairs whose first advance ends before cap
+    bind = (rate > 0) & (step < cap)  # a pair's time is at least its first advance: the others cannot bind
     if not bool(bind.any()):
         return cap
     X, P, rate, t = X[bind], P[bind], rate[bind], step[bind]
     floor = 0.1 * d[bind].clamp_max(dhat)
-    # the first advance is taken whole (the single bound: the distance falls at most to a tenth, e.g. head-on)
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
-    step = 0.9 * dn / rate
     live = dn >= floor
+    best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
+        if bool((~live).any()):
+            best = min(best, float(t[~live].min()))
+        live &= t < best  # a pair past the smallest time cannot lower it
         if not bool(live.any()):
             break
-        tn = t + step
-        free = live & (tn >= cap)  # a pair that reaches cap holds nothing back
-        t = torch.where(free, torch.full_like(t, cap), t)
-        live &= ~free
-        if not bool(live.any()):
-            break
-        dn = _stencil_distances(X + tn[:, None, None] * P, edge_edge)
-        moved = live & (dn >= floor)
+        tn = t + 0.9 * dn / rate
+        end = live & (tn >= 1.0)
+        t = torch.where(end, torch.ones_like(t), t)
+        live &= ~end
+        dn_next = _stencil_distances(X + tn[:, None, None] * P, edge_edge)
+        moved = live & (dn_next >= floor)
         t = torch.where(moved, tn, t)
-        step = torch.where(moved, 0.9 * dn / rate, step)
+        dn = torch.where(moved, dn_next, dn)
         live = moved
     return min(cap, float(t.min()))
 
