@@ -583,6 +583,27 @@ class _LaggedFriction(_ContactPairs):
         return f["stencils"], H
 
 
+WEAK_FRACTION = 1e-3
+"""A given ``stiffness`` below this fraction of the one ``stiffness=None`` would choose is warned about (the four
+9x9 sheets of configs/pile.yaml with ``stiffness`` 1e3, 2e-4 of the choice: 6 of 40 steps did not converge, their
+contacts pressed to 2.5e-6 m; with 1e5, 2e-2 of it: every step converged)."""
+
+
+def _weight_kappa(mass: Tensor, dhat: float) -> float:
+    """The ``kappa`` whose barrier force at ``dhat / 2`` carries ten mean vertex weights (``mass (V,)`` [kg]):
+    ``-b'(D) 2 d`` at ``d = dhat / 2`` is ``4.33 kappa dhat^3`` (``D = d^2``)."""
+    weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
+    return 10 * weight / (4.33 * dhat ** 3)
+
+
+def _warn_weak(name: str, stiffness: float, chosen: float, dhat: float) -> None:
+    warnings.warn(f"{name}: stiffness {stiffness:.3g} J/m^4 is {chosen / stiffness:.3g} times below the {chosen:.3g} "
+                  f"J/m^4 whose barrier carries ten mean vertex weights at dhat / 2: contacts are pressed to a small "
+                  f"fraction of dhat ({dhat:g} m), where the intersection-free steps are short and Newton may not "
+                  "converge; stiffness=None chooses kappa from the cloth's weight and adapts it", UserWarning,
+                  stacklevel=4)
+
+
 class SelfContact(_LaggedFriction, EnergyTerm):
     """IPC's barrier between the cloth's own non-adjacent primitives (module docstring).
 
@@ -619,10 +640,6 @@ class SelfContact(_LaggedFriction, EnergyTerm):
     """A time step starting with a distance below this fraction of ``dhat`` doubles an adaptive ``kappa``."""
     KAPPA_GROWTH = 100.0
     """An adaptive ``kappa`` grows to at most this many times its initial value."""
-    WEAK_FRACTION = 1e-3
-    """A given ``stiffness`` below this fraction of the one ``stiffness=None`` would choose is warned about (the
-    four 9x9 sheets of configs/pile.yaml with ``stiffness`` 1e3, 2e-4 of the choice: 6 of 40 steps did not
-    converge, their contacts pressed to 2.5e-6 m; with 1e5, 2e-2 of it: every step converged)."""
 
     # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
@@ -635,17 +652,11 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         self._V = rest.shape[0]
         e = rest[edges[:, 1]] - rest[edges[:, 0]]
         self._rest_len_sq = (e * e).sum(-1)
-        weight = 9.81 * float(mass.mean()) if mass.numel() else 1.0
-        # -b'(D) 2 d at d = dhat / 2 is 4.33 kappa dhat^3 (D = d^2, Dhat = dhat^2)
-        chosen = 10 * weight / (4.33 * self.dhat ** 3)
+        chosen = _weight_kappa(mass, self.dhat)
         if self._auto:
             self.stiffness, self._kappa0, self._last_min = chosen, chosen, math.inf
-        elif self.stiffness is not None and self.stiffness < self.WEAK_FRACTION * chosen:
-            warnings.warn(f"{self.name}: stiffness {self.stiffness:.3g} J/m^4 is {chosen / self.stiffness:.3g} times "
-                          f"below the {chosen:.3g} J/m^4 whose barrier carries ten mean vertex weights at dhat / 2: "
-                          f"contacts are pressed to a small fraction of dhat ({self.dhat:g} m), where the "
-                          "intersection-free steps are short and Newton may not converge; stiffness=None chooses "
-                          "kappa from the cloth's weight and adapts it", UserWarning, stacklevel=3)
+        elif self.stiffness is not None and self.stiffness < WEAK_FRACTION * chosen:
+            _warn_weak(self.name, self.stiffness, chosen, self.dhat)
 
     def _pair_energy(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
         assert self.stiffness is not None
