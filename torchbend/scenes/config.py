@@ -141,9 +141,11 @@ def apply_overrides(cfg: dict, overrides) -> dict:
         if isinstance(last, int):
             if not isinstance(node, list) or not -len(node) <= last < len(node):
                 raise ConfigError(f"override {short_repr(item)}: no list element [{last}]")
-        elif not isinstance(node, dict):
-            raise ConfigError(f"override {short_repr(item)}: {short_repr(last)} is not inside a mapping")
-        node[last] = value
+            node[last] = value
+        else:
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {short_repr(item)}: {short_repr(last)} is not inside a mapping")
+            node[last] = value
     return cfg
 
 
