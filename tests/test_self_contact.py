@@ -295,6 +295,39 @@ def test_the_compiled_step_bound_is_the_same_for_any_number_of_threads():
     assert math.isclose(eager, got[0], rel_tol=1e-9), (eager, got)
 
 
+@pytest.mark.parametrize("X, P", [
+    # nearly parallel edges 2e-16 m apart at coordinates of 3 cm, the second moved 2e-14 m across the first
+    ([[0.02338570666176268, 0.008385059611010019, 0.02120023479170193],
+      [0.03048984796209446, 0.012615512913314138, 0.017425447791589478],
+      [0.02412068760757331, 0.008822734262721812, 0.020809702508870258],
+      [0.03145567738251818, 0.013190389564934919, 0.016911783065171777]],
+     [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-1.02636289556308e-15, 1.527106114719012e-14, 1.503239340645579e-14],
+      [-1.1051060456157354e-15, 1.4781426330910896e-14, 1.5129365854162607e-14]]),
+    # edges 6e-14 m apart at coordinates of 0.6 m
+    ([[-0.0, 0.0, 0.0], [0.41878867013338167, -0.4828405262401639, -0.6212719395536138],
+      [0.15922388541909968, -0.18357646734166794, -0.23620823382375658],
+      [0.4164167260631716, -0.480102516452131, -0.6177749313479634]],
+     [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [3.9292859398178834e-14, 4.933934183361044e-14, -1.1858944486493643e-14],
+      [3.9292859398178834e-14, 4.933934183361044e-14, -1.1858944486493643e-14]]),
+])
+def test_pairs_at_round_off_distances_keep_the_single_bound(X, P, monkeypatch):
+    """Edge pairs whose distance is at the round-off of their coordinates (found by a review: advancing from the
+    distances measured there let the edges pass through each other within the step) take their first advance alone,
+    in both paths: the single bound, along which their distance stays positive (dense samples, float64)."""
+    import torchbend.sim.self_contact as sc_module
+    from torchbend.backends import native
+
+    x, p = torch.tensor(X, dtype=F64), torch.tensor(P, dtype=F64)
+    st = torch.arange(4).reshape(1, 4)
+    single = native.contact_step_bound(x, st, True, p, 0.0)
+    for dhat in (1e-12, 1.0):
+        assert native.contact_step_bound(x, st, True, p, dhat) == single
+        assert sc_module._advance(x[None], p[None], True, 1.0, dhat) == single
+    ts = torch.linspace(0, 1, 4001, dtype=F64) * single
+    d = sc_module._stencil_distances(x[None] + ts[:, None, None] * p[None], True)
+    assert bool((d > 0).all())
+
+
 def test_a_strip_folded_tightly_onto_itself_converges_in_every_step():
     """A 20 x 10 cm strip (9 x 5 grid) folded onto itself with its layers 1.05 mm apart (dhat 1 mm; the fold in
     one hinge at 3.1 rad, the tan model's forces ~1e3 N push it open) falling onto a plane: every time step

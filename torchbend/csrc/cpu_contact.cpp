@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <array>
 #include <cstdint>
+#include <limits>
 #include <type_traits>
 #include <unordered_set>
 #include <vector>
@@ -172,6 +173,20 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
 // the smallest so far is skipped (its distance is at least the gap).
 namespace {
 constexpr int kMaxAdvances = 64;  // advances of a pair's conservative advancement at most (torchbend.sim.self_contact)
+// a pair advances past its first advance only where its floor is at least kResolvable epsilons of its corners' scale
+// (their largest coordinate plus their largest displacement component): there the distances it measures along the
+// step are within a small part of the floor (torchbend.sim.self_contact._advance)
+constexpr double kResolvable = 1024.0;
+
+template <typename T> double corner_scale(const T X[4][3], const T* pm, const int64_t* s) {
+  double sx = 0, sp = 0;
+  for (int v = 0; v < 4; ++v)
+    for (int i = 0; i < 3; ++i) {
+      sx = std::max(sx, double(std::abs(X[v][i])));
+      sp = std::max(sp, double(std::abs(pm[3 * s[v] + i])));
+    }
+  return sx + sp;
+}
 
 // the distance of the stencil with corners X moved by t times their displacements (pm, rows s) in T's arithmetic,
 // as x + t dx
@@ -240,6 +255,7 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
             // smallest pair time whatever the order and the threads)
             const double floor = 0.1 * std::min(dist, dhat);
             double dn = distance_at(X, pm, s, t, edge_edge);
+            if (floor < kResolvable * double(std::numeric_limits<T>::epsilon()) * corner_scale(X, pm, s)) dn = -1;
             for (int i = 1; i < kMaxAdvances && dn >= floor && t < a; ++i) {
               const double tn = t + 0.9 * dn / rate;
               if (tn >= 1.0) { t = 1.0; break; }

@@ -390,6 +390,9 @@ def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
 
 _MAX_ADVANCES = 64
 """Advances of :func:`_advance` per pair and step bound at most (the bound reached so far is kept: still safe)."""
+_RESOLVABLE = 1024.0
+"""A pair advances past its first advance only where its floor is at least this many epsilons of its corners' scale
+(the compiled ``contact_step_bound``'s ``kResolvable``)."""
 
 
 def _stencil_distances(X: Tensor, edge_edge: bool) -> Tensor:
@@ -428,7 +431,11 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     X, P, rate, t = X[bind], P[bind], rate[bind], step[bind]
     floor = 0.1 * d[bind].clamp_max(dhat)
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
-    live = dn >= floor
+    # only where the floor is resolvable: at least _RESOLVABLE epsilons of the corners' scale (their largest
+    # coordinate plus their largest displacement component), where the distances measured along the step are within
+    # a small part of it (a pair 1e-16 m apart at coordinates of 1 m, below it, keeps its first advance alone)
+    scale = X.abs().amax((1, 2)).double() + P.abs().amax((1, 2)).double()
+    live = (dn >= floor) & (floor.double() >= _RESOLVABLE * torch.finfo(X.dtype).eps * scale)
     best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
         if bool((~live).any()):
