@@ -328,6 +328,29 @@ def test_pairs_at_round_off_distances_keep_the_single_bound(X, P, monkeypatch):
     assert bool((d > 0).all())
 
 
+def test_float32_nearly_parallel_edges_are_measured_in_double(monkeypatch):
+    """float32 edges nearly parallel and 1.7e-6 m apart (a review's case: float32's distance formulas misjudged their
+    distance along the step 10-100x, and the advancement passed through the contact): the bound measures in double,
+    the compiled and eager bounds agree, and the distance stays positive along the step (dense samples, double)."""
+    import torchbend.sim.self_contact as sc_module
+    from torchbend.backends import native
+
+    X = [[0.01834526626865322, 0.224926042185734, -0.11228963835306631],
+         [0.07683598197532246, 0.09075805523316596, -0.1750425723711258],
+         [0.0145516408782719, 0.2336200269407327, -0.10822406828078449],
+         [0.09177691877272913, 0.0564827709287834, -0.19107332372518987]]
+    P = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [7.350025682663287e-06, -2.101246479293927e-05, -6.009825022357546e-06],
+         [1.4462226095318342e-05, -1.640786760081581e-05, -1.0436970941124403e-05]]
+    x, p = torch.tensor(X, dtype=torch.float32), torch.tensor(P, dtype=torch.float32)
+    st = torch.arange(4).reshape(1, 4)
+    bound = native.contact_step_bound(x, st, True, p, 1e-3)
+    monkeypatch.setattr(sc_module, "_native_ok", lambda t: False)
+    assert sc_module._advance(x[None], p[None], True, 1.0, 1e-3) == bound
+    ts = torch.linspace(0, 1, 20001, dtype=F64) * bound
+    d = sc_module._stencil_distances(x.double()[None] + ts[:, None, None] * p.double()[None], True)
+    assert bool((d > 0).all())
+
+
 def test_a_strip_folded_tightly_onto_itself_converges_in_every_step():
     """A 20 x 10 cm strip (9 x 5 grid) folded onto itself with its layers 1.05 mm apart (dhat 1 mm; the fold in
     one hinge at 3.1 rad, the tan model's forces ~1e3 N push it open) falling onto a plane: every time step

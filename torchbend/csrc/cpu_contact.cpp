@@ -188,14 +188,15 @@ template <typename T> double corner_scale(const T X[4][3], const T* pm, const in
   return sx + sp;
 }
 
-// the distance of the stencil with corners X moved by t times their displacements (pm, rows s) in T's arithmetic,
-// as x + t dx
+// the distance of the stencil with corners X moved by t times their displacements (pm, rows s), in double whatever
+// T (float32's distance formulas misjudge nearly parallel edges by 10-100x near contact: a review's case)
+// (pm null: the corners themselves, for moves given as one distance a point)
 template <typename T> double distance_at(const T X[4][3], const T* pm, const int64_t* s, double t, bool edge_edge) {
-  T Y[4][3];
+  double Y[4][3];
   for (int v = 0; v < 4; ++v)
-    for (int i = 0; i < 3; ++i) Y[v][i] = X[v][i] + T(t) * pm[3 * s[v] + i];
+    for (int i = 0; i < 3; ++i) Y[v][i] = pm ? double(X[v][i]) + t * double(pm[3 * s[v] + i]) : double(X[v][i]);
   int ty;
-  return double(std::sqrt(std::max(stencil_distance_sq(Y, edge_edge, &ty), T(0))));
+  return std::sqrt(std::max(stencil_distance_sq(Y, edge_edge, &ty), 0.0));
 }
 }  // namespace
 
@@ -246,8 +247,7 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
           T X[4][3];
           gather(px, s, X);
           if (0.9 * std::sqrt(box_gap_sq<double>(X, split)) * (1 - 1e-9) / rate >= a) continue;
-          int ty;
-          const double dist = double(std::sqrt(std::max(stencil_distance_sq(X, edge_edge, &ty), T(0))));
+          const double dist = distance_at<T>(X, nullptr, s, 0.0, edge_edge);  // in double, as every distance here
           double t = 0.9 * dist / rate;  // the first advance, taken whole
           if (vectors && dhat > 0 && t < a) {
             // conservative advancement from the distance reached while it stays above the floor, to the step's end

@@ -420,22 +420,24 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
     ~1e-3 of each Newton step."""
     k = 2 if edge_edge else 1
+    eps = torch.finfo(X.dtype).eps
+    scale = X.abs().amax((1, 2)).double() + P.abs().amax((1, 2)).double()
+    X, P = X.double(), P.double()  # every distance in double, as the compiled bound's
+    d = _stencil_distances(X, edge_edge)
     rel = P - 0.25 * (P[:, 0] + P[:, 1] + P[:, 2] + P[:, 3])[:, None]  # a move the four corners share changes no distance
     mv, ln = _lengths(rel), _lengths(P)
     rate = torch.minimum(mv[:, :k].amax(1) + mv[:, k:].amax(1), ln[:, :k].amax(1) + ln[:, k:].amax(1))
-    d = _stencil_distances(X, edge_edge)
     step = 0.9 * d / rate.clamp_min(torch.finfo(d.dtype).tiny)
     bind = (rate > 0) & (step < cap)  # a pair's time is at least its first advance: the others cannot bind
     if not bool(bind.any()):
         return cap
-    X, P, rate, t = X[bind], P[bind], rate[bind], step[bind]
+    X, P, rate, t, scale = X[bind], P[bind], rate[bind], step[bind], scale[bind]
     floor = 0.1 * d[bind].clamp_max(dhat)
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
-    # only where the floor is resolvable: at least _RESOLVABLE epsilons of the corners' scale (their largest
-    # coordinate plus their largest displacement component), where the distances measured along the step are within
-    # a small part of it (a pair 1e-16 m apart at coordinates of 1 m, below it, keeps its first advance alone)
-    scale = X.abs().amax((1, 2)).double() + P.abs().amax((1, 2)).double()
-    live = (dn >= floor) & (floor.double() >= _RESOLVABLE * torch.finfo(X.dtype).eps * scale)
+    # only where the floor is resolvable: at least _RESOLVABLE epsilons (of x's dtype) of the corners' scale (their
+    # largest coordinate plus their largest displacement component), where the distances measured along the step
+    # are within a small part of it (a pair 1e-16 m apart at coordinates of 1 m keeps its first advance alone)
+    live = (dn >= floor) & (floor >= _RESOLVABLE * eps * scale)
     best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
         if bool((~live).any()):
