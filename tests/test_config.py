@@ -149,6 +149,8 @@ def test_overrides_set_nested_keys_and_are_validated(tmp_path):
     assert out["colliders"][0]["friction"] == 0.5 and out["colliders"][0]["radius"] == 0.2
     for bad, message in [("solver.tol", "must be KEY=VALUE"), ("colliders[3].radius=1", "no list element [3]"),
                          ("colliders.3.radius=1", "no list element [3]"),
+                         ("colliders.--1.radius=1", "not inside a mapping"), ("colliders[--1].radius=1", "name[index]"),
+                         ("colliders.\u00b2.radius=1", "not inside a mapping"),
                          ("colliders.x=1", "not inside a mapping"), ("=1", "must be KEY=VALUE")]:
         with pytest.raises(ConfigError, match=re.escape(message)):
             apply_overrides({"colliders": [], "solver": {}}, [bad])

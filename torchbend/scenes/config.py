@@ -14,6 +14,7 @@ wording of :mod:`torchbend.scenes.wording` (this module re-exports all three).
 from __future__ import annotations
 
 import os
+import re
 from typing import Any, TypeVar, cast
 
 from .._extras import missing_extra
@@ -113,7 +114,7 @@ def _parse_key(key: str) -> list:
         parts.append(base)
         while rest:
             index, _, rest = rest.partition("]")
-            if not index.lstrip("-").isdigit() or (rest and not rest.startswith("[")):
+            if not _INDEX.fullmatch(index) or (rest and not rest.startswith("[")):
                 raise ConfigError(f"override key {short_repr(key)}: expected name[index]")
             parts.append(int(index))
             rest = rest[1:]
@@ -149,10 +150,14 @@ def apply_overrides(cfg: dict, overrides) -> dict:
     return cfg
 
 
+_INDEX = re.compile(r"-?[0-9]+")
+"""A list index in an override key (ASCII digits: ``str.isdigit`` also takes superscripts, which ``int`` refuses)."""
+
+
 def _list_index(node: Any, part: str | int) -> str | int:
     """A dotted key's part as a list index where it names a list element (``colliders.0.friction`` as
     ``colliders[0].friction``); else the part itself."""
-    if isinstance(node, list) and isinstance(part, str) and part.lstrip("-").isdigit():
+    if isinstance(node, list) and isinstance(part, str) and _INDEX.fullmatch(part):
         return int(part)
     return part
 

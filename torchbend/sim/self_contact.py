@@ -415,7 +415,7 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     stays above a tenth of its start or of ``dhat``, the smaller (its time: the last one reached), up to the step's
     end (1); at most ``_MAX_ADVANCES`` advances.  The bound is the smallest pair time (``cap`` at most): a pair
     whose time passes the smallest one found stops advancing, which changes no result (the compiled
-    ``contact_step_bound`` computes the same).  Along each advance the distance stays above a tenth of its value at
+    ``contact_step_bound`` runs the same algorithm; the two agree to the rounding of their distance formulas).  Along each advance the distance stays above a tenth of its value at
     the advance's start: no path so bounded meets.  A first advance alone (the single bound ``0.9 d / r``) holds
     back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
     ~1e-3 of each Newton step."""
