@@ -401,12 +401,6 @@ def _stencil_distances(X: Tensor, edge_edge: bool) -> Tensor:
     return _distances(X.reshape(-1, 3), st, edge_edge)[1].clamp_min(0).sqrt()
 
 
-def _lengths(v: Tensor) -> Tensor:
-    """The lengths ``(..., 4)`` of vectors ``v (..., 4, 3)`` (elementwise: torch's norm over a last dimension of 3 is
-    slower)."""
-    return (v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]).sqrt()
-
-
 def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> float:
     """The step bound (module docstring) of the pairs with corners ``X (N, 4, 3)`` moving by ``P (N, 4, 3)`` along
     a step, at most ``cap``, by conservative advancement (additive CCD): a pair at distance ``d`` whose distance
@@ -415,8 +409,9 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     stays above a tenth of its start or of ``dhat``, the smaller (its time: the last one reached), up to the step's
     end (1); at most ``_MAX_ADVANCES`` advances.  The bound is the smallest pair time (``cap`` at most): a pair
     whose time passes the smallest one found stops advancing, which changes no result (the compiled
-    ``contact_step_bound`` runs the same algorithm; the two agree to the rounding of their distance formulas).  Along each advance the distance stays above a tenth of its value at
-    the advance's start: no path so bounded meets.  A first advance alone (the single bound ``0.9 d / r``) holds
+    ``contact_step_bound`` runs the same algorithm; the two agree to the rounding of their distance formulas).
+    Along each advance the distance stays above a tenth of its value at the advance's start: no path so bounded
+    meets.  A first advance alone (the single bound ``0.9 d / r``) holds
     back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
     ~1e-3 of each Newton step."""
     k = 2 if edge_edge else 1
@@ -425,7 +420,7 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     X, P = X.double(), P.double()  # every distance in double, as the compiled bound's
     d = _stencil_distances(X, edge_edge)
     rel = P - 0.25 * (P[:, 0] + P[:, 1] + P[:, 2] + P[:, 3])[:, None]  # a move the four corners share changes no distance
-    mv, ln = _lengths(rel), _lengths(P)
+    mv, ln = rel.norm(dim=-1), P.norm(dim=-1)
     rate = torch.minimum(mv[:, :k].amax(1) + mv[:, k:].amax(1), ln[:, :k].amax(1) + ln[:, k:].amax(1))
     step = 0.9 * d / rate.clamp_min(torch.finfo(d.dtype).tiny)
     bind = (rate > 0) & (step < cap)  # a pair's time is at least its first advance: the others cannot bind
