@@ -237,3 +237,43 @@ def test_solver_projection_keyword_and_its_deprecated_alias():
         tb.implicit_euler_step(model, state, 0.01, hessian="gauss_newton")
     with pytest.raises(ValueError, match="projection='clamp' and hessian='abs' disagree"), pytest.warns(DeprecationWarning):
         tb.solve_static(model, rest, projection="clamp", hessian="abs")
+
+
+STIFFENING = 100.0
+
+
+class StiffeningSprings(AnchorSprings):
+    """The springs, stiffened a hundredfold at the first accepted iterate of a solve (as a barrier adapts its
+    stiffness: :meth:`EnergyTerm.adapt`)."""
+
+    name = "stiffening"
+
+    def __init__(self, k, a):
+        super().__init__(k, a)
+        self.stiffened = False
+
+    def adapt(self, x, ctx, start=False):
+        if start or self.stiffened:
+            return False
+        self.k, self.stiffened = STIFFENING * self.k, True
+        return True
+
+
+@pytest.mark.parametrize("max_iters", [1, 30])
+def test_a_term_that_adapts_within_a_solve_restarts_its_bookkeeping(max_iters):
+    """A term that changes its energy at an iterate (``adapt`` True) makes a new potential: the solve converges to
+    the new potential's equilibrium (the closed form with the springs' new stiffness), counts the change in
+    ``info.adaptations`` and reports the energy of the returned state under the new potential; stopped right after
+    the change (``max_iters=1``) it returns the iterate after the change, not a lower one of the old potential."""
+    model, rest, springs = springs_model(StiffeningSprings)
+    x, info = tb.solve_static(model, rest, max_iters=max_iters, continuation=False)
+    assert springs.stiffened and info.adaptations == 1
+    ctx = tb.StepContext()
+    potential = sum(float(t.energy(x, ctx)) for t in model.terms)
+    assert info.energy == pytest.approx(potential, rel=1e-12)
+    if max_iters > 1:
+        assert info.converged, info.message
+        expected = rest + SHIFT + G / (STIFFENING * KAPPA)
+        assert float((x - expected).abs().max()) <= 1e-9 * float((expected - rest).abs().max())
+    else:
+        assert not info.converged and info.best_iteration == 1

@@ -65,7 +65,9 @@ eigenvalue remains, None when not checked (projected Hessians, ``check_minimum=F
 **Failures.**  Nothing is raised once the iteration has started: on failure (``max_iters`` reached,
 line search exhausted, ``time_limit``, a stopping ``callback``, a non-finite gradient, or a
 ``ValueError`` raised by an energy, e.g. a ``tan`` hinge folded through) the solver returns the
-best iterate it found, the one of lowest potential (ties within round-off: of lower residual), with
+best iterate it found, the one of lowest potential (ties within round-off: of lower residual; among the iterates
+since a term last changed its energy, :meth:`~torchbend.sim.terms.EnergyTerm.adapt`: a contact barrier that
+stiffens within the solve makes a new potential), with
 ``converged=False``, ``stop_reason`` and ``message`` naming the cause, and ``info`` describing the
 returned state (``residual``, ``energy``, ``energies``, ``best_iteration``).  A static problem
 without pinned vertices or colliders under gravity is unbounded below: diagnosed before iterating.
@@ -180,7 +182,9 @@ class SolveInfo:
     implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
     produced the returned state: ``"newton"`` (Newton alone), ``"membrane"`` (the membrane-stiffness
     homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
-    step retried as halves).  ``min_distance`` [m]: the smallest distance the contact terms report at the
+    step retried as halves).  ``adaptations``: iterates at which a term changed its energy
+    (:meth:`~torchbend.sim.terms.EnergyTerm.adapt`, e.g. a contact barrier stiffened; the solve's best iterate
+    and round-off bookkeeping start over there).  ``min_distance`` [m]: the smallest distance the contact terms report at the
     returned state (cloth-cloth between non-adjacent primitives, cloth-collider; negative: a penetration of a
     penalty collider; ``inf`` without contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond),
     ``contact_count``: the pairs and vertices in contact there (within a barrier's ``dhat`` or a collider's
@@ -212,6 +216,7 @@ class SolveInfo:
     phase: str = "newton"
     min_distance: float = math.inf
     contact_count: int = 0
+    adaptations: int = 0
 
 
 # -------------------------------------------------------------------- Newton
@@ -533,6 +538,18 @@ class _RunRecord:
         self.scale = max(float(magnitudes.norm()), torch.finfo(x.dtype).tiny)
         self.scale_at = self.it
 
+    def _adapt(self, x: Tensor, start: bool = False) -> bool:
+        """The terms' adaptation at the iterate ``x`` (:meth:`EnergyTerm.adapt`, e.g. a barrier's stiffness).  A
+        change makes a new potential: the iterates before it are not comparable with those after, so the best
+        iterate, the decrements and the force scale start over from ``x``."""
+        changed = [t.adapt(x, self.phi.ctx, start) for t in self.phi.terms]
+        if not any(changed):
+            return False
+        self.best, self.gf_next, self.slow_steps, self.scale_at = None, None, 0, -1
+        self.decrements.clear()
+        self.info.adaptations += 1
+        return True
+
     def _where(self) -> str:
         return f"returned the best iterate (iteration {self.best.iteration if self.best else 0})"
 
@@ -603,12 +620,16 @@ class _NewtonRun(_RunRecord):
                             "colliders): under gravity its potential is unbounded below; pin vertices or add a collider")
             if not math.isfinite(energy):
                 raise _Stop("non_finite", "non-finite potential at the initial state")
+            if self._adapt(x, start=True):
+                energy, terms = self.phi.value(x)
             while True:
                 gf, noise = self._evaluate(x, energy, terms)
                 step = self._test(x, gf, energy, noise)
                 if step is None:
                     step = self._step(x, gf, energy, terms, noise)
                 x, energy, terms, self.alpha = step.x, step.energy, step.terms, step.alpha
+                if self._adapt(x):
+                    energy, terms = self.phi.value(x)
                 self.it += 1
                 info.iterations = self.it
                 info.energy_history.append(energy)
@@ -769,6 +790,7 @@ def _aggregate(infos: list, returned: SolveInfo) -> SolveInfo:
         for method, count in i.linear_methods.items():
             out.linear_methods[method] = out.linear_methods.get(method, 0) + count
     out.negative_curvature_steps = sum(i.negative_curvature_steps for i in infos)
+    out.adaptations = sum(i.adaptations for i in infos)
     return out
 
 

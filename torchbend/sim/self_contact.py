@@ -11,9 +11,14 @@ axis-aligned boxes, brute force in chunks).  The energy (:mod:`torchbend.ops.dis
 ``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
 ``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
 (:meth:`SelfContact.bind`), and then adapted as IPC adapts it: at the start of a time step whose smallest
-distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, ``kappa`` doubles (at
-most ``KAPPA_GROWTH`` times the initial one), so that contacts pressed hard stay at a distance the float
-arithmetic resolves; ``bind`` (a new model) starts it over.  The gradient is the autograd of that sum; the
+distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, and within a solve at
+every accepted iterate whose smallest distance is below ``ADAPT_FRACTION * dhat`` and below the last iterate's
+(:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over, ``SolveInfo.adaptations``), ``kappa``
+doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts pressed hard stay at a distance the
+float arithmetic resolves and the intersection-free steps are not cut short; ``bind`` (a new model) starts it
+over.  (A strip folded tightly onto itself, its tan hinge pressing the layers together with ~1e3 N against a kappa
+that carries the cloth's weight, converged in no step with the start-of-step rule alone: its layers were pressed
+to 1e-7 m.)  The gradient is the autograd of that sum; the
 Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed formulas),
 each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
 
@@ -480,6 +485,38 @@ def _widened_min_distance(term: _ContactPairs, x: Tensor) -> tuple[float, int]:
     return (d if d <= radius else math.inf), count
 
 
+def _batched_hessians(energy, X: Tensor) -> Tensor:
+    """``(N, 12, 12)`` Hessians of independent pairs' energies ``energy(Z) (N,)`` at ``X (N, 12)``: row ``j`` of
+    every pair's Hessian is one batched backward of the ``j``-th gradient component summed over the pairs."""
+    with torch.enable_grad():
+        Z = X.detach().requires_grad_(True)
+        (g,) = torch.autograd.grad(energy(Z).sum(), Z, create_graph=True)
+        rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
+    return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
+
+
+def _grow(term: SelfContact, d: float, last: float) -> bool:
+    """Double an adaptive ``kappa`` (to at most ``KAPPA_GROWTH`` times its first) where the smallest distance ``d``
+    [m] is below ``ADAPT_FRACTION * dhat`` and not above ``last``: True when it changed."""
+    if term._kappa0 is None or term.stiffness is None or not (d < term.ADAPT_FRACTION * term.dhat and d <= last):
+        return False
+    grown = min(2 * term.stiffness, term.KAPPA_GROWTH * term._kappa0)
+    changed, term.stiffness = grown > term.stiffness, grown
+    return changed
+
+
+def _closest(term: _ContactPairs, x: Tensor) -> float:
+    """The smallest distance [m] of the pairs closer than ``dhat`` at ``x`` (those of the energy), or ``inf``."""
+    st, types, _ = term._close(x)
+    if not st.shape[0]:
+        return math.inf
+    xa, ee, best = term._points(x).detach(), types >= EE_A0B0, math.inf
+    for sel, edge_edge in ((~ee, False), (ee, True)):
+        if bool(sel.any()):
+            best = min(best, float(_distances(xa, st[sel], edge_edge)[1].min().clamp_min(0).sqrt()))
+    return best
+
+
 def _self_inadmissible(term: _ContactPairs, x: Tensor) -> str:
     """Why a solve cannot start at ``x``: two primitives of the cloth touch, or an edge passes through a triangle."""
     d, _ = term.min_distance(x)
@@ -638,14 +675,13 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         self._close_cache: tuple | None = None  # (points, _cache, the pairs within dhat) of the last x (_close)
         self._V = 0
         self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
-        self._last_min = math.inf
+        self._last_min = self._solve_min = math.inf
 
     ADAPT_FRACTION = 0.1
-    """A time step starting with a distance below this fraction of ``dhat`` doubles an adaptive ``kappa``."""
+    """A distance below this fraction of ``dhat`` (a step's start, a solve's iterate) doubles an adaptive ``kappa``."""
     KAPPA_GROWTH = 100.0
     """An adaptive ``kappa`` grows to at most this many times its initial value."""
 
-    # ---- binding to a model
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         """Take the mesh of a model (faces, edges, the mollifier thresholds of its rest edges) and, for
         ``stiffness=None``, the barrier stiffness from its mean vertex weight.  A term is bound to one mesh: a model
@@ -668,13 +704,8 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         return e if eps is None else e * mollifier(X, eps)
 
     def _pair_hessians(self, X: Tensor, kind: int, eps: Tensor | None) -> Tensor:
-        """``(N, 12, 12)`` Hessians of the pairs' energies: the pairs are independent, so row ``j`` of every
-        pair's Hessian is one batched backward of the ``j``-th gradient component summed over the pairs."""
-        with torch.enable_grad():
-            Z = X.detach().requires_grad_(True)
-            (g,) = torch.autograd.grad(self._pair_energy(Z.reshape(-1, 4, 3), kind, eps).sum(), Z, create_graph=True)
-            rows = [torch.autograd.grad(g[:, j].sum(), Z, retain_graph=j < 11, allow_unused=True)[0] for j in range(12)]
-        return torch.stack([torch.zeros_like(Z) if r is None else r for r in rows], 1)
+        """``(N, 12, 12)`` Hessians of the pairs' energies (``X (N, 12)``, :func:`_batched_hessians`)."""
+        return _batched_hessians(lambda Z: self._pair_energy(Z.reshape(-1, 4, 3), kind, eps), X)
 
     def _barrier_energy(self, x: Tensor) -> Tensor:
         total = x.new_zeros(())
@@ -685,12 +716,18 @@ class SelfContact(_LaggedFriction, EnergyTerm):
 
     def adapt_stiffness(self, x: Tensor) -> None:
         """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
-        if self._kappa0 is None or self.faces is None or self.stiffness is None:
-            return
-        d, _ = self.min_distance(x.detach())
-        if d < self.ADAPT_FRACTION * self.dhat and d <= self._last_min:
-            self.stiffness = min(2 * self.stiffness, self.KAPPA_GROWTH * self._kappa0)
-        self._last_min = d
+        if self._kappa0 is not None and self.faces is not None:
+            d = self.min_distance(x.detach())[0]
+            _grow(self, d, self._last_min)
+            self._last_min = d
+
+    def adapt(self, x: Tensor, ctx: StepContext, start: bool = False) -> bool:
+        """IPC's update of an adaptive ``kappa`` within a solve (module docstring): at an iterate ``x`` closer than
+        ``ADAPT_FRACTION * dhat`` and closer than the solve's last iterate, ``kappa`` doubles."""
+        if self._kappa0 is None or self.faces is None:
+            return False
+        last, self._solve_min = self._solve_min, _closest(self, x)
+        return not start and self._solve_min < last and _grow(self, self._solve_min, last)
 
     def begin_step(self, ctx: StepContext) -> None:
         if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
