@@ -570,6 +570,46 @@ def test_self_contact_energy_gradient_and_hessian_match_ipctk_on_a_folded_grid()
     np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())
 
 
+@pytest.mark.parametrize("where", ["vertex", "edge", "diagonal", "inside"])
+def test_a_contact_found_by_several_triangles_counts_for_each_as_in_ipctk(where):
+    """A sheet above a grid, one of its vertices exactly above a grid vertex, an edge or a diagonal (found there by
+    several triangles, as by symmetry in a pile of grids twisted by 45 degrees): the energy, gradient and Hessian are
+    ipctk's (whose collision sets weigh such a contact by the number of pairs that find it; counting it once made
+    the energy jump by whole barrier values where the point crossed above the edge), and the energy is continuous
+    there: moved by 1e-12 m across, it changes by no more than its gradient predicts."""
+    ipctk = pytest.importorskip("ipctk")
+    rest, faces = tb.scenes.grid(5, 5, (0.04, 0.04), dtype=F64)
+    h = 0.01
+    offset = {"vertex": (0.0, 0.0), "edge": (0.0, h / 2), "diagonal": (h / 2, h / 2), "inside": (0.31 * h, 0.57 * h)}
+    top, top_faces = tb.scenes.grid(3, 3, (0.005, 0.005), dtype=F64)  # its vertex 4 above the grid's vertex 12
+    top = top - top[4] + rest[12] + torch.tensor([*offset[where], 4e-4], dtype=F64)
+    x = torch.cat([rest, top])
+    f = torch.cat([faces, top_faces + rest.shape[0]])
+    sc = tb.SelfContact(dhat=1e-3, stiffness=1e6)
+    tb.ClothModel(f, x, terms=[sc])
+    V, F = x.numpy(), f.numpy().astype(np.int32)
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    coll = ipctk.NormalCollisions()
+    coll.build(mesh, V, 1e-3)
+    B = ipctk.BarrierPotential(1e-3, 1e6)
+    ctx = tb.StepContext()
+    e = float(sc.energy(x, ctx))
+    assert e > 0 and math.isclose(e, B(coll, mesh, V), rel_tol=1e-10)
+    g = sc.gradient(x, ctx)
+    g_ref = B.gradient(coll, mesh, V)
+    np.testing.assert_allclose(g.reshape(-1).numpy(), g_ref, rtol=0, atol=1e-10 * np.abs(g_ref).max())
+    if where in ("edge", "inside"):  # above a corner or a diagonal the distance types tie: the energy is C1, not C2,
+        H = sc.hessian(x, ctx).to_dense().numpy()  # and each code's Hessian is that of the type its tie-break gives
+        H_ref = B.hessian(coll, mesh, V, ipctk.PSDProjectionMethod.NONE).toarray()
+        np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-9 * np.abs(H_ref).max())
+    centre = rest.shape[0] + 4
+    for direction in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, -1.0, 0.0]):
+        d = torch.zeros_like(x)
+        d[centre] = torch.tensor(direction, dtype=F64) * 1e-12
+        change = float(sc.energy(x + d, ctx)) - e
+        assert abs(change) <= 10 * abs(float((g * d).sum())) + 1e-9 * e, (direction, change)
+
+
 def box(lo, hi):
     """A closed box mesh: 8 corners, 12 triangles."""
     (x0, y0, z0), (x1, y1, z1) = lo, hi

@@ -185,13 +185,11 @@ def contact_distances(x: Tensor, stencils: Tensor, edge_edge: bool) -> tuple[Ten
     return _module().contact_distances(x, stencils, bool(edge_edge))
 
 
-def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float,
-                  distinct: bool = False) -> tuple[Tensor, Tensor]:
+def contact_close(x: Tensor, stencils: Tensor, edge_edge: bool, dhat_sq: float) -> tuple[Tensor, Tensor]:
     """``(index (K,), types (K,))``: the stencils ``(N, 4)`` (point-triangle or edge-edge) closer than
     ``sqrt(dhat_sq)`` and their distance types, in order (every candidate typed over lanes, the types the scalar
-    classifier's bit for bit); ``distinct`` (point-triangle): each vertex-edge and vertex-vertex contact once, the first
-    stencil that finds it (:func:`torchbend.sim.self_contact._distinct_pairs`)."""
-    return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq), bool(distinct))
+    classifier's bit for bit)."""
+    return _module().contact_close(x, stencils, bool(edge_edge), float(dhat_sq))
 
 
 def contact_step_bound(x: Tensor, stencils: Tensor, edge_edge: bool, move: Tensor, dhat: float = 0.0) -> float:

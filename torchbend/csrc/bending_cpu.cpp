@@ -41,7 +41,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "the candidate point-triangle and edge-edge stencils of a mesh over its vertices' boxes");
   m.def("contact_distances", &op::contact_distances, "distance types and squared distances of contact stencils");
   m.def("contact_close", &op::contact_close,
-        "the contact stencils closer than dhat with their types, each vertex-edge and vertex-vertex contact once");
+        "the contact stencils closer than dhat with their types");
   m.def("contact_step_bound", &op::contact_step_bound,
         "the conservative step bound of contact stencils whose vertices move at most the given distances");
   m.def("contact_barrier", &op::contact_barrier,

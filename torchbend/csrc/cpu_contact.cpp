@@ -2,18 +2,16 @@
 // is the reference):
 //   contact_box_pairs   the broad phase (cpu_broad_phase.cpp)
 //   contact_distances   the distance type and squared distance of point-triangle or edge-edge stencils
-//   contact_close       the stencils closer than dhat (each vertex-edge and vertex-vertex contact once)
+//   contact_close       the stencils closer than dhat
 //   contact_step_bound  the conservative step bound of candidate stencils
 //   contact_barrier     the pairs' barrier energies, gradients and (PSD-projected) Hessians
 //   contact_hessian_sum the pairs' (projected) Hessians summed into the (3V, 3V) matrix, without the blocks
 //   contact_stencil_sum the sum of given 12x12 stencil blocks
 // The per-stencil mathematics is contact_math.h (shared with the CUDA driver, bending_cuda.cu).
 #include <algorithm>
-#include <array>
 #include <cstdint>
 #include <limits>
 #include <type_traits>
-#include <unordered_set>
 #include <vector>
 
 #include "contact_frame.h"
@@ -40,14 +38,6 @@ torch::Tensor stencil_tensor(const char* op, const torch::Tensor& x, torch::Tens
   ck::check_range(op, "stencils", st, 0, x.size(0), "x has n = " + std::to_string(x.size(0)) + " points");
   return st;
 }
-
-struct KeyHash {
-  size_t operator()(const std::array<int64_t, 3>& k) const {
-    uint64_t h = 1469598103934665603ull;
-    for (int64_t v : k) h = (h ^ uint64_t(v)) * 1099511628211ull;
-    return size_t(h ^ (h >> 29));
-  }
-};
 
 template <typename T> inline void gather(const T* x, const int64_t* s, T X[4][3]) {
   for (int v = 0; v < 4; ++v)
@@ -119,10 +109,11 @@ std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torc
 }
 
 // the pairs of candidate stencils closer than sqrt(dhat_sq) (every candidate typed and measured over lanes,
-// cpu_contact_scan.h), with their types, in order; `distinct` (point-triangle): each vertex-edge and
-// vertex-vertex contact once, the first of the stencils that find it
+// cpu_contact_scan.h), with their types, in order: every pair counts, as the IPC toolkit's collision sets weigh a
+// vertex-edge or vertex-vertex contact found by several triangles by their number (its energy stays continuous
+// where a point crosses above an edge or a vertex)
 std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
-                                                       double dhat_sq, bool distinct) {
+                                                       double dhat_sq) {
   const char* op = "contact_close";
   stencils = stencil_tensor(op, x, stencils);
   ck::require(dhat_sq > 0 && std::isfinite(dhat_sq), op, "dhat_sq must be finite and > 0, got ", dhat_sq);
@@ -139,23 +130,8 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
     });
   });
   std::vector<int64_t> keep;
-  std::unordered_set<std::array<int64_t, 3>, KeyHash> seen;
-  for (int64_t n = 0; n < N; ++n) {
-    const int t = type[n];
-    if (t < 0) continue;
-    if (distinct && t < cm::PT_FACE) {  // a vertex-vertex (PT_P*) or vertex-edge (PT_E*) contact
-      const int64_t* s = ps + 4 * n;
-      std::array<int64_t, 3> key{s[0], -1, -1};
-      if (t <= cm::PT_P2) key[1] = s[1 + t];
-      else {
-        const int e0[3] = {1, 2, 3}, e1[3] = {2, 3, 1};
-        int64_t u = s[e0[t - cm::PT_E01]], w = s[e1[t - cm::PT_E01]];
-        key[1] = std::min(u, w); key[2] = std::max(u, w);
-      }
-      if (!seen.insert(key).second) continue;
-    }
-    keep.push_back(n);
-  }
+  for (int64_t n = 0; n < N; ++n)
+    if (type[n] >= 0) keep.push_back(n);
   auto idx = torch::empty({int64_t(keep.size())}, stencils.options());
   auto types = torch::empty({int64_t(keep.size())}, stencils.options());
   for (size_t i = 0; i < keep.size(); ++i) {

@@ -20,10 +20,9 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_candidates(torch
 // (types (N,) int64, squared distances (N,)) of point-triangle (edge_edge false) or edge-edge stencils (N, 4)
 // over the points x (n, 3)
 std::tuple<torch::Tensor, torch::Tensor> contact_distances(torch::Tensor x, torch::Tensor stencils, bool edge_edge);
-// (indices into stencils (K,), types (K,)) of the stencils closer than sqrt(dhat_sq), in order; distinct
-// (point-triangle stencils): each vertex-edge and vertex-vertex contact once, the first stencil that finds it
+// (indices into stencils (K,), types (K,)) of the stencils closer than sqrt(dhat_sq), in order
 std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::Tensor stencils, bool edge_edge,
-                                                       double dhat_sq, bool distinct);
+                                                       double dhat_sq);
 // the largest fraction (<= 1) of a step along which the stencils' vertices, moving at most move[v] (n,), stay
 // apart: 0.9 d / (m_A + m_B) over the stencils (d the distance, m_A, m_B the sides' largest moves); with
 // displacements move (n, 3) and dhat > 0, each stencil whose first advance binds advances on from the distance it

@@ -8,6 +8,11 @@ axis-aligned boxes, brute force in chunks).  The energy (:mod:`torchbend.ops.dis
 
     E = sum_PT b(d^2) + sum_EE m_k b(d^2),      b(D) = -kappa (D - dhat^2)^2 log(D / dhat^2)
 
+Every pair counts: a vertex nearest an edge or a corner counts once for each triangle (and edge) that finds it, as
+the IPC toolkit's collision sets weigh such a contact by the number of pairs that find it; the energy is then
+continuous where a point crosses above an edge or a vertex (counting such a contact once made it jump there: a pile
+of grids twisted by 45 degrees, whose vertices lie above edges by symmetry, stalled Newton's line search).
+
 ``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
 ``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
 (:meth:`SelfContact.bind`), and then adapted as IPC adapts it: at the start of a time step whose smallest
@@ -64,8 +69,6 @@ from ..backends import native
 from ..energies.friction import friction_blocks, friction_energy, friction_gradient
 from ..ops.distance import (
     EE_A0B0,
-    PT_FACE,
-    PT_P2,
     barrier,
     by_type,
     edge_edge_type,
@@ -302,9 +305,9 @@ class _ContactPairs:
         return first_crossing(pts, *self._crossing_pairs(pts))
 
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (each vertex-edge or
-        vertex-vertex contact once, :func:`_distinct_pairs`; ``eps_x = 0``) then the edge-edge pairs (with their
-        mollifier thresholds) closer than ``dhat`` at ``x``.  The last ``x``'s are kept: a Newton iteration asks
+        """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (``eps_x = 0``) then the
+        edge-edge pairs (with their mollifier thresholds) closer than ``dhat`` at ``x``, every pair (module
+        docstring: a contact found by several triangles counts for each).  The last ``x``'s are kept: a Newton iteration asks
         for the energy, the gradient and the Hessian at one ``x``."""
         xa = self._points(x).detach()  # a body's vertices too: a body may move between steps
         c = self._close_cache
@@ -318,15 +321,12 @@ class _ContactPairs:
             if not st.shape[0]:
                 continue
             if _native_ok(xa):
-                keep, types = native.contact_close(xa, st, edge_edge, dh2, distinct=not edge_edge)
+                keep, types = native.contact_close(xa, st, edge_edge, dh2)
                 st = st[keep]
             else:
                 types, D = _distances(xa, st, edge_edge)
                 keep = D < dh2
                 st, types = st[keep], types[keep]
-                if not edge_edge:
-                    st, types = _distinct_pairs(st, types)
-                    keep = None
             if edge_edge:
                 assert thresholds is not None
                 parts.append((st, types, thresholds[keep].to(xa.dtype)))
@@ -943,28 +943,6 @@ class MeshCollider(SelfContact):
             return (f"{self.name}: the cloth and the body mesh intersect: {where} (vertex indices): a body must "
                     "be moved so that it leaves the cloth outside it")
         return ""
-
-
-def _distinct_pairs(st: Tensor, types: Tensor) -> tuple[Tensor, Tensor]:
-    """Point-triangle stencils ``st (N, 4)`` of types ``(N,)`` with each vertex-edge and vertex-vertex contact once
-    (as IPC's collision sets count them): a vertex nearest an edge (or a corner) is so for every triangle around
-    it, whatever the edge's place in each; the first stencil of each contact, in order, is kept."""
-    sub = types < PT_FACE
-    if int(sub.sum()) < 2:
-        return st, types
-    idx = sub.nonzero()[:, 0]
-    t = types[idx]
-    # (vertex, the sub-primitive's vertices sorted, -1 for a corner's second)
-    cols = torch.tensor([[1, 1], [2, 2], [3, 3], [1, 2], [2, 3], [3, 1]], device=st.device)[t]
-    ends = st[idx[:, None], cols].sort(1).values
-    ends[t <= PT_P2, 1] = -1
-    key = torch.cat([st[idx, :1], ends], 1)
-    _, inverse = torch.unique(key, dim=0, return_inverse=True)
-    first = torch.full((int(inverse.max()) + 1,), idx.shape[0], dtype=torch.int64, device=st.device)
-    first = first.scatter_reduce(0, inverse, torch.arange(idx.shape[0], device=st.device), reduce="amin")
-    keep = ~sub
-    keep[idx[first]] = True
-    return st[keep], types[keep]
 
 
 def _project(H: Tensor, proj: Projection) -> Tensor:
