@@ -165,3 +165,16 @@ def test_incline_config_sticks_just_below_the_friction_angle(tmp_path):
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert float(state["v"][:, 0].abs().max()) < cfg["colliders"][0]["eps_v"]
     assert float((state["x"] - x0)[:, 0].abs().max()) < 1e-4
+
+
+def test_the_runners_energy_check_is_per_potential():
+    """A step's ``energy_monotone`` (torchbend.scenes.run) compares the potential only within the stretches of
+    ``energy_history`` that share one potential (``SolveInfo.adapted_at``: a barrier's stiffness adapted within the
+    solve, the second half of a halved step), where it must not rise."""
+    from torchbend.scenes.run import _monotone
+
+    assert _monotone([3.0, 2.0, 1.0], [])
+    assert not _monotone([3.0, 2.0, 2.5], [])
+    assert _monotone([3.0, 2.0, 5.0, 4.0], [2])
+    assert not _monotone([3.0, 2.0, 5.0, 6.0], [2])
+    assert not _monotone([3.0, 4.0, 5.0, 4.0], [2])

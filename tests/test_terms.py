@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import torchbend as tb
+from torchbend.sim.terms import InertiaTerm
 
 F64 = torch.float64
 KAPPA = 40.0  # [1/s^2]: k_i / m_i
@@ -261,19 +262,26 @@ class StiffeningSprings(AnchorSprings):
 
 @pytest.mark.parametrize("max_iters", [1, 30])
 def test_a_term_that_adapts_within_a_solve_restarts_its_bookkeeping(max_iters):
-    """A term that changes its energy at an iterate (``adapt`` True) makes a new potential: the solve converges to
-    the new potential's equilibrium (the closed form with the springs' new stiffness), counts the change in
-    ``info.adaptations`` and reports the energy of the returned state under the new potential; stopped right after
-    the change (``max_iters=1``) it returns the iterate after the change, not a lower one of the old potential."""
+    """A term that changes its energy at an iterate of a time step (``adapt`` True) makes a new potential: the step
+    converges to the new potential's solution (the closed form with the springs' new stiffness), counts the change
+    in ``info.adaptations`` (``info.adapted_at``: where ``energy_history`` changes potential) and reports the energy
+    of the returned state under the new potential; stopped right after the change (``max_iters=1``) it returns the
+    iterate after the change, not a lower one of the old potential.  A static solve keeps its potential."""
     model, rest, springs = springs_model(StiffeningSprings)
-    x, info = tb.solve_static(model, rest, max_iters=max_iters, continuation=False)
-    assert springs.stiffened and info.adaptations == 1
-    ctx = tb.StepContext()
-    potential = sum(float(t.energy(x, ctx)) for t in model.terms)
+    x, info = tb.solve_static(model, rest)
+    assert info.converged and not springs.stiffened and info.adaptations == 0
+    v0 = torch.tensor([0.1, 0.0, -0.05], dtype=F64).expand_as(rest).clone()
+    dt = 0.02
+    state, info = tb.implicit_euler_step(model, tb.ClothState(rest.clone(), v0), dt, max_iters=max_iters,
+                                         max_substep_depth=0)
+    assert springs.stiffened and info.adaptations == 1 and info.adapted_at == [1]
+    ctx = tb.StepContext.for_step(model.terms, rest, v0, dt)
+    potential = sum(float(t.energy(state.x, ctx)) for t in model.terms) + float(InertiaTerm(model.mass).energy(state.x, ctx))
     assert info.energy == pytest.approx(potential, rel=1e-12)
     if max_iters > 1:
         assert info.converged, info.message
-        expected = rest + SHIFT + G / (STIFFENING * KAPPA)
-        assert float((x - expected).abs().max()) <= 1e-9 * float((expected - rest).abs().max())
+        kappa = STIFFENING * KAPPA
+        expected = ((rest + dt * v0) / dt**2 + kappa * (rest + SHIFT) + G) / (1 / dt**2 + kappa)
+        assert float((state.x - expected).abs().max()) <= 1e-9 * float((expected - rest).abs().max())
     else:
         assert not info.converged and info.best_iteration == 1

@@ -244,12 +244,20 @@ def _area(x, faces):
     return float(0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=-1).norm(dim=-1).sum())
 
 
+def _monotone(history: list, starts: list) -> bool:
+    """Whether the potential never rose between the positions ``starts`` where another potential begins (a
+    barrier's adapted stiffness, a halved step's second half: ``SolveInfo.adapted_at``)."""
+    cuts = [0, *sorted(starts), len(history)]
+    return all(b <= a + 1e-12 * max(abs(a), 1.0) for lo, hi in zip(cuts, cuts[1:])
+               for a, b in zip(history[lo:hi], history[lo + 1:hi]))
+
+
 def _info_dict(info, **extra) -> dict:
     d = {"converged": info.converged, "iterations": info.iterations, "residual": info.residual,
          "energy": info.energy, "energies": info.energies, "seconds": info.seconds,
          "line_search_failures": info.line_search_failures, "message": info.message,
          "min_distance": info.min_distance, "contact_count": info.contact_count,
-         "energy_monotone": all(b <= a + 1e-12 * max(abs(a), 1.0) for a, b in zip(info.energy_history, info.energy_history[1:]))}
+         "energy_monotone": _monotone(info.energy_history, info.adapted_at)}
     d.update(extra)
     return d
 

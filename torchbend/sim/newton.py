@@ -182,9 +182,10 @@ class SolveInfo:
     implicit-Euler (sub)steps making up the returned state; ``seconds``: wall time [s].  ``phase``: what
     produced the returned state: ``"newton"`` (Newton alone), ``"membrane"`` (the membrane-stiffness
     homotopy of ``continuation``), ``"relaxation"`` (pseudo-transient continuation), ``"substeps"`` (a time
-    step retried as halves).  ``adaptations``: iterates at which a term changed its energy
+    step retried as halves).  ``adaptations``: iterates of a time step's solves at which a term changed its energy
     (:meth:`~torchbend.sim.terms.EnergyTerm.adapt`, e.g. a contact barrier stiffened; the solve's best iterate
-    and round-off bookkeeping start over there).  ``min_distance`` [m]: the smallest distance the contact terms report at the
+    and round-off bookkeeping start over there); ``adapted_at``: the positions in ``energy_history`` where another
+    potential starts (an adaptation, or the second half of a halved step): the history is monotone between them.  ``min_distance`` [m]: the smallest distance the contact terms report at the
     returned state (cloth-cloth between non-adjacent primitives, cloth-collider; negative: a penetration of a
     penalty collider; ``inf`` without contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond),
     ``contact_count``: the pairs and vertices in contact there (within a barrier's ``dhat`` or a collider's
@@ -217,6 +218,7 @@ class SolveInfo:
     min_distance: float = math.inf
     contact_count: int = 0
     adaptations: int = 0
+    adapted_at: list = field(default_factory=list)
 
 
 # -------------------------------------------------------------------- Newton
@@ -539,15 +541,20 @@ class _RunRecord:
         self.scale_at = self.it
 
     def _adapt(self, x: Tensor, start: bool = False) -> bool:
-        """The terms' adaptation at the iterate ``x`` (:meth:`EnergyTerm.adapt`, e.g. a barrier's stiffness).  A
-        change makes a new potential: the iterates before it are not comparable with those after, so the best
-        iterate, the decrements and the force scale start over from ``x``."""
+        """The terms' adaptation at the iterate ``x`` of a time step's solve (:meth:`EnergyTerm.adapt`, e.g. a
+        barrier's stiffness; a static solve keeps its potential: it depends on its inputs alone, and its phases'
+        results stay comparable).  A change makes a new potential: the iterates before it are not comparable with
+        those after, so the best iterate, the decrements and the force scale start over from ``x``, and
+        ``info.adapted_at`` marks where ``energy_history`` changes potential."""
+        if not self.phi.ctx.dynamic:
+            return False
         changed = [t.adapt(x, self.phi.ctx, start) for t in self.phi.terms]
         if not any(changed):
             return False
         self.best, self.gf_next, self.slow_steps, self.scale_at = None, None, 0, -1
         self.decrements.clear()
         self.info.adaptations += 1
+        self.info.adapted_at.append(len(self.info.energy_history))
         return True
 
     def _where(self) -> str:
@@ -630,6 +637,7 @@ class _NewtonRun(_RunRecord):
                 x, energy, terms, self.alpha = step.x, step.energy, step.terms, step.alpha
                 if self._adapt(x):
                     energy, terms = self.phi.value(x)
+                    info.energy, info.energies = energy, terms
                 self.it += 1
                 info.iterations = self.it
                 info.energy_history.append(energy)
@@ -1098,6 +1106,8 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     out.substeps = info1.substeps + info2.substeps
     out.seconds = time.perf_counter() - t0
     out.energy_history = info1.energy_history + info2.energy_history
+    n1 = len(info1.energy_history)
+    out.adapted_at = info1.adapted_at + [n1] + [n1 + i for i in info2.adapted_at]
     out.residual_history = info1.residual_history + info2.residual_history
     if not info2.converged:
         out.message = _substep_failure(out, "the second half step")

@@ -15,13 +15,14 @@ of grids twisted by 45 degrees, whose vertices lie above edges by symmetry, stal
 
 ``kappa`` [J/m^4] is ``stiffness``, or with ``stiffness=None`` chosen from the cloth's weight: the barrier force
 ``-b'(d^2) 2 d`` at half of ``dhat``, ``4.33 kappa dhat^3``, carries ten mean vertex weights ``m g``
-(:meth:`SelfContact.bind`), and then adapted as IPC adapts it: at the start of a time step whose smallest
-distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, and within a solve at
-every accepted iterate whose smallest distance is below ``ADAPT_FRACTION * dhat`` and below the last iterate's
-(:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over, ``SolveInfo.adaptations``), ``kappa``
-doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts pressed hard stay at a distance the
-float arithmetic resolves and the intersection-free steps are not cut short; ``bind`` (a new model) starts it
-over.  (A strip folded tightly onto itself, its tan hinge pressing the layers together with ~1e3 N against a kappa
+(:meth:`SelfContact.bind`), and then adapted in IPC's way (IPC doubles kappa while a contact closes below 1e-9 of
+the scene's bounding-box diagonal; here below ``ADAPT_FRACTION * dhat``): at the start of a time step whose
+smallest distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, and within a time
+step's solve at every accepted iterate whose smallest distance is below ``ADAPT_FRACTION * dhat`` and below
+``ADAPT_DECREASE`` times the last iterate's (:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over,
+``SolveInfo.adaptations``), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts
+pressed hard stay at a distance the float arithmetic resolves and the intersection-free steps are not cut short; a
+static solve keeps ``kappa`` as it is; ``bind`` (a new model) starts it over.  (A strip folded tightly onto itself, its tan hinge pressing the layers together with ~1e3 N against a kappa
 that carries the cloth's weight, converged in no step with the start-of-step rule alone: its layers were pressed
 to 1e-7 m.)  The gradient is the autograd of that sum; the
 Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed formulas),
@@ -679,6 +680,8 @@ class SelfContact(_LaggedFriction, EnergyTerm):
 
     ADAPT_FRACTION = 0.1
     """A distance below this fraction of ``dhat`` (a step's start, a solve's iterate) doubles an adaptive ``kappa``."""
+    ADAPT_DECREASE = 0.99
+    """Within a solve, an iterate doubles ``kappa`` only if closer than this fraction of the last one's distance."""
     KAPPA_GROWTH = 100.0
     """An adaptive ``kappa`` grows to at most this many times its initial value."""
 
@@ -717,17 +720,15 @@ class SelfContact(_LaggedFriction, EnergyTerm):
     def adapt_stiffness(self, x: Tensor) -> None:
         """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
         if self._kappa0 is not None and self.faces is not None:
-            d = self.min_distance(x.detach())[0]
-            _grow(self, d, self._last_min)
+            _grow(self, d := self.min_distance(x.detach())[0], self._last_min)
             self._last_min = d
 
     def adapt(self, x: Tensor, ctx: StepContext, start: bool = False) -> bool:
-        """IPC's update of an adaptive ``kappa`` within a solve (module docstring): at an iterate ``x`` closer than
-        ``ADAPT_FRACTION * dhat`` and closer than the solve's last iterate, ``kappa`` doubles."""
+        """The update of an adaptive ``kappa`` at an iterate ``x`` of a time step's solve (module docstring)."""
         if self._kappa0 is None or self.faces is None:
             return False
         last, self._solve_min = self._solve_min, _closest(self, x)
-        return not start and self._solve_min < last and _grow(self, self._solve_min, last)
+        return not start and self._solve_min < self.ADAPT_DECREASE * last and _grow(self, self._solve_min, last)
 
     def begin_step(self, ctx: StepContext) -> None:
         if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:

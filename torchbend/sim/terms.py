@@ -15,7 +15,7 @@ A potential over positions ``x (V, 3)`` [m] is a sum of terms.  The solvers (:fu
 ``inadmissible(x)``                       why a solve cannot start at ``x`` (e.g. inside a barrier), or ""
 ``contact_stats(x)``                      ``(min distance [m], contacts)`` of a contact term (default ``(inf, 0)``)
 ``begin_step(ctx)``                       stores lagged data of a time step in ``ctx.lagged[name]``
-``adapt(x, ctx, start=False)``            True when the term changed its energy at a solve's iterate (default False)
+``adapt(x, ctx, start=False)``            True when the term changed its energy at a step's iterate (default False)
 ``force_magnitudes(x, ctx)``              ``(V, 3)`` [N] magnitudes for the stopping test; default ``|gradient|``
 ========================================  ===================================================================
 
@@ -168,9 +168,10 @@ class EnergyTerm:
         return None
 
     def adapt(self, x: Tensor, ctx: StepContext, start: bool = False) -> bool:
-        """Called by a Newton solve at its first iterate ``x (V, 3)`` (``start``) and at every accepted one: True
-        when the term changed its energy there (a barrier stiffened), so that the solve evaluates the potential
-        again and restarts its bookkeeping from ``x``; False (the default): unchanged."""
+        """Called by a time step's Newton solves (not by static solves) at the first iterate ``x (V, 3)``
+        (``start``) and at every accepted one: True when the term changed its energy there (a barrier stiffened),
+        so that the solve evaluates the potential again and restarts its bookkeeping from ``x``; False (the
+        default): unchanged."""
         return False
 
     def force_magnitudes(self, x: Tensor, ctx: StepContext) -> Tensor:
