@@ -185,11 +185,12 @@ class SolveInfo:
     step retried as halves).  ``adaptations``: iterates of a time step's solves at which a term changed its energy
     (:meth:`~torchbend.sim.terms.EnergyTerm.adapt`, e.g. a contact barrier stiffened; the solve's best iterate
     and round-off bookkeeping start over there); ``adapted_at``: the positions in ``energy_history`` where another
-    potential starts (an adaptation, or the second half of a halved step): the history is monotone between them.  ``min_distance`` [m]: the smallest distance the contact terms report at the
-    returned state (cloth-cloth between non-adjacent primitives, cloth-collider; negative: a penetration of a
-    penalty collider; ``inf`` without contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond),
-    ``contact_count``: the pairs and vertices in contact there (within a barrier's ``dhat`` or a collider's
-    margin)."""
+    potential starts (an adaptation, or the second half of a halved step): the history is monotone between them.
+    ``min_distance`` [m]: the smallest distance the contact terms report at the returned state (cloth-cloth
+    between non-adjacent primitives, cloth-collider; negative: a penetration of a penalty collider; ``inf`` without
+    contact; a barrier term's, exact up to 64 of its ``dhat``, ``inf`` beyond), ``contact_count``: the pairs and
+    vertices in contact there (within a barrier's ``dhat`` or a collider's margin; a contact that several pairs
+    find counts once for each)."""
 
     converged: bool = False
     iterations: int = 0
