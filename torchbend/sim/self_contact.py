@@ -22,11 +22,11 @@ step's solve at every accepted iterate whose smallest distance is below ``ADAPT_
 ``ADAPT_DECREASE`` times the last iterate's (:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over,
 ``SolveInfo.adaptations``), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts
 pressed hard stay at a distance the float arithmetic resolves and the intersection-free steps are not cut short; a
-static solve keeps ``kappa`` as it is; ``bind`` (a new model) starts it over.  (A strip folded tightly onto itself, its tan hinge pressing the layers together with ~1e3 N against a kappa
-that carries the cloth's weight, converged in no step with the start-of-step rule alone: its layers were pressed
-to 1e-7 m.)  The gradient is the autograd of that sum; the
-Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed formulas),
-each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
+static solve keeps ``kappa`` as it is; ``bind`` (a new model) starts it over.  (A strip folded tightly onto itself,
+its tan hinge pressing the layers together with ~1e3 N against a kappa that carries the cloth's weight, converged in
+no step with the start-of-step rule alone: its layers were pressed to 1e-7 m.)  The gradient is the autograd of that
+sum; the Hessian is the sparse sum of the per-pair ``12 x 12`` Hessians (batched double backward of the pairs' typed
+formulas), each projected to PSD (eigenvalues clamped at zero, or their magnitudes) for a projected Newton matrix.
 
 **Step bound** (:meth:`SelfContact.max_step`): along ``x + t dx`` every point of a primitive moves at most as
 far as the farthest of its vertices, and a displacement the pair's four vertices share changes no distance, so two
@@ -308,8 +308,8 @@ class _ContactPairs:
     def _close(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(stencils (N, 4), types (N,), eps_x (N,))``: the point-triangle pairs (``eps_x = 0``) then the
         edge-edge pairs (with their mollifier thresholds) closer than ``dhat`` at ``x``, every pair (module
-        docstring: a contact found by several triangles counts for each).  The last ``x``'s are kept: a Newton iteration asks
-        for the energy, the gradient and the Hessian at one ``x``."""
+        docstring: a contact found by several triangles counts for each).  The last ``x``'s are kept: a Newton
+        iteration asks for the energy, the gradient and the Hessian at one ``x``."""
         xa = self._points(x).detach()  # a body's vertices too: a body may move between steps
         c = self._close_cache
         if c is not None and c[0].shape == xa.shape and c[0].dtype == xa.dtype and c[0].device == xa.device \
@@ -718,7 +718,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         return total
 
     def adapt_stiffness(self, x: Tensor) -> None:
-        """IPC's update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
+        """The update of an adaptive ``kappa`` (module docstring) at the start ``x (V, 3)`` of a time step."""
         if self._kappa0 is not None and self.faces is not None:
             _grow(self, d := self.min_distance(x.detach())[0], self._last_min)
             self._last_min = d
