@@ -358,11 +358,7 @@ class _ContactPairs:
         """(the smallest distance [m] between non-adjacent primitives within ``radius`` (default ``dhat``), or
         ``inf``; the number of pairs closer than ``dhat``)."""
         pt, ee, _ = self._active(x, radius=radius)
-        xa = self._points(x).detach()
-        best = math.inf
-        for st in (pt, ee):
-            if st.shape[0]:
-                best = min(best, float(_distances(xa, st, st is ee)[1].min().clamp_min(0).sqrt()))
+        best = _smallest_distance(self._points(x).detach(), ((pt, False), (ee, True)))
         count = int(self._close(x)[0].shape[0]) if best < self.dhat else 0
         return best, count
 
@@ -399,6 +395,16 @@ _MAX_ADVANCES = 64
 _RESOLVABLE = 1024.0
 """A pair advances past its first advance only where its floor is at least this many epsilons of its corners' scale
 (the compiled ``contact_step_bound``'s ``kResolvable``)."""
+
+
+def _smallest_distance(xa: Tensor, groups) -> float:
+    """The smallest distance [m] of the stencil groups ``[(stencils (N, 4), edge_edge)]`` over the points ``xa``,
+    or ``inf`` where they are empty."""
+    best = math.inf
+    for st, edge_edge in groups:
+        if st.shape[0]:
+            best = min(best, float(_distances(xa, st, edge_edge)[1].min().clamp_min(0).sqrt()))
+    return best
 
 
 def _stencil_distances(X: Tensor, edge_edge: bool) -> Tensor:
@@ -509,13 +515,8 @@ def _grow(term: SelfContact, d: float, last: float) -> bool:
 def _closest(term: _ContactPairs, x: Tensor) -> float:
     """The smallest distance [m] of the pairs closer than ``dhat`` at ``x`` (those of the energy), or ``inf``."""
     st, types, _ = term._close(x)
-    if not st.shape[0]:
-        return math.inf
-    xa, ee, best = term._points(x).detach(), types >= EE_A0B0, math.inf
-    for sel, edge_edge in ((~ee, False), (ee, True)):
-        if bool(sel.any()):
-            best = min(best, float(_distances(xa, st[sel], edge_edge)[1].min().clamp_min(0).sqrt()))
-    return best
+    ee = types >= EE_A0B0
+    return _smallest_distance(term._points(x).detach(), ((st[~ee], False), (st[ee], True)))
 
 
 def _self_inadmissible(term: _ContactPairs, x: Tensor) -> str:
