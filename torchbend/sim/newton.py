@@ -255,9 +255,10 @@ class _Potential(NewtonDirections):
         self.reuse_cg_iterations = 0  # CG iterations on reused factorisations (SolveInfo.cg_iterations)
         self.skip_exact = False  # a time step's exact Hessian was just indefinite: the next direction is clamped's
         self.near_minimum = False  # set by the switch from a projected Hessian to the exact one
-        # Levenberg-Marquardt damping by the lumped masses (static solves only: a step has its inertia)
+        # Levenberg-Marquardt damping by the lumped masses; in a time step only after poor steps (the far-step
+        # rule is static: a step's inertia already bounds its moves, which are v dt, however far)
         mass_free = model.mass.to(x.device).repeat_interleave(3)[self.free_mask]
-        self.damping = Damping(mass_free, enabled=damping and not self.ctx.dynamic)
+        self.damping = Damping(mass_free, enabled=damping)
 
     def value(self, y: Tensor) -> tuple[float, dict]:
         """``(Phi(y) [J], per-term energies)`` (the inertial term of a step is ``"inertia"``)."""
@@ -314,7 +315,8 @@ def _direction(phi: _Potential, x: Tensor, gf: np.ndarray, linear: LinearSolver,
     reach = 0.1 * float((x.amax(0) - x.amin(0)).norm()) if x.shape[0] else math.inf
     while True:
         p, slope = _one_direction(phi, x, gf, linear, relative_residual, info)
-        far = phi.damping.enabled and p.size > 0 and float(phi.full(p, x).norm(dim=-1).max()) > reach
+        far = (phi.damping.enabled and not phi.ctx.dynamic and p.size > 0
+               and float(phi.full(p, x).norm(dim=-1).max()) > reach)
         if not far or not phi.damping.increase():
             break
         info.regularized_steps += 1

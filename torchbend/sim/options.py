@@ -166,13 +166,14 @@ class NewtonOptions:
       ``"abs"``, ``"gauss_newton"``, ``"reduced"``);
     * ``linear_solver``: a :class:`LinearSolver` or its method name (``"direct"``, ``"cg"``);
     * ``tol`` (> 0), ``max_iters`` (int >= 0), ``check_minimum``: ``None`` takes the solver's default
-      (static: ``1e-9``, 50, True; a time step: ``1e-6``, 30, False);
+      (static: ``1e-9``, 50, True; a time step: ``1e-6``, 60, False);
     * ``time_limit`` [s] (> 0, ``"auto"`` or None): the wall-time bound of a whole call, after which the best
       state is returned with ``stop_reason="time_limit"``; ``"auto"`` (default) is :data:`DEFAULT_TIME_LIMITS`
       (a static solve 120 s, a time step 30 s), None lifts it;
-    * ``damping`` (static solves): Levenberg-Marquardt damping by the lumped masses, vanishing at convergence
+    * ``damping``: Levenberg-Marquardt damping by the lumped masses, vanishing at convergence
       (:mod:`torchbend.sim.damping`; default True: it bounds the steps along the soft modes of a hanging
-      garment, benchmarks/garments.py; False: plain Newton);
+      garment, benchmarks/garments.py, and in a time step the steps that overshoot, as along a sliding friction
+      pair; False: plain Newton);
     * ``continuation`` (static solves): ``"auto"``, ``"membrane"``, ``"relaxation"``, True (= ``"auto"``),
       False/None; ``max_relax_steps`` (int >= 0): the pseudo-transient steps at most;
     * ``max_substep_depth`` (time steps, int >= 0): halvings of a failed step at most.
