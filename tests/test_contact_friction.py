@@ -166,37 +166,84 @@ def test_a_cloth_on_an_inclined_body_slides_with_the_coulomb_acceleration(body):
     assert math.isclose(measured, 9.81 * math.sin(angle), rel_tol=0.02), measured
 
 
-@pytest.mark.parametrize("twist", [0.0, 45.0])
-def test_stacked_sheets_hitting_a_floor_with_friction_converge_in_every_step(twist):
-    """Four 9 x 9 sheets (0.3 m) stacked 2 mm apart, vertex above vertex (or each turned 45 degrees from the one
-    below), falling at 3 m/s onto a plane, friction 0.3 between the layers and on the floor.  In the step after the
-    impact the lagged friction pins every layer with its whole impact force; an upper sheet slides off its unstable
-    place above the lower one's vertices, and along a sliding pair's direction the friction has no curvature: the
-    Newton steps overshot by 16-64x and the step did not converge in 60 iterations, nor its halves.  Damping after
-    poor steps (torchbend.sim.damping, in time steps too) brings it to convergence in at most 60 iterations.  Every
-    state is free of intersections (exact test)."""
-    from tests.test_self_contact import intersects
-
-    flat, f = tb.scenes.grid(9, 9, (0.3, 0.3), dtype=F64)
+def stacked_sheets(n: int = 9, twist: float = 0.0, layers: int = 4):
+    """``layers`` n x n sheets (0.3 m) stacked 2 mm apart, vertex above vertex (or each turned ``twist`` degrees from
+    the one below), the lowest 1.2 mm above a plane, falling at 3 m/s; friction 0.3 between the layers and on the
+    floor.  Returns ``(model, state)``."""
+    flat, f = tb.scenes.grid(n, n, (0.3, 0.3), dtype=F64)
     flat = flat - torch.tensor([0.15, 0.15, 0.0], dtype=F64)
-    layers, faces = [], []
-    for k in range(4):
+    parts, faces = [], []
+    for k in range(layers):
         a = math.radians(twist * k)
         turn = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
                             dtype=F64)
-        layers.append(flat @ turn.T + torch.tensor([0.0, 0.0, 1.2e-3 + 2e-3 * k], dtype=F64))
+        parts.append(flat @ turn.T + torch.tensor([0.0, 0.0, 1.2e-3 + 2e-3 * k], dtype=F64))
         faces.append(f + k * len(flat))
-    x0, faces = torch.cat(layers), torch.cat(faces)
+    x0, faces = torch.cat(parts), torch.cat(faces)
     model = tb.ClothModel(faces, x0, density=0.2, terms=[tb.SelfContact(dhat=1e-3, friction=0.3)],
                           colliders=[tb.Plane(friction=0.3)],
                           membrane=tb.MembraneEnergy(faces, x0, young=1e5, poisson=0.3, thickness=5e-4),
                           bending=tb.BendingEnergy(faces, x0, stiffness=1e-5))
-    topo = model.topology
     v = torch.zeros_like(x0)
     v[:, 2] = -3.0
-    state = tb.ClothState(x0, v)
-    for i in range(3):
+    return model, tb.ClothState(x0, v)
+
+
+def _steps_converge(model, state, steps: int):
+    from tests.test_self_contact import intersects
+
+    topo = model.topology
+    for i in range(steps):
         state, info = tb.implicit_euler_step(model, state, 0.01)
         assert info.converged, (i, info.message)
         assert info.min_distance > 0 and not intersects(state.x, topo.faces, topo.edges), i
     assert float(state.x[:, 2].min()) > 0
+    return info
+
+
+@pytest.mark.parametrize("twist", [0.0, 45.0])
+def test_stacked_sheets_hitting_a_floor_with_friction_converge_in_every_step(twist):
+    """Four 9 x 9 sheets stacked vertex above vertex (or each turned 45 degrees) hit a floor at 3 m/s with friction
+    0.3 (:func:`stacked_sheets`).  In the step after the impact the lagged friction pins every layer with its whole
+    impact force; an upper sheet slides off its unstable place above the lower one's vertices, and along a sliding
+    pair's direction the friction has no curvature: the Newton steps overshot by 16-64x and the step did not
+    converge in 60 iterations, nor its halves.  Damping after poor steps (torchbend.sim.damping, in time steps too)
+    brings it to convergence in at most 60 iterations.  Every state is free of intersections (exact test)."""
+    _steps_converge(*stacked_sheets(9, twist), steps=3)
+
+
+@pytest.mark.slow
+def test_a_finer_stack_converges_with_the_clamped_retry():
+    """Four 15 x 15 sheets stacked vertex above vertex hit a floor at 3 m/s: the impact step's exact-Hessian
+    iterates wander near the saddle of the aligned layers (decrements ~1e-8 J, full steps) and the step did not
+    converge within its 30 s time limit (162 iterations, halves included); the step solved again with the clamped
+    projection converges (torchbend.sim.newton._euler_step)."""
+    model, state = stacked_sheets(15, 0.0)
+    state, info = tb.implicit_euler_step(model, state, 0.01)
+    assert info.converged and info.phase == "clamped" and info.solves == 2, info.message
+    _steps_converge(model, state, steps=2)
+
+
+def test_a_failed_exact_step_is_solved_again_with_the_clamped_projection_before_its_halves(monkeypatch):
+    """The retry's order: with 5 iterations a solve, the impact step of :func:`stacked_sheets` is solved with the
+    exact Hessian, again whole with the clamped projection, then as halves with the exact Hessian; with
+    ``max_substep_depth=0`` (one solve asked for) or a projected Hessian there is no retry."""
+    from torchbend.sim import newton
+
+    real, seen = newton._euler_solve, []
+
+    def spy(model, state, dt, option, *args):
+        seen.append((dt, option.value))
+        return real(model, state, dt, option, *args)
+
+    monkeypatch.setattr(newton, "_euler_solve", spy)
+    model, state = stacked_sheets(9, 0.0)
+    _, info = tb.implicit_euler_step(model, state, 0.01, max_iters=5, max_substep_depth=1)
+    assert seen[:3] == [(0.01, "none"), (0.01, "clamp"), (0.005, "none")] and not info.converged
+    assert info.solves == len(seen) and info.iterations == 5 * len(seen)
+    seen.clear()
+    _, info = tb.implicit_euler_step(model, state, 0.01, max_iters=5, max_substep_depth=0)
+    assert seen == [(0.01, "none")] and info.solves == 1 and info.iterations == 5
+    seen.clear()
+    _, info = tb.implicit_euler_step(model, state, 0.01, projection="clamp", max_iters=5, max_substep_depth=1)
+    assert [o for _, o in seen] == ["clamp"] * len(seen) and seen[1][0] == 0.005 and info.phase != "clamped"
