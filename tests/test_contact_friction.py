@@ -247,3 +247,57 @@ def test_a_failed_exact_step_is_solved_again_with_the_clamped_projection_before_
     seen.clear()
     _, info = tb.implicit_euler_step(model, state, 0.01, projection="clamp", max_iters=5, max_substep_depth=1)
     assert [o for _, o in seen] == ["clamp"] * len(seen) and seen[1][0] == 0.005 and info.phase != "clamped"
+
+
+def test_every_solve_of_a_retried_step_starts_from_the_step_s_contact_stiffness(monkeypatch):
+    """An adaptive ``kappa`` (``stiffness=None``) is part of a term's pose: the clamped retry and the halves of a
+    step start from the ``kappa`` of the step's start (before, each solve of the same start doubled it once more:
+    1.26e6, 2.5e6, 5e6, 1e7 over a step, a retry and a half, and the next steps kept it); ``info.seconds`` counts
+    the whole step."""
+    import time
+
+    from torchbend.sim import newton
+
+    real, kappas = newton._euler_solve, []
+
+    def spy(model, state, dt, option, *args):
+        kappas.append(sc.stiffness)
+        return real(model, state, dt, option, *args)
+
+    monkeypatch.setattr(newton, "_euler_solve", spy)
+    flat, f = tb.scenes.grid(6, 6, (0.1, 0.1), dtype=F64)
+    x0 = torch.cat([flat + torch.tensor([0.0, 0.0, 1e-3], dtype=F64),
+                    flat + torch.tensor([0.003, 0.002, 1e-3 + 5e-5], dtype=F64)])  # 5e-5 m < dhat / 10
+    faces = torch.cat([f, f + len(flat)])
+    sc = tb.SelfContact(dhat=1e-3, friction=0.3)
+    model = tb.ClothModel(faces, x0, density=0.2, terms=[sc], colliders=[tb.Plane(friction=0.3)])
+    k0 = sc.stiffness
+    t0 = time.perf_counter()
+    _, info = tb.implicit_euler_step(model, tb.ClothState(x0, torch.zeros_like(x0)), 0.01, max_iters=1,
+                                     max_substep_depth=1)
+    wall = time.perf_counter() - t0
+    assert len(kappas) == 3 and kappas == [k0] * 3 and not info.converged, (kappas, k0)
+    assert sc.stiffness == 2 * k0  # the returned solve's: the start's doubling, once
+    assert info.seconds >= 0.9 * wall
+
+
+def test_a_callback_that_stops_the_clamped_retry_ends_the_step(monkeypatch):
+    """A callback's stop in the retry ends the step (no halves start), whichever of the two solves is returned."""
+    from torchbend.sim import newton
+
+    real, seen = newton._euler_solve, []
+
+    def spy(model, state, dt, option, *args):
+        seen.append((dt, option.value))
+        return real(model, state, dt, option, *args)
+
+    monkeypatch.setattr(newton, "_euler_solve", spy)
+    model, state = stacked_sheets(9, 0.0)
+    starts = [0]
+
+    def callback(it, x, info):  # stop as soon as the second solve (the retry) iterates
+        starts[0] += it == 1
+        return starts[0] >= 2
+
+    _, info = tb.implicit_euler_step(model, state, 0.01, max_iters=5, max_substep_depth=1, callback=callback)
+    assert seen == [(0.01, "none"), (0.01, "clamp")] and info.stop_reason == "callback" and not info.converged

@@ -51,7 +51,7 @@ __all__ = ["Damping"]
 
 
 class Damping:
-    """The damping state of one static Newton solve (module docstring).  ``mass``: ``(V,)`` lumped masses [kg]."""
+    """The damping state of one Newton solve (module docstring).  ``mass``: ``(V,)`` lumped masses [kg]."""
 
 
     MIN = 1e-6

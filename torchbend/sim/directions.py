@@ -102,7 +102,10 @@ class NewtonDirections:
         def clamped(after_exact: bool) -> tuple[np.ndarray, int]:
             # the clamped Hessian's direction (positive semi-definite elements plus the inertia: definite); after
             # an indefinite exact one the next direction skips the exact attempt (a buckle lasts some iterations)
-            res = solve(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP))
+            A = self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)
+            if self.damping.active:  # damped as free_hessian's matrix is (the model the damping's rule judges)
+                A = self.hessian_op.shifted(A, self.damping.shift(A.values()))
+            res = solve(A)
             self.linear_method = f"{res.method}/clamp"
             self.skip_exact = after_exact
             return res.p, res.shifts + int(after_exact)

@@ -1054,8 +1054,11 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
     forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
     inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
     Pinned vertices keep their positions (zero velocity).  With bending damping, the viscous term uses
-    the angles of ``state.x`` as ``theta_prev``.  A step whose Newton solve fails is retried as two
-    half steps (recursively, at most ``max_substep_depth`` halvings; ``info.substeps`` counts the
+    the angles of ``state.x`` as ``theta_prev``.  The Newton solve is damped after poor steps
+    (``NewtonOptions(damping=)``, :mod:`~torchbend.sim.damping`).  A step whose exact-Hessian solve stops
+    (``max_iters``, a failed line search) is solved again with the clamped projection (``info.phase ==
+    "clamped"`` when that state is returned), and one that still fails is retried as two half steps
+    (recursively, at most ``max_substep_depth`` halvings, none of both with 0; ``info.substeps`` counts the
     (sub)steps of the returned state, ``info.solves`` every Newton solve).
 
     A body moved since the last step (a :class:`~torchbend.MeshCollider` whose ``vertices`` were assigned) moves
@@ -1100,9 +1103,11 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     t0 = time.perf_counter()
     poses = [(t, t.pose()) for t in model.terms]
     new, info = _euler_solve(model, state, dt, option, linear, ctl)
+    now = time.perf_counter()  # (the retry takes about as long as the first solve: not begun past half the time left)
     if (retry and depth > 0 and not info.converged and option is Projection.NONE and info.stop_reason in RETRIED_STOPS
-            and not (ctl.deadline is not None and time.perf_counter() > ctl.deadline)):
-        for t, p in poses:  # the retry starts from the bodies' poses (and pending moves) of the step's start
+            and (ctl.deadline is None or 2 * now - t0 < ctl.deadline)):
+        after = [(t, t.pose()) for t in model.terms]
+        for t, p in poses:  # the retry starts from the bodies' poses (pending moves, kappa) of the step's start
             t.restore_pose(p)
         new2, info2 = _euler_solve(model, state, dt, Projection.CLAMP, linear, ctl)
         if info2.converged or info2.residual < info.residual:  # the better of the two (a converged one first)
@@ -1111,10 +1116,14 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
             info.message = f"{info2.message}; with the clamped projection, after the exact Hessian's solve ({stopped})"
             info.phase = "clamped"
         else:
+            for t, p in after:  # the exact solve's state is kept: its bodies and kappa too
+                t.restore_pose(p)
             info = _aggregate([info, info2], info)
+            if info2.stop_reason in ("time_limit", "callback"):
+                info.stop_reason = info2.stop_reason
     if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback", "body_move"):
-        info.substeps = 1  # (a body's move the cloth cannot make way for stops the same in a half step)
-        return new, info
+        info.substeps, info.seconds = 1, time.perf_counter() - t0  # (a body's move the cloth cannot make way for
+        return new, info  # stops the same in a half step)
     after = [(t, t.pose()) for t in model.terms]  # the bodies where the full step left them
     for t, p in poses:  # the halves start from the bodies' poses (and pending moves) of the full step
         t.restore_pose(p)

@@ -512,6 +512,16 @@ def _grow(term: SelfContact, d: float, last: float) -> bool:
     return changed
 
 
+def _kappa_state(self) -> tuple:
+    """An adaptive ``kappa``'s state (the term's ``pose``): a time step solved again (a retry, its halves) starts
+    from the state of the step's start, or the same start would double ``kappa`` once more."""
+    return self.stiffness, self._last_min, self._solve_min
+
+
+def _restore_kappa_state(self, pose: tuple) -> None:
+    self.stiffness, self._last_min, self._solve_min = pose
+
+
 def _closest(term: _ContactPairs, x: Tensor) -> float:
     """The smallest distance [m] of the pairs closer than ``dhat`` at ``x`` (those of the energy), or ``inf``."""
     st, types, _ = term._close(x)
@@ -658,8 +668,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         eps_v: the sliding speed [m/s] (> 0) below which the friction is smoothed (static-like).
     """
 
-    contact = True
-    confines = False
+    contact, confines = True, False
 
     def __init__(self, dhat: float = 1e-3, stiffness: float | None = None, friction: float = 0.0,
                  eps_v: float = 1e-3, name: str = "self_contact"):
@@ -675,8 +684,7 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         self._rest_len_sq: Tensor | None = None
         self._cache: tuple | None = None  # (boxes lo, hi, radius, slack, pairs...) of _active
         self._close_cache: tuple | None = None  # (points, _cache, the pairs within dhat) of the last x (_close)
-        self._V = 0
-        self._kappa0: float | None = None  # the chosen initial kappa (stiffness=None) and the last step's distance
+        self._V, self._kappa0 = 0, None  # the chosen initial kappa (stiffness=None), the last distances (_grow)
         self._last_min = self._solve_min = math.inf
 
     ADAPT_FRACTION = 0.1
@@ -730,6 +738,8 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             return False
         last, self._solve_min = self._solve_min, _closest(self, x)
         return not start and self._solve_min < self.ADAPT_DECREASE * last and _grow(self, self._solve_min, last)
+
+    pose, restore_pose = _kappa_state, _restore_kappa_state  # a step solved again starts from the step's kappa
 
     def begin_step(self, ctx: StepContext) -> None:
         if self.faces is None or ctx.x_prev is None or ctx.dt is None or ctx.x_prev.ndim != 2:
@@ -884,10 +894,11 @@ class MeshCollider(SelfContact):
         self._start, self._target = None, self._vertices
 
     def pose(self) -> tuple:
-        return self._start, self._target, self._vertices
+        return self._start, self._target, self._vertices, _kappa_state(self)
 
     def restore_pose(self, pose: tuple) -> None:
-        self._start, self._target, self._vertices = pose
+        self._start, self._target, self._vertices, kappa = pose
+        _restore_kappa_state(self, kappa)
 
     def bind(self, topology, rest: Tensor, mass: Tensor) -> None:
         super().bind(topology, rest, mass)
