@@ -16,6 +16,14 @@ vertex slides faster than ``eps_v``, and smoothly less below (``f1 = f0' = 2 y /
 
 both continuous, and the Hessian is positive semi-definite (its eigenvalues ``a`` and ``a + b`` are >= 0):
 no projection is needed.  Formed without dividing by ``y`` below ``eps`` (no NaN at ``u = 0``).
+
+Along the slip of a sliding pair the exact curvature ``a + b`` is zero (``D`` grows as ``mu lam |u|``), so a Newton
+step along it is bounded by the other terms alone (a time step's inertia) and may overshoot across the smoothed
+kink at ``u = 0`` where the friction stops the slip (after an impact, where ``lam`` is the whole impact force).
+:func:`friction_blocks` with ``slip = s`` keeps the share ``s`` of the curvature ``-b`` that the exact Hessian
+removes along ``u_hat`` (``b -> (1 - s) b``, continuous at ``eps``; ``s = 1``: ``mu lam a P``, the curvature of
+the quadratic that touches ``f0`` from above at ``|u|``).  A time step solved again after its exact solve
+stopped uses it (``StepContext.friction_slip``); the gradient, and so the solution, stay exact.
 """
 from __future__ import annotations
 
@@ -49,12 +57,14 @@ def friction_gradient(x: Tensor, x_prev: Tensor, n: Tensor, weight: Tensor, eps:
     return (weight * a)[:, None] * u
 
 
-def friction_blocks(x: Tensor, x_prev: Tensor, n: Tensor, weight: Tensor, eps: float) -> Tensor:
-    """Per-vertex Hessian blocks ``(V, 3, 3)`` [N/m] of :func:`friction_energy`, positive semi-definite."""
+def friction_blocks(x: Tensor, x_prev: Tensor, n: Tensor, weight: Tensor, eps: float, slip: float = 0.0) -> Tensor:
+    """Per-vertex Hessian blocks ``(V, 3, 3)`` [N/m] of :func:`friction_energy`, positive semi-definite; ``slip``
+    in ``[0, 1]``: the share of the curvature along the slip that the exact Hessian (0) removes, kept (module
+    docstring)."""
     u, y, slow, y_safe, a = _parts(x, x_prev, n, eps)
     y_div = torch.where(y > 0, y, torch.ones_like(y))
     u_hat = u / y_div[:, None]  # zero where u = 0
-    b = torch.where(slow, -y / (eps * eps), -1 / y_safe)
+    b = (1.0 - slip) * torch.where(slow, -y / (eps * eps), -1 / y_safe)
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
     P = eye - n[:, :, None] * n[:, None, :]
     H = a[:, None, None] * P + b[:, None, None] * u_hat[:, :, None] * u_hat[:, None, :]

@@ -630,7 +630,8 @@ class _LaggedFriction(_ContactPairs):
         if s is None:
             return None
         f, delta = s
-        H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"])
+        slip = ctx.friction_slip if ctx is not None else 0.0
+        H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"], slip)
         w = f["w"].to(H3.dtype)
         H = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
         return f["stencils"], H

@@ -54,13 +54,16 @@ class StepContext:
     """What a time step gives every term: the start positions ``x_prev (V, 3)`` [m] and velocities
     ``v_prev (V, 3)`` [m/s], the step ``dt`` [s], the inertial target ``x_hat = x_prev + dt v_prev`` [m],
     and ``lagged``: per-term data of the step, keyed by term name (filled by :meth:`EnergyTerm.begin_step`,
-    e.g. the previous hinge angles of a viscous bending term).  A static solve uses ``StepContext()``."""
+    e.g. the previous hinge angles of a viscous bending term).  ``friction_slip``: the share of a sliding pair's
+    curvature along its slip that friction Hessians keep (0: exact; :func:`torchbend.energies.friction.friction_blocks`;
+    a step solved again after its exact solve stopped sets it).  A static solve uses ``StepContext()``."""
 
     x_prev: Tensor | None = None
     v_prev: Tensor | None = None
     dt: float | None = None
     x_hat: Tensor | None = None
     lagged: dict[str, Any] = field(default_factory=dict)
+    friction_slip: float = 0.0
 
     @property
     def dynamic(self) -> bool:
@@ -68,10 +71,10 @@ class StepContext:
         return self.dt is not None
 
     @classmethod
-    def for_step(cls, terms, x_prev: Tensor, v_prev: Tensor, dt: float) -> StepContext:
+    def for_step(cls, terms, x_prev: Tensor, v_prev: Tensor, dt: float, friction_slip: float = 0.0) -> StepContext:
         """The context of a step of ``dt`` [s] from ``(x_prev, v_prev)``, with every term's
         :meth:`~EnergyTerm.begin_step` called."""
-        ctx = cls(x_prev=x_prev, v_prev=v_prev, dt=float(dt), x_hat=x_prev + dt * v_prev)
+        ctx = cls(x_prev=x_prev, v_prev=v_prev, dt=float(dt), x_hat=x_prev + dt * v_prev, friction_slip=friction_slip)
         for t in terms:
             t.begin_step(ctx)
         return ctx
@@ -449,7 +452,7 @@ class ColliderTerm(EnergyTerm):
     def vertex_blocks(self, x, ctx, projection=None):
         H = self.collider.hessian_blocks(x, projection=_projection(projection))
         f = self._friction(x, ctx)
-        return H if f is None else H + friction_blocks(x, f["x_prev"], f["n"], f["weight"], f["eps"])
+        return H if f is None else H + friction_blocks(x, f["x_prev"], f["n"], f["weight"], f["eps"], ctx.friction_slip)
 
     def max_step(self, x, dx, ctx):
         return float(self.collider.max_step(x, dx, depth=self.depth).min()) if x.shape[0] else 1.0
