@@ -281,26 +281,43 @@ def test_every_solve_of_a_retried_step_starts_from_the_step_s_contact_stiffness(
     assert info.seconds >= 0.9 * wall
 
 
-def test_a_callback_that_stops_the_clamped_retry_ends_the_step(monkeypatch):
-    """A callback's stop in the retry ends the step (no halves start), whichever of the two solves is returned."""
+@pytest.mark.parametrize("kept", ["retry", "exact"])
+def test_a_callback_that_stops_the_clamped_retry_ends_the_step(monkeypatch, kept):
+    """A callback's stop in the retry ends the step (no halves start), whichever of the two solves is returned
+    (``kept="exact"``: the retry's residual is made the worse, so the exact solve's state, its bodies' poses and
+    ``kappa`` are kept); ``info.seconds`` covers the whole step."""
+    import time
+
     from torchbend.sim import newton
 
     real, seen = newton._euler_solve, []
 
     def spy(model, state, dt, option, *args):
         seen.append((dt, option.value))
-        return real(model, state, dt, option, *args)
+        new, info = real(model, state, dt, option, *args)
+        if kept == "exact" and option.value == "clamp":
+            info.residual = math.inf
+        return new, info
 
     monkeypatch.setattr(newton, "_euler_solve", spy)
     model, state = stacked_sheets(9, 0.0)
-    starts = [0]
+    sc = model.terms[[t.name for t in model.terms].index("self_contact")]
+    starts, kappa = [0], []
 
     def callback(it, x, info):  # stop as soon as the second solve (the retry) iterates
         starts[0] += it == 1
+        if it == 1:
+            kappa.append(sc.stiffness)
+        if starts[0] == 2:
+            sc.stiffness = 3.0 * kappa[0]  # the retry's kappa, distinguishable from the exact solve's
         return starts[0] >= 2
 
+    t0 = time.perf_counter()
     _, info = tb.implicit_euler_step(model, state, 0.01, max_iters=5, max_substep_depth=1, callback=callback)
+    wall = time.perf_counter() - t0
     assert seen == [(0.01, "none"), (0.01, "clamp")] and info.stop_reason == "callback" and not info.converged
+    assert info.phase == ("clamped" if kept == "retry" else "newton") and info.seconds >= 0.9 * wall
+    assert sc.stiffness == (3.0 * kappa[0] if kept == "retry" else kappa[0])  # the returned solve's kappa
 
 
 @pytest.mark.parametrize("slip", [0.5, 1.0])

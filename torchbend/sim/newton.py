@@ -1058,7 +1058,7 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
     (``NewtonOptions(damping=)``, :mod:`~torchbend.sim.damping`).  A step whose exact-Hessian solve stops
     (``max_iters``, a failed line search) is solved again with the clamped projection (``info.phase ==
     "clamped"`` when that state is returned), and one that still fails is retried as two half steps
-    (recursively, at most ``max_substep_depth`` halvings, none of both with 0; ``info.substeps`` counts the
+    (recursively, at most ``max_substep_depth`` halvings; neither with 0; ``info.substeps`` counts the
     (sub)steps of the returned state, ``info.solves`` every Newton solve).
 
     A body moved since the last step (a :class:`~torchbend.MeshCollider` whose ``vertices`` were assigned) moves
@@ -1106,7 +1106,9 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     halving: near a saddle of the contact potential (sheets stacked vertex above vertex,
     whose upper layer slides off its place) the exact Newton iterates wander with decrements of 1e-8 J and the
     halves fare no better, where the projected model descends (four 15 x 15 sheets hitting a floor at 3 m/s: no
-    convergence in 162 iterations and 30 s, the time limit; retried: converged)."""
+    convergence in 162 iterations and 30 s, the time limit; retried: converged).  The retry's friction Hessians keep
+    :data:`RETRY_FRICTION_SLIP` of the slip curvature; it is not begun past half the time left (it takes about as
+    long as the first solve), and a callback or time-limit stop in it ends the step."""
     t0 = time.perf_counter()
     poses = [(t, t.pose()) for t in model.terms]
     new, info = _euler_solve(model, state, dt, option, linear, ctl)
@@ -1128,6 +1130,7 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
             info = _aggregate([info, info2], info)
             if info2.stop_reason in ("time_limit", "callback"):
                 info.stop_reason = info2.stop_reason
+                info.message += f"; the clamped retry stopped: {info2.message}"
     if info.converged or depth <= 0 or info.stop_reason in ("time_limit", "callback", "body_move"):
         info.substeps, info.seconds = 1, time.perf_counter() - t0  # (a body's move the cloth cannot make way for
         return new, info  # stops the same in a half step)

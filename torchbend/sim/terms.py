@@ -211,7 +211,8 @@ class EnergyTerm:
         return None
 
     def pose(self) -> Any:
-        """The body's pose and pending move (:meth:`restore_pose` puts them back: a step retried in halves)."""
+        """The term's state that a step solved again starts from (:meth:`restore_pose` puts it back: the clamped retry
+        and the halves of a failed step): a body's pose and pending move, an adaptive contact stiffness."""
         return None
 
     def restore_pose(self, pose: Any) -> None:
