@@ -1231,8 +1231,8 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
     movers = [t for t in model.terms if t.pending_move()]
     for t in movers:  # the lagged data (friction frames) at the step's start: the bodies at their last poses
         t.place(0.0)
-    ctx = StepContext.for_step(model.terms, x_n, v_n, dt, friction_slip)  # the terms' lagged data (e.g. viscous
-    # hinge angles)
+    # the terms' lagged data (e.g. viscous hinge angles)
+    ctx = StepContext.for_step(model.terms, x_n, v_n, dt, friction_slip)
     x_hat = ctx.x_hat
     assert x_hat is not None
     x, infos, s, stuck = _move_bodies(model, x_n, movers, ctx, option, linear, ctl)
