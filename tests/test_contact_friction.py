@@ -272,6 +272,7 @@ def test_every_solve_of_a_retried_step_starts_from_the_step_s_contact_stiffness(
     sc = tb.SelfContact(dhat=1e-3, friction=0.3)
     model = tb.ClothModel(faces, x0, density=0.2, terms=[sc], colliders=[tb.Plane(friction=0.3)])
     k0 = sc.stiffness
+    assert k0 is not None
     t0 = time.perf_counter()
     _, info = tb.implicit_euler_step(model, tb.ClothState(x0, torch.zeros_like(x0)), 0.01, max_iters=1,
                                      max_substep_depth=1)
@@ -301,7 +302,7 @@ def test_a_callback_that_stops_the_clamped_retry_ends_the_step(monkeypatch, kept
 
     monkeypatch.setattr(newton, "_euler_solve", spy)
     model, state = stacked_sheets(9, 0.0)
-    sc = model.terms[[t.name for t in model.terms].index("self_contact")]
+    sc = next(t for t in model.terms if isinstance(t, tb.SelfContact))
     starts, kappa = [0], []
 
     def callback(it, x, info):  # stop as soon as the second solve (the retry) iterates
