@@ -62,9 +62,11 @@ class NewtonDirections:
         A = self.hessian_op.assemble(x, self.terms, self.ctx, damping.matrix_option(self.option))
         if damping.pending:  # the first matrix: its diagonal sets the scale (the first direction is undamped)
             damping.start(self.hessian_op.diagonal(A))
-        if damping.active:
-            A = self.hessian_op.shifted(A, damping.shift(A.values()))
-        return A
+        return self._damped(A)
+
+    def _damped(self, A: Tensor) -> Tensor:
+        """``A + mu M`` while the damping is on, else ``A``."""
+        return self.hessian_op.shifted(A, self.damping.shift(A.values())) if self.damping.active else A
 
     def _factor(self):
         """The PARDISO factorisation of the assembled pattern (``linear.factorization``: ``"auto"`` when MKL
@@ -102,10 +104,8 @@ class NewtonDirections:
         def clamped(after_exact: bool) -> tuple[np.ndarray, int]:
             # the clamped Hessian's direction (positive semi-definite elements plus the inertia: definite); after
             # an indefinite exact one the next direction skips the exact attempt (a buckle lasts some iterations)
-            A = self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)
-            if self.damping.active:  # damped as free_hessian's matrix is (the model the damping's rule judges)
-                A = self.hessian_op.shifted(A, self.damping.shift(A.values()))
-            res = solve(A)
+            # damped as free_hessian's matrix is (the model the damping's rule judges)
+            res = solve(self._damped(self.hessian_op.assemble(x, self.terms, self.ctx, Projection.CLAMP)))
             self.linear_method = f"{res.method}/clamp"
             self.skip_exact = after_exact
             return res.p, res.shifts + int(after_exact)
