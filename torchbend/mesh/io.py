@@ -401,7 +401,7 @@ def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str 
         bad = np.nonzero(((F < 0) | (F >= V)).any(1))[0]
         raise ValueError(f"{where}vertex index out of range [0, {V}) in faces {bad[:8].tolist()}")
     P = pos.detach().cpu().to(torch.float64).numpy()
-    used0 = np.unique(F)
+    used0 = np.flatnonzero(np.bincount(F.reshape(-1), minlength=V))  # np.unique(F), without its hashing
     bad_v = used0[~np.isfinite(P[used0]).all(1)]
     if bad_v.size:
         raise ValueError(f"{where}non-finite (NaN or Inf) coordinates at vertices {bad_v[:8].tolist()}")
@@ -424,7 +424,7 @@ def _clean(pos: Tensor, F: np.ndarray, weld_tol, want_report: bool, source: str 
             raise ValueError(f"{where}no triangles left after dropping degenerate faces")
 
     # 3. unused vertices (welded-away duplicates are not counted)
-    keep = np.unique(F)
+    keep = np.flatnonzero(np.bincount(F.reshape(-1), minlength=V))
     n_unused = int(np.count_nonzero(rep == np.arange(V))) - len(keep)
     if n_unused:
         warnings.warn(f"{where}removed {n_unused} unused vertices (used by no face)", UserWarning, stacklevel=3)

@@ -106,7 +106,7 @@ class _Pattern:
         placed = [self._term_keys(rows, cols, nf) for rows, cols in terms]
         block_keys = bi * nf + bj.reshape(-1)
         own = sorted_unique(np.concatenate([block_keys, *(k for _, k in placed)]))
-        keys = own if extra is None else np.union1d(own, extra)
+        keys = own if extra is None else sorted_unique(np.concatenate([own, extra]))  # (np.union1d hashes: slow)
         rows = keys // nf
         crow = np.zeros(nf + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=nf), out=crow[1:])
