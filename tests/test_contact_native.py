@@ -228,6 +228,37 @@ def test_stencil_sum_is_the_eager_one():
     assert torch.equal(got.indices(), ref.indices())
 
 
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_hessian_sum_with_friction_pairs_is_the_stencil_sum_of_their_blocks(dtype):
+    """contact_hessian_sum's friction pairs (stencils, weights w, point blocks H): the sum of the barrier's blocks
+    and the friction's w w^T (x) H, as contact_stencil_sum of the two sets concatenated (body vertices >= V left
+    out); none given: the barrier's alone."""
+    xa, st = flat(stencils(60, 5, dtype))
+    V = xa.shape[0] - 6  # the last two stencils' vertices partly a body's
+    types, _ = native.contact_distances(xa, st, False)
+    g = torch.Generator().manual_seed(4)
+    M = 25
+    sf = torch.randint(0, xa.shape[0], (M, 4), generator=g)
+    w = torch.randn(M, 4, generator=g, dtype=F64).to(dtype)
+    A = torch.randn(M, 3, 3, generator=g, dtype=F64)
+    H3 = (A @ A.transpose(1, 2)).to(dtype)
+    dh2 = 0.3
+    _, _, H = native.contact_barrier(xa, st, types, None, dh2, 2.0, 2, "clamp")
+    Hf = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
+    ref = native.contact_stencil_sum(torch.cat([st, sf]), torch.cat([H, Hf]), V)
+    got = native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V, (sf, w, H3))
+    assert got.is_coalesced() and got.dtype == dtype and torch.equal(got.indices(), ref.indices())
+    eps = torch.finfo(dtype).eps
+    torch.testing.assert_close(got.values(), ref.values(), rtol=0, atol=64 * eps * float(ref.values().abs().max()))
+    alone = native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V)
+    torch.testing.assert_close(alone.to_dense(), native.contact_stencil_sum(st, H, V).to_dense(), rtol=0,
+                               atol=64 * eps * float(H.abs().max()))
+    with pytest.raises(ValueError, match="f_w"):
+        native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V, (sf, w[:, :3], H3))
+    with pytest.raises(ValueError, match="f_stencils"):
+        native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V, (sf + xa.shape[0], w, H3))
+
 def test_bad_arguments_are_value_errors_naming_them():
     xa, st = flat(stencils(3, 1))
     with pytest.raises(ValueError, match=r"stencils\[2, 1\] = 99 is out of range"):
@@ -271,6 +302,35 @@ def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
     assert sc.max_step(x, dx, ctx) == pytest.approx(step, rel=1e-12)
 
+
+
+@pytest.mark.parametrize("body", [False, True], ids=["self", "mesh_collider"])
+def test_compiled_and_eager_hessians_agree_with_friction(monkeypatch, body):
+    """In a time step with lagged friction the compiled Hessian (the barrier's from the pairs' reduced coordinates,
+    the friction pairs' added in the same sum) is the eager one (12x12 blocks of both, summed), for self-contact and
+    for a body (its vertices are not unknowns)."""
+    x, f = folded()
+    n = x.shape[0] // 2
+    if body:
+        term = tb.MeshCollider(x[:n], f[:f.shape[0] // 2], dhat=2e-3, stiffness=1e3, friction=0.4, eps_v=1e-3)
+        x, f = x[n:], f[f.shape[0] // 2:] - n
+    else:
+        term = tb.SelfContact(dhat=2e-3, stiffness=1e3, friction=0.4, eps_v=1e-3)
+    tb.ClothModel(f, x, terms=[term])
+    v = torch.zeros_like(x)
+    v[:, 0] = 0.02
+    ctx = tb.StepContext.for_step([term], x, v, 0.01)
+    assert term.name in ctx.lagged and ctx.lagged[term.name]["stencils"].shape[0] > 50
+    y = x + 0.01 * v + 1e-6 * torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=F64)
+    fast = [term.hessian(y, ctx, p).to_dense() for p in (tb.Projection.CLAMP, tb.Projection.NONE)]
+    monkeypatch.setattr(scm, "_native_ok", lambda t: False)
+    term._cache = term._close_cache = None
+    slow = [term.hessian(y, ctx, p).to_dense() for p in (tb.Projection.CLAMP, tb.Projection.NONE)]
+    without = tb.StepContext()
+    plain = term.hessian(y, without, tb.Projection.NONE).to_dense()
+    assert float((slow[1] - plain).abs().max()) > 1e-3 * float(plain.abs().max())  # the friction counts
+    for a, b in zip(fast, slow):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10 * float(b.abs().max()))
 
 def test_close_pairs_are_the_eager_ones_every_pair_counted():
     """contact_close: the stencils closer than dhat (a box test first) and their types, as the eager distances

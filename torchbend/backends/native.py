@@ -231,12 +231,18 @@ def contact_stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
 
 
 def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float,
-                        kappa: float, projection: str, V: int) -> Tensor:
+                        kappa: float, projection: str, V: int,
+                        friction: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """:func:`contact_stencil_sum` of the Hessians of :func:`contact_barrier` (``want=2``, ``projection``), each
-    pair's added from its reduced coordinates without forming its 12x12 block."""
+    pair's added from its reduced coordinates without forming its 12x12 block; ``friction = (stencils (M, 4),
+    w (M, 4), H (M, 3, 3))``: friction pairs whose 12x12 blocks are ``w w^T (x) H``, added after the barrier's
+    (in stencil order, as :func:`contact_stencil_sum` of the barrier's blocks and theirs concatenated)."""
     mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
     e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
-    indices, values = _module().contact_hessian_sum(x, stencils, types, e, float(dhat_sq), float(kappa), mode, int(V))
+    if friction is None:
+        friction = (stencils.new_zeros(0, 4), x.new_zeros(0, 4), x.new_zeros(0, 3, 3))
+    indices, values = _module().contact_hessian_sum(x, stencils, types, e, float(dhat_sq), float(kappa), mode, int(V),
+                                                    *friction)
     return _coo(indices, values, V)
 
 

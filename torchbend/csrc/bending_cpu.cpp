@@ -50,7 +50,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "PSD projection of symmetric 3x3, 6x6 or 9x9 blocks by the contact kernels' eigensolver (tridiagonal QL)");
   m.def("contact_stencil_sum", &op::contact_stencil_sum, "the row-major sum of 12x12 stencil blocks");
   m.def("contact_hessian_sum", &op::contact_hessian_sum,
-        "the row-major sum of the contact pairs' (projected) barrier Hessians, without forming the blocks");
+        "the row-major sum of the contact pairs' (projected) barrier Hessians, without forming the blocks, and of "
+        "friction pairs' blocks");
   m.def("output_cache_info", &op::output_cache_info, "(blocks, bytes, hits, misses, limit) of the cache of large outputs");
   m.def("empty_output_cache", &op::empty_output_cache, "free the memory the cache of large outputs holds");
   m.def("set_output_cache_limit", &op::set_output_cache_limit, "the most bytes the cache of large outputs keeps");

@@ -5,7 +5,8 @@
 //   contact_close       the stencils closer than dhat
 //   contact_step_bound  the conservative step bound of candidate stencils
 //   contact_barrier     the pairs' barrier energies, gradients and (PSD-projected) Hessians
-//   contact_hessian_sum the pairs' (projected) Hessians summed into the (3V, 3V) matrix, without the blocks
+//   contact_hessian_sum the pairs' (projected) Hessians summed into the (3V, 3V) matrix, without the blocks, and
+//                       the friction pairs' (w w^T (x) their point block)
 //   contact_stencil_sum the sum of given 12x12 stencil blocks
 // The per-stencil mathematics is contact_math.h (shared with the CUDA driver, bending_cuda.cu).
 #include <algorithm>
@@ -497,14 +498,29 @@ std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stenc
 
 std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, torch::Tensor stencils,
                                                              torch::Tensor types, torch::Tensor eps, double dhat_sq,
-                                                             double kappa, int64_t mode, int64_t V) {
+                                                             double kappa, int64_t mode, int64_t V,
+                                                             torch::Tensor f_stencils, torch::Tensor f_w,
+                                                             torch::Tensor f_H) {
   const char* op = "contact_hessian_sum";
   auto [st, ty, ep] = barrier_args(op, x, stencils, types, eps, dhat_sq, kappa, 2, mode);
   check_block_args(op, st, V);
   x = x.contiguous();
   const int64_t N = st.size(0);
-  const int64_t* ps = st.data_ptr<int64_t>();
-  BlockPattern P = block_pattern(ps, N, V, st.options());
+  // the friction pairs (none: zero rows): their stencils follow the barrier's in the pattern and in the sums
+  f_stencils = ck::index_tensor(op, "f_stencils", f_stencils, x.device(), 4);
+  ck::check_range(op, "f_stencils", f_stencils, 0, x.size(0), "x has n = " + std::to_string(x.size(0)) + " points");
+  const int64_t M = f_stencils.size(0);
+  ck::require(f_w.dim() == 2 && f_w.size(0) == M && f_w.size(1) == 4 && f_w.device().is_cpu() &&
+                  f_w.is_floating_point(), op, "f_w must be a CPU float (M, 4) tensor of the friction stencils' "
+              "weights, M = ", M, ", got ", ck::shape_str(f_w));
+  ck::require(f_H.dim() == 3 && f_H.size(0) == M && f_H.size(1) == 3 && f_H.size(2) == 3 && f_H.device().is_cpu() &&
+                  f_H.is_floating_point(), op, "f_H must be a CPU float (M, 3, 3) tensor of the friction pairs' "
+              "point blocks, M = ", M, ", got ", ck::shape_str(f_H));
+  f_w = f_w.to(x.scalar_type()).contiguous();
+  f_H = f_H.to(x.scalar_type()).contiguous();
+  torch::Tensor all = M ? torch::cat({st, f_stencils}) : st;
+  const int64_t* ps = all.data_ptr<int64_t>();
+  BlockPattern P = block_pattern(ps, N + M, V, st.options());
   auto val = torch::zeros({9 * P.U}, x.options());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
     using T = scalar_t;
@@ -549,6 +565,22 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
             }
         }
       }
+    }
+    // the friction pairs, in order after the barrier's: block (a, b) of pair m is w_a w_b H_m
+    const T* pw = M ? f_w.data_ptr<T>() : nullptr;
+    const T* pf = M ? f_H.data_ptr<T>() : nullptr;
+    for (int64_t i = 0; i < M; ++i) {
+      const int64_t m = N + i;
+      const T* w = pw + 4 * i;
+      const T* h = pf + 9 * i;
+      for (int a = 0; a < 4; ++a)
+        for (int b = 0; b < 4; ++b) {
+          const int64_t e = 16 * m + 4 * a + b;
+          if (P.at[e] < 0) continue;
+          const T wab = w[a] * w[b];
+          for (int p = 0; p < 3; ++p)
+            for (int s = 0; s < 3; ++s) pv[P.value_index(ps[4 * m + a], e, p, s)] += wab * h[3 * p + s];
+        }
     }
   });
   return {P.indices, val};

@@ -624,17 +624,16 @@ class _LaggedFriction(_ContactPairs):
                        (f["w"][:, :, None] * gd[:, None, :]).reshape(-1, 3).to(like.dtype))
         return out[:x.shape[0]]
 
-    def _friction_blocks(self, x: Tensor, ctx: StepContext | None) -> tuple[Tensor, Tensor] | None:
-        """``(stencils (M, 4), Hessians (M, 12, 12))`` of the friction pairs (``w_k w_l`` times the point block)."""
+    def _friction_blocks(self, x: Tensor, ctx: StepContext | None) -> tuple[Tensor, Tensor, Tensor] | None:
+        """``(stencils (M, 4), w (M, 4), H (M, 3, 3))`` of the friction pairs: a pair's 12x12 Hessian is
+        ``w_k w_l H`` (its closest-point weights ``w`` and its point block ``H``)."""
         s = self._slip(x.detach(), ctx)
         if s is None:
             return None
         f, delta = s
         slip = ctx.friction_slip if ctx is not None else 0.0
         H3 = friction_blocks(delta, torch.zeros_like(delta), f["n"], f["weight"], f["eps"], slip)
-        w = f["w"].to(H3.dtype)
-        H = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
-        return f["stencils"], H
+        return f["stencils"], f["w"].to(H3.dtype), H3
 
 
 WEAK_FRACTION = 1e-3
@@ -790,19 +789,21 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         fb = self._friction_blocks(x, ctx)
         if compiled:  # as _project: every projection but none and abs clamps
             mode = "abs" if proj is Projection.ABS else ("none" if proj is Projection.NONE else "clamp")
-            if fb is None:  # summed from the pairs' reduced coordinates, no 12x12 blocks
-                st, types, eps = self._close(x)
-                assert self.stiffness is not None
-                return native.contact_hessian_sum(xa, st, types, eps, self.dhat ** 2, self.stiffness, mode, x.shape[0])
-            st, _, _, H = self._pair_terms(x, 2, mode)
-            stencils.append(st)
-            blocks.append(H)
-        for st, kind, eps in ([] if compiled else self._groups(x)):
+            # summed from the pairs' reduced coordinates (no 12x12 blocks), the friction's after them (positive
+            # semi-definite: the same for every projection)
+            st, types, eps = self._close(x)
+            assert self.stiffness is not None
+            friction = None if fb is None else (fb[0], fb[1].to(xa.dtype), fb[2].to(xa.dtype))
+            return native.contact_hessian_sum(xa, st, types, eps, self.dhat ** 2, self.stiffness, mode, x.shape[0],
+                                              friction)
+        for st, kind, eps in self._groups(x):
             stencils.append(st)
             blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
         if fb is not None:  # positive semi-definite: the same for every projection
-            stencils.append(fb[0])
-            blocks.append(fb[1])
+            st_f, w, H3 = fb
+            stencils.append(st_f)
+            blocks.append((w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :])
+                          .reshape(-1, 12, 12))
         if not blocks:
             return stencil_sum(x.new_zeros(0, 4, dtype=torch.int64), x.new_zeros(0, 12, 12), x.shape[0])
         st, H = (stencils[0], blocks[0]) if len(blocks) == 1 else (torch.cat(stencils), torch.cat(blocks))
