@@ -138,6 +138,28 @@ def test_a_cloth_caught_between_two_bodies_stops_the_move():
     assert crossing_free(model, state.x, floor, ff) and crossing_free(model, state.x, block, bf)
 
 
+
+def test_several_bodies_of_the_default_name_are_numbered():
+    """Two body meshes left at their default name (a floor and a block on it) are both terms of the model, the
+    second as 'mesh_collider_2'; the block lowered onto the cloth between steps and the floor under it both act
+    (each has contacts); the same body given twice is a ValueError."""
+    model, rest, floor, fv, ff = sheet_on_box()
+    bv, bf = box((0.08, 0.08, 3e-3), (0.12, 0.12, 0.045))
+    block = tb.MeshCollider(bv, bf, dhat=2e-3)
+    model = tb.ClothModel(model.topology.faces, rest, membrane=model.membrane, bending=model.bending,
+                          colliders=[floor, block], density=0.2)
+    assert (floor.name, block.name) == ("mesh_collider", "mesh_collider_2")
+    assert [t.name for t in model.terms if isinstance(t, tb.MeshCollider)] == ["mesh_collider", "mesh_collider_2"]
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    for _ in range(3):
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged, info.message
+    assert {"mesh_collider", "mesh_collider_2"} <= set(info.energies)
+    assert floor.min_distance(state.x)[1] > 0 and block.min_distance(state.x)[1] > 0
+    assert crossing_free(model, state.x, floor, ff) and crossing_free(model, state.x, block, bf)
+    with pytest.raises(ValueError, match="given twice"):
+        tb.ClothModel(model.topology.faces, rest, colliders=[floor, floor])
+
 # ---- analytic colliders replaced by moved ones between steps (ClothModel.colliders assigned)
 def pinned_sheet(collider, n: int = 9, size: float = 0.3, pinned: bool = True):
     """A ``n x n`` sheet ``size`` wide centred on the origin at z = 0, pinned at its corners (or free), over

@@ -364,15 +364,30 @@ def _split_terms(terms, bending, membrane, colliders) -> tuple:
         else:
             raise ValueError(f"terms[{i}] must be an EnergyTerm, a BendingEnergy, a MembraneEnergy or a collider, "
                              f"got {type(t).__name__}")
+    _name_terms(extra, len(colliders))
+    return bending, membrane, tuple(colliders), tuple(extra)
+
+
+def _name_terms(extra: list, n_colliders: int) -> None:
+    """Check the names of one's own terms (unique, not the model's own); a second body mesh of a name already taken
+    (the default 'mesh_collider') is renamed 'mesh_collider_2', then '_3', ..."""
+    from .self_contact import MeshCollider
+
     names = [t.name for t in extra]
-    reserved = {"membrane", "bending", "gravity", "inertia"} | {f"collider{i}" for i in range(len(colliders))}
+    reserved = {"membrane", "bending", "gravity", "inertia"} | {f"collider{i}" for i in range(n_colliders)}
     for i, name in enumerate(names):
         if not isinstance(name, str) or not name:
             raise ValueError(f"terms: an EnergyTerm needs a non-empty string name, got {name!r}")
-        if name in reserved or name in names[:i]:
+        if any(extra[i] is t for t in extra[:i]):
+            raise ValueError(f"terms: the {type(extra[i]).__name__} {name!r} is given twice")
+        if isinstance(extra[i], MeshCollider) and name in names[:i]:  # several bodies: 'mesh_collider_2', ...
+            k = 2
+            while f"{name}_{k}" in reserved or f"{name}_{k}" in names:
+                k += 1
+            extra[i].name = names[i] = f"{name}_{k}"
+        elif name in reserved or name in names[:i]:
             raise ValueError(f"terms: the name {name!r} of {type(extra[i]).__name__} is already taken "
                              f"(set its `name` attribute to a unique one)")
-    return bending, membrane, tuple(colliders), tuple(extra)
 
 
 def _check_terms(V: int, bending, membrane) -> None:

@@ -649,6 +649,12 @@ def _weight_kappa(mass: Tensor, dhat: float) -> float:
     return 10 * weight / (4.33 * dhat ** 3)
 
 
+def _friction_stencil_blocks(w: Tensor, H: Tensor) -> Tensor:
+    """The 12x12 blocks ``w_k w_l H`` of friction pairs (closest-point weights ``w (M, 4)``, point blocks ``H (M, 3,
+    3)``)."""
+    return (w[:, :, None, None, None] * w[:, None, None, :, None] * H[:, None, :, None, :]).reshape(-1, 12, 12)
+
+
 def _warn_weak(name: str, stiffness: float, chosen: float, dhat: float) -> None:
     warnings.warn(f"{name}: stiffness {stiffness:.3g} J/m^4 is {chosen / stiffness:.3g} times below the {chosen:.3g} "
                   f"J/m^4 whose barrier carries ten mean vertex weights at dhat / 2: contacts are pressed to a small "
@@ -800,10 +806,8 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             stencils.append(st)
             blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
         if fb is not None:  # positive semi-definite: the same for every projection
-            st_f, w, H3 = fb
-            stencils.append(st_f)
-            blocks.append((w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :])
-                          .reshape(-1, 12, 12))
+            stencils.append(fb[0])
+            blocks.append(_friction_stencil_blocks(fb[1], fb[2]))
         if not blocks:
             return stencil_sum(x.new_zeros(0, 4, dtype=torch.int64), x.new_zeros(0, 12, 12), x.shape[0])
         st, H = (stencils[0], blocks[0]) if len(blocks) == 1 else (torch.cat(stencils), torch.cat(blocks))
