@@ -251,7 +251,7 @@ def test_a_failed_exact_step_is_solved_again_with_the_clamped_projection_before_
 
 
 def test_a_retry_goes_on_from_the_best_state_of_an_exact_solve_cut_off_while_converging(monkeypatch):
-    """An exact-Hessian solve stopped by its iteration cap while its residual was still falling (the last ten
+    """An exact-Hessian solve stopped by its iteration cap (or a failed line search) while its residual was still falling (the last ten
     iterates' best at most half the best before them) is continued from its best state with the clamped projection,
     not started over: the impact step of four 9x9 sheets turned 45 degrees with 15 iterations a solve converges in
     the continuation (23 iterations, one solve more, no halves), where a retry from the step's start and the halves

@@ -140,9 +140,9 @@ def test_a_cloth_caught_between_two_bodies_stops_the_move():
 
 
 def test_several_bodies_of_the_default_name_are_numbered():
-    """Two body meshes left at their default name (a floor and a block on it) are both terms of the model, the
-    second as 'mesh_collider_2'; the block lowered onto the cloth between steps and the floor under it both act
-    (each has contacts); the same body given twice is a ValueError."""
+    """Two body meshes left at their default name (a floor under the cloth and a block a barrier's width above it)
+    are both terms of the model, the second as 'mesh_collider_2', and both act (each has contacts); a name one gave
+    that is taken is still a ValueError (and renames nothing), and so is the same body given twice."""
     model, rest, floor, fv, ff = sheet_on_box()
     bv, bf = box((0.08, 0.08, 3e-3), (0.12, 0.12, 0.045))
     block = tb.MeshCollider(bv, bf, dhat=2e-3)
@@ -159,6 +159,12 @@ def test_several_bodies_of_the_default_name_are_numbered():
     assert crossing_free(model, state.x, floor, ff) and crossing_free(model, state.x, block, bf)
     with pytest.raises(ValueError, match="given twice"):
         tb.ClothModel(model.topology.faces, rest, colliders=[floor, floor])
+    a, b, c = (tb.MeshCollider(bv, bf, dhat=2e-3, name=n) for n in ("body", "mesh_collider", "body"))
+    with pytest.raises(ValueError, match="the name 'body' of MeshCollider is already taken"):
+        tb.ClothModel(model.topology.faces, rest, colliders=[a, b, c])
+    assert (a.name, b.name, c.name) == ("body", "mesh_collider", "body")
+    with pytest.raises(ValueError, match="the name 'mesh_collider' of SelfContact is already taken"):
+        tb.ClothModel(model.topology.faces, rest, colliders=[b], terms=[tb.SelfContact(name="mesh_collider")])
 
 # ---- analytic colliders replaced by moved ones between steps (ClothModel.colliders assigned)
 def pinned_sheet(collider, n: int = 9, size: float = 0.3, pinned: bool = True):

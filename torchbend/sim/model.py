@@ -369,25 +369,30 @@ def _split_terms(terms, bending, membrane, colliders) -> tuple:
 
 
 def _name_terms(extra: list, n_colliders: int) -> None:
-    """Check the names of one's own terms (unique, not the model's own); a second body mesh of a name already taken
-    (the default 'mesh_collider') is renamed 'mesh_collider_2', then '_3', ..."""
+    """Check the names of one's own terms (unique, not the model's own); a second body mesh left at the default name
+    'mesh_collider' after another is named 'mesh_collider_2', then '_3', ... (set once every check has passed)."""
     from .self_contact import MeshCollider
 
+    default = "mesh_collider"
     names = [t.name for t in extra]
     reserved = {"membrane", "bending", "gravity", "inertia"} | {f"collider{i}" for i in range(n_colliders)}
     for i, name in enumerate(names):
+        t = extra[i]
         if not isinstance(name, str) or not name:
             raise ValueError(f"terms: an EnergyTerm needs a non-empty string name, got {name!r}")
-        if any(extra[i] is t for t in extra[:i]):
-            raise ValueError(f"terms: the {type(extra[i]).__name__} {name!r} is given twice")
-        if isinstance(extra[i], MeshCollider) and name in names[:i]:  # several bodies: 'mesh_collider_2', ...
+        if any(t is u for u in extra[:i]):
+            raise ValueError(f"terms: the {type(t).__name__} {name!r} is given twice")
+        if name in reserved or name in names[:i]:
+            first = extra[names.index(name)] if name in names[:i] else None
+            if not (name == default and isinstance(t, MeshCollider) and isinstance(first, MeshCollider)):
+                raise ValueError(f"terms: the name {name!r} of {type(t).__name__} is already taken "
+                                 f"(set its `name` attribute to a unique one)")
             k = 2
-            while f"{name}_{k}" in reserved or f"{name}_{k}" in names:
+            while f"{default}_{k}" in reserved or f"{default}_{k}" in names:
                 k += 1
-            extra[i].name = names[i] = f"{name}_{k}"
-        elif name in reserved or name in names[:i]:
-            raise ValueError(f"terms: the name {name!r} of {type(extra[i]).__name__} is already taken "
-                             f"(set its `name` attribute to a unique one)")
+            names[i] = f"{default}_{k}"
+    for t, name in zip(extra, names):
+        t.name = name
 
 
 def _check_terms(V: int, bending, membrane) -> None:

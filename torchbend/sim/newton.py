@@ -1116,8 +1116,8 @@ def _euler_step(model: ClothModel, state: ClothState, dt: float, option: Project
     convergence in 162 iterations and 30 s, the time limit; retried: converged).  The retry's friction Hessians keep
     :data:`RETRY_FRICTION_SLIP` of the slip curvature; it is not begun past half the time left (it takes about as
     long as the first solve), and a callback or time-limit stop in it ends the step.  It starts over from the step's
-    start, or, where the exact solve ran out of iterations while still converging (:func:`_still_converging`) and no
-    body moves, goes on from that solve's best state (four 13 x 13 float32 sheets hitting a mesh floor at 3 m/s: the
+    start, or, where the exact solve stopped (iterations, line search) while still converging (:func:`_still_converging`)
+    and no body moves, goes on from that solve's best state (four 13 x 13 float32 sheets hitting a mesh floor at 3 m/s: the
     exact solve stopped at 0.006 N on its way down from 5 N; started over, the retry walked the same path to the same
     place, and the halves failed; continued, it converged in 15 iterations)."""
     t0 = time.perf_counter()
@@ -1256,6 +1256,7 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
     assert x_hat is not None
     x, infos, s, stuck = _move_bodies(model, x_n, movers, ctx, option, linear, ctl)
     if start is not None:
+        assert not movers, "a solve continued from an earlier one's state has no body to move"
         x = start[0]
         for t, p in start[1]:
             t.restore_pose(p)

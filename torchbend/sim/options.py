@@ -178,7 +178,7 @@ class NewtonOptions:
       False/None; ``max_relax_steps`` (int >= 0): the pseudo-transient steps at most;
     * ``max_substep_depth`` (time steps, int >= 0): halvings of a failed step at most; above 0 an exact-Hessian
       step that stops is first solved again with the clamped projection (``SolveInfo.phase`` ``"clamped"``), from
-      the stopped solve's best state where that solve was still converging.
+      the stopped solve's best state where that solve was still converging and no body moves.
 
     ``tb.NewtonOptions(projection="gauss_newton", linear_solver=tb.LinearSolver("cg"), tol=1e-8)``;
     :meth:`replace` gives a copy with some fields changed.  Invalid values are a ``ValueError`` naming the
