@@ -799,9 +799,8 @@ class SelfContact(_LaggedFriction, EnergyTerm):
             # semi-definite: the same for every projection)
             st, types, eps = self._close(x)
             assert self.stiffness is not None
-            friction = None if fb is None else (fb[0], fb[1].to(xa.dtype), fb[2].to(xa.dtype))
             return native.contact_hessian_sum(xa, st, types, eps, self.dhat ** 2, self.stiffness, mode, x.shape[0],
-                                              friction)
+                                              fb)  # (the operator takes the friction blocks in x's dtype)
         for st, kind, eps in self._groups(x):
             stencils.append(st)
             blocks.append(_project(self._pair_hessians(xa[st].reshape(-1, 12), kind, eps), proj))
