@@ -140,6 +140,8 @@ def run_solve(x, f, dhat):
 def run_ipctk(x, f, dhat, repeats):
     import ipctk
     import numpy as np
+    if hasattr(ipctk, "set_num_threads"):  # one thread, as torchbend here (ipctk's default: every core)
+        ipctk.set_num_threads(1)
     V = x.numpy()
     F = f.numpy().astype(np.int32)
     E = ipctk.edges(F)
