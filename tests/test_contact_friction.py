@@ -283,6 +283,31 @@ def test_a_retry_goes_on_from_the_best_state_of_an_exact_solve_cut_off_while_con
     assert seen[1][2] is None and not info.converged and len(seen) > 2
 
 
+def test_the_clamped_retry_is_begun_whatever_time_the_exact_solve_took(monkeypatch):
+    """The retry does not depend on how long the exact solve took (a busy machine's slower solve once left the retry
+    out where an idle machine ran it, and the same step gave another answer): an exact solve that took more than half
+    of the step's time limit (here by a pause after it) is still followed by the clamped retry."""
+    import time
+
+    from torchbend.sim import newton
+
+    real, seen = newton._euler_solve, []
+
+    def spy(model, state, dt, option, *args, **kw):
+        seen.append((dt, option.value))
+        t0 = time.perf_counter()
+        out = real(model, state, dt, option, *args, **kw)
+        if len(seen) == 1:  # the exact solve: made to take 60% of the limit
+            time.sleep(max(0.0, 0.6 * limit - (time.perf_counter() - t0)))
+        return out
+
+    monkeypatch.setattr(newton, "_euler_solve", spy)
+    model, state = stacked_sheets(9, 0.0)
+    limit = 4.0
+    _, info = tb.implicit_euler_step(model, state, 0.01, max_iters=5, max_substep_depth=1, time_limit=limit)
+    assert seen[:2] == [(0.01, "none"), (0.01, "clamp")], seen
+
+
 def test_still_converging_compares_the_last_iterates_with_those_before():
     from torchbend.sim import newton
 
