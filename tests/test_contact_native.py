@@ -304,6 +304,40 @@ def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
 
 
 
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+@pytest.mark.parametrize("shift", [1 / 3, 0.0], ids=["point_edge", "point_point"])
+def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil(shift, dtype):
+    """A vertex near an edge (or a vertex) of the other layer is found by several stencils (the triangles at the edge,
+    the edges at the vertex); contact_hessian_sum computes one of them and counts it as many times: the sum is the
+    stencil sum of every pair's own block, with the projection and without, mollified edge pairs (the layers' edges
+    are parallel) left alone."""
+    rest, faces = tb.scenes.grid(9, 9, (0.1, 0.1), dtype=F64)
+    h = 0.1 / 8
+    x = torch.cat([rest, rest + torch.tensor([shift * h, shift * 0.6 * h, 1e-3], dtype=F64)]).to(dtype)
+    f = torch.cat([faces, faces + rest.shape[0]])
+    sc = tb.SelfContact(dhat=2e-3, stiffness=1e3)
+    tb.ClothModel(f, x, terms=[sc])
+    st, types, eps = sc._close(x)
+    # the scene has what it tests: point-edge (or point-point) contacts found several times, mollified edge pairs
+    corner = {3: (0, 1, 2), 4: (0, 2, 3), 5: (0, 3, 1), 11: (2, 0, 1), 12: (3, 0, 1), 13: (0, 2, 3), 14: (1, 2, 3),
+              0: (0, 1), 1: (0, 2), 2: (0, 3), 7: (0, 2), 8: (0, 3), 9: (1, 2), 10: (1, 3)}
+    X = x[st].double()
+    mollified = (types >= 7) & (eps > 0) & (torch.linalg.cross(X[:, 1] - X[:, 0], X[:, 3] - X[:, 2]).square().sum(1) < eps)
+    keys = [(s[c[0]], *sorted(s[j] for j in c[1:])) if len(c) == 3 else tuple(sorted(s[j] for j in c))
+            for s, t, m in zip(st.tolist(), types.tolist(), mollified.tolist()) if t in corner and not m
+            for c in [corner[t]]]
+    assert len(keys) - len(set(keys)) > 100 and int(mollified.sum()) > 20
+    V = x.shape[0]
+    eps_ = torch.finfo(dtype).eps
+    for mode in ("clamp", "none"):
+        _, _, H = native.contact_barrier(x, st, types, eps, 4e-6, 1e3, 2, mode)
+        ref = native.contact_stencil_sum(st, H, V)
+        got = native.contact_hessian_sum(x, st, types, eps, 4e-6, 1e3, mode, V)
+        assert torch.equal(got.indices(), ref.indices())
+        torch.testing.assert_close(got.values(), ref.values(), rtol=0,
+                                   atol=64 * eps_ * float(ref.values().abs().max()))
+
+
 @pytest.mark.parametrize("body", [False, True], ids=["self", "mesh_collider"])
 def test_compiled_and_eager_hessians_agree_with_friction(monkeypatch, body):
     """In a time step with lagged friction the compiled Hessian (the barrier's from the pairs' reduced coordinates,

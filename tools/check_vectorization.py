@@ -36,8 +36,8 @@ from torchbend.backends import _build_config as cfg  # noqa: E402  (standard lib
 # translation unit -> csrc function -> how many of its loops must vectorize: the tile kernels of every
 # operator (angle and energy, half-hinges, gradient, HVP, per-hinge blocks, projection, the assembly's angles and
 # face blocks; theta_tile's three loops and the full half_tile's two: split for the out-of-order window, see
-# csrc/hinge_ops.h), the scatters, and the contact projection (cpu_contact.cpp: the tridiagonal QL over lanes and the
-# products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes and the pairs' energy lanes, cpu_contact_scan.h).
+# csrc/hinge_ops.h), the scatters, and the contact projection (cpu_contact.cpp and cpu_contact_sum.cpp: the tridiagonal
+# QL over lanes and the products of the normal frame's projection, cpu_contact_lanes.h; the close-pair search's typing lanes and the pairs' energy lanes, cpu_contact_scan.h).
 # x86-64-v3 and x86-64-v4 builds vectorize the same loops (GCC 12.2, 2026-12); ``--list`` prints the counts.
 # Loops are counted by source line: half_tile's short form (the angle gradient's) is its full form's first loop, so
 # a translation unit with both forms (cpu_assembly.cpp) counts 2; the short form alone is checked in cpu_first_order.cpp.
@@ -52,6 +52,7 @@ REQUIRED: dict[str, dict[str, int]] = {
     "cpu_projection.cpp": {"project_hinge_tile": 6, "jacobi_project": 5, "lanes_scale": 1, "lanes_rebuild": 3},
     "cpu_contact.cpp": {"ql_project": 14, "lanes_scale": 2, "lanes_rebuild": 3, "frame_group": 4,
                         "ee_close_lanes": 1, "pt_close_lanes": 1, "energy_lanes": 1},
+    "cpu_contact_sum.cpp": {"ql_project": 14, "lanes_scale": 2, "lanes_rebuild": 3, "frame_group": 4},
     "cpu_assembly.cpp": {"theta_tile": 3, "half_tile": 2, "grad_of_halves": 1, "block_tile": 7, "face_block_tile": 3},
     "cpu_membrane.cpp": {"stress_tile": 2, "hvp_tile": 1, "block_tile": 1},
 }

@@ -25,7 +25,7 @@ CSRC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
 
 # ---- CPU extension (torchbend._native; JIT name torchbend_native_<hash>) ----
 NATIVE_SOURCES = ("bending_cpu.cpp", "cpu_tiles.cpp", "cpu_first_order.cpp", "cpu_second_order.cpp", "cpu_blocks.cpp",
-                  "cpu_assembly.cpp", "cpu_projection.cpp", "cpu_membrane.cpp", "cpu_contact.cpp",
+                  "cpu_assembly.cpp", "cpu_projection.cpp", "cpu_membrane.cpp", "cpu_contact.cpp", "cpu_contact_sum.cpp",
                   "cpu_broad_phase.cpp",
                   "cpu_registration.cpp")
 """The translation units of the CPU extension (add a new ``.cpp`` here; headers are found by themselves)."""
