@@ -139,6 +139,31 @@ def test_a_cloth_caught_between_two_bodies_stops_the_move():
 
 
 
+def test_a_float32_body_stops_where_its_dtype_can_no_longer_keep_it_apart_from_the_cloth():
+    """A float32 box pushed into a vertical sheet that cannot make way (every vertex pinned): each advance took the box
+    nine tenths of the way to the sheet, down to gaps a float32 placement of the box (rounded by about an epsilon of
+    its coordinates) no longer keeps: it ended touching the sheet, crossing it, and the next step refused the state.
+    The box now stops above MOVE_RESOLUTION epsilons of the coordinates and says why; every state stays apart and
+    crossing-free, and the next steps start."""
+    from torchbend.sim.newton import MOVE_RESOLUTION
+
+    F32 = torch.float32
+    g, f = tb.scenes.grid(5, 5, (0.2, 0.2), dtype=F64)
+    rest = torch.stack([g[:, 0] - 0.1, torch.zeros(len(g), dtype=F64), g[:, 1] - 0.1], 1).to(F32)  # y = 0
+    bv, bf = box((-0.03, -0.05, -0.03), (0.03, -0.002, 0.03))
+    body = tb.MeshCollider(bv.to(F32), bf, dhat=1e-3)
+    model = tb.ClothModel(f, rest, density=0.2, pinned=torch.arange(len(g)), colliders=[body],
+                          membrane=tb.MembraneEnergy(f, rest, young=1e5, poisson=0.3, thickness=5e-4))
+    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
+    floor = MOVE_RESOLUTION * torch.finfo(F32).eps * float(rest.abs().max())
+    for i in range(2):
+        body.vertices = (bv + torch.tensor([0.0, 0.02 * (i + 1), 0.0], dtype=F64)).to(F32)
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.stop_reason == "body_move" and "resolves" in info.message, info.message
+        assert info.min_distance > 0.05 * floor
+        assert crossing_free(model, state.x.double(), body, bf)
+
+
 def test_several_bodies_of_the_default_name_are_numbered():
     """Two body meshes left at their default name (a floor under the cloth and a block a barrier's width above it)
     are both terms of the model, the second as 'mesh_collider_2', and both act (each has contacts); a name one gave

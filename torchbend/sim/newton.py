@@ -1185,10 +1185,27 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
             f"{info.tolerance:.3e} N)")
 
 
-def _move_stop(alpha: float, made: list, s: float, advances: int, stages: int, ctl: Controls) -> str:
+MOVE_RESOLUTION = 256
+"""A moving body stops where its gap to the cloth falls below this many epsilons of the dtype times the coordinates'
+scale (:func:`_move_bodies`): a body placed along its move is rounded to the dtype, by about an epsilon of its
+coordinates, and nearer than that the rounding alone can put it through the cloth (a float32 box pushed into a
+pinned sheet crept to 2e-9 m of it at 0.15 m coordinates, and its next placement crossed the sheet)."""
+
+
+def _move_floor(x: Tensor) -> float:
+    """The smallest gap [m] a moving body may keep to the cloth at ``x`` (:data:`MOVE_RESOLUTION`)."""
+    return MOVE_RESOLUTION * torch.finfo(x.dtype).eps * float(x.detach().abs().max()) if x.numel() else 0.0
+
+
+def _move_stop(alpha: float, made: list, s: float, advances: int, stages: int, ctl: Controls, gap: float = math.inf,
+               floor: float = 0.0) -> str:
     """Why a body's move stops short of its end (:func:`_move_bodies`), or ""."""
     if alpha <= 1e-12 or (len(made) > 8 and s - made[-9] < 1e-3 * (1.0 - made[-9])):  # eight solves made no way
         return "the cloth cannot make way (caught between the body and a pinned vertex or another body?)"
+    if gap < floor:
+        return (f"the cloth cannot make way: the body came within {gap:.3g} m of it, below the {floor:.3g} m its "
+                "dtype resolves at these coordinates (caught between the body and a pinned vertex or another body? "
+                "in float32, float64 resolves smaller gaps)")
     if advances >= MAX_MOVE_ADVANCES or stages >= MAX_MOVE_STAGES:
         return (f"the move needs more than {MAX_MOVE_STAGES} solves or {MAX_MOVE_ADVANCES} advances (each as far "
                 f"as the step bound allows): move the body less per step (a smaller dt)")
@@ -1203,7 +1220,8 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
     made, why they stopped short or "")``.  The bodies advance along their moves as far as the step bound against
     the cloth at ``x`` allows, again and again; where an advance has brought a body within its activation distance of the cloth and closed at
     least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way.  A body that
-    slides past the cloth, or away from it, takes no solve.  The bodies end at the fraction made (their new poses
+    slides past the cloth, or away from it, takes no solve.  A body that has come nearer the cloth than its dtype
+    resolves (:data:`MOVE_RESOLUTION`) stops there.  The bodies end at the fraction made (their new poses
     unless stuck); a start invalid at their last poses jumps to the new ones (the step's solve judges it there)."""
     x, infos, s, stuck = x_n, [], 0.0, ""
     if movers and any(t.inadmissible(x_n) for t in movers):
@@ -1212,11 +1230,12 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
         movers = []
     stage_ctl = replace(ctl, max_iters=4 * ctl.max_iters, check_minimum=False, callback=None)  # a stage converges
     gap, advances, made = min((t.move_gap(x) for t in movers), default=math.inf), 0, [0.0]
+    now = gap  # the gap at the bodies' poses now (gap: at the last solve)
     while movers:
         alpha = min(t.move_bound(x) for t in movers)
         if alpha >= 1.0:
             break
-        stuck = _move_stop(alpha, made, s, advances, len(infos), ctl)
+        stuck = _move_stop(alpha, made, s, advances, len(infos), ctl, now, _move_floor(x))
         if stuck:
             break
         s += alpha * (1.0 - s)
@@ -1228,7 +1247,7 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
             x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
             infos.append(info)
             made.append(s)
-            gap = min(t.move_gap(x) for t in movers)
+            gap = now = min(t.move_gap(x) for t in movers)
     if movers and not stuck:
         s = 1.0
         for t in movers:
