@@ -353,6 +353,30 @@ def test_float32_nearly_parallel_edges_are_measured_in_double(monkeypatch):
     assert bool((d > 0).all())
 
 
+def test_a_float32_pair_sliding_in_contact_advances_past_its_first_advance(monkeypatch):
+    """A float32 point 3e-5 m above a triangle at 0.2 m coordinates slides 1 cm along it (a cloth sliding onto a body
+    at speed): the bound advances along the slide (its distances measured in double, the end's rounding to float32 a
+    small part of its floor), in both paths, 64 advances at most, where the float32 epsilon's 1024-fold kept it at its
+    first advance, 0.9 d / rate = 0.0027 (a float32 cloth sliding onto a sphere mesh at 8 m/s took such steps for 60 iterations);
+    the path and the float32 end stay apart from the triangle."""
+    import torchbend.sim.self_contact as sc_module
+    from torchbend.backends import native
+
+    X = [[0.2, 0.15, 3e-5], [0.15, 0.1, 0.0], [0.26, 0.11, 0.0], [0.2, 0.22, 0.0]]  # the point, then the triangle
+    P = [[0.01, 0.002, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    x, p = torch.tensor(X, dtype=torch.float32), torch.tensor(P, dtype=torch.float32)
+    st = torch.arange(4).reshape(1, 4)
+    first = 0.9 * float(x[0, 2]) / float(p[0].norm())
+    bound = native.contact_step_bound(x, st, False, p, 1e-3)
+    assert bound > 50 * first  # (64 advances at most)
+    monkeypatch.setattr(sc_module, "_native_ok", lambda t: False)
+    assert sc_module._advance(x[None], p[None], False, 1.0, 1e-3) == bound
+    ts = torch.linspace(0, 1, 4001, dtype=F64) * bound
+    d = sc_module._stencil_distances(x.double()[None] + ts[:, None, None] * p.double()[None], False)
+    end = (x + bound * p).double()  # rounded to float32
+    assert bool((d > 0).all()) and float(sc_module._stencil_distances(end[None], False)[0]) > 0
+
+
 @pytest.mark.parametrize("nx, ny, dhat", [(9, 5, 1e-3), (17, 9, 5e-4)])
 def test_a_strip_folded_tightly_onto_itself_converges_in_every_step(nx, ny, dhat):
     """A 20 x 10 cm strip folded onto itself with its layers 1.05 dhat apart (the fold in one hinge at 3.1 rad, the

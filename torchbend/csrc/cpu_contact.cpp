@@ -132,10 +132,16 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
 // the smallest so far is skipped (its distance is at least the gap).
 namespace {
 constexpr int kMaxAdvances = 64;  // advances of a pair's conservative advancement at most (torchbend.sim.self_contact)
-// a pair advances past its first advance only where its floor is at least kResolvable epsilons of its corners' scale
-// (their largest coordinate plus their largest displacement component): there the distances it measures along the
-// step are within a small part of the floor (torchbend.sim.self_contact._advance)
-constexpr double kResolvable = 1024.0;
+// a pair advances past its first advance only where its floor is at least kResolvable double epsilons of its
+// corners' scale (their largest coordinate plus their largest displacement component), where the distances it
+// measures along the step (in double whatever T) are within a small part of the floor, and at least kRounding
+// epsilons of T of that scale, where rounding the step's end to T moves the corners by a small part of the floor
+// (torchbend.sim.self_contact._advance)
+constexpr double kResolvable = 1024.0, kRounding = 64.0;
+template <typename T> constexpr double resolvable_floor() {
+  return std::max(kResolvable * std::numeric_limits<double>::epsilon(),
+                  kRounding * double(std::numeric_limits<T>::epsilon()));
+}
 
 template <typename T> double corner_scale(const T X[4][3], const T* pm, const int64_t* s) {
   double sx = 0, sp = 0;
@@ -214,7 +220,7 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
             // smallest pair time whatever the order and the threads)
             const double floor = 0.1 * std::min(dist, dhat);
             double dn = distance_at(X, pm, s, t, edge_edge);
-            if (floor < kResolvable * double(std::numeric_limits<T>::epsilon()) * corner_scale(X, pm, s)) dn = -1;
+            if (floor < resolvable_floor<T>() * corner_scale(X, pm, s)) dn = -1;
             for (int i = 1; i < kMaxAdvances && dn >= floor && t < a; ++i) {
               const double tn = t + 0.9 * dn / rate;
               if (tn >= 1.0) { t = 1.0; break; }
