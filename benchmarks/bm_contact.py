@@ -145,6 +145,9 @@ def run_ipctk(x, f, dhat, repeats):
     import numpy as np
     if hasattr(ipctk, "set_num_threads"):  # one thread, as torchbend here (ipctk's default: every core)
         ipctk.set_num_threads(1)
+    else:
+        print(f"warning: ipctk {getattr(ipctk, '__version__', '?')} has no set_num_threads: it runs on its default "
+              "threads, not one", file=sys.stderr)
     V = x.numpy()
     F = f.numpy().astype(np.int32)
     E = ipctk.edges(F)

@@ -139,29 +139,43 @@ def test_a_cloth_caught_between_two_bodies_stops_the_move():
 
 
 
+def float32_sheet_and_box(gap: float):
+    """A float32 vertical 0.2 m sheet (y = 0, every vertex pinned) and a 12-triangle box ``gap`` in front of it:
+    ``(model, state, body, box vertices (float64, at the gap), box faces)``."""
+    F32 = torch.float32
+    g, f = tb.scenes.grid(5, 5, (0.2, 0.2), dtype=F64)
+    rest = torch.stack([g[:, 0] - 0.1, torch.zeros(len(g), dtype=F64), g[:, 1] - 0.1], 1).to(F32)
+    bv, bf = box((-0.03, -0.05, -0.03), (0.03, -gap, 0.03))
+    body = tb.MeshCollider(bv.to(F32), bf, dhat=1e-3)
+    model = tb.ClothModel(f, rest, density=0.2, pinned=torch.arange(len(g)), colliders=[body],
+                          membrane=tb.MembraneEnergy(f, rest, young=1e5, poisson=0.3, thickness=5e-4))
+    return model, tb.ClothState(rest.clone(), torch.zeros_like(rest)), body, bv, bf
+
+
 def test_a_float32_body_stops_where_its_dtype_can_no_longer_keep_it_apart_from_the_cloth():
     """A float32 box pushed into a vertical sheet that cannot make way (every vertex pinned): each advance took the box
     nine tenths of the way to the sheet, down to gaps a float32 placement of the box (rounded by about an epsilon of
     its coordinates) no longer keeps: it ended touching the sheet, crossing it, and the next step refused the state.
-    The box now stops above MOVE_RESOLUTION epsilons of the coordinates and says why; every state stays apart and
-    crossing-free, and the next steps start."""
+    An advance that would take the box below MOVE_RESOLUTION epsilons of the coordinates is now taken back and the
+    step says why; every state stays apart and crossing-free, and the next steps start.  A box resting nearer than
+    that moves away freely, and toward the sheet not at all."""
     from torchbend.sim.newton import MOVE_RESOLUTION
 
-    F32 = torch.float32
-    g, f = tb.scenes.grid(5, 5, (0.2, 0.2), dtype=F64)
-    rest = torch.stack([g[:, 0] - 0.1, torch.zeros(len(g), dtype=F64), g[:, 1] - 0.1], 1).to(F32)  # y = 0
-    bv, bf = box((-0.03, -0.05, -0.03), (0.03, -0.002, 0.03))
-    body = tb.MeshCollider(bv.to(F32), bf, dhat=1e-3)
-    model = tb.ClothModel(f, rest, density=0.2, pinned=torch.arange(len(g)), colliders=[body],
-                          membrane=tb.MembraneEnergy(f, rest, young=1e5, poisson=0.3, thickness=5e-4))
-    state = tb.ClothState(rest.clone(), torch.zeros_like(rest))
-    floor = MOVE_RESOLUTION * torch.finfo(F32).eps * float(rest.abs().max())
+    model, state, body, bv, bf = float32_sheet_and_box(2e-3)
+    floor = MOVE_RESOLUTION * torch.finfo(torch.float32).eps * 0.1
     for i in range(2):
-        body.vertices = (bv + torch.tensor([0.0, 0.02 * (i + 1), 0.0], dtype=F64)).to(F32)
+        body.vertices = (bv + torch.tensor([0.0, 0.02 * (i + 1), 0.0], dtype=F64)).to(torch.float32)
         state, info = tb.implicit_euler_step(model, state, 0.01)
         assert info.stop_reason == "body_move" and "resolves" in info.message, info.message
         assert info.min_distance > 0.05 * floor
         assert crossing_free(model, state.x.double(), body, bf)
+    for shift, goes in ((-0.02, True), (0.01, False)):  # from 0.5 of the floor's reach: away, then toward the sheet
+        model, state, body, bv, bf = float32_sheet_and_box(0.5 * floor)
+        goal = (bv + torch.tensor([0.0, shift, 0.0], dtype=F64)).to(torch.float32)
+        body.vertices = goal
+        state, info = tb.implicit_euler_step(model, state, 0.01)
+        assert info.converged == goes and torch.equal(body.vertices, goal) == goes, info.message
+        assert info.min_distance >= 0.4 * floor and crossing_free(model, state.x.double(), body, bf)
 
 
 def test_several_bodies_of_the_default_name_are_numbered():

@@ -161,8 +161,8 @@ namespace {
 // found by the triangles at the edge and by the edges at the vertex: 2,500 contacts for 9,208 point-edge pairs on
 // the 50x50 half fold of benchmarks/bm_contact.py): their energies are one function of the same corners, so one of
 // them, counted as many times, gives their Hessians' sum.  Returns the pairs to compute (each group's first, in pair
-// order) and their counts.  An edge-edge pair under its mollifier's threshold depends on all four corners and is
-// its own group, as is every point-plane and line-line pair.
+// order) and their counts.  A pair under its mollifier's threshold (an edge-edge pair; pair_terms mollifies any pair
+// given eps > 0) depends on all four corners and is its own group, as is every point-plane and line-line pair.
 template <typename T>
 void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, int64_t N, int64_t n,
                     std::vector<int64_t>& reps, std::vector<int64_t>& count) {
@@ -178,7 +178,7 @@ void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* 
     const signed char* c = corner[pt[i]];
     if (c[0] < 0) continue;
     const int64_t* s = ps + 4 * i;
-    if (pt[i] >= cm::EE_A0B0 && pe && pe[i] > 0) {  // an edge-edge pair: grouped only above its mollifier's threshold
+    if (pe && pe[i] > 0) {  // a pair with a mollifier (edge-edge): grouped only above its threshold, as pair_terms
       T X[4][3];
       gather(px, s, X);
       if (cm::edge_cross_sq(X) < pe[i]) continue;

@@ -1186,26 +1186,28 @@ def _substep_failure(info: SolveInfo, which: str) -> str:
 
 
 MOVE_RESOLUTION = 256
-"""A moving body stops where its gap to the cloth falls below this many epsilons of the dtype times the coordinates'
-scale (:func:`_move_bodies`): a body placed along its move is rounded to the dtype, by about an epsilon of its
-coordinates, and nearer than that the rounding alone can put it through the cloth (a float32 box pushed into a
-pinned sheet crept to 2e-9 m of it at 0.15 m coordinates, and its next placement crossed the sheet)."""
+"""A moving body does not close in on the cloth below this many epsilons of the dtype times the coordinates' scale
+(the cloth's and the moving bodies' largest coordinate; :func:`_move_bodies`): a body placed along its move is
+rounded to the dtype, by about an epsilon of its coordinates, and nearer than that the rounding alone can put it
+through the cloth (a float32 box pushed into a pinned sheet crept to 2e-9 m of it at 0.15 m coordinates, and its next
+placement crossed the sheet).  An advance that would take the gap below it, and lower, is taken back and the move
+stops there; a body that moves away from the cloth goes on."""
 
 
-def _move_floor(x: Tensor) -> float:
-    """The smallest gap [m] a moving body may keep to the cloth at ``x`` (:data:`MOVE_RESOLUTION`)."""
-    return MOVE_RESOLUTION * torch.finfo(x.dtype).eps * float(x.detach().abs().max()) if x.numel() else 0.0
+def _move_floor(x: Tensor, movers: list) -> float:
+    """The smallest gap [m] a moving body may close in to on the cloth at ``x`` (:data:`MOVE_RESOLUTION`)."""
+    scale = float(x.detach().abs().max()) if x.numel() else 0.0
+    for t in movers:  # a body's own coordinates (its vertices now and at its move's end), where it has them
+        for v in (getattr(t, "vertices", None), getattr(t, "_target", None)):
+            if isinstance(v, Tensor) and v.numel():
+                scale = max(scale, float(v.detach().abs().max()))
+    return MOVE_RESOLUTION * torch.finfo(x.dtype).eps * scale
 
 
-def _move_stop(alpha: float, made: list, s: float, advances: int, stages: int, ctl: Controls, gap: float = math.inf,
-               floor: float = 0.0) -> str:
+def _move_stop(alpha: float, made: list, s: float, advances: int, stages: int, ctl: Controls) -> str:
     """Why a body's move stops short of its end (:func:`_move_bodies`), or ""."""
     if alpha <= 1e-12 or (len(made) > 8 and s - made[-9] < 1e-3 * (1.0 - made[-9])):  # eight solves made no way
         return "the cloth cannot make way (caught between the body and a pinned vertex or another body?)"
-    if gap < floor:
-        return (f"the cloth cannot make way: the body came within {gap:.3g} m of it, below the {floor:.3g} m its "
-                "dtype resolves at these coordinates (caught between the body and a pinned vertex or another body? "
-                "in float32, float64 resolves smaller gaps)")
     if advances >= MAX_MOVE_ADVANCES or stages >= MAX_MOVE_STAGES:
         return (f"the move needs more than {MAX_MOVE_STAGES} solves or {MAX_MOVE_ADVANCES} advances (each as far "
                 f"as the step bound allows): move the body less per step (a smaller dt)")
@@ -1220,8 +1222,8 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
     made, why they stopped short or "")``.  The bodies advance along their moves as far as the step bound against
     the cloth at ``x`` allows, again and again; where an advance has brought a body within its activation distance of the cloth and closed at
     least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way.  A body that
-    slides past the cloth, or away from it, takes no solve.  A body that has come nearer the cloth than its dtype
-    resolves (:data:`MOVE_RESOLUTION`) stops there.  The bodies end at the fraction made (their new poses
+    slides past the cloth, or away from it, takes no solve.  A body does not close in on the cloth nearer than its
+    dtype resolves (:data:`MOVE_RESOLUTION`): the advance is taken back and the move stops.  The bodies end at the fraction made (their new poses
     unless stuck); a start invalid at their last poses jumps to the new ones (the step's solve judges it there)."""
     x, infos, s, stuck = x_n, [], 0.0, ""
     if movers and any(t.inadmissible(x_n) for t in movers):
@@ -1231,18 +1233,28 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
     stage_ctl = replace(ctl, max_iters=4 * ctl.max_iters, check_minimum=False, callback=None)  # a stage converges
     gap, advances, made = min((t.move_gap(x) for t in movers), default=math.inf), 0, [0.0]
     now = gap  # the gap at the bodies' poses now (gap: at the last solve)
+    floor = _move_floor(x_n, movers)
     while movers:
         alpha = min(t.move_bound(x) for t in movers)
         if alpha >= 1.0:
             break
-        stuck = _move_stop(alpha, made, s, advances, len(infos), ctl, now, _move_floor(x))
+        stuck = _move_stop(alpha, made, s, advances, len(infos), ctl)
         if stuck:
             break
+        before, s_before = now, s
         s += alpha * (1.0 - s)
         advances += 1
         for t in movers:
             t.place(s)
         now = min(t.move_gap(x) for t in movers)
+        if now < floor and now < before:  # closing in below what the dtype resolves: taken back (MOVE_RESOLUTION)
+            closer, s, now = now, s_before, before
+            for t in movers:
+                t.place(s)
+            stuck = (f"the cloth cannot make way: the body's next advance would take it to {max(closer, 0.0):.3g} m of "
+                     f"the cloth, below the {floor:.3g} m its dtype resolves at these coordinates (caught between the "
+                     "body and a pinned vertex or another body? float64 resolves smaller gaps)")
+            break
         if now < 0.5 * gap:
             x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
             infos.append(info)

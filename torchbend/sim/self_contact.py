@@ -395,8 +395,9 @@ _MAX_ADVANCES = 64
 _RESOLVABLE, _ROUNDING = 1024.0, 64.0
 """A pair advances past its first advance only where its floor is at least ``_RESOLVABLE`` double epsilons of its
 corners' scale (the distances along the step, measured in double whatever the dtype, are within a small part of it)
-and at least ``_ROUNDING`` epsilons of the positions' dtype (rounding the step's end to the dtype moves the corners
-by a small part of it): the compiled ``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's own
+and at least ``_ROUNDING`` epsilons of the positions' dtype (the bound keeps every pair at a tenth of its floor at
+least, 6.4 epsilons of the scale, and rounding the step's end ``x + alpha dx`` to the dtype moves a pair's distance by
+at most 2 sqrt(3), about 3.5, of them): the compiled ``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's own
 1024 epsilons held float32 pairs nearer than ~2e-4 m at 0.2 m coordinates to their first advance: a float32 cloth
 sliding onto a sphere mesh at 8 m/s took steps of 0.008 for 60 iterations and did not converge.)"""
 
@@ -447,8 +448,8 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
     # only where the floor is resolvable: at least eps (_RESOLVABLE double epsilons, _ROUNDING of x's dtype) of the
     # corners' scale (their largest coordinate plus their largest displacement component), where the distances
-    # measured along the step and the rounding of its end are a small part of it (a pair 1e-16 m apart at
-    # coordinates of 1 m keeps its first advance alone)
+    # measured along the step are a small part of it and the rounding of its end less than its tenth (a pair
+    # 1e-16 m apart at coordinates of 1 m keeps its first advance alone)
     live = (dn >= floor) & (floor >= eps * scale)
     best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
