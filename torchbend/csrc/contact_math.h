@@ -417,12 +417,14 @@ template <typename T> TB_HD static inline void expand_gradient(const signed char
     }
 }
 
-// H12 = L^T H L (H: 3 r x 3 r, row-major; H12: 12 x 12, row-major), as (L^T H) L: rows first, then columns
-template <typename T> TB_HD static inline void expand_hessian(const signed char C[3][4], int r, const T* H, T* H12) {
-  const int k = 3 * r;
-  T c[3][4];
-  for (int a = 0; a < 3; ++a) for (int v = 0; v < 4; ++v) c[a][v] = T(C[a][v]);
-  T A[12][9];  // L^T H
+// H12 = L^T H L (H: 3 r x 3 r, row-major; H12: 12 x 12, row-major), as (L^T H) L: rows first, then columns; the
+// row count r a template argument (the loops unrolled, no branch on the pattern), expand_hessian dispatching on it
+template <typename T, int r> TB_HD static inline void expand_hessian_rows(const signed char C[3][4], const T* H,
+                                                                         T* H12) {
+  constexpr int k = 3 * r;
+  T c[r][4];
+  for (int a = 0; a < r; ++a) for (int v = 0; v < 4; ++v) c[a][v] = T(C[a][v]);
+  T A[12][k];  // L^T H
   for (int v = 0; v < 4; ++v)
     for (int i = 0; i < 3; ++i)
       for (int col = 0; col < k; ++col) {
@@ -437,6 +439,12 @@ template <typename T> TB_HD static inline void expand_hessian(const signed char 
         for (int b = 0; b < r; ++b) s += A[row][3 * b + j] * c[b][w];
         H12[12 * row + 3 * w + j] = s;
       }
+}
+
+template <typename T> TB_HD static inline void expand_hessian(const signed char C[3][4], int r, const T* H, T* H12) {
+  if (r == 1) expand_hessian_rows<T, 1>(C, H, H12);
+  else if (r == 2) expand_hessian_rows<T, 2>(C, H, H12);
+  else expand_hessian_rows<T, 3>(C, H, H12);
 }
 
 // R (r x r, lower) with R R^T = C C^T, and its inverse

@@ -132,31 +132,6 @@ std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stenc
 }
 
 namespace {
-// L^T H L of a pair's reduced Hessian H (3 r x 3 r) into H12 (12 x 12, row-major), as contact::expand_hessian
-// computes it (the same products in the same order) with r known at compile time: no branch on the row pattern
-template <typename T, int r> inline void expand_rows(const signed char C[3][4], const T* H, T* H12) {
-  constexpr int k = 3 * r;
-  T c[r][4];
-  for (int a = 0; a < r; ++a) for (int v = 0; v < 4; ++v) c[a][v] = T(C[a][v]);
-  alignas(64) T A[12][k];  // L^T H
-  for (int v = 0; v < 4; ++v)
-    for (int i = 0; i < 3; ++i)
-      for (int col = 0; col < k; ++col) {
-        T s = 0;
-        for (int a = 0; a < r; ++a) s += c[a][v] * H[k * (3 * a + i) + col];
-        A[3 * v + i][col] = s;
-      }
-  for (int row = 0; row < 12; ++row)
-    for (int w = 0; w < 4; ++w)
-      for (int j = 0; j < 3; ++j) {
-        T s = 0;
-        for (int b = 0; b < r; ++b) s += A[row][3 * b + j] * c[b][w];
-        H12[12 * row + 3 * w + j] = s;
-      }
-}
-}  // namespace
-
-namespace {
 // The pairs that are one point-point or point-edge contact found by several stencils (a vertex near an edge is
 // found by the triangles at the edge and by the edges at the vertex: 2,500 contacts for 9,208 point-edge pairs on
 // the 50x50 half fold of benchmarks/bm_contact.py): their energies are one function of the same corners, so one of
@@ -276,11 +251,7 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
           const int64_t m = reps[base + i];
           const T times = T(count[base + i]);
           alignas(64) T H12[144];  // the pair's 12x12 block, then its 16 3x3 blocks added row by row
-          switch (q.r) {
-            case 1: expand_rows<T, 1>(q.C, q.H, H12); break;
-            case 2: expand_rows<T, 2>(q.C, q.H, H12); break;
-            default: expand_rows<T, 3>(q.C, q.H, H12); break;
-          }
+          cm::expand_hessian(q.C, q.r, q.H, H12);
           if (count[base + i] > 1)
             for (int e = 0; e < 144; ++e) H12[e] *= times;
           for (int a = 0; a < 4; ++a) {
