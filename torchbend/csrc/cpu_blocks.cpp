@@ -8,12 +8,15 @@ namespace cpu {
 // Per-hinge 12x12 blocks: gather, angle, psi' and psi'' (psi_lane, vectorized across the lanes of a tile
 // like the operations above), the closed-form blocks (block_tile) and their output.  A block is written
 // once and not read again here, so it goes out with streaming stores (no read-for-ownership of the output
-// lines).  For a full tile with AVX-512 (float64) or AVX (float32), the tile is completed in place across
-// its lanes (mirrored lower triangle, B terms: complete_tile) and transposed in registers 8 entries at a
-// time, each lane's 8 consecutive entries one aligned streaming store (stream_tile: every block of a
-// 64-byte aligned output starts 64-byte aligned, 1152 = 18 x 64 and 576 = 9 x 64 bytes); elsewhere (a
-// partial tile, an unaligned out= buffer) block_lane copies lane by lane (write_tile).  Both give the same
-// values: the same operations on the same numbers, only the copies differ.
+// lines).  For a full tile with AVX (AVX2 and AVX-512 machines alike), the tile is completed in place across
+// its lanes (mirrored lower triangle, B terms: complete_tile) and transposed in registers, each lane's
+// consecutive entries one aligned streaming store (stream_tile: 8 entries a store with AVX-512 (float64) or
+// AVX (float32), 4 with AVX (float64); every block of a 64-byte aligned output starts 64-byte aligned,
+// 1152 = 18 x 64 and 576 = 9 x 64 bytes); elsewhere (a partial tile, an unaligned out= buffer) block_lane
+// copies lane by lane (write_tile).  Both give the same values: the same operations on the same numbers,
+// only the copies differ.  (Until the float64 AVX path, AVX2 machines copied float64 blocks lane by lane: on a
+// Zen 3 EPYC, out= buffers, min over calls, 202-215 ns a hinge at 1e4 hinges against 145-164 since;
+// benchmarks/results/blocks_avx2_stream_amd_zen3_2026-12-07.txt.)
 
 template <typename T> static inline void complete_tile(Blocks<T, W>& b) {
   for (int r = 1; r < 12; ++r)
@@ -30,18 +33,17 @@ template <typename T> static inline void complete_tile(Blocks<T, W>& b) {
 
 // whether stream_tile is compiled for T
 template <typename T> constexpr bool tile_streams() {
-#if defined(__AVX512F__)
-  if (std::is_same<T, double>::value) return true;
-#endif
 #if defined(__AVX__)
-  if (std::is_same<T, float>::value) return true;
-#endif
+  return std::is_same<T, double>::value || std::is_same<T, float>::value;
+#else
   return false;
+#endif
 }
 
 // the completed blocks of the 8 lanes of a tile to out + 144 l (64-byte aligned), 8 entries at a time: rows r of 8
 // entries (entry e of lane l: src[8 l + e]) transposed in registers, pairs within 128-bit lanes (unpack) and then
 // the 128-bit lanes (two steps; their order differs between the two widths), each output row one streaming store
+// (AVX-512); with AVX alone, 4 lanes at a time
 static inline void stream_tile(const Blocks<double, W>& b, double* out) {
 #if defined(__AVX512F__)
   for (int j = 0; j < 18; ++j) {
@@ -59,6 +61,30 @@ static inline void stream_tile(const Blocks<double, W>& b, double* out) {
       _mm512_stream_pd(dst + 144 * (i + 4), _mm512_shuffle_f64x2(u[i], u[i + 4], 0xdd));
     }
   }
+#elif defined(__AVX__)
+  // 8 entries by 4 lanes at a time: rows r[i] = entry 8 j + i of lanes h..h+3, transposed as two 4x4 blocks (pairs
+  // within the 128-bit halves, then the halves); each lane's 8 entries, one 64-byte line of its block, go out as two
+  // 32-byte streaming stores in a row, so that every line is whole in its write-combining buffer before the next
+  // (four entries a lane across all the lanes first left 8 lines half-written at a time: fresh 1e5-hinge
+  // outputs then took up to 2.4x as long)
+  for (int j = 0; j < 18; ++j)
+    for (int h = 0; h < W; h += 4) {
+      __m256d lo[4], hi[4];
+      for (int half = 0; half < 2; ++half) {
+        __m256d r[4], t[4];
+        for (int i = 0; i < 4; ++i) r[i] = _mm256_load_pd(&b.O[8 * j + 4 * half + i][h]);
+        t[0] = _mm256_unpacklo_pd(r[0], r[1]); t[1] = _mm256_unpackhi_pd(r[0], r[1]);
+        t[2] = _mm256_unpacklo_pd(r[2], r[3]); t[3] = _mm256_unpackhi_pd(r[2], r[3]);
+        __m256d* o = half ? hi : lo;
+        o[0] = _mm256_permute2f128_pd(t[0], t[2], 0x20); o[1] = _mm256_permute2f128_pd(t[1], t[3], 0x20);
+        o[2] = _mm256_permute2f128_pd(t[0], t[2], 0x31); o[3] = _mm256_permute2f128_pd(t[1], t[3], 0x31);
+      }
+      for (int i = 0; i < 4; ++i) {
+        double* dst = out + 144 * (h + i) + 8 * j;
+        _mm256_stream_pd(dst, lo[i]);
+        _mm256_stream_pd(dst + 4, hi[i]);
+      }
+    }
 #else
   (void)b; (void)out;
 #endif
@@ -66,7 +92,9 @@ static inline void stream_tile(const Blocks<double, W>& b, double* out) {
 
 static inline void stream_tile(const Blocks<float, W>& b, float* out) {
 #if defined(__AVX__)
-  for (int j = 0; j < 18; ++j) {
+  // entries 16 j2 .. 16 j2 + 15 (one 64-byte line of each lane's block), 8 at a time, then each lane's line as
+  // two 32-byte streaming stores in a row (as the float64 AVX path: every line whole before the next)
+  auto rows8 = [&](int j, __m256* o) {  // o[i]: the 8 entries 8 j .. 8 j + 7 of lane i
     const float* src = &b.O[8 * j][0];
     __m256 r[8], t[8], u[8];
     for (int i = 0; i < 8; ++i) r[i] = _mm256_loadu_ps(src + 8 * i);
@@ -75,10 +103,19 @@ static inline void stream_tile(const Blocks<float, W>& b, float* out) {
       u[h] = _mm256_shuffle_ps(t[h], t[h + 2], _MM_SHUFFLE(1, 0, 1, 0)); u[h + 1] = _mm256_shuffle_ps(t[h], t[h + 2], _MM_SHUFFLE(3, 2, 3, 2));
       u[h + 2] = _mm256_shuffle_ps(t[h + 1], t[h + 3], _MM_SHUFFLE(1, 0, 1, 0)); u[h + 3] = _mm256_shuffle_ps(t[h + 1], t[h + 3], _MM_SHUFFLE(3, 2, 3, 2));
     }
-    float* dst = out + 8 * j;
     for (int i = 0; i < 4; ++i) {
-      _mm256_stream_ps(dst + 144 * i, _mm256_permute2f128_ps(u[i], u[i + 4], 0x20));
-      _mm256_stream_ps(dst + 144 * (i + 4), _mm256_permute2f128_ps(u[i], u[i + 4], 0x31));
+      o[i] = _mm256_permute2f128_ps(u[i], u[i + 4], 0x20);
+      o[i + 4] = _mm256_permute2f128_ps(u[i], u[i + 4], 0x31);
+    }
+  };
+  for (int j2 = 0; j2 < 9; ++j2) {
+    __m256 lo[8], hi[8];
+    rows8(2 * j2, lo);
+    rows8(2 * j2 + 1, hi);
+    for (int i = 0; i < 8; ++i) {
+      float* dst = out + 144 * i + 16 * j2;
+      _mm256_stream_ps(dst, lo[i]);
+      _mm256_stream_ps(dst + 8, hi[i]);
     }
   }
 #else
