@@ -432,7 +432,7 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
     ~1e-3 of each Newton step."""
     k = 2 if edge_edge else 1
-    eps = max(_RESOLVABLE * torch.finfo(torch.float64).eps, _ROUNDING * torch.finfo(X.dtype).eps)
+    resolvable = max(_RESOLVABLE * torch.finfo(torch.float64).eps, _ROUNDING * torch.finfo(X.dtype).eps)  # of the scale
     scale = X.abs().amax((1, 2)).double() + P.abs().amax((1, 2)).double()
     X, P = X.double(), P.double()  # every distance in double, as the compiled bound's
     d = _stencil_distances(X, edge_edge)
@@ -446,11 +446,11 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     X, P, rate, t, scale = X[bind], P[bind], rate[bind], step[bind], scale[bind]
     floor = 0.1 * d[bind].clamp_max(dhat)
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
-    # only where the floor is resolvable: at least eps (_RESOLVABLE double epsilons, _ROUNDING of x's dtype) of the
+    # only where the floor is resolvable: at least `resolvable` (_RESOLVABLE double epsilons, _ROUNDING of x's dtype) of the
     # corners' scale (their largest coordinate plus their largest displacement component), where the distances
     # measured along the step are a small part of it and the rounding of its end less than its tenth (a pair
     # 1e-16 m apart at coordinates of 1 m keeps its first advance alone)
-    live = (dn >= floor) & (floor >= eps * scale)
+    live = (dn >= floor) & (floor >= resolvable * scale)
     best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
         if bool((~live).any()):
