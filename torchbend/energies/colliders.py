@@ -21,6 +21,10 @@ from 0 to ``k`` at the surface, which makes a damped Newton solve chatter on an 
 lets a vertex inside (``penalty``, ``barrier``) is what the training losses need, where a network's
 prediction may lie inside a body.
 
+The colliders act on the cloth's vertices only: an edge between two vertices outside a sphere or capsule can cut
+into it by its sagitta, ``l^2 / (8 R)`` for an edge of length ``l`` over a radius ``R`` (4 mm for 15 cm edges on a
+0.7 m sphere); a :class:`~torchbend.MeshCollider` keeps the cloth's edges and triangles off the body's too.
+
 ``grad s`` is the unit contact normal.  For convex colliders ``Hess s`` is PSD, so the curvature
 term ``-phi'(d) Hess s`` is negative semi-definite; every projection but ``none``
 (:class:`~torchbend.options.Projection`) drops it.  Units: positions [m].

@@ -40,9 +40,12 @@ indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo ba
   last three Newton directions, the decrement was below that round-off, the potential changed by no
   more than it, the residual made no progress (no halving of its best value) and ``|g_free| <=
   100 r_eps``; or when the line search finds no decrease along a direction whose decrement is below
-  the round-off and ``|g_free| <= 100 r_eps``.  Every variant also needs ``|g_free| <= eps^(1/4) F``
-  (``F`` at that iterate): a floor far above that is not round-off but an ill-conditioned state (nearly
-  collapsed triangles), where the iteration goes on.  When the decrement of a step is below the
+  the round-off and ``|g_free| <= 100 r_eps``.  Every variant also needs ``|g_free| <= min(eps K, 1/8) F``
+  (``F`` at that iterate, ``K = eps_64^(-3/4)``, about ``5.5e11``: ``eps_64^(1/4) F`` in float64): a floor far
+  above that is not round-off but an ill-conditioned state (nearly collapsed triangles), where the iteration
+  goes on.  ``K`` bounds the conditioning ``r_eps / (eps F)`` the same in every dtype; in float32 a crease folded
+  to a radius of a fraction of its edges (a bending Hessian block of 2e5 N/m against 1e-2 N of forces) has a floor
+  of 2-4% of ``F``, which ``eps_32^(1/4) F`` (1.9%) refused: the step ran to ``max_iters`` at that floor.  When the decrement of a step is below the
   round-off the full step is taken if it lowers the residual, or at ``|g_free| <= 4 r_eps`` if it
   halves it (the potential cannot tell better from worse there).
 
@@ -151,6 +154,10 @@ _STALL_WINDOW = 3
 """Newton directions over which the round-off floor test looks for progress."""
 _SLOW_STEPS = 5
 """Full steps in a row that do not halve the residual after which a projected Hessian gives way to the exact one."""
+_CREDIBLE_CONDITION = torch.finfo(torch.float64).eps ** -0.75
+"""The largest conditioning ``r_eps / (eps F)`` of a credible round-off floor, in every dtype (module docstring)."""
+_CREDIBLE_SHARE = 0.125
+"""The largest share of the force scale a credible round-off floor may have (the bound in float32)."""
 _MAX_ESCAPES = 10
 """Negative-curvature steps at most per Newton solve."""
 
@@ -532,11 +539,12 @@ class _RunRecord:
 
     def _credible_floor(self, x: Tensor, res: float) -> bool:
         """Whether a residual ``res`` [N] at an apparent round-off floor is small against the force scale at
-        ``x`` (refreshed there): ``res <= eps^(1/4) F``.  Above that the state is ill-conditioned (nearly
-        collapsed elements have huge Hessian blocks, hence a huge floor estimate), not converged."""
+        ``x`` (refreshed there): ``res <= min(eps K, 1/8) F`` (module docstring).  Above that the state is
+        ill-conditioned (nearly collapsed elements have huge Hessian blocks, hence a huge floor estimate), not
+        converged."""
         if self.scale_at != self.it:
             self._refresh_scale(x)
-        return res <= torch.finfo(x.dtype).eps ** 0.25 * self.scale
+        return res <= min(torch.finfo(x.dtype).eps * _CREDIBLE_CONDITION, _CREDIBLE_SHARE) * self.scale
 
     def _refresh_scale(self, x: Tensor) -> None:
         """The per-DOF force magnitudes and the force scale ``F`` [N] at the current iterate ``x``."""
