@@ -379,6 +379,31 @@ def test_a_float32_pair_sliding_in_contact_advances_past_its_first_advance(monke
     assert bool((d > 0).all()) and float(sc_module._stencil_distances(end[None], False)[0]) > 0
 
 
+def test_a_float32_pair_nearer_than_ten_resolvable_floors_advances_down_to_the_floor(monkeypatch):
+    """A float32 point 6e-5 m above a triangle at 1.5 m coordinates slides 1 cm along it and closes 2e-5 m: a tenth of
+    its distance (6e-6 m) is under the floor float32 resolves there (64 epsilons of the scale, 1.2e-5 m), where the
+    pair kept its first advance alone, 0.9 d / rate = 0.0053 (a float32 3 m cloth falling at 8 m/s onto a 1 m sphere
+    mesh took such steps for 300 iterations); it now advances while its distance stays above that floor, in both
+    paths, and the path and the float32 end stay apart from the triangle."""
+    import torchbend.sim.self_contact as sc_module
+    from torchbend.backends import native
+
+    X = [[1.5, 1.45, 6e-5], [1.45, 1.4, 0.0], [1.51, 1.41, 0.0], [1.5, 1.52, 0.0]]  # the point, then the triangle
+    P = [[0.01, 0.002, -2e-5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    x, p = torch.tensor(X, dtype=torch.float32), torch.tensor(P, dtype=torch.float32)
+    st = torch.arange(4).reshape(1, 4)
+    first = native.contact_step_bound(x, st, False, p, 0.0)  # dhat 0: the first advance alone
+    assert math.isclose(first, 0.9 * float(x[0, 2]) / float(p[0].norm()), rel_tol=1e-5)
+    bound = native.contact_step_bound(x, st, False, p, 1e-3)
+    assert bound > 30 * first  # (64 advances at most)
+    monkeypatch.setattr(sc_module, "_native_ok", lambda t: False)
+    assert math.isclose(sc_module._advance(x[None], p[None], False, 1.0, 1e-3), bound, rel_tol=1e-12)
+    ts = torch.linspace(0, 1, 4001, dtype=F64) * bound
+    d = sc_module._stencil_distances(x.double()[None] + ts[:, None, None] * p.double()[None], False)
+    end = (x + bound * p).double()  # rounded to float32
+    assert float(d.min()) > 1e-6 and float(sc_module._stencil_distances(end[None], False)[0]) > 1e-6
+
+
 def tight_fold(nx: int, ny: int, dhat: float, L: float = 0.2, W: float = 0.1):
     """``(flat, folded, faces)``: an L x W strip and the same strip folded in half onto itself, its layers 1.05 dhat
     apart (the fold in one hinge at about 3.1 rad), 1.2 mm above the plane z = 0."""

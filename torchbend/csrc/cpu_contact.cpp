@@ -132,16 +132,17 @@ std::tuple<torch::Tensor, torch::Tensor> contact_close(torch::Tensor x, torch::T
 // the smallest so far is skipped (its distance is at least the gap).
 namespace {
 constexpr int kMaxAdvances = 64;  // advances of a pair's conservative advancement at most (torchbend.sim.self_contact)
-// a pair advances past its first advance only where its floor is at least kResolvable double epsilons of its
-// corners' scale (their largest coordinate plus their largest displacement component), where the distances it
-// measures along the step (in double whatever T) are within a small part of the floor, and at least kRounding
-// epsilons of T of that scale: the bound keeps every pair at a tenth of its floor at least (6.4 epsilons of the
-// scale), and rounding the step's end x + alpha dx to T (two roundings, each coordinate within an epsilon of the
-// scale) moves a pair's distance by at most 2 sqrt(3), about 3.5, epsilons of it (torchbend.sim.self_contact._advance)
+// a pair advances past its first advance only where a tenth of its start (or of dhat) is at least kResolvable double
+// epsilons of its corners' scale (their largest coordinate plus their largest displacement component): the distances
+// it measures along the step (in double whatever T) are then within a small part of its floor.  The floor is that
+// tenth, and at least kRounding epsilons of T of the scale: the bound keeps every pair at a tenth of its floor at
+// least (6.4 epsilons of the scale), and rounding the step's end x + alpha dx to T (two roundings, each coordinate
+// within an epsilon of the scale) moves a pair's distance by at most 2 sqrt(3), about 3.5, epsilons of it
+// (torchbend.sim.self_contact._advance).  In float64 the first bound is the larger: the floor is the tenth.
 constexpr double kResolvable = 1024.0, kRounding = 64.0;
-template <typename T> constexpr double resolvable_floor() {
-  return std::max(kResolvable * std::numeric_limits<double>::epsilon(),
-                  kRounding * double(std::numeric_limits<T>::epsilon()));
+constexpr double measured_floor() { return kResolvable * std::numeric_limits<double>::epsilon(); }
+template <typename T> constexpr double rounding_floor() {
+  return kRounding * double(std::numeric_limits<T>::epsilon());
 }
 
 template <typename T> double corner_scale(const T X[4][3], const T* pm, const int64_t* s) {
@@ -219,9 +220,12 @@ double contact_step_bound(torch::Tensor x, torch::Tensor stencils, bool edge_edg
             // conservative advancement from the distance reached while it stays above the floor, to the step's end
             // (1) at most; a pair whose time reached passes a cannot lower a: its advances stop (the result is the
             // smallest pair time whatever the order and the threads)
-            const double floor = 0.1 * std::min(dist, dhat);
+            // the floor: a tenth of the start or of dhat, at least what rounding the end to T resolves; a pair whose
+            // tenth the double measurement does not resolve keeps its first advance
+            const double scale = corner_scale(X, pm, s), tenth = 0.1 * std::min(dist, dhat);
+            const double floor = std::max(tenth, rounding_floor<T>() * scale);
             double dn = distance_at(X, pm, s, t, edge_edge);
-            if (floor < resolvable_floor<T>() * corner_scale(X, pm, s)) dn = -1;
+            if (tenth < measured_floor() * scale) dn = -1;
             for (int i = 1; i < kMaxAdvances && dn >= floor && t < a; ++i) {
               const double tn = t + 0.9 * dn / rate;
               if (tn >= 1.0) { t = 1.0; break; }

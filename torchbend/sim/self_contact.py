@@ -36,8 +36,8 @@ itself as a whole is not held back; the displacements' own lengths where theirs 
 ``0.9`` of the smallest such time over
 the pairs whose boxes swept along the step come within ``dhat`` (other pairs cannot meet in the step), at most 1.
 A pair whose first such advance ends before the bound advances again from the distance it reached, as additive
-CCD does, until its distance falls below a tenth of its start or of ``dhat`` (the smaller) or the bound is reached
-(:func:`_advance`): pairs that slide along each other or part hold the step back no further than their distances
+CCD does, until its distance falls below a tenth of its start or of ``dhat`` (the smaller; at least a floor that the
+arithmetic resolves at the pair's coordinates, :data:`_RESOLVABLE`) or the bound is reached (:func:`_advance`): pairs that slide along each other or part hold the step back no further than their distances
 fall.
 No intersection can appear along a step so bounded (distances stay positive: above a tenth of each advance's
 start).
@@ -393,13 +393,18 @@ def _path_bound(term: _ContactPairs, x: Tensor, dx: Tensor) -> float:
 _MAX_ADVANCES = 64
 """Advances of :func:`_advance` per pair and step bound at most (the bound reached so far is kept: still safe)."""
 _RESOLVABLE, _ROUNDING = 1024.0, 64.0
-"""A pair advances past its first advance only where its floor is at least ``_RESOLVABLE`` double epsilons of its
-corners' scale (the distances along the step, measured in double whatever the dtype, are within a small part of it)
-and at least ``_ROUNDING`` epsilons of the positions' dtype (the bound keeps every pair at a tenth of its floor at
-least, 6.4 epsilons of the scale, and rounding the step's end ``x + alpha dx`` to the dtype moves a pair's distance by
-at most 2 sqrt(3), about 3.5, of them): the compiled ``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's own
-1024 epsilons held float32 pairs nearer than ~2e-4 m at 0.2 m coordinates to their first advance: a float32 cloth
-sliding onto a sphere mesh at 8 m/s took steps of 0.008 for 60 iterations and did not converge.)"""
+"""A pair advances past its first advance only where a tenth of its start (or of ``dhat``) is at least ``_RESOLVABLE``
+double epsilons of its corners' scale (the distances along the step, measured in double whatever the dtype, are within
+a small part of it); its floor (below which it advances no further) is that tenth and at least ``_ROUNDING``
+epsilons of the positions' dtype (the bound keeps every pair at a tenth of its floor at least, 6.4 epsilons of the
+scale, and rounding the step's end ``x + alpha dx`` to the dtype moves a pair's distance by at most 2 sqrt(3), about
+3.5, of them; in float64 the first bound is the larger, and the floor is the tenth): the compiled
+``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's
+own 1024 epsilons held float32 pairs nearer than ~2e-4 m at 0.2 m coordinates to their first advance: a float32 cloth
+sliding onto a sphere mesh at 8 m/s took steps of 0.008 for 60 iterations and did not converge.  A float32 pair whose
+tenth of its start was under that floor kept its first advance alone, where it now advances down to the floor: a float32
+3 m cloth falling at 8 m/s onto a 1 m sphere mesh, its pairs 1e-5..1e-4 m apart at 1.5 m coordinates, took Newton
+steps of 0.014 for 300 iterations and failed its first step.)"""
 
 
 def _smallest_distance(xa: Tensor, groups) -> float:
@@ -432,7 +437,8 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     back pairs that slide or part, whose distance does not fall: a fold whose hinges push its layers apart took
     ~1e-3 of each Newton step."""
     k = 2 if edge_edge else 1
-    resolvable = max(_RESOLVABLE * torch.finfo(torch.float64).eps, _ROUNDING * torch.finfo(X.dtype).eps)  # of the scale
+    measured = _RESOLVABLE * torch.finfo(torch.float64).eps  # of the scale: what the distances in double resolve
+    rounding = _ROUNDING * torch.finfo(X.dtype).eps  # of the scale: what rounding the step's end to the dtype moves
     scale = X.abs().amax((1, 2)).double() + P.abs().amax((1, 2)).double()
     X, P = X.double(), P.double()  # every distance in double, as the compiled bound's
     d = _stencil_distances(X, edge_edge)
@@ -444,13 +450,14 @@ def _advance(X: Tensor, P: Tensor, edge_edge: bool, cap: float, dhat: float) -> 
     if not bool(bind.any()):
         return cap
     X, P, rate, t, scale = X[bind], P[bind], rate[bind], step[bind], scale[bind]
-    floor = 0.1 * d[bind].clamp_max(dhat)
+    # only where a tenth of the start (or of dhat) is at least `measured` of the corners' scale (their largest
+    # coordinate plus their largest displacement component): the distances measured along the step are a small part
+    # of it (a pair 1e-16 m apart at coordinates of 1 m keeps its first advance alone); the floor is that tenth and
+    # at least `rounding` of the scale, so that the rounding of the step's end is less than the floor's tenth
+    tenth = 0.1 * d[bind].clamp_max(dhat)
+    floor = torch.maximum(tenth, rounding * scale)
     dn = _stencil_distances(X + t[:, None, None] * P, edge_edge)
-    # only where the floor is resolvable: at least `resolvable` (_RESOLVABLE double epsilons, _ROUNDING of x's dtype) of the
-    # corners' scale (their largest coordinate plus their largest displacement component), where the distances
-    # measured along the step are a small part of it and the rounding of its end less than its tenth (a pair
-    # 1e-16 m apart at coordinates of 1 m keeps its first advance alone)
-    live = (dn >= floor) & (floor >= resolvable * scale)
+    live = (dn >= floor) & (tenth >= measured * scale)
     best = cap  # the smallest time of the pairs that stopped
     for _ in range(_MAX_ADVANCES - 1):
         if bool((~live).any()):
