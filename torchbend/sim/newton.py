@@ -1229,7 +1229,9 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
     """The bodies' moves of a step (:func:`implicit_euler_step`): ``(x, the stages' infos, the fraction of the moves
     made, why they stopped short or "")``.  The bodies advance along their moves as far as the step bound against
     the cloth at ``x`` allows, again and again; where an advance has brought a body within its activation distance of the cloth and closed at
-    least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way.  A body that
+    least half the gap since the last solve, the cloth is solved there (a stage), so that it makes way; an adaptive
+    barrier stiffness doubles before a stage whose advance closed the gap below its fraction of ``dhat``, as at an
+    iterate of a solve that did (:meth:`~torchbend.SelfContact.adapt`).  A body that
     slides past the cloth, or away from it, takes no solve.  A body does not close in on the cloth nearer than its
     dtype resolves (:data:`MOVE_RESOLUTION`): the advance is taken back and the move stops.  The bodies end at the fraction made (their new poses
     unless stuck); a start invalid at their last poses jumps to the new ones (the step's solve judges it there)."""
@@ -1264,7 +1266,11 @@ def _move_bodies(model: ClothModel, x_n: Tensor, movers: list, ctx: StepContext,
                      "body and a pinned vertex or another body? float64 resolves smaller gaps)")
             break
         if now < 0.5 * gap:
+            # the advance closed in on the cloth as an iterate that does: an adaptive kappa doubles where the gap is
+            # below its fraction of dhat (SelfContact.adapt), or a cloth pressed by the body creeps to the dtype's floor
+            grown = sum(bool(t.adapt(x, ctx)) for t in movers)
             x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **stage_ctl.newton_kw())
+            info.adaptations += grown
             infos.append(info)
             made.append(s)
             gap = now = min(t.move_gap(x) for t in movers)

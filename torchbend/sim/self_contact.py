@@ -20,7 +20,8 @@ the scene's bounding-box diagonal; here below ``ADAPT_FRACTION * dhat``): at the
 smallest distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the last step's start, and within a time
 step's solve at every accepted iterate whose smallest distance is below ``ADAPT_FRACTION * dhat`` and below
 ``ADAPT_DECREASE`` times the last iterate's (:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over,
-``SolveInfo.adaptations``), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts
+``SolveInfo.adaptations``), and before a stage of a body's move whose advance has so closed in on the cloth
+(:func:`~torchbend.implicit_euler_step`), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts
 pressed hard stay at a distance the float arithmetic resolves and the intersection-free steps are not cut short; a
 static solve keeps ``kappa`` as it is; ``bind`` (a new model) starts it over.  (A strip folded tightly onto itself,
 its tan hinge pressing the layers together with ~1e3 N against a kappa that carries the cloth's weight, converged in
