@@ -45,9 +45,9 @@ indefinite exact Hessian) is replaced by a Levenberg-regularised one.  Armijo ba
   above that is not round-off but an ill-conditioned state (nearly collapsed triangles), where the iteration
   goes on.  ``K`` bounds the conditioning ``r_eps / (eps F)`` the same in every dtype; in float32 a crease folded
   to a radius of a fraction of its edges (a bending Hessian block of 2e5 N/m against 1e-2 N of forces) has a floor
-  of 2-4% of ``F``, which ``eps_32^(1/4) F`` (1.9%) refused: the step ran to ``max_iters`` at that floor.  When the decrement of a step is below the
-  round-off the full step is taken if it lowers the residual, or at ``|g_free| <= 4 r_eps`` if it
-  halves it (the potential cannot tell better from worse there).
+  of 2-4% of ``F``, which ``eps_32^(1/4) F`` (1.9%) refused: the step ran to ``max_iters`` at that floor.  When the
+  decrement of a step is below the round-off the full step is taken if it lowers the residual, or at ``|g_free| <=
+  4 r_eps`` if it halves it (the potential cannot tell better from worse there).
 
 **Projected Hessians** (``clamp``, ``abs``, ``gauss_newton``) converge linearly: once they reach an
 apparent round-off floor, or after 5 full steps in a row that did not halve the residual once

@@ -21,8 +21,8 @@ smallest distance is below ``ADAPT_FRACTION * dhat`` and no larger than at the l
 step's solve at every accepted iterate whose smallest distance is below ``ADAPT_FRACTION * dhat`` and below
 ``ADAPT_DECREASE`` times the last iterate's (:meth:`SelfContact.adapt`; the solve then starts its bookkeeping over,
 ``SolveInfo.adaptations``), and before a stage of a body's move whose advance has so closed in on the cloth
-(:func:`~torchbend.implicit_euler_step`), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so that contacts
-pressed hard stay at a distance the float arithmetic resolves and the intersection-free steps are not cut short; a
+(:func:`~torchbend.implicit_euler_step`), ``kappa`` doubles (at most ``KAPPA_GROWTH`` times the initial one), so
+that contacts pressed hard stay at a distance the float arithmetic resolves and the intersection-free steps are not cut short; a
 static solve keeps ``kappa`` as it is; ``bind`` (a new model) starts it over.  (A strip folded tightly onto itself,
 its tan hinge pressing the layers together with ~1e3 N against a kappa that carries the cloth's weight, converged in
 no step with the start-of-step rule alone: its layers were pressed to 1e-7 m.)  The gradient is the autograd of that
@@ -38,8 +38,8 @@ itself as a whole is not held back; the displacements' own lengths where theirs 
 the pairs whose boxes swept along the step come within ``dhat`` (other pairs cannot meet in the step), at most 1.
 A pair whose first such advance ends before the bound advances again from the distance it reached, as additive
 CCD does, until its distance falls below a tenth of its start or of ``dhat`` (the smaller; at least a floor that the
-arithmetic resolves at the pair's coordinates, :data:`_RESOLVABLE`) or the bound is reached (:func:`_advance`): pairs that slide along each other or part hold the step back no further than their distances
-fall.
+arithmetic resolves at the pair's coordinates, :data:`_RESOLVABLE`) or the bound is reached (:func:`_advance`):
+pairs that slide along each other or part hold the step back no further than their distances fall.
 No intersection can appear along a step so bounded (distances stay positive: above a tenth of each advance's
 start).
 
@@ -400,12 +400,12 @@ a small part of it); its floor (below which it advances no further) is that tent
 epsilons of the positions' dtype (the bound keeps every pair at a tenth of its floor at least, 6.4 epsilons of the
 scale, and rounding the step's end ``x + alpha dx`` to the dtype moves a pair's distance by at most 2 sqrt(3), about
 3.5, of them; in float64 the first bound is the larger, and the floor is the tenth): the compiled
-``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's
-own 1024 epsilons held float32 pairs nearer than ~2e-4 m at 0.2 m coordinates to their first advance: a float32 cloth
-sliding onto a sphere mesh at 8 m/s took steps of 0.008 for 60 iterations and did not converge.  A float32 pair whose
-tenth of its start was under that floor kept its first advance alone, where it now advances down to the floor: a float32
-3 m cloth falling at 8 m/s onto a 1 m sphere mesh, its pairs 1e-5..1e-4 m apart at 1.5 m coordinates, took Newton
-steps of 0.014 for 300 iterations and failed its first step.)"""
+``contact_step_bound``'s ``kResolvable`` and ``kRounding``.  (The dtype's own 1024 epsilons held float32 pairs nearer
+than ~2e-4 m at 0.2 m coordinates to their first advance: a float32 cloth sliding onto a sphere mesh at 8 m/s took
+steps of 0.008 for 60 iterations and did not converge.  A float32 pair whose tenth of its start was under that floor
+kept its first advance alone, where it now advances down to the floor: a float32 3 m cloth falling at 8 m/s onto a
+1 m sphere mesh, its pairs 1e-5..1e-4 m apart at 1.5 m coordinates, took Newton steps of 0.014 for 300 iterations
+and failed its first step.)"""
 
 
 def _smallest_distance(xa: Tensor, groups) -> float:
