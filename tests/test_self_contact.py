@@ -784,6 +784,33 @@ def test_min_distance_is_the_smallest_distance_also_beyond_dhat(gap):
     assert far.contact_stats(two) == (math.inf, 0)
 
 
+@pytest.mark.parametrize("offset, dtype, refused", [(1000.0, torch.float32, True), (10.0, torch.float32, False),
+                                                     (1000.0, F64, False)])
+def test_a_dhat_below_what_the_dtype_resolves_at_the_coordinates_is_refused(offset, dtype, refused):
+    """Float32 at 1 km resolves 6e-5 m: a barrier of dhat = 1 mm spans 16 epsilons there, below what the step bound
+    and the rounding of a step's end need (RESOLUTION = 64 epsilons), and a float32 pile of three sheets dropped onto
+    a mesh floor 1 km from the origin ended its second step intersecting.  Such a start is refused, by the cloth's
+    term and by a body's, naming dhat, the dtype and the floor; at 10 m, or in float64 at 1 km, the step runs."""
+    rest, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    o = torch.tensor([offset, offset, offset], dtype=F64)
+    x = torch.cat([rest, rest + torch.tensor([0.0, 0.0, 3e-3], dtype=F64)]) + o
+    f = torch.cat([faces, faces + 25])
+    fv, ff = tb.scenes.grid(2, 2, (0.3, 0.3), dtype=F64)
+    fv = fv + o - torch.tensor([0.1, 0.1, 2e-3], dtype=F64)
+    for with_body in (False, True):
+        terms = [tb.SelfContact(dhat=1e-3)] + ([tb.MeshCollider(fv.to(dtype), ff, dhat=1e-3)] if with_body else [])
+        model = tb.ClothModel(f, x.to(dtype), density=0.2, terms=terms,
+                              membrane=tb.MembraneEnergy(f, x.to(dtype), young=1e5, poisson=0.3, thickness=5e-4))
+        state = tb.ClothState(x.to(dtype), torch.zeros_like(x.to(dtype)))
+        if refused:
+            with pytest.raises(ValueError, match=r"dhat = 0\.001 m is below what float32 resolves at these "
+                                                 r"coordinates \(64 epsilons of the largest coordinate"):
+                tb.implicit_euler_step(model, state, 0.01)
+        else:
+            state, info = tb.implicit_euler_step(model, state, 0.01)
+            assert info.converged and info.min_distance > 0, info.message
+
+
 def test_a_start_that_passes_through_itself_or_a_body_is_refused():
     """Every distance between primitives is positive where a cloth edge pierces a triangle: the start is refused
     all the same (naming the edge and the triangle), by a step and by a static solve, for two sheets that cross

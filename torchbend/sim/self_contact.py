@@ -543,8 +543,32 @@ def _closest(term: _ContactPairs, x: Tensor) -> float:
     return _smallest_distance(term._points(x).detach(), ((st[~ee], False), (st[ee], True)))
 
 
+RESOLUTION = 64.0
+"""``dhat`` must span at least this many epsilons of the positions' dtype at their largest coordinate (the cloth's
+and a body's): below that the dtype cannot hold contacts apart (rounding a step's end moves a distance by up to 3.5
+of them, and the step bound advances a pair only above ``_ROUNDING`` of them).  Float32 at 1 km resolves 6e-5 m:
+``dhat`` = 1 mm is 16 epsilons there, and a pile of sheets dropped onto a floor 1 km from the origin ended its
+second step intersecting; float32 keeps ``dhat`` = 1 mm out to about 130 m."""
+
+
+def _unresolved(term: _ContactPairs, x: Tensor) -> str:
+    """Why ``term``'s ``dhat`` is too small for ``x``'s dtype at the scene's coordinates (:data:`RESOLUTION`), or ""."""
+    pts = term._points(x).detach()
+    scale = float(pts.abs().max()) if pts.numel() else 0.0
+    floor = RESOLUTION * torch.finfo(x.dtype).eps * scale
+    if term.dhat >= floor:
+        return ""
+    return (f"{term.name}: dhat = {term.dhat:.3g} m is below what {str(x.dtype).replace('torch.', '')} resolves at "
+            f"these coordinates ({RESOLUTION:g} epsilons of the largest coordinate, {scale:.3g} m: {floor:.3g} m): "
+            "move the scene near the origin, use float64 or a larger dhat")
+
+
 def _self_inadmissible(term: _ContactPairs, x: Tensor) -> str:
-    """Why a solve cannot start at ``x``: two primitives of the cloth touch, or an edge passes through a triangle."""
+    """Why a solve cannot start at ``x``: ``dhat`` below the dtype's resolution there, two primitives of the cloth
+    touch, or an edge passes through a triangle."""
+    unresolved = _unresolved(term, x)
+    if unresolved:
+        return unresolved
     d, _ = term.min_distance(x)
     if d <= 0:
         return f"{term.name}: two non-adjacent primitives of the cloth touch (distance {d:.3g} m): start apart"
@@ -961,6 +985,9 @@ class MeshCollider(SelfContact):
     def inadmissible(self, x: Tensor) -> str:
         if self.faces is None:
             return ""
+        unresolved = _unresolved(self, x)
+        if unresolved:
+            return unresolved
         d, _ = self.min_distance(x)
         if d <= 0:
             return f"{self.name}: the cloth touches the body mesh (distance {d:.3g} m): start apart"
