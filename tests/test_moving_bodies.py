@@ -3,6 +3,8 @@ stages where the body would otherwise come into contact with the cloth, so the b
 (checked by the exact segment-triangle test of tests/test_self_contact.py); the friction's slip is relative to the
 body's move, so a body moving under a cloth drags it along as far as Coulomb's law allows; a move the cloth cannot
 make way for stops, says so and leaves no intersection."""
+import sys
+
 import pytest
 import torch
 
@@ -366,3 +368,30 @@ def test_a_float32_box_pushed_into_a_corner_pinned_sheet_stiffens_its_barrier_as
     assert info.adaptations > 0 and body._kappa0 is not None and body.stiffness > body._kappa0
     assert info.min_distance > 0.5 * dhat and info.solves < 128, (info.min_distance, info.solves)
     assert crossing_free(model, state.x.double(), body, bf)
+
+
+def test_a_step_whose_start_on_the_segment_touches_a_body_starts_over_from_the_step_start(monkeypatch):
+    """Newton starts a step at x_hat, or where the terms' step bound stops the segment x_n -> x_hat; rounding can
+    leave that point at distance 0 from a body (a float32 cloth 1 km from the origin, whose scene the contact terms
+    now refuse, was such a case), where the barrier is not finite.  The step returned that touching start after 7
+    solves of 0 iterations ('non_finite'); it now starts over from x_n.  Here the starts' bound is forced to 1 (the
+    cloth's x_hat lies exactly on the floor's plane, 1 m/s over 1 cm without gravity) and the bound inside Newton is
+    the model's own: the step converges with the cloth above the floor."""
+    rest, faces = tb.scenes.grid(5, 5, (0.1, 0.1), dtype=F64)
+    x = rest + torch.tensor([-0.05, -0.05, 0.01], dtype=F64)
+    fv, ff = tb.scenes.grid(2, 2, (0.4, 0.4), dtype=F64)
+    body = tb.MeshCollider(fv - torch.tensor([0.2, 0.2, 0.0], dtype=F64), ff, dhat=1e-3)
+    model = tb.ClothModel(faces, x, density=0.2, colliders=[body], gravity=(0.0, 0.0, 0.0),
+                          membrane=tb.MembraneEnergy(faces, x, young=1e5, poisson=0.3, thickness=5e-4))
+    v = torch.zeros_like(x)
+    v[:, 2] = -1.0
+    assert float((x + 0.01 * v)[:, 2].abs().max()) == 0.0  # x_hat on the floor's plane
+    own = type(model).max_step
+
+    def start_unbounded(self, *args, **kwargs):  # the bound of each solve's start (in _euler_solve) forced to 1
+        return 1.0 if sys._getframe(1).f_code.co_name == "_euler_solve" else own(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(model), "max_step", start_unbounded)
+    state, info = tb.implicit_euler_step(model, tb.ClothState(x, v), 0.01)
+    assert info.converged and info.iterations > 0, info.message
+    assert float(state.x[:, 2].min()) > 0 and info.min_distance > 0
