@@ -1057,7 +1057,7 @@ def implicit_euler_step(model: ClothModel, state: ClothState, dt: float, options
     """One backward-Euler step of size ``dt`` [s] from ``state`` (``x, v: (V, 3)`` [m], [m/s]):
     Newton on the incremental potential.
 
-    ``options``, ``projection``, ``linear_solver``, ``tol`` (default ``1e-6``), ``max_iters`` (default 60),
+    ``options``, ``projection``, ``linear_solver``, ``tol`` (default ``1e-6``), ``max_iters`` (default 100),
     ``callback``, ``time_limit`` (default ``"auto"``: 30 s), ``max_cg_iters`` as for :func:`solve_static`; the force scale of ``tol`` includes the inertial
     forces ``M v_n / dt`` and ``M (x - x_hat) / dt^2``.  ``check_minimum`` is off by default here (the
     inertia term usually makes a step's potential convex; True checks as :func:`solve_static` does).
