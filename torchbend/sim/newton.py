@@ -1306,9 +1306,8 @@ def _euler_solve(model: ClothModel, state: ClothState, dt: float, option: Projec
             t.restore_pose(p)
     elif not infos:  # Newton starts at x_hat, or where a term's step bound (a collider's) stops it on the segment
         x = x_n + model.max_step(x_n, x_hat - x_n, ctx) * (x_hat - x_n)  # x_n -> x_hat (never through a collider)
-    x0 = x
-    x, info = _newton(model, x0, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())  # (else: the last stage's)
-    if info.stop_reason == "non_finite" and info.iterations == 0 and not infos and start is None and x0 is not x_n:
+    x, info = _newton(model, x, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())  # (else: the last stage's)
+    if info.stop_reason == "non_finite" and info.iterations == 0 and not infos and start is None:
         # the start on the segment rounded to a state the potential cannot evaluate (a contact at distance 0): that
         # state is no answer; Newton starts over from x_n, the step's valid start
         x, info = _newton(model, x_n, option=option, linear=linear, ctx=ctx, **ctl.newton_kw())

@@ -543,10 +543,10 @@ def _closest(term: _ContactPairs, x: Tensor) -> float:
     return _smallest_distance(term._points(x).detach(), ((st[~ee], False), (st[ee], True)))
 
 
-RESOLUTION = 64.0
+RESOLUTION = _ROUNDING
 """``dhat`` must span at least this many epsilons of the positions' dtype at their largest coordinate (the cloth's
-and a body's): below that the dtype cannot hold contacts apart (rounding a step's end moves a distance by up to 3.5
-of them, and the step bound advances a pair only above ``_ROUNDING`` of them).  Float32 at 1 km resolves 6e-5 m:
+and a body's), the step bound's rounding floor: below that the dtype cannot hold contacts apart (rounding a step's
+end moves a distance by up to 3.5 of them, and the step bound advances a pair only above ``_ROUNDING`` of them).  Float32 at 1 km resolves 6e-5 m:
 ``dhat`` = 1 mm is 16 epsilons there, and a pile of sheets dropped onto a floor 1 km from the origin ended its
 second step intersecting; float32 keeps ``dhat`` = 1 mm out to about 130 m."""
 
