@@ -229,6 +229,18 @@ def test_stencil_sum_is_the_eager_one():
 
 
 
+def same_sum(got, ref, atol: float) -> int:
+    """Assert that contact_hessian_sum's ``got`` is the stencil sum ``ref`` (both coalesced COO) within ``atol``,
+    its entries among ref's and the ones it leaves out (blocks of corners a pair's energy does not depend on)
+    zeros; returns how many it leaves out."""
+    torch.testing.assert_close(got.to_dense(), ref.to_dense(), rtol=0, atol=atol)
+    n = ref.shape[1]
+    key_ref, key_got = ref.indices()[0] * n + ref.indices()[1], got.indices()[0] * n + got.indices()[1]
+    kept = torch.isin(key_ref, key_got)
+    assert bool(torch.isin(key_got, key_ref).all()) and bool((ref.values()[~kept] == 0).all())
+    return int((~kept).sum())
+
+
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_hessian_sum_with_friction_pairs_is_the_stencil_sum_of_their_blocks(dtype):
     """contact_hessian_sum's friction pairs (stencils, weights w, point blocks H): the sum of the barrier's blocks
@@ -248,9 +260,9 @@ def test_hessian_sum_with_friction_pairs_is_the_stencil_sum_of_their_blocks(dtyp
     Hf = (w[:, :, None, None, None] * w[:, None, None, :, None] * H3[:, None, :, None, :]).reshape(-1, 12, 12)
     ref = native.contact_stencil_sum(torch.cat([st, sf]), torch.cat([H, Hf]), V)
     got = native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V, (sf, w, H3))
-    assert got.is_coalesced() and got.dtype == dtype and torch.equal(got.indices(), ref.indices())
+    assert got.is_coalesced() and got.dtype == dtype
     eps = torch.finfo(dtype).eps
-    torch.testing.assert_close(got.values(), ref.values(), rtol=0, atol=64 * eps * float(ref.values().abs().max()))
+    same_sum(got, ref, 64 * eps * float(ref.values().abs().max()))
     alone = native.contact_hessian_sum(xa, st, types, None, dh2, 2.0, "clamp", V)
     torch.testing.assert_close(alone.to_dense(), native.contact_stencil_sum(st, H, V).to_dense(), rtol=0,
                                atol=64 * eps * float(H.abs().max()))
@@ -310,7 +322,9 @@ def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil
     """A vertex near an edge (or a vertex) of the other layer is found by several stencils (the triangles at the edge,
     the edges at the vertex); contact_hessian_sum computes one of them and counts it as many times: the sum is the
     stencil sum of every pair's own block, with the projection and without, mollified edge pairs (the layers' edges
-    are parallel) left alone."""
+    are parallel) left alone.  Its pattern leaves out the blocks of a corner the pair's energy does not depend on
+    (a point-edge pair's fourth, a point-point pair's third and fourth): the stencil sum's entries it lacks are
+    zeros."""
     rest, faces = tb.scenes.grid(9, 9, (0.1, 0.1), dtype=F64)
     h = 0.1 / 8
     x = torch.cat([rest, rest + torch.tensor([shift * h, shift * 0.6 * h, 1e-3], dtype=F64)]).to(dtype)
@@ -333,9 +347,7 @@ def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil
         _, _, H = native.contact_barrier(x, st, types, eps, 4e-6, 1e3, 2, mode)
         ref = native.contact_stencil_sum(st, H, V)
         got = native.contact_hessian_sum(x, st, types, eps, 4e-6, 1e3, mode, V)
-        assert torch.equal(got.indices(), ref.indices())
-        torch.testing.assert_close(got.values(), ref.values(), rtol=0,
-                                   atol=64 * eps_ * float(ref.values().abs().max()))
+        assert same_sum(got, ref, 64 * eps_ * float(ref.values().abs().max())) > 100
 
 
 @pytest.mark.parametrize("body", [False, True], ids=["self", "mesh_collider"])

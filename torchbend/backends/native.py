@@ -236,7 +236,9 @@ def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor 
     """:func:`contact_stencil_sum` of the Hessians of :func:`contact_barrier` (``want=2``, ``projection``), each
     pair's added from its reduced coordinates without forming its 12x12 block; ``friction = (stencils (M, 4),
     w (M, 4), H (M, 3, 3))``: friction pairs whose 12x12 blocks are ``w w^T (x) H``, added after the barrier's
-    (in stencil order, as :func:`contact_stencil_sum` of the barrier's blocks and theirs concatenated)."""
+    (in stencil order, as :func:`contact_stencil_sum` of the barrier's blocks and theirs concatenated).  Its
+    pattern leaves out the zero blocks of corners a pair's energy does not depend on (a point-edge pair's fourth
+    corner, a point-point pair's other two): the same matrix with fewer stored zeros."""
     mode = {"none": -1, "clamp": 0, "abs": 1}[projection]
     e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
     if friction is None:

@@ -3,7 +3,8 @@
 //   contact_stencil_sum the sum of given 12x12 stencil blocks
 //   contact_hessian_sum the pairs' (projected) Hessians summed without the blocks (one pair of each group that is
 //                       the same contact, counted as many times), and the friction pairs' (w w^T (x) their point
-//                       block)
+//                       block); its pattern holds no block of a corner a pair's energy does not depend on (a
+//                       point-edge pair's fourth corner, a point-point pair's other two)
 #include <algorithm>
 #include <cstdint>
 #include <limits>
@@ -138,9 +139,12 @@ namespace {
 // them, counted as many times, gives their Hessians' sum.  Returns the pairs to compute (each group's first, in pair
 // order) and their counts.  A pair under its mollifier's threshold (an edge-edge pair; pair_terms mollifies any pair
 // given eps > 0) depends on all four corners and is its own group, as is every point-plane and line-line pair.
+// used[4 j + v]: whether the energy of reps[j] depends on its corner v (a point-edge pair's three, a point-point
+// pair's two; every corner of a mollified, point-plane or line-line pair): the other corners' Hessian blocks are
+// zero and stay out of the sum's pattern.
 template <typename T>
 void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, int64_t N, int64_t n,
-                    std::vector<int64_t>& reps, std::vector<int64_t>& count) {
+                    std::vector<int64_t>& reps, std::vector<int64_t>& count, std::vector<unsigned char>& used) {
   // per type: the contact's corners (point, then the edge's or the other point's; -1: no group)
   static const signed char corner[cm::NUM_TYPES][3] = {
       {0, 1, -1}, {0, 2, -1}, {0, 3, -1}, {0, 1, 2}, {0, 2, 3}, {0, 3, 1}, {-1, -1, -1},  // PT_*
@@ -149,6 +153,7 @@ void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* 
   // key (a, b, c): point-edge (point, smaller edge end, larger), point-point (smaller, larger, -1); grouped by a
   std::vector<int64_t> key_b(N, -2), key_c(N, -2), start(n + 1, 0);
   std::vector<int64_t> a_of(N, -1);
+  std::vector<unsigned char> all4(N, 1);
   for (int64_t i = 0; i < N; ++i) {
     const signed char* c = corner[pt[i]];
     if (c[0] < 0) continue;
@@ -158,6 +163,7 @@ void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* 
       gather(px, s, X);
       if (cm::edge_cross_sq(X) < pe[i]) continue;
     }
+    all4[i] = 0;
     int64_t a = s[c[0]], b = s[c[1]], cc = c[2] < 0 ? -1 : s[c[2]];
     if (cc < 0) { if (b < a) std::swap(a, b); }
     else if (cc < b) std::swap(b, cc);
@@ -182,9 +188,15 @@ void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* 
   }
   std::vector<int64_t> cnt(N, 0);
   for (int64_t i = 0; i < N; ++i) ++cnt[rep[i]];
-  reps.clear(); count.clear();
+  reps.clear(); count.clear(); used.clear();
   for (int64_t i = 0; i < N; ++i)
-    if (rep[i] == i) { reps.push_back(i); count.push_back(cnt[i]); }
+    if (rep[i] == i) {
+      reps.push_back(i); count.push_back(cnt[i]);
+      signed char C[3][4];
+      int formula;
+      cm::type_rows(int(pt[i]), &formula, C);
+      for (int v = 0; v < 4; ++v) used.push_back(all4[i] || C[0][v] || C[1][v] || C[2][v] ? 1 : 0);
+    }
 }
 }  // namespace
 
@@ -210,29 +222,39 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
               "point blocks, M = ", M, ", got ", ck::shape_str(f_H));
   f_w = f_w.to(x.scalar_type()).contiguous();
   f_H = f_H.to(x.scalar_type()).contiguous();
-  torch::Tensor all = M ? torch::cat({st, f_stencils}) : st;
-  const int64_t* ps = all.data_ptr<int64_t>();
-  BlockPattern P = block_pattern(ps, N + M, V, st.options());
-  auto val = torch::zeros({9 * P.U}, x.options());
+  const int64_t* ps = st.data_ptr<int64_t>();
+  const int64_t* pfs = f_stencils.data_ptr<int64_t>();
+  torch::Tensor indices;
+  torch::Tensor val;
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
     using T = scalar_t;
     const T* px = x.data_ptr<T>();
     const int64_t* pt = ty.data_ptr<int64_t>();
     const T* pe = ep.numel() ? ep.data_ptr<T>() : nullptr;
-    T* pv = val.data_ptr<T>();
     // one pair of each group that is the same contact (contact_groups), its Hessian counted as many times; waves of
     // one chunk per thread: the chunks' pairs computed and projected in parallel, then added to the sum in pair
     // order (the same sums for any number of threads)
     std::vector<int64_t> reps, count;
-    contact_groups<T>(px, ps, pt, pe, N, x.size(0), reps, count);
+    std::vector<unsigned char> used;
+    contact_groups<T>(px, ps, pt, pe, N, x.size(0), reps, count, used);
     const int64_t R = int64_t(reps.size());
-    std::vector<int64_t> su(4 * R), tu(R);
+    // the pattern's stencils: the groups' (a corner the energy does not depend on left out, as a body's vertex
+    // is: index >= V), then the friction pairs'
+    std::vector<int64_t> su(4 * R), tu(R), sp(4 * (R + M));
     std::vector<T> eu(pe ? R : 0);
     for (int64_t j = 0; j < R; ++j) {
-      for (int v = 0; v < 4; ++v) su[4 * j + v] = ps[4 * reps[j] + v];
+      for (int v = 0; v < 4; ++v) {
+        su[4 * j + v] = ps[4 * reps[j] + v];
+        sp[4 * j + v] = used[4 * j + v] ? su[4 * j + v] : std::numeric_limits<int64_t>::max();
+      }
       tu[j] = pt[reps[j]];
       if (pe) eu[j] = pe[reps[j]];
     }
+    std::copy(pfs, pfs + 4 * M, sp.begin() + 4 * R);
+    BlockPattern P = block_pattern(sp.data(), R + M, V, st.options());
+    indices = P.indices;
+    val = torch::zeros({9 * P.U}, x.options());
+    T* pv = val.data_ptr<T>();
     const int64_t chunks = (R + kPairChunk - 1) / kPairChunk;
     const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), chunks));
     std::vector<std::vector<cm::PairTerms<T>>> terms(threads, std::vector<cm::PairTerms<T>>(kPairChunk));
@@ -248,14 +270,14 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
         const int64_t base = (wave + c) * kPairChunk, n = std::min<int64_t>(kPairChunk, R - base);
         for (int64_t i = 0; i < n; ++i) {
           const auto& q = terms[c][i];
-          const int64_t m = reps[base + i];
+          const int64_t m = base + i;
           const T times = T(count[base + i]);
           alignas(64) T H12[144];  // the pair's 12x12 block, then its 16 3x3 blocks added row by row
           cm::expand_hessian(q.C, q.r, q.H, H12);
           if (count[base + i] > 1)
             for (int e = 0; e < 144; ++e) H12[e] *= times;
           for (int a = 0; a < 4; ++a) {
-            const int64_t v = ps[4 * m + a];
+            const int64_t v = sp[4 * m + a];
             if (v >= V) continue;
             const int64_t len = 3 * P.nb[v];
             for (int b = 0; b < 4; ++b) {
@@ -274,7 +296,7 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
     const T* pw = M ? f_w.data_ptr<T>() : nullptr;
     const T* pf = M ? f_H.data_ptr<T>() : nullptr;
     for (int64_t i = 0; i < M; ++i) {
-      const int64_t m = N + i;
+      const int64_t m = R + i;
       const T* w = pw + 4 * i;
       const T* h = pf + 9 * i;
       for (int a = 0; a < 4; ++a)
@@ -283,11 +305,11 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
           if (P.at[e] < 0) continue;
           const T wab = w[a] * w[b];
           for (int p = 0; p < 3; ++p)
-            for (int s = 0; s < 3; ++s) pv[P.value_index(ps[4 * m + a], e, p, s)] += wab * h[3 * p + s];
+            for (int s = 0; s < 3; ++s) pv[P.value_index(sp[4 * m + a], e, p, s)] += wab * h[3 * p + s];
         }
     }
   });
-  return {P.indices, val};
+  return {indices, val};
 }
 
 }  // namespace cpu
