@@ -11,7 +11,9 @@ weight, torchbend each stencil as a pair (about 1.45x as many on the half fold),
 torchbend by that factor and the total is the like-for-like one.  Beside: the broad phase alone (the candidate pairs within
 ``dhat``), the step bound (``max_step``) of a step of 1 mm, and a Newton iteration's contact work (energy,
 gradient and Hessian at a new iterate, the step bound of its step, and the energy at two trial points of its line
-search).  Then a static solve per size: the upper layer, held at its corners, sags under its weight onto the
+search).  Then the work the issue names alone (gradient, clamp-projected Hessian and its assembly of the pairs
+found beforehand: ipctk's ``BarrierPotential.gradient`` and ``hessian`` of a built ``NormalCollisions``, torchbend's
+``gradient`` and ``hessian`` at the positions whose pairs it kept).  Then a static solve per size: the upper layer, held at its corners, sags under its weight onto the
 pinned lower one, and the contact term's time per Newton iteration of it (whatever its steps and line searches
 asked for).
 
@@ -104,7 +106,14 @@ def run_torchbend(x, f, dhat, repeats):
         sc.energy(y + 0.05 * dx, ctx)
 
     newton = best(iteration, repeats)
-    return count, seconds, bound, broad, newton
+
+    def gradient_hessian():  # the pairs found (kept from the last call at x): their work alone
+        sc.gradient(x, ctx)
+        sc.hessian(x, ctx, tb.Projection.CLAMP)
+
+    sc.energy(x, ctx)
+    work = best(gradient_hessian, repeats)
+    return count, seconds, bound, broad, newton, work
 
 
 def run_solve(x, f, dhat):
@@ -164,7 +173,14 @@ def run_ipctk(x, f, dhat, repeats):
         holder["n"] = len(c)
 
     seconds = best(work, repeats)
-    return holder["n"], seconds
+    found = ipctk.NormalCollisions()
+    found.build(mesh, V, dhat)
+
+    def gradient_hessian():
+        B.gradient(found, mesh, V)
+        B.hessian(found, mesh, V, ipctk.PSDProjectionMethod.CLAMP)
+
+    return holder["n"], seconds, best(gradient_hessian, repeats)
 
 
 def main(argv=None) -> None:
@@ -185,17 +201,27 @@ def main(argv=None) -> None:
           f"gradient + clamp-projected Hessian with each code's own pair search\n")
     print(f"{'grid':>6} {'V':>6} | {'torchbend pairs':>15} {'s':>8} {'us/pair':>8} {'broad s':>8} {'max_step s':>10} "
           f"{'newton it s':>11} | {'ipctk pairs':>11} {'s':>8} {'us/pair':>8} | ratio")
+    work_rows = []
     for n in args.sizes:
         x, f = build(n)
-        count, sec, bound, broad, newton = run_torchbend(x, f, args.dhat, args.repeats)
+        count, sec, bound, broad, newton, work = run_torchbend(x, f, args.dhat, args.repeats)
         try:
-            ic, isec = run_ipctk(x, f, args.dhat, args.repeats)
+            ic, isec, iwork = run_ipctk(x, f, args.dhat, args.repeats)
             tail = (f"{ic:>11} {isec:8.3f} {1e6 * isec / max(ic, 1):8.1f} | {sec / isec * ic / max(count, 1):5.2f}x per "
                     f"pair, {sec / isec:5.2f}x in total (torchbend / ipctk)")
+            work_rows.append(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {work:8.4f} {1e6 * work / max(count, 1):8.2f} | "
+                             f"{ic:>11} {iwork:8.4f} {1e6 * iwork / max(ic, 1):8.2f} | "
+                             f"{work / iwork * ic / max(count, 1):5.2f}x per pair, {work / iwork:5.2f}x in total")
         except ImportError:
             tail = "ipctk not installed (pip install ipctk)"
         print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.4f} {1e6 * sec / max(count, 1):8.2f} {broad:8.4f} "
               f"{bound:10.4f} {newton:11.4f} | {tail}")
+    if work_rows:
+        print("\nthe issue's per-contact work alone: gradient + clamp-projected Hessian + its assembly of the pairs "
+              "found beforehand (no pair search, no energy)")
+        print(f"{'grid':>6} {'V':>6} | {'torchbend pairs':>15} {'s':>8} {'us/pair':>8} | {'ipctk pairs':>11} {'s':>8} "
+              f"{'us/pair':>8} | ratio (torchbend / ipctk)")
+        print("\n".join(work_rows))
     if args.solve and args.scene == "layers":
         print("\nstatic solve: the upper layer, held at its corners, sags onto the pinned lower one (gravity, adaptive"
               " stiffness); the contact term's time per Newton iteration")
