@@ -282,6 +282,12 @@ def test_bad_arguments_are_value_errors_naming_them():
         native.contact_barrier(xa, st, types + 40, None, 1.0, 1.0, 2, "clamp")
     with pytest.raises(ValueError, match="dhat_sq"):
         native.contact_barrier(xa, st, types, None, -1.0, 1.0, 2, "clamp")
+    with pytest.raises(ValueError, match="contact_gradient_sum.*types"):
+        native.contact_gradient_sum(xa, st, types + 40, None, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"contact_gradient_sum.*stencils\[2, 1\] = 99"):
+        bad = st.clone()
+        bad[2, 1] = 99
+        native.contact_gradient_sum(xa, bad, types, None, 1.0, 1.0)
     with pytest.raises(ValueError, match="finite"):
         lo = torch.zeros(2, 3, dtype=F64)
         lo[1, 0] = float("nan")
@@ -320,8 +326,8 @@ def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
 @pytest.mark.parametrize("shift", [1 / 3, 0.0], ids=["point_edge", "point_point"])
 def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil(shift, dtype):
     """A vertex near an edge (or a vertex) of the other layer is found by several stencils (the triangles at the edge,
-    the edges at the vertex); contact_hessian_sum computes one of them and counts it as many times: the sum is the
-    stencil sum of every pair's own block, with the projection and without, mollified edge pairs (the layers' edges
+    the edges at the vertex); contact_hessian_sum (and contact_gradient_sum) computes one of them and counts it as
+    many times: the sum is the stencil sum of every pair's own block (gradient), with the projection and without, mollified edge pairs (the layers' edges
     are parallel) left alone.  Its pattern leaves out the blocks of a corner the pair's energy does not depend on
     (a point-edge pair's fourth, a point-point pair's third and fourth): the stencil sum's entries it lacks are
     zeros."""
@@ -343,6 +349,14 @@ def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil
     assert len(keys) - len(set(keys)) > 100 and int(mollified.sum()) > 20
     V = x.shape[0]
     eps_ = torch.finfo(dtype).eps
+    # the gradient's sum counts them the same way
+    _, G, _ = native.contact_barrier(x, st, types, eps, 4e-6, 1e3, 1)
+    ref_g = torch.zeros(V, 3, dtype=dtype).index_add_(0, st.reshape(-1), G.reshape(-1, 3))
+    got_g = native.contact_gradient_sum(x, st, types, eps, 4e-6, 1e3)
+    assert got_g.dtype == dtype and got_g.shape == (V, 3)
+    # (added in another order: within 64 epsilons of each entry's sum of magnitudes)
+    scale = torch.zeros(V, 3, dtype=dtype).index_add_(0, st.reshape(-1), G.abs().reshape(-1, 3))
+    assert bool(((got_g - ref_g).abs() <= 64 * eps_ * scale).all())
     for mode in ("clamp", "none"):
         _, _, H = native.contact_barrier(x, st, types, eps, 4e-6, 1e3, 2, mode)
         ref = native.contact_stencil_sum(st, H, V)

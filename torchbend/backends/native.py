@@ -43,7 +43,7 @@ __all__ = ["load", "build_error", "build_info", "bending_hessians", "assemble_ar
            "bending_gradient", "bending_energy_gradient", "bending_hvp", "bending_second_order", "hinge_angles",
            "project_blocks", "contact_box_pairs", "contact_candidates", "contact_distances", "contact_close",
            "contact_step_bound", "contact_barrier",
-           "contact_stencil_sum", "contact_hessian_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
+           "contact_stencil_sum", "contact_gradient_sum", "contact_hessian_sum", "membrane_blocks", "membrane_assemble", "membrane_energy_gradient", "membrane_hvp",
            "output_cache_info", "empty_output_cache", "set_output_cache_limit"]
 
 PREBUILT = "torchbend._native"
@@ -228,6 +228,15 @@ def contact_stencil_sum(stencils: Tensor, H: Tensor, V: int) -> Tensor:
     (:func:`torchbend.sim.self_contact.stencil_sum`, compiled)."""
     indices, values = _module().contact_stencil_sum(stencils, H, int(V))
     return _coo(indices, values, V)
+
+
+def contact_gradient_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float,
+                         kappa: float) -> Tensor:
+    """``(n, 3)``: the sum over the points ``x (n, 3)`` of the gradients of :func:`contact_barrier` (``want=1``),
+    added in stencil order; a point-point or point-edge contact found by several stencils (a vertex near an edge:
+    the triangles at the edge and the edges at the vertex) computed once and counted as many times."""
+    e = torch.zeros(0, dtype=x.dtype) if eps is None else eps
+    return _module().contact_gradient_sum(x, stencils, types, e, float(dhat_sq), float(kappa))
 
 
 def contact_hessian_sum(x: Tensor, stencils: Tensor, types: Tensor, eps: Tensor | None, dhat_sq: float,

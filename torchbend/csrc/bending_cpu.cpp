@@ -49,6 +49,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("contact_project_blocks", &op::contact_project_blocks,
         "PSD projection of symmetric 3x3, 6x6 or 9x9 blocks by the contact kernels' eigensolver (tridiagonal QL)");
   m.def("contact_stencil_sum", &op::contact_stencil_sum, "the row-major sum of 12x12 stencil blocks");
+  m.def("contact_gradient_sum", &op::contact_gradient_sum,
+        "the sum over the points of the contact pairs' barrier gradients, a contact found by several stencils once");
   m.def("contact_hessian_sum", &op::contact_hessian_sum,
         "the row-major sum of the contact pairs' (projected) barrier Hessians, without forming the blocks, and of "
         "friction pairs' blocks");

@@ -5,6 +5,8 @@
 //   contact_close       the stencils closer than dhat
 //   contact_step_bound  the conservative step bound of candidate stencils
 //   contact_barrier     the pairs' barrier energies, gradients and (PSD-projected) Hessians
+//   contact_gradient_sum the pairs' barrier gradients summed over the points, a contact found by several stencils
+//                       computed once and counted as many times
 //   contact_hessian_sum, contact_stencil_sum: the sums of the pairs' Hessians (cpu_contact_sum.cpp)
 // The per-stencil mathematics is contact_math.h (shared with the CUDA driver, bending_cuda.cu); the pieces both
 // translation units share (the pairs' terms a chunk at a time) are cpu_contact_pairs.h.
@@ -282,6 +284,58 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> contact_barrier(torch::T
     });
   });
   return {E, G, H};
+}
+
+// the pairs' barrier gradients summed over the points (in this translation unit: each pair's gradient is the one
+// contact_barrier computes, bit for bit)
+torch::Tensor contact_gradient_sum(torch::Tensor x, torch::Tensor stencils, torch::Tensor types, torch::Tensor eps,
+                                   double dhat_sq, double kappa) {
+  const char* op = "contact_gradient_sum";
+  auto [st, ty, ep] = barrier_args(op, x, stencils, types, eps, dhat_sq, kappa, 1, -1);
+  x = x.contiguous();
+  const int64_t N = st.size(0), n = x.size(0);
+  auto out = torch::zeros({n, 3}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "contact", [&] {
+    using T = scalar_t;
+    const T* px = x.data_ptr<T>();
+    const int64_t* ps = st.data_ptr<int64_t>();
+    const int64_t* pt = ty.data_ptr<int64_t>();
+    const T* pe = ep.numel() ? ep.data_ptr<T>() : nullptr;
+    T* po = out.data_ptr<T>();
+    // one pair of each group that is the same contact, its gradient counted as many times (as the Hessian sum);
+    // the chunks' pairs in parallel, their gradients added in pair order (the same sums for any number of threads)
+    std::vector<int64_t> reps, count;
+    std::vector<unsigned char> used;
+    contact_groups<T>(px, ps, pt, pe, N, n, reps, count, used);
+    const int64_t R = int64_t(reps.size());
+    std::vector<int64_t> su(4 * R), tu(R);
+    std::vector<T> eu(pe ? R : 0);
+    for (int64_t j = 0; j < R; ++j) {
+      for (int v = 0; v < 4; ++v) su[4 * j + v] = ps[4 * reps[j] + v];
+      tu[j] = pt[reps[j]];
+      if (pe) eu[j] = pe[reps[j]];
+    }
+    std::vector<T> G(size_t(12) * size_t(R));
+    const int64_t chunks = (R + kPairChunk - 1) / kPairChunk;
+    at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+      std::vector<cm::PairTerms<T>> terms(kPairChunk);
+      for (int64_t c = c0; c < c1; ++c) {
+        const int64_t base = c * kPairChunk;
+        pair_chunk<T>(px, su.data(), tu.data(), pe ? eu.data() : nullptr, T(dhat_sq), T(kappa), 1, -1, base,
+                      std::min<int64_t>(kPairChunk, R - base), terms, nullptr, G.data(), nullptr);
+      }
+    });
+    for (int64_t j = 0; j < R; ++j) {
+      const T times = T(count[j]);
+      for (int v = 0; v < 4; ++v) {
+        if (!used[4 * j + v]) continue;
+        T* dst = po + 3 * su[4 * j + v];
+        const T* g = G.data() + 12 * j + 3 * v;
+        for (int i = 0; i < 3; ++i) dst[i] += count[j] > 1 ? times * g[i] : g[i];
+      }
+    }
+  });
+  return out;
 }
 
 // the PSD projection of symmetric blocks M (..., n, n), n 3, 6 or 9, by the contact kernels' eigensolver (mode 0:

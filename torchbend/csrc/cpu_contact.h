@@ -41,6 +41,10 @@ torch::Tensor contact_project_blocks(torch::Tensor M, int64_t mode);
 // (indices (2, nnz), values (nnz,)): the (3V, 3V) sum, row-major (a coalesced COO matrix), of blocks H (M, 12, 12)
 // of stencils (M, 4); vertices >= V are left out; the blocks of one vertex pair added in stencil order
 std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stencils, torch::Tensor H, int64_t V);
+// the sum (n, 3) over the points of x of the barrier gradients of contact_barrier (want 1), a contact found by
+// several stencils computed once and counted as many times
+torch::Tensor contact_gradient_sum(torch::Tensor x, torch::Tensor stencils, torch::Tensor types, torch::Tensor eps,
+                                   double dhat_sq, double kappa);
 // the same sum of the barrier Hessians of contact_barrier (want 2, mode) without forming the 12x12 blocks, and of
 // friction pairs f_stencils (M, 4) (M = 0: none), whose 12x12 block is w w^T (x) H for their weights f_w (M, 4) and
 // point blocks f_H (M, 3, 3), added after the barrier's

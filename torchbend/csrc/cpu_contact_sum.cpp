@@ -132,73 +132,6 @@ std::tuple<torch::Tensor, torch::Tensor> contact_stencil_sum(torch::Tensor stenc
   return {P.indices, val};
 }
 
-namespace {
-// The pairs that are one point-point or point-edge contact found by several stencils (a vertex near an edge is
-// found by the triangles at the edge and by the edges at the vertex: 2,500 contacts for 9,208 point-edge pairs on
-// the 50x50 half fold of benchmarks/bm_contact.py): their energies are one function of the same corners, so one of
-// them, counted as many times, gives their Hessians' sum.  Returns the pairs to compute (each group's first, in pair
-// order) and their counts.  A pair under its mollifier's threshold (an edge-edge pair; pair_terms mollifies any pair
-// given eps > 0) depends on all four corners and is its own group, as is every point-plane and line-line pair.
-// used[4 j + v]: whether the energy of reps[j] depends on its corner v (a point-edge pair's three, a point-point
-// pair's two; every corner of a mollified, point-plane or line-line pair): the other corners' Hessian blocks are
-// zero and stay out of the sum's pattern.
-template <typename T>
-void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* pe, int64_t N, int64_t n,
-                    std::vector<int64_t>& reps, std::vector<int64_t>& count, std::vector<unsigned char>& used) {
-  // per type: the contact's corners (point, then the edge's or the other point's; -1: no group)
-  static const signed char corner[cm::NUM_TYPES][3] = {
-      {0, 1, -1}, {0, 2, -1}, {0, 3, -1}, {0, 1, 2}, {0, 2, 3}, {0, 3, 1}, {-1, -1, -1},  // PT_*
-      {0, 2, -1}, {0, 3, -1}, {1, 2, -1}, {1, 3, -1}, {2, 0, 1}, {3, 0, 1}, {0, 2, 3}, {1, 2, 3},  // EE_* (points)
-      {-1, -1, -1}};
-  // key (a, b, c): point-edge (point, smaller edge end, larger), point-point (smaller, larger, -1); grouped by a
-  std::vector<int64_t> key_b(N, -2), key_c(N, -2), start(n + 1, 0);
-  std::vector<int64_t> a_of(N, -1);
-  std::vector<unsigned char> all4(N, 1);
-  for (int64_t i = 0; i < N; ++i) {
-    const signed char* c = corner[pt[i]];
-    if (c[0] < 0) continue;
-    const int64_t* s = ps + 4 * i;
-    if (pe && pe[i] > 0) {  // a pair with a mollifier (edge-edge): grouped only above its threshold, as pair_terms
-      T X[4][3];
-      gather(px, s, X);
-      if (cm::edge_cross_sq(X) < pe[i]) continue;
-    }
-    all4[i] = 0;
-    int64_t a = s[c[0]], b = s[c[1]], cc = c[2] < 0 ? -1 : s[c[2]];
-    if (cc < 0) { if (b < a) std::swap(a, b); }
-    else if (cc < b) std::swap(b, cc);
-    a_of[i] = a; key_b[i] = b; key_c[i] = cc;
-    ++start[a + 1];
-  }
-  for (int64_t v = 0; v < n; ++v) start[v + 1] += start[v];
-  std::vector<int64_t> slot(start[n]), fill(start.begin(), start.end() - 1), rep(N);
-  for (int64_t i = 0; i < N; ++i)
-    if (a_of[i] >= 0) slot[fill[a_of[i]]++] = i;
-  for (int64_t i = 0; i < N; ++i) rep[i] = i;
-  for (int64_t v = 0; v < n; ++v) {  // within a point's pairs (in pair order), the same (b, c): the first one's
-    const int64_t lo = start[v], hi = start[v + 1];
-    if (hi - lo < 2) continue;
-    std::stable_sort(slot.begin() + lo, slot.begin() + hi, [&](int64_t i, int64_t j) {
-      return key_b[i] != key_b[j] ? key_b[i] < key_b[j] : key_c[i] < key_c[j];
-    });
-    for (int64_t q = lo + 1; q < hi; ++q) {
-      const int64_t i = slot[q], j = slot[q - 1];
-      if (key_b[i] == key_b[j] && key_c[i] == key_c[j]) rep[i] = rep[j];
-    }
-  }
-  std::vector<int64_t> cnt(N, 0);
-  for (int64_t i = 0; i < N; ++i) ++cnt[rep[i]];
-  reps.clear(); count.clear(); used.clear();
-  for (int64_t i = 0; i < N; ++i)
-    if (rep[i] == i) {
-      reps.push_back(i); count.push_back(cnt[i]);
-      signed char C[3][4];
-      int formula;
-      cm::type_rows(int(pt[i]), &formula, C);
-      for (int v = 0; v < 4; ++v) used.push_back(all4[i] || C[0][v] || C[1][v] || C[2][v] ? 1 : 0);
-    }
-}
-}  // namespace
 
 std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, torch::Tensor stencils,
                                                              torch::Tensor types, torch::Tensor eps, double dhat_sq,
@@ -311,6 +244,7 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
   });
   return {indices, val};
 }
+
 
 }  // namespace cpu
 }  // namespace torchbend

@@ -807,9 +807,10 @@ class SelfContact(_LaggedFriction, EnergyTerm):
         # a body mesh whose vertices require grad (the adjoint's parameters): the gradient keeps its graph to them
         graph = torch.is_grad_enabled() and self._points_require_grad()
         if self._compiled(x.detach()) and not graph:
-            st, _, G, _ = self._pair_terms(x, 1)
-            g = torch.zeros(self._points(x).shape[0], 3, dtype=x.dtype).index_add_(0, st.reshape(-1), G.reshape(-1, 3))
-            g = g[:x.shape[0]]
+            st, types, eps = self._close(x)
+            assert self.stiffness is not None
+            g = native.contact_gradient_sum(self._points(x).detach(), st, types, eps, self.dhat ** 2,
+                                            self.stiffness)[:x.shape[0]]
             friction = self._friction_force(x, ctx, g)
             return g if friction is None else g + friction
         with torch.enable_grad():
