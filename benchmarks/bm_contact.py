@@ -112,8 +112,8 @@ def run_torchbend(x, f, dhat, repeats):
         sc.hessian(x, ctx, tb.Projection.CLAMP)
 
     sc.energy(x, ctx)
-    work = best(gradient_hessian, repeats)
-    return count, seconds, bound, broad, newton, work
+    alone = best(gradient_hessian, repeats)
+    return count, seconds, bound, broad, newton, alone
 
 
 def run_solve(x, f, dhat):
@@ -204,14 +204,14 @@ def main(argv=None) -> None:
     work_rows = []
     for n in args.sizes:
         x, f = build(n)
-        count, sec, bound, broad, newton, work = run_torchbend(x, f, args.dhat, args.repeats)
+        count, sec, bound, broad, newton, alone = run_torchbend(x, f, args.dhat, args.repeats)
         try:
             ic, isec, iwork = run_ipctk(x, f, args.dhat, args.repeats)
             tail = (f"{ic:>11} {isec:8.3f} {1e6 * isec / max(ic, 1):8.1f} | {sec / isec * ic / max(count, 1):5.2f}x per "
                     f"pair, {sec / isec:5.2f}x in total (torchbend / ipctk)")
-            work_rows.append(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {work:8.4f} {1e6 * work / max(count, 1):8.2f} | "
+            work_rows.append(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {alone:8.4f} {1e6 * alone / max(count, 1):8.2f} | "
                              f"{ic:>11} {iwork:8.4f} {1e6 * iwork / max(ic, 1):8.2f} | "
-                             f"{work / iwork * ic / max(count, 1):5.2f}x per pair, {work / iwork:5.2f}x in total")
+                             f"{alone / iwork * ic / max(count, 1):5.2f}x per pair, {alone / iwork:5.2f}x in total")
         except ImportError:
             tail = "ipctk not installed (pip install ipctk)"
         print(f"{n:>4}^2 {x.shape[0]:>6} | {count:>15} {sec:8.4f} {1e6 * sec / max(count, 1):8.2f} {broad:8.4f} "
