@@ -166,7 +166,7 @@ class NewtonOptions:
       ``"abs"``, ``"gauss_newton"``, ``"reduced"``);
     * ``linear_solver``: a :class:`LinearSolver` or its method name (``"direct"``, ``"cg"``);
     * ``tol`` (> 0), ``max_iters`` (int >= 0), ``check_minimum``: ``None`` takes the solver's default
-      (static: ``1e-9``, 50, True; a time step: ``1e-6``, 60, False);
+      (static: ``1e-9``, 50, True; a time step: ``1e-6``, 100, False);
     * ``time_limit`` [s] (> 0, ``"auto"`` or None): the wall-time bound of a whole call, after which the best
       state is returned with ``stop_reason="time_limit"``; ``"auto"`` (default) is :data:`DEFAULT_TIME_LIMITS`
       (a static solve 120 s, a time step 30 s), None lifts it;
