@@ -308,20 +308,14 @@ torch::Tensor contact_gradient_sum(torch::Tensor x, torch::Tensor stencils, torc
     std::vector<unsigned char> used;
     contact_groups<T>(px, ps, pt, pe, N, n, reps, count, used);
     const int64_t R = int64_t(reps.size());
-    std::vector<int64_t> su(4 * R), tu(R);
-    std::vector<T> eu(pe ? R : 0);
-    for (int64_t j = 0; j < R; ++j) {
-      for (int v = 0; v < 4; ++v) su[4 * j + v] = ps[4 * reps[j] + v];
-      tu[j] = pt[reps[j]];
-      if (pe) eu[j] = pe[reps[j]];
-    }
+    const GroupPairs<T> g = group_pairs(ps, pt, pe, reps);
     std::vector<T> G(size_t(12) * size_t(R));
     const int64_t chunks = (R + kPairChunk - 1) / kPairChunk;
     at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
       std::vector<cm::PairTerms<T>> terms(kPairChunk);
       for (int64_t c = c0; c < c1; ++c) {
         const int64_t base = c * kPairChunk;
-        pair_chunk<T>(px, su.data(), tu.data(), pe ? eu.data() : nullptr, T(dhat_sq), T(kappa), 1, -1, base,
+        pair_chunk<T>(px, g.st.data(), g.ty.data(), pe ? g.eps.data() : nullptr, T(dhat_sq), T(kappa), 1, -1, base,
                       std::min<int64_t>(kPairChunk, R - base), terms, nullptr, G.data(), nullptr);
       }
     });
@@ -329,9 +323,9 @@ torch::Tensor contact_gradient_sum(torch::Tensor x, torch::Tensor stencils, torc
       const T times = T(count[j]);
       for (int v = 0; v < 4; ++v) {
         if (!used[4 * j + v]) continue;
-        T* dst = po + 3 * su[4 * j + v];
-        const T* g = G.data() + 12 * j + 3 * v;
-        for (int i = 0; i < 3; ++i) dst[i] += count[j] > 1 ? times * g[i] : g[i];
+        T* dst = po + 3 * g.st[4 * j + v];
+        const T* gj = G.data() + 12 * j + 3 * v;
+        for (int i = 0; i < 3; ++i) dst[i] += count[j] > 1 ? times * gj[i] : gj[i];
       }
     }
   });

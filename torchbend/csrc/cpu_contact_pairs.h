@@ -131,6 +131,25 @@ void contact_groups(const T* px, const int64_t* ps, const int64_t* pt, const T* 
     }
 }
 
+// the groups' pairs (contact_groups' reps): their stencils (4 R), types and thresholds (empty where pe is null), the
+// arguments of pair_chunk over them
+template <typename T> struct GroupPairs {
+  std::vector<int64_t> st, ty;
+  std::vector<T> eps;
+};
+
+template <typename T>
+GroupPairs<T> group_pairs(const int64_t* ps, const int64_t* pt, const T* pe, const std::vector<int64_t>& reps) {
+  const int64_t R = int64_t(reps.size());
+  GroupPairs<T> g{std::vector<int64_t>(4 * R), std::vector<int64_t>(R), std::vector<T>(pe ? R : 0)};
+  for (int64_t j = 0; j < R; ++j) {
+    for (int v = 0; v < 4; ++v) g.st[4 * j + v] = ps[4 * reps[j] + v];
+    g.ty[j] = pt[reps[j]];
+    if (pe) g.eps[j] = pe[reps[j]];
+  }
+  return g;
+}
+
 // the checked stencils, types and thresholds (in x's dtype; empty: none) of the barrier operators
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> barrier_args(const char* op, const torch::Tensor& x,
                                                                      torch::Tensor stencils, torch::Tensor types,

@@ -173,16 +173,9 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
     const int64_t R = int64_t(reps.size());
     // the pattern's stencils: the groups' (a corner the energy does not depend on left out, as a body's vertex
     // is: index >= V), then the friction pairs'
-    std::vector<int64_t> su(4 * R), tu(R), sp(4 * (R + M));
-    std::vector<T> eu(pe ? R : 0);
-    for (int64_t j = 0; j < R; ++j) {
-      for (int v = 0; v < 4; ++v) {
-        su[4 * j + v] = ps[4 * reps[j] + v];
-        sp[4 * j + v] = used[4 * j + v] ? su[4 * j + v] : std::numeric_limits<int64_t>::max();
-      }
-      tu[j] = pt[reps[j]];
-      if (pe) eu[j] = pe[reps[j]];
-    }
+    const GroupPairs<T> g = group_pairs(ps, pt, pe, reps);
+    std::vector<int64_t> sp(4 * (R + M));
+    for (int64_t q = 0; q < 4 * R; ++q) sp[q] = used[q] ? g.st[q] : std::numeric_limits<int64_t>::max();
     std::copy(pfs, pfs + 4 * M, sp.begin() + 4 * R);
     BlockPattern P = block_pattern(sp.data(), R + M, V, st.options());
     indices = P.indices;
@@ -195,7 +188,7 @@ std::tuple<torch::Tensor, torch::Tensor> contact_hessian_sum(torch::Tensor x, to
       const int64_t nc = std::min(threads, chunks - wave);
       at::parallel_for(0, nc, 1, [&](int64_t c0, int64_t c1) {
         for (int64_t c = c0; c < c1; ++c)
-          pair_chunk<T>(px, su.data(), tu.data(), pe ? eu.data() : nullptr, T(dhat_sq), T(kappa), 2, mode,
+          pair_chunk<T>(px, g.st.data(), g.ty.data(), pe ? g.eps.data() : nullptr, T(dhat_sq), T(kappa), 2, mode,
                         (wave + c) * kPairChunk, std::min<int64_t>(kPairChunk, R - (wave + c) * kPairChunk), terms[c],
                         nullptr, nullptr, nullptr);
       });
