@@ -327,10 +327,10 @@ def test_self_contact_compiled_and_eager_paths_agree(monkeypatch):
 def test_hessian_sum_counts_a_contact_found_by_several_stencils_once_per_stencil(shift, dtype):
     """A vertex near an edge (or a vertex) of the other layer is found by several stencils (the triangles at the edge,
     the edges at the vertex); contact_hessian_sum (and contact_gradient_sum) computes one of them and counts it as
-    many times: the sum is the stencil sum of every pair's own block (gradient), with the projection and without, mollified edge pairs (the layers' edges
-    are parallel) left alone.  Its pattern leaves out the blocks of a corner the pair's energy does not depend on
-    (a point-edge pair's fourth, a point-point pair's third and fourth): the stencil sum's entries it lacks are
-    zeros."""
+    many times: the sum is the stencil sum of every pair's own block (gradient), with the projection and without,
+    mollified edge pairs (the layers' edges are parallel) left alone.  Its pattern leaves out the blocks of a corner
+    the pair's energy does not depend on (a point-edge pair's fourth, a point-point pair's third and fourth): the
+    stencil sum's entries it lacks are zeros."""
     rest, faces = tb.scenes.grid(9, 9, (0.1, 0.1), dtype=F64)
     h = 0.1 / 8
     x = torch.cat([rest, rest + torch.tensor([shift * h, shift * 0.6 * h, 1e-3], dtype=F64)]).to(dtype)
